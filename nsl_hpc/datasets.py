@@ -1,0 +1,102 @@
+"""Training and test sets of a simulated system, assembled from cached trajectories.
+
+Trajectory i of seed s is the same wherever it is used: a task with n_t trajectories takes a prefix of
+the pool (system, s), so tasks of one seed share cached simulations. The test set has its own seed.
+"""
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from nsl_hpc.cache import ArrayCache
+from nsl_hpc.seeding import stable_seed
+from nsl_hpc.systems import build_system
+from nsl_hpc.systems.simulation import Trajectory, draw_multisine, simulate
+
+# Bump when the simulation code changes results, so cached trajectories are not reused.
+SIMULATION_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """Samples stacked over trajectories; N rows each."""
+
+    x: np.ndarray  # (N, n) state
+    u: np.ndarray  # (N, m) input
+    dx: np.ndarray  # (N, n) dx/dt
+    y: np.ndarray  # (N, m) output
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+
+def points_per_trajectory(system_cfg: Mapping[str, Any]) -> int:
+    """Samples in one simulated trajectory (1,000 for 10 s at 0.01 s)."""
+    sim = system_cfg["simulation"]
+    return round(sim["duration_s"] / sim["dt_s"])
+
+
+def split_trajectory_count(n_traj: float, points: int) -> tuple[int, int]:
+    """n_t = a + b -> (a whole trajectories, floor(b * points) samples of trajectory a+1)."""
+    whole = math.floor(n_traj)
+    return whole, math.floor((n_traj - whole) * points)
+
+
+def training_points(n_traj: float, points: int) -> int:
+    """Number of training samples for n_t trajectories of ``points`` samples."""
+    whole, partial = split_trajectory_count(n_traj, points)
+    return whole * points + partial
+
+
+def load_trajectory(system_cfg: Mapping[str, Any], split: str, seed: int, index: int,
+                    cache: ArrayCache) -> Trajectory:
+    """Trajectory ``index`` of the pool (system, split, seed), simulated once and then read from cache."""
+    key = {
+        "version": SIMULATION_VERSION,
+        "system": {k: system_cfg[k] for k in ("name", "params", "initial_box", "input", "simulation")},
+        "split": split,
+        "seed": seed,
+        "index": index,
+    }
+
+    def create() -> dict[str, np.ndarray]:
+        trajectory = simulate_trajectory(system_cfg, stable_seed("trajectory", key))
+        return {field: getattr(trajectory, field) for field in ("t", "x", "u", "dx", "y")}
+
+    return Trajectory(**cache.get_or_create(key, create))
+
+
+def simulate_trajectory(system_cfg: Mapping[str, Any], seed: int) -> Trajectory:
+    """One experiment: x0 uniform in the initial box, a fresh multisine per input channel."""
+    system = build_system(system_cfg["name"], system_cfg["params"])
+    rng = np.random.default_rng(seed)
+    box = np.asarray(system_cfg["initial_box"], dtype=float)  # (n, 2)
+    x0 = rng.uniform(box[:, 0], box[:, 1])
+    excitation = draw_multisine(rng, system.input_dim, **system_cfg["input"])
+    trajectory = simulate(system, x0, excitation, **system_cfg["simulation"])
+    if not np.all(np.isfinite(trajectory.x)):
+        raise FloatingPointError(f"simulation of {system_cfg['name']} (seed {seed}) diverged")
+    return trajectory
+
+
+def stack(trajectories: list[Trajectory]) -> Dataset:
+    return Dataset(*(np.concatenate([getattr(t, f) for t in trajectories]) for f in ("x", "u", "dx", "y")))
+
+
+def training_set(system_cfg: Mapping[str, Any], seed: int, n_traj: float, cache: ArrayCache) -> Dataset:
+    """The first n_t trajectories of seed ``seed``; a fractional part takes a prefix of the next one."""
+    whole, partial = split_trajectory_count(n_traj, points_per_trajectory(system_cfg))
+    parts = [load_trajectory(system_cfg, "train", seed, i, cache) for i in range(whole)]
+    if partial:
+        parts.append(load_trajectory(system_cfg, "train", seed, whole, cache).head(partial))
+    return stack(parts)
+
+
+def test_set(system_cfg: Mapping[str, Any], cache: ArrayCache) -> Dataset:
+    """The fixed test set of a system, shared by every task of that system."""
+    spec = system_cfg["test_set"]
+    return stack([load_trajectory(system_cfg, "test", spec["seed"], i, cache)
+                  for i in range(spec["trajectories"])])

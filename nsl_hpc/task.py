@@ -1,0 +1,186 @@
+"""One task of a sweep: validate its config, draw its sizes, train one model, score it, write its row.
+
+Sizes are drawn from the task's grid coordinates: d uniform in [d~/2, d~], n_t = d / 10 trajectories,
+n_h an integer in [n_h~/2, n_h~], n_d an integer in [n_d~/2, n_d~]. The draws, the initial weights and the
+batch order depend on (sweep_seed, system, arch, seed, data_tier, width_tier, depth_tier) and nothing
+else; the epoch count is left out on purpose, so tasks that differ only in n_e train the same model on the
+same data for longer.
+"""
+
+import math
+import platform
+import socket
+import time
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+import nsl_hpc
+from nsl_hpc.cache import ArrayCache
+from nsl_hpc.datasets import points_per_trajectory, test_set, training_points, training_set
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.metrics import normalized_errors
+from nsl_hpc.models import build_model
+from nsl_hpc.models.blocks import parameter_count
+from nsl_hpc.rows import row_path, write_row_atomically
+from nsl_hpc.seeding import stable_hash, stable_seed
+from nsl_hpc.systems import SYSTEMS
+from nsl_hpc.training import Scaling, predict_derivative, train_model
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """A task's grid coordinates and the sizes drawn from them."""
+
+    system: str
+    arch: str
+    seed: int
+    sweep_seed: int
+    epochs: int  # n_e
+    data_tier: int  # d~
+    width_tier: int  # n_h~
+    depth_tier: int  # n_d~
+    data_size: float  # d, uniform in [d~/2, d~]
+    n_traj: float  # n_t = d / 10
+    width: int  # n_h
+    depth: int  # n_d
+
+    def coordinates(self) -> tuple:
+        """What the random draws depend on (everything but the epoch count)."""
+        return (self.sweep_seed, self.system, self.arch, self.seed,
+                self.data_tier, self.width_tier, self.depth_tier)
+
+
+def require_member(key: str, value: Any, allowed: list) -> None:
+    if value not in allowed:
+        raise ConfigError(f"{key}={value!r} is outside the grid; allowed: {', '.join(map(str, allowed))}")
+
+
+def require_positive_int(key: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+        raise ConfigError(f"{key}={value!r} must be a positive integer")
+
+
+def resolve_task(cfg: DictConfig) -> TaskSpec:
+    """Validate the task's keys (raising ConfigError before any work) and draw its sizes."""
+    if cfg.system.name not in SYSTEMS:
+        raise ConfigError(f"unknown system {cfg.system.name!r}; choose one of: {', '.join(sorted(SYSTEMS))}")
+    for key in ("epochs", "data_tier", "width_tier", "depth_tier"):
+        require_positive_int(key, cfg[key])
+    for key in ("seed", "sweep_seed"):
+        if isinstance(cfg[key], bool) or not isinstance(cfg[key], int) or cfg[key] < 0:
+            raise ConfigError(f"{key}={cfg[key]!r} must be a non-negative integer")
+    require_member("data_tier", cfg.data_tier, list(cfg.tiers.data))
+    require_member("width_tier", cfg.width_tier, list(cfg.tiers.width))
+    require_member("depth_tier", cfg.depth_tier, list(cfg.tiers.depth))
+    require_positive_int("train.batch_size", cfg.train.batch_size)
+    if not cfg.train.lr > 0:
+        raise ConfigError(f"train.lr={cfg.train.lr!r} must be positive")
+
+    draw_key = (cfg.sweep_seed, cfg.system.name, cfg.arch.name, cfg.seed,
+                cfg.data_tier, cfg.width_tier, cfg.depth_tier)
+    rng = np.random.default_rng(stable_seed("sizes", *draw_key))
+    data_size = float(rng.uniform(cfg.data_tier / 2, cfg.data_tier))
+    width = int(rng.integers(math.ceil(cfg.width_tier / 2), cfg.width_tier, endpoint=True))
+    depth = int(rng.integers(math.ceil(cfg.depth_tier / 2), cfg.depth_tier, endpoint=True))
+    return TaskSpec(cfg.system.name, cfg.arch.name, cfg.seed, cfg.sweep_seed, cfg.epochs, cfg.data_tier,
+                    cfg.width_tier, cfg.depth_tier, data_size, data_size / cfg.data_per_trajectory,
+                    width, depth)
+
+
+OUTCOME_KEYS = ("system", "arch", "train", "epochs", "data_tier", "width_tier", "depth_tier", "seed",
+                "sweep_seed", "data_per_trajectory")
+
+
+def task_id(cfg: DictConfig) -> str:
+    """Hash of every config value that changes a task's outcome (not paths, threads or force)."""
+    values = OmegaConf.to_container(cfg, resolve=True)
+    return stable_hash({key: values[key] for key in OUTCOME_KEYS})
+
+
+def ensure_writable_dir(path: Path) -> None:
+    """Create ``path`` if needed and prove a file can be written there, or raise ConfigError."""
+    probe = path / f".write-test-{socket.gethostname()}-{time.monotonic_ns()}"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe.touch()
+    except OSError as error:
+        raise ConfigError(f"out_dir={str(path)!r} is not writable ({error.strerror}); "
+                          "choose a directory you can write to") from None
+    probe.unlink()
+
+
+@dataclass(frozen=True)
+class TaskResult:
+    path: Path
+    row: dict[str, Any] | None  # None when the task was skipped because its row exists
+    skipped: bool
+
+
+def run_task(cfg: DictConfig) -> TaskResult:
+    """Train and score the task described by ``cfg`` and write its row under ``cfg.out_dir``."""
+    started = time.perf_counter()
+    spec = resolve_task(cfg)
+    identifier = cfg.task_id or task_id(cfg)
+    system_class = SYSTEMS[spec.system]
+    torch.manual_seed(stable_seed("init", *spec.coordinates()))
+    model = build_model(cfg.arch, system_class.state_dim, system_class.input_dim, spec.width, spec.depth)
+
+    out_dir = Path(cfg.out_dir)
+    path = row_path(out_dir, identifier)
+    if path.exists() and not cfg.force:
+        return TaskResult(path, None, skipped=True)
+    ensure_writable_dir(out_dir)
+
+    torch.set_num_threads(cfg.threads)
+    cache = ArrayCache(cfg.cache_dir)
+    system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+    train_data = training_set(system_cfg, spec.seed, spec.n_traj, cache)
+    test_data = test_set(system_cfg, cache)
+
+    train_started = time.perf_counter()
+    scaling = Scaling.fit(train_data)
+    outcome = train_model(model, train_data, scaling, cfg.train, spec.epochs,
+                          stable_seed("shuffle", *spec.coordinates()))
+    train_seconds = time.perf_counter() - train_started
+    metrics = normalized_errors(test_data.dx, predict_derivative(model, test_data, scaling,
+                                                                 getattr(torch, cfg.train.dtype)))
+    finite = outcome.finite and all(math.isfinite(v) for v in metrics.values())
+
+    params = parameter_count(model)
+    points = training_points(spec.n_traj, points_per_trajectory(system_cfg))
+    row = {
+        "task_id": identifier,
+        **asdict(spec),
+        "train_points": points,
+        "batch_size": cfg.train.batch_size,
+        "lr": cfg.train.lr,
+        "nmae": metrics["nmae"],
+        "nmse": metrics["nmse"],
+        "params": params,
+        "flops": float(params) * spec.epochs * points,
+        "steps": outcome.steps,
+        "final_loss": outcome.final_loss,
+        "status": "ok" if finite else "diverged",
+        "train_seconds": train_seconds,
+        "wall_seconds": time.perf_counter() - started,
+        "package_version": nsl_hpc.__version__,
+        "torch_version": torch.__version__,
+        "python_version": platform.python_version(),
+        "host": socket.gethostname(),
+    }
+    write_row_atomically(row, path)
+    return TaskResult(path, row, skipped=False)
+
+
+def describe(row: Mapping[str, Any]) -> str:
+    """One line summarising a finished task."""
+    return (f"{row['system']}/{row['arch']} seed={row['seed']} n_e={row['epochs']} d={row['data_size']:.2f} "
+            f"n_h={row['width']} n_d={row['depth']}: nMAE={row['nmae']:.4g} nMSE={row['nmse']:.4g} "
+            f"params={row['params']} flops={row['flops']:.3g} status={row['status']} "
+            f"({row['wall_seconds']:.1f} s)")
