@@ -86,7 +86,7 @@ def stack(trajectories: list[Trajectory]) -> Dataset:
     return Dataset(*(np.concatenate([getattr(t, f) for t in trajectories]) for f in ("x", "u", "dx", "y")))
 
 
-def training_set(system_cfg: Mapping[str, Any], seed: int, n_traj: float, cache: ArrayCache) -> Dataset:
+def build_training_set(system_cfg: Mapping[str, Any], seed: int, n_traj: float, cache: ArrayCache) -> Dataset:
     """The first n_t trajectories of seed ``seed``; a fractional part takes a prefix of the next one."""
     whole, partial = split_trajectory_count(n_traj, points_per_trajectory(system_cfg))
     parts = [load_trajectory(system_cfg, "train", seed, i, cache) for i in range(whole)]
@@ -95,7 +95,7 @@ def training_set(system_cfg: Mapping[str, Any], seed: int, n_traj: float, cache:
     return stack(parts)
 
 
-def test_set(system_cfg: Mapping[str, Any], cache: ArrayCache) -> Dataset:
+def build_test_set(system_cfg: Mapping[str, Any], cache: ArrayCache) -> Dataset:
     """The fixed test set of a system, shared by every task of that system."""
     spec = system_cfg["test_set"]
     return stack([load_trajectory(system_cfg, "test", spec["seed"], i, cache)

@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import nsl_hpc
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.datasets import points_per_trajectory, test_set, training_points, training_set
+from nsl_hpc.datasets import build_test_set, build_training_set, points_per_trajectory, training_points
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.metrics import normalized_errors
 from nsl_hpc.models import build_model
@@ -140,8 +140,8 @@ def run_task(cfg: DictConfig) -> TaskResult:
     torch.set_num_threads(cfg.threads)
     cache = ArrayCache(cfg.cache_dir)
     system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
-    train_data = training_set(system_cfg, spec.seed, spec.n_traj, cache)
-    test_data = test_set(system_cfg, cache)
+    train_data = build_training_set(system_cfg, spec.seed, spec.n_traj, cache)
+    test_data = build_test_set(system_cfg, cache)
 
     train_started = time.perf_counter()
     scaling = Scaling.fit(train_data)

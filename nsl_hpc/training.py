@@ -1,10 +1,12 @@
 """Training of one state-space model on (x, u) -> (dx/dt, y) samples, and its predictions.
 
-Models work in standardised coordinates: z = (x - mean_x) / std_x and v = (u - mean_u) / std_u, from
-training statistics. Their targets are dz/dt = dx/dt / std_x and the output conjugate to v,
-y * std_u, so a port-Hamiltonian model in z is one in x as well (J, R scale by the diagonal std_x and
-keep their skew / PSD structure). The loss is invariant to these per-column scalings anyway: each
-column's error is divided by the spread of that column's targets in the batch.
+Models work in standardised coordinates, fitted on the training data: z = (x - mean_x) / std_x,
+v = (u - mean_u) / std_u, a rescaled time in which dz/dt is O(1), and a rescaled output conjugate to v
+(y std_u, divided by its RMS). A port-Hamiltonian model in these coordinates is one in x, u, t as well:
+the diagonal std_x keeps J skew and R PSD, and the two scalar rescalings (of time and of energy) only
+scale J, R and H. The loss is invariant to these per-column scalings anyway: each column's error is
+divided by the spread of that column's targets in the batch; they matter for optimisation, which
+otherwise spends its steps growing output weights to the targets' magnitude.
 """
 
 import math
@@ -20,22 +22,28 @@ from tqdm import tqdm
 from nsl_hpc.datasets import Dataset
 
 
+def nonzero(scale: np.ndarray | float) -> np.ndarray | float:
+    """A scale with zeros replaced by 1, so a constant column is centred, not blown up."""
+    return np.where(scale > 0, scale, 1.0)
+
+
 @dataclass(frozen=True)
 class Scaling:
-    """Standard scaling fitted on training data; every array is (n,) or (m,)."""
+    """Standard scaling fitted on training data: arrays are (n,) or (m,), the rest scalars."""
 
     x_mean: np.ndarray
     x_std: np.ndarray
     u_mean: np.ndarray
     u_std: np.ndarray
+    derivative_rms: float  # RMS of dx/dt / std_x: the time rescaling
+    output_rms: float  # RMS of y std_u: the output (energy) rescaling
 
     @classmethod
     def fit(cls, data: Dataset) -> "Scaling":
-        def spread(a: np.ndarray) -> np.ndarray:
-            std = a.std(axis=0)
-            return np.where(std > 0, std, 1.0)  # a constant column is centred, not blown up
-
-        return cls(data.x.mean(axis=0), spread(data.x), data.u.mean(axis=0), spread(data.u))
+        x_std, u_std = nonzero(data.x.std(axis=0)), nonzero(data.u.std(axis=0))
+        rms = lambda a: float(nonzero(np.sqrt(np.mean(np.square(a)))))  # noqa: E731
+        return cls(data.x.mean(axis=0), x_std, data.u.mean(axis=0), u_std,
+                   rms(data.dx / x_std), rms(data.y * u_std))
 
     def model_inputs(self, data: Dataset, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """z (N, n), v (N, m)."""
@@ -43,9 +51,9 @@ class Scaling:
                 torch.as_tensor((data.u - self.u_mean) / self.u_std, dtype=dtype))
 
     def model_targets(self, data: Dataset, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
-        """dz/dt (N, n), conjugate output (N, m)."""
-        return (torch.as_tensor(data.dx / self.x_std, dtype=dtype),
-                torch.as_tensor(data.y * self.u_std, dtype=dtype))
+        """Rescaled dz/dt (N, n) and conjugate output (N, m)."""
+        return (torch.as_tensor(data.dx / self.x_std / self.derivative_rms, dtype=dtype),
+                torch.as_tensor(data.y * self.u_std / self.output_rms, dtype=dtype))
 
 
 def batch_normalized_mse(predicted: torch.Tensor, target: torch.Tensor, floor: float) -> torch.Tensor:
@@ -121,4 +129,4 @@ def predict_derivative(model: nn.Module, data: Dataset, scaling: Scaling, dtype:
     z, v = scaling.model_inputs(data, dtype)
     with torch.no_grad():
         parts = [model(z[i:i + chunk], v[i:i + chunk])[0] for i in range(0, len(data), chunk)]
-    return torch.cat(parts).double().numpy() * scaling.x_std
+    return torch.cat(parts).double().numpy() * scaling.derivative_rms * scaling.x_std

@@ -8,7 +8,7 @@ B = [[1, 0], [0, 1], [0, 0]]
 
 
 class Motor(PortHamiltonianSystem):
-    """H = (phi_d^2 + phi_q^2)/(2L) + p^2/(2 Jm);  J couples the fluxes to the rotor;  R = diag(r, r, beta)."""
+    """H = (phi_d^2 + phi_q^2)/(2L) + p^2/(2 Jm); J couples fluxes and rotor; R = diag(r, r, beta)."""
 
     state_dim = 3
     input_dim = 2

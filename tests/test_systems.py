@@ -1,0 +1,75 @@
+"""The simulated benchmark systems obey their port-Hamiltonian structure and stay bounded."""
+
+import numpy as np
+import pytest
+from scipy.integrate import odeint
+
+from nsl_hpc.datasets import simulate_trajectory
+from nsl_hpc.systems import build_system
+from nsl_hpc.systems.simulation import draw_multisine
+from tests.conftest import SYSTEM_NAMES, system_config
+
+# Largest |state| seen over 5 study trajectories: spring 3.2, ball 3.2, motor 3.7; bounds with margin.
+STATE_BOUND = {"spring": 8.0, "ball": 10.0, "motor": 10.0}
+
+
+@pytest.mark.parametrize("name", SYSTEM_NAMES)
+def test_structure_matrices(name):
+    cfg = system_config(name)
+    system = build_system(name, cfg["params"])
+    x = np.random.default_rng(0).normal(size=(50, system.state_dim))
+    J, R = system.interconnection(x), system.dissipation(x)
+    np.testing.assert_allclose(J, -np.swapaxes(J, 1, 2), atol=0)
+    np.testing.assert_allclose(R, np.swapaxes(R, 1, 2), atol=0)
+    assert np.linalg.eigvalsh(R).min() >= -1e-12
+    assert system.hamiltonian(x).min() >= 0
+
+
+@pytest.mark.parametrize("name", SYSTEM_NAMES)
+def test_power_balance_along_trajectories(name):
+    """dH/dt = -grad H^T R grad H + y^T u pointwise, and integrated along a simulated trajectory."""
+    cfg = system_config(name)
+    system = build_system(name, cfg["params"])
+    trajectory = simulate_trajectory(cfg, seed=7)
+    pointwise = np.sum(system.grad_hamiltonian(trajectory.x) * trajectory.dx, axis=1)
+    balance = system.power_balance(trajectory.x, trajectory.u)
+    np.testing.assert_allclose(pointwise, balance, rtol=1e-10, atol=1e-10 * np.abs(balance).max())
+
+    # Integrate the supplied-minus-dissipated power next to the state; it must equal H(x(t)) - H(x(0)).
+    rng = np.random.default_rng(3)
+    box = np.asarray(cfg["initial_box"])
+    x0 = rng.uniform(box[:, 0], box[:, 1])
+    excitation = draw_multisine(rng, system.input_dim, **cfg["input"])
+    n = system.state_dim
+
+    def augmented(state, t):
+        x, u = state[None, :n], excitation(t)
+        return np.append(system.derivative(x, u)[0], system.power_balance(x, u)[0])
+
+    t = np.linspace(0.0, 2.0, 201)
+    solution = odeint(augmented, np.append(x0, 0.0), t, rtol=1e-11, atol=1e-11)
+    energy_change = system.hamiltonian(solution[:, :n]) - system.hamiltonian(x0[None])
+    scale = np.abs(energy_change).max() + system.hamiltonian(x0[None])[0]
+    np.testing.assert_allclose(energy_change, solution[:, n], atol=1e-7 * scale)
+
+
+@pytest.mark.parametrize("name", SYSTEM_NAMES)
+def test_trajectories_finite_and_bounded(name):
+    cfg = system_config(name)
+    for seed in range(5):
+        trajectory = simulate_trajectory(cfg, seed)
+        assert trajectory.x.shape == (1000, len(cfg["initial_box"]))
+        assert np.all(np.isfinite(trajectory.x)) and np.all(np.isfinite(trajectory.dx))
+        assert np.abs(trajectory.x).max() < STATE_BOUND[name]
+        np.testing.assert_allclose(trajectory.t[1] - trajectory.t[0], 0.01)
+
+
+def test_multisine_has_the_configured_harmonics():
+    rng = np.random.default_rng(0)
+    excitation = draw_multisine(rng, channels=2, amplitude=0.4, f0_hz=0.1, harmonics=40)
+    t = np.arange(1000) * 0.01  # exactly one period of f0
+    u = excitation(t)
+    spectrum = np.abs(np.fft.rfft(u, axis=0)) / (len(t) / 2)
+    np.testing.assert_allclose(spectrum[1:41], 0.4, rtol=1e-9)
+    assert spectrum[41:].max() < 1e-9
+    assert not np.allclose(u[:, 0], u[:, 1])  # independent phases per channel
