@@ -1,13 +1,10 @@
 """Shared fixtures: composed configs and a private trajectory cache per test session."""
 
 import pytest
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.cli import compose_config
-
-SYSTEM_NAMES = ["spring", "ball", "motor"]
-ARCH_NAMES = ["unstructured", "input_affine", "port_hamiltonian"]
 
 
 @pytest.fixture(scope="session")
@@ -18,11 +15,6 @@ def cache_dir(tmp_path_factory) -> str:
 @pytest.fixture(scope="session")
 def cache(cache_dir) -> ArrayCache:
     return ArrayCache(cache_dir)
-
-
-def system_config(name: str) -> dict:
-    """The plain-dict ``system`` config group of system ``name``."""
-    return OmegaConf.to_container(compose_config([f"system={name}"]).system, resolve=True)
 
 
 @pytest.fixture

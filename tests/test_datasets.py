@@ -13,7 +13,7 @@ from nsl_hpc.datasets import (
     split_trajectory_count,
     training_points,
 )
-from tests.conftest import system_config
+from tests.helpers import system_config
 
 
 @pytest.mark.parametrize(("n_traj", "whole", "partial", "points"), [

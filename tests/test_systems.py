@@ -7,7 +7,7 @@ from scipy.integrate import odeint
 from nsl_hpc.datasets import simulate_trajectory
 from nsl_hpc.systems import build_system
 from nsl_hpc.systems.simulation import draw_multisine
-from tests.conftest import SYSTEM_NAMES, system_config
+from tests.helpers import SYSTEM_NAMES, system_config
 
 # Largest |state| seen over 5 study trajectories: spring 3.2, ball 3.2, motor 3.7; bounds with margin.
 STATE_BOUND = {"spring": 8.0, "ball": 10.0, "motor": 10.0}

@@ -17,7 +17,7 @@ from nsl_hpc.training import (
     train_model,
     warmup_cosine,
 )
-from tests.conftest import ARCH_NAMES, SYSTEM_NAMES
+from tests.helpers import ARCH_NAMES, SYSTEM_NAMES
 
 # A trained model must reach at most this fraction of an untrained model's nMAE. Measured with the
 # settings below (2 trajectories, n_h = 16, n_d = 1, 60 epochs = 480 steps, default train config),

@@ -1,0 +1,109 @@
+#!/usr/bin/env bash
+# Start a real single-node SLURM cluster on this Debian machine, as root: munge, MariaDB + slurmdbd (so
+# sacct works), slurmctld and slurmd. Idempotent: what runs already is kept; a changed config is applied
+# with a restart of the SLURM daemons.
+#
+#   sudo cluster/up.sh                      # install what is missing, start, wait until the node is idle
+#   MAX_ARRAY_SIZE=50 cluster/up.sh         # a cluster with smaller limits (array-splitting tests)
+#   cluster/up.sh --optional                # for `make test`: without root, say so and exit 0
+#
+# Settings (environment): CLUSTER_NAME (nsl), MAX_ARRAY_SIZE (1001), MAX_JOB_COUNT (10000),
+# CLUSTER_STATE (/var/lib/nsl-cluster: spool, state and logs).
+set -euo pipefail
+
+CLUSTER_NAME=${CLUSTER_NAME:-nsl}
+MAX_ARRAY_SIZE=${MAX_ARRAY_SIZE:-1001}
+MAX_JOB_COUNT=${MAX_JOB_COUNT:-10000}
+STATE=${CLUSTER_STATE:-/var/lib/nsl-cluster}
+HERE=$(cd "$(dirname "$0")" && pwd)
+PACKAGES=(slurm-wlm slurmdbd munge mariadb-server)
+
+say() { echo "cluster: $*"; }
+die() { echo "cluster: error: $*" >&2; exit 1; }
+
+if [[ $(id -u) -ne 0 ]]; then
+  if [[ ${1:-} == --optional && ${CI:-} != true ]]; then
+    say "not root: no local SLURM cluster, the SLURM tests will be skipped (run 'sudo cluster/up.sh')"
+    exit 0
+  fi
+  die "must run as root (it installs packages and starts daemons): sudo $0"
+fi
+
+install_packages() {
+  local missing=()
+  for package in "${PACKAGES[@]}"; do
+    dpkg-query -W -f='${Status}' "$package" 2>/dev/null | grep -q "ok installed" || missing+=("$package")
+  done
+  [[ ${#missing[@]} -eq 0 ]] && return
+  say "installing ${missing[*]}"
+  export DEBIAN_FRONTEND=noninteractive
+  apt-get update -qq
+  apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+}
+
+# Zombies of daemons stopped by down.sh do not count.
+running() { pgrep -x "$1" --runstates D,R,S >/dev/null; }
+
+wait_for() {  # wait_for SECONDS DESCRIPTION COMMAND...
+  local seconds=$1 what=$2; shift 2
+  for _ in $(seq "$seconds"); do "$@" >/dev/null 2>&1 && return 0; sleep 1; done
+  die "$what did not come up within ${seconds} s; see $STATE/log/"
+}
+
+start_munge() {
+  if [[ ! -s /etc/munge/munge.key ]]; then
+    dd if=/dev/urandom of=/etc/munge/munge.key bs=1024 count=1 status=none
+  fi
+  chown munge:munge /etc/munge/munge.key && chmod 400 /etc/munge/munge.key
+  mkdir -p /run/munge && chown munge:munge /run/munge
+  running munged || su -s /bin/sh munge -c "/usr/sbin/munged --force"
+  wait_for 20 munge munge -n
+}
+
+start_database() {
+  running mariadbd || running mysqld || service mariadb start >/dev/null
+  wait_for 60 MariaDB mysqladmin ping
+  mysql -e "CREATE USER IF NOT EXISTS 'slurm'@'localhost' IDENTIFIED BY '$DB_PASSWORD';
+            ALTER USER 'slurm'@'localhost' IDENTIFIED BY '$DB_PASSWORD';
+            GRANT ALL ON slurm_acct_db.* TO 'slurm'@'localhost';"
+}
+
+render() {  # render TEMPLATE DESTINATION MODE: returns 0 when the destination changed
+  local rendered
+  rendered=$(sed -e "s|@CLUSTER@|$CLUSTER_NAME|g" -e "s|@HOST@|$HOST|g" -e "s|@CPUS@|$(nproc)|g" \
+    -e "s|@MEMORY_MB@|$MEMORY_MB|g" -e "s|@STATE@|$STATE|g" -e "s|@MAX_ARRAY_SIZE@|$MAX_ARRAY_SIZE|g" \
+    -e "s|@MAX_JOB_COUNT@|$MAX_JOB_COUNT|g" -e "s|@DB_PASSWORD@|$DB_PASSWORD|g" "$1")
+  if [[ -f $2 && "$(cat "$2")" == "$rendered" ]]; then return 1; fi
+  install -m "$3" /dev/null "$2"
+  printf '%s\n' "$rendered" > "$2"
+}
+
+restart() {  # restart DAEMON: stop it if running, start it
+  if running "$1"; then pkill -x "$1"; for _ in $(seq 30); do running "$1" || break; sleep 0.5; done; fi
+  "/usr/sbin/$1"
+}
+
+install_packages
+HOST=$(hostname -s)
+# Leave 512 MB to the system; slurmd refuses a node that claims more memory than it has.
+MEMORY_MB=$(( $(awk '/MemTotal/ {print int($2 / 1024)}' /proc/meminfo) - 512 ))
+mkdir -p "$STATE"/{slurmctld,slurmd,log} /etc/slurm
+chmod 700 "$STATE"
+[[ -s $STATE/db_password ]] || head -c 18 /dev/urandom | base64 | tr -d '/+=' > "$STATE/db_password"
+DB_PASSWORD=$(cat "$STATE/db_password")
+
+start_munge
+start_database
+dbd_changed=0; ctl_changed=0
+render "$HERE/slurmdbd.conf.template" /etc/slurm/slurmdbd.conf 600 && dbd_changed=1
+render "$HERE/slurm.conf.template" /etc/slurm/slurm.conf 644 && ctl_changed=1
+
+if [[ $dbd_changed == 1 ]] || ! running slurmdbd; then restart slurmdbd; fi
+wait_for 60 slurmdbd sacctmgr -n show cluster
+if ! sacctmgr -n -P show cluster format=cluster | grep -qx "$CLUSTER_NAME"; then
+  sacctmgr -i add cluster "$CLUSTER_NAME" >/dev/null
+fi
+if [[ $ctl_changed == 1 ]] || ! running slurmctld; then restart slurmctld; fi
+if [[ $ctl_changed == 1 ]] || ! running slurmd; then restart slurmd; fi
+wait_for 60 "the node $HOST" bash -c "sinfo -h -N -o %T | grep -Eq '^(idle|mixed|allocated)'"
+say "up: cluster $CLUSTER_NAME, node $HOST, $(nproc) CPUs, MaxArraySize=$MAX_ARRAY_SIZE, logs in $STATE/log"

@@ -1,0 +1,13 @@
+"""Names and configs shared by several test modules."""
+
+from omegaconf import OmegaConf
+
+from nsl_hpc.cli import compose_config
+
+SYSTEM_NAMES = ["spring", "ball", "motor"]
+ARCH_NAMES = ["unstructured", "input_affine", "port_hamiltonian"]
+
+
+def system_config(name: str) -> dict:
+    """The plain-dict ``system`` config group of system ``name``."""
+    return OmegaConf.to_container(compose_config([f"system={name}"]).system, resolve=True)
