@@ -66,6 +66,17 @@ def require_positive_int(key: str, value: Any) -> None:
         raise ConfigError(f"{key}={value!r} must be a positive integer")
 
 
+def draw_sizes(sweep_seed: int, system: str, arch: str, seed: int, data_tier: int, width_tier: int,
+               depth_tier: int) -> tuple[float, int, int]:
+    """(d, n_h, n_d) of a task, drawn from its grid coordinates (the epoch count excluded)."""
+    rng = np.random.default_rng(stable_seed("sizes", sweep_seed, system, arch, seed, data_tier, width_tier,
+                                            depth_tier))
+    data_size = float(rng.uniform(data_tier / 2, data_tier))
+    width = int(rng.integers(math.ceil(width_tier / 2), width_tier, endpoint=True))
+    depth = int(rng.integers(math.ceil(depth_tier / 2), depth_tier, endpoint=True))
+    return data_size, width, depth
+
+
 def resolve_task(cfg: DictConfig) -> TaskSpec:
     """Validate the task's keys (raising ConfigError before any work) and draw its sizes."""
     if cfg.system.name not in SYSTEMS:
@@ -82,25 +93,33 @@ def resolve_task(cfg: DictConfig) -> TaskSpec:
     if not cfg.train.lr > 0:
         raise ConfigError(f"train.lr={cfg.train.lr!r} must be positive")
 
-    draw_key = (cfg.sweep_seed, cfg.system.name, cfg.arch.name, cfg.seed,
-                cfg.data_tier, cfg.width_tier, cfg.depth_tier)
-    rng = np.random.default_rng(stable_seed("sizes", *draw_key))
-    data_size = float(rng.uniform(cfg.data_tier / 2, cfg.data_tier))
-    width = int(rng.integers(math.ceil(cfg.width_tier / 2), cfg.width_tier, endpoint=True))
-    depth = int(rng.integers(math.ceil(cfg.depth_tier / 2), cfg.depth_tier, endpoint=True))
+    data_size, width, depth = draw_sizes(cfg.sweep_seed, cfg.system.name, cfg.arch.name, cfg.seed,
+                                         cfg.data_tier, cfg.width_tier, cfg.depth_tier)
     return TaskSpec(cfg.system.name, cfg.arch.name, cfg.seed, cfg.sweep_seed, cfg.epochs, cfg.data_tier,
                     cfg.width_tier, cfg.depth_tier, data_size, data_size / cfg.data_per_trajectory,
                     width, depth)
 
 
-OUTCOME_KEYS = ("system", "arch", "train", "epochs", "data_tier", "width_tier", "depth_tier", "seed",
-                "sweep_seed", "data_per_trajectory")
+# Every config value that changes a task's outcome (paths, threads, force and the like do not):
+# the config groups shared by many tasks, and the scalars that differ between tasks of a sweep.
+SHARED_OUTCOME_KEYS = ("system", "arch", "train", "data_per_trajectory")
+TASK_OUTCOME_KEYS = ("sweep_seed", "seed", "epochs", "data_tier", "width_tier", "depth_tier")
+
+
+def shared_identity(values: Mapping[str, Any]) -> str:
+    """Hash of the shared outcome-changing groups of a plain config dict."""
+    return stable_hash({key: values[key] for key in SHARED_OUTCOME_KEYS})
+
+
+def task_id_from(shared: str, values: Mapping[str, Any]) -> str:
+    """A task's id from its ``shared_identity`` and its scalar coordinates (cheap for 63k tasks)."""
+    return stable_hash([shared, *(values[key] for key in TASK_OUTCOME_KEYS)])
 
 
 def task_id(cfg: DictConfig) -> str:
-    """Hash of every config value that changes a task's outcome (not paths, threads or force)."""
+    """Hash of every config value that changes the task's outcome."""
     values = OmegaConf.to_container(cfg, resolve=True)
-    return stable_hash({key: values[key] for key in OUTCOME_KEYS})
+    return task_id_from(shared_identity(values), values)
 
 
 def ensure_writable_dir(path: Path) -> None:
