@@ -1,12 +1,11 @@
 """A content-addressed on-disk store of numpy arrays, safe under many concurrent readers and writers.
 
-Each entry is one ``.npz`` file named by the hash of its key. Writers write a private temporary file in the
-same directory and ``os.replace`` it into place, so a reader sees either nothing or a whole file; two
-writers of the same key write identical content, so the last rename winning is harmless.
+Each entry is one ``.npz`` file named by the hash of its key, written atomically (``nsl_hpc.atomic``), so a
+reader sees either nothing or a whole file; two writers of the same key write identical content, so the
+last rename winning is harmless.
 """
 
 import os
-import tempfile
 import zipfile
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -14,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from nsl_hpc.atomic import replacing
 from nsl_hpc.seeding import stable_hash
 
 Arrays = dict[str, np.ndarray]
@@ -37,17 +37,6 @@ class ArrayCache:
                 return {name: stored[name] for name in stored.files}
         except (FileNotFoundError, zipfile.BadZipFile, ValueError, EOFError, OSError):
             arrays = create()
-            self._store(path, arrays)
-            return arrays
-
-    @staticmethod
-    def _store(path: Path, arrays: Arrays) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as handle:
+            with replacing(path) as temporary, temporary.open("wb") as handle:
                 np.savez(handle, **arrays)
-            os.replace(temporary, path)
-        except BaseException:
-            Path(temporary).unlink(missing_ok=True)
-            raise
+            return arrays

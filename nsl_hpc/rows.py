@@ -1,13 +1,14 @@
 """Task outcome rows: one single-row Parquet file per task, written atomically."""
 
 import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
 import pyarrow.parquet as pq
+
+from nsl_hpc.atomic import write_parquet
 
 
 def row_path(out_dir: str | os.PathLike, task_id: str) -> Path:
@@ -17,15 +18,7 @@ def row_path(out_dir: str | os.PathLike, task_id: str) -> Path:
 
 def write_row_atomically(row: Mapping[str, Any], path: Path) -> None:
     """Write ``row`` as a one-row Parquet file: a temporary file in the same directory, then a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        pq.write_table(pa.Table.from_pylist([dict(row)]), temporary)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    write_parquet(pa.Table.from_pylist([dict(row)]), path)
 
 
 def read_row(path: Path) -> dict[str, Any]:

@@ -62,11 +62,15 @@ def batch_normalized_mse(predicted: torch.Tensor, target: torch.Tensor, floor: f
     return ((predicted - target) / spread).square().mean()
 
 
+def batch_count(samples: int, batch_size: int) -> int:
+    """Mini-batches per epoch: ceil(samples / batch_size), less one when a single sample would trail."""
+    count = -(-samples // batch_size)
+    return count - 1 if count > 1 and samples % batch_size == 1 else count
+
+
 def batch_bounds(samples: int, batch_size: int) -> list[tuple[int, int]]:
-    """[start, stop) of each mini-batch; a trailing single sample joins the batch before it."""
-    starts = list(range(0, samples, batch_size))
-    if len(starts) > 1 and samples - starts[-1] == 1:
-        starts.pop()
+    """[start, stop) of each of the ``batch_count`` mini-batches; a trailing single sample joins the last."""
+    starts = [i * batch_size for i in range(batch_count(samples, batch_size))]
     return [(start, stop) for start, stop in zip(starts, [*starts[1:], samples], strict=True)]
 
 

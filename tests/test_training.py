@@ -12,6 +12,7 @@ from nsl_hpc.systems import SYSTEMS
 from nsl_hpc.training import (
     Scaling,
     batch_bounds,
+    batch_count,
     batch_normalized_mse,
     predict_derivative,
     train_model,
@@ -38,6 +39,7 @@ def test_warmup_then_cosine_to_zero():
 ])
 def test_batch_bounds(samples, expected):
     assert batch_bounds(samples, 256) == expected
+    assert batch_count(samples, 256) == len(expected)
 
 
 def test_batch_normalized_mse_divides_by_batch_spread():
