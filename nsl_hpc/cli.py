@@ -69,9 +69,10 @@ def usage(doc: str, cfg: DictConfig | None) -> str:
     return text
 
 
-def run(main: Callable[[DictConfig], int | None], doc: str, argv: Sequence[str] | None = None,
-        config_name: str = "config") -> None:
-    """Parse ``argv`` (default ``sys.argv[1:]``), compose the config, call ``main`` and exit."""
+def run(main: Callable[..., int | None], doc: str, argv: Sequence[str] | None = None,
+        config_name: str = "config", pass_overrides: bool = False) -> None:
+    """Parse ``argv`` (default ``sys.argv[1:]``), compose the config, call ``main(cfg)`` (or
+    ``main(cfg, overrides)``) and exit with its status."""
     args = list(sys.argv[1:] if argv is None else argv)
     flags = {a for a in args if a.startswith("-")}
     overrides = [a for a in args if not a.startswith("-")]
@@ -91,7 +92,7 @@ def run(main: Callable[[DictConfig], int | None], doc: str, argv: Sequence[str] 
         if "--cfg" in flags:
             print(OmegaConf.to_yaml(cfg), end="")
             sys.exit(0)
-        sys.exit(main(cfg) or 0)
+        sys.exit((main(cfg, overrides) if pass_overrides else main(cfg)) or 0)
     except ConfigError as error:
         print(f"error: {error}", file=sys.stderr)
         sys.exit(2)

@@ -11,7 +11,7 @@ import math
 import platform
 import socket
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -141,8 +141,23 @@ class TaskResult:
     skipped: bool
 
 
-def run_task(cfg: DictConfig) -> TaskResult:
-    """Train and score the task described by ``cfg`` and write its row under ``cfg.out_dir``."""
+def inject_fault(fault: Mapping[str, Any], seed: int) -> None:
+    """Test-only fault injection: ``fault.kind`` 'raise' fails the task, 'hang' freezes it (no heartbeat),
+    for tasks of seed ``fault.seed`` (every task when it is null)."""
+    if fault["kind"] is None or fault["seed"] not in (None, seed):
+        return
+    if fault["kind"] == "raise":
+        raise RuntimeError(f"injected fault (fault.kind=raise, seed {seed})")
+    if fault["kind"] == "hang":
+        while True:
+            time.sleep(3600)
+    raise ConfigError(f"fault.kind={fault['kind']!r}; allowed: null, raise, hang")
+
+
+def run_task(cfg: DictConfig, on_epoch: Callable[[], None] = lambda: None) -> TaskResult:
+    """Train and score the task described by ``cfg`` and write its row under ``cfg.out_dir``.
+
+    ``on_epoch`` is called after every epoch (a heartbeat for the watchdog of a job)."""
     started = time.perf_counter()
     spec = resolve_task(cfg)
     identifier = cfg.task_id or task_id(cfg)
@@ -162,10 +177,11 @@ def run_task(cfg: DictConfig) -> TaskResult:
     train_data = build_training_set(system_cfg, spec.seed, spec.n_traj, cache)
     test_data = build_test_set(system_cfg, cache)
 
+    inject_fault(cfg.fault, spec.seed)
     train_started = time.perf_counter()
     scaling = Scaling.fit(train_data)
     outcome = train_model(model, train_data, scaling, cfg.train, spec.epochs,
-                          stable_seed("shuffle", *spec.coordinates()))
+                          stable_seed("shuffle", *spec.coordinates()), on_epoch)
     train_seconds = time.perf_counter() - train_started
     metrics = normalized_errors(test_data.dx, predict_derivative(model, test_data, scaling,
                                                                  getattr(torch, cfg.train.dtype)))

@@ -10,7 +10,7 @@ otherwise spends its steps growing output weights to the targets' magnitude.
 """
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -91,11 +91,12 @@ class TrainingOutcome:
 
 
 def train_model(model: nn.Module, data: Dataset, scaling: Scaling, cfg: Mapping[str, Any], epochs: int,
-                shuffle_seed: int) -> TrainingOutcome:
+                shuffle_seed: int, on_epoch: Callable[[], None] = lambda: None) -> TrainingOutcome:
     """Adam with warm-up + cosine schedule and gradient clipping; ``cfg`` is the ``train`` config group.
 
-    Each epoch shuffles the samples once and walks through them in contiguous mini-batches.
-    Stops early (finite=False) when the loss becomes NaN or infinite.
+    Each epoch shuffles the samples once and walks through them in contiguous mini-batches, then calls
+    ``on_epoch`` (the heartbeat of a watched task). Stops early (finite=False) when the loss becomes NaN
+    or infinite.
     """
     dtype = getattr(torch, cfg["dtype"])
     z, v = scaling.model_inputs(data, dtype)
@@ -121,6 +122,7 @@ def train_model(model: nn.Module, data: Dataset, scaling: Scaling, cfg: Mapping[
             nn.utils.clip_grad_norm_(parameters, cfg["grad_clip_norm"], foreach=True)
             optimizer.step()
             step += 1
+        on_epoch()
         if not torch.isfinite(loss):
             return TrainingOutcome(step, loss.item(), finite=False)
     return TrainingOutcome(step, loss.item(), finite=True)

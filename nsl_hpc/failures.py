@@ -1,0 +1,53 @@
+"""Records of tasks that did not produce a row: why (failed, frozen, timeout) and the end of their log.
+
+``<sweep_dir>/failures/<id[:2]>/<id>.json`` holds the latest failure of a task and
+``<sweep_dir>/logs/<id[:2]>/<id>.log`` the output of its latest attempt (removed when the task succeeds).
+A row always wins: a task with a row is done, whatever failures it had before.
+"""
+
+import json
+import os
+import socket
+import time
+from pathlib import Path
+from typing import Any
+
+from nsl_hpc.atomic import write_text
+
+FAILURE_STATES = ("failed", "frozen", "timeout")
+
+
+def failure_path(sweep_dir: Path, task_id: str) -> Path:
+    return Path(sweep_dir) / "failures" / task_id[:2] / f"{task_id}.json"
+
+
+def task_log_path(sweep_dir: Path, task_id: str) -> Path:
+    return Path(sweep_dir) / "logs" / task_id[:2] / f"{task_id}.log"
+
+
+def log_tail(path: Path, lines: int = 20) -> str:
+    """The last ``lines`` lines of a log ('' when there is none)."""
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+    except FileNotFoundError:
+        return ""
+
+
+def record_failure(sweep_dir: Path, task_id: str, status: str, reason: str) -> None:
+    """Write (replace) the failure record of a task; ``status`` is one of FAILURE_STATES."""
+    assert status in FAILURE_STATES, status
+    record = {"task_id": task_id, "status": status, "reason": reason, "host": socket.gethostname(),
+              "job_id": os.environ.get("SLURM_JOB_ID"), "time": time.time(),
+              "log_tail": log_tail(task_log_path(sweep_dir, task_id))}
+    write_text(json.dumps(record), failure_path(sweep_dir, task_id))
+
+
+def read_failures(sweep_dir: Path) -> dict[str, dict[str, Any]]:
+    """Every failure record of a sweep by task id (unreadable records are skipped)."""
+    records = {}
+    for path in (Path(sweep_dir) / "failures").glob("*/*.json"):
+        try:
+            records[path.stem] = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+    return records

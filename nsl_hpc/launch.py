@@ -1,0 +1,63 @@
+"""Expand a sweep's grid, write its manifest, print the plan and run or submit its tasks.
+
+    python -m nsl_hpc.launch +sweep=demo                          # local processes, foreground
+    python -m nsl_hpc.launch +sweep=input_state launcher=slurm launcher.partition=cpu
+    python -m nsl_hpc.launch +sweep=input_state dry_run=true      # manifest and plan only
+
+Everything lands in sweep_dir (default runs/<sweep name>): manifest.parquet, configs/, rows/, logs/,
+failures/, submissions/. Launching again on the same sweep_dir runs only the tasks without a row;
+a sweep_dir holding a different grid is refused. launcher=slurm returns as soon as the job arrays are
+submitted; watch them with `python -m nsl_hpc.status sweep_dir=<dir>`.
+"""
+
+import sys
+from collections.abc import Sequence
+
+from omegaconf import DictConfig
+
+from nsl_hpc import cli
+from nsl_hpc.launcher import run_locally, submit_to_slurm
+from nsl_hpc.plan import Pack, make_packs
+from nsl_hpc.sweep import PreparedSweep, prepare_sweep
+
+
+def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str) -> str:
+    """The plan in a few lines: tasks, jobs, time limits, predicted core-hours."""
+    total, todo = prepared.manifest.num_rows, prepared.todo.num_rows
+    by_limit: dict[int, int] = {}
+    for pack in packs:
+        by_limit[pack.time_limit_min] = by_limit.get(pack.time_limit_min, 0) + 1
+    classes = ", ".join(f"{n:,} x {limit} min" for limit, n in sorted(by_limit.items()))
+    core_hours = sum(pack.seconds for pack in packs) / 3600
+    return (f"sweep {prepared.sweep_dir}: {total:,} tasks, {total - todo:,} done, {todo:,} to run\n"
+            f"  jobs: {len(packs):,} ({launcher}; time limits: {classes or 'none'})\n"
+            f"  predicted: {core_hours:,.1f} core-hours")
+
+
+def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
+    prepared = prepare_sweep(cfg, overrides)
+    todo = prepared.todo
+    # Packing is for the scheduler: local workers balance single tasks.
+    packing = {**cfg.packing, "enabled": cfg.packing.enabled and cfg.launcher.name == "slurm"}
+    packs = make_packs(todo["task_id"].to_pylist(), todo["seconds"].to_pylist(), packing)
+    print(describe_plan(prepared, packs, cfg.launcher.name))
+    if cfg.dry_run or not packs:
+        print("dry run: nothing submitted" if cfg.dry_run else "nothing to run: every task has a row")
+        return 0
+    if cfg.launcher.name == "slurm":
+        submission = submit_to_slurm(prepared.sweep_dir, packs, cfg.launcher, cfg.sweep.name)
+        elements = sum(submission.arrays.values())
+        print(f"submitted {elements:,} jobs in {len(submission.arrays)} arrays: {', '.join(submission.arrays)}")
+        if submission.left:
+            print(f"the cluster's job limits hold no more now: {len(submission.left):,} jobs "
+                  f"({sum(len(p.task_ids) for p in submission.left):,} tasks) were not submitted; launch "
+                  "again (or resubmit) once the queue has room")
+        return 0
+    counts = run_locally(prepared.sweep_dir, packs, cfg.launcher)
+    print("finished: " + ", ".join(f"{n:,} {outcome}" for outcome, n in sorted(counts.items())))
+    return 0 if set(counts) <= {"ok", "skipped"} else 1
+
+
+if __name__ == "__main__":
+    cli.run(main, __doc__, config_name="launch", pass_overrides=True)
+    sys.exit(0)

@@ -1,0 +1,115 @@
+"""Running packs with submitit: SLURM job arrays split within the cluster's limits (returns once
+submitted), or local / in-process executors in the foreground with a progress bar."""
+
+import itertools
+import json
+import os
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import submitit
+from tqdm import tqdm
+
+from nsl_hpc.atomic import write_text
+from nsl_hpc.packs import PackRunner
+from nsl_hpc.plan import Pack
+from nsl_hpc.rows import row_path
+from nsl_hpc.slurm import queued_jobs, read_limits
+
+SUBMISSIONS_DIR = "submissions"
+
+
+@dataclass(frozen=True)
+class Submission:
+    """What a launch handed to SLURM: arrays (id -> element count) and the packs left for later."""
+
+    arrays: dict[str, int]
+    left: list[Pack]
+
+
+def submit_to_slurm(sweep_dir: Path, packs: Sequence[Pack], launcher: Mapping[str, Any], name: str) -> Submission:
+    """Submit ``packs`` as job arrays, one time limit per array, indices from 0, within the limits."""
+    limits = read_limits(launcher)
+    room = limits.max_job_count - queued_jobs(user_only=False)
+    if limits.max_submit_jobs is not None:
+        room = min(room, limits.max_submit_jobs - queued_jobs(user_only=True))
+    ordered = sorted(packs, key=lambda pack: pack.time_limit_min)
+    now, left = ordered[:max(room, 0)], ordered[max(room, 0):]
+    arrays = {}
+    for limit, group in itertools.groupby(now, key=lambda pack: pack.time_limit_min):
+        group = list(group)
+        for start in range(0, len(group), limits.max_array_size):
+            chunk = group[start:start + limits.max_array_size]
+            array_id = submit_array(sweep_dir, chunk, limit, launcher, name)
+            arrays[array_id] = len(chunk)
+    return Submission(arrays, left)
+
+
+def submit_array(sweep_dir: Path, packs: Sequence[Pack], time_limit_min: int, launcher: Mapping[str, Any],
+                 name: str) -> str:
+    """One array of single-CPU elements, element i running ``packs[i]``; returns the array job id."""
+    executor = submitit.SlurmExecutor(folder=sweep_dir / "submitit" / "%A", max_num_timeout=3)
+    executor.update_parameters(
+        job_name=f"nsl-{name}", time=time_limit_min, cpus_per_task=1, ntasks_per_node=1, mem=launcher["mem"],
+        partition=launcher["partition"], account=launcher["account"], qos=launcher["qos"],
+        array_parallelism=launcher["array_parallelism"], signal_delay_s=launcher["signal_delay_s"],
+        additional_parameters=dict(launcher["extra_sbatch"]), setup=list(launcher["setup"]),
+        stderr_to_stdout=True)
+    jobs = executor.map_array(PackRunner(), [str(sweep_dir)] * len(packs), [list(p.task_ids) for p in packs])
+    array_id = jobs[0].job_id.split("_")[0]
+    record = {"array_id": array_id, "time_limit_min": time_limit_min, "submitted": time.time(),
+              "elements": [list(pack.task_ids) for pack in packs]}
+    write_text(json.dumps(record), sweep_dir / SUBMISSIONS_DIR / f"{array_id}.json")
+    return array_id
+
+
+def read_submissions(sweep_dir: Path) -> list[dict[str, Any]]:
+    """Every array submitted for the sweep, oldest first."""
+    records = [json.loads(p.read_text()) for p in (Path(sweep_dir) / SUBMISSIONS_DIR).glob("*.json")]
+    return sorted(records, key=lambda record: record["submitted"])
+
+
+def balance(packs: Sequence[Pack], workers: int) -> list[list[str]]:
+    """Task ids of ``packs`` spread over ``workers`` lists of about equal predicted time (longest first)."""
+    loads = [[0.0, []] for _ in range(min(workers, len(packs)))]
+    for pack in sorted(packs, key=lambda p: -p.seconds):
+        lightest = min(loads, key=lambda load: load[0])
+        lightest[0] += pack.seconds
+        lightest[1].extend(pack.task_ids)
+    return [task_ids for _, task_ids in loads]
+
+
+def run_locally(sweep_dir: Path, packs: Sequence[Pack], launcher: Mapping[str, Any]) -> dict[str, int]:
+    """Run ``packs`` on this machine (``launcher.name`` local: parallel processes; debug: in-process)
+    and wait, with a progress bar over tasks; returns counts by outcome."""
+    workers = launcher["workers"] or os.cpu_count() or 1
+    groups = balance(packs, workers)
+    task_ids = [task_id for group in groups for task_id in group]
+    folder = sweep_dir / "submitit" / "local" / "%j"
+    if launcher["name"] == "debug":
+        executor = submitit.DebugExecutor(folder=folder)
+    else:
+        executor = submitit.LocalExecutor(folder=folder)
+        executor.update_parameters(timeout_min=int(sum(p.seconds for p in packs) * 10 / 60) + 60)
+    jobs = executor.map_array(PackRunner(), [str(sweep_dir)] * len(groups), groups)
+    counts: dict[str, int] = {}
+    with tqdm(total=len(task_ids), desc="tasks", unit="task", disable=None) as bar:
+        pending = list(jobs)
+        while pending:
+            if launcher["name"] == "debug":
+                job = pending.pop(0)
+                finished = [job]
+                job.result()
+            else:
+                time.sleep(1.0)
+                finished = [job for job in pending if job.done()]
+                pending = [job for job in pending if not job.done()]
+            for job in finished:
+                for outcome, n in job.result().items():
+                    counts[outcome] = counts.get(outcome, 0) + n
+            bar.n = sum(row_path(sweep_dir, task_id).exists() for task_id in task_ids)
+            bar.refresh()
+    return counts

@@ -1,0 +1,133 @@
+"""What one job runs: the tasks of its pack, one after another, each in a watched child process.
+
+A child that raises or crashes is recorded as failed; one whose heartbeat (once per epoch) stops for
+``watchdog.heartbeat_timeout_s``, or that runs ``watchdog.overrun_factor`` times longer than predicted, is
+killed and recorded as frozen. Either way the pack goes on with its next task. On SLURM's warning
+signal before the time limit (submitit calls ``checkpoint``) the running task is recorded as timeout and
+the job is requeued with the tasks it has not started.
+"""
+
+import contextlib
+import multiprocessing
+import os
+import signal
+import sys
+import time
+import traceback
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+import pyarrow.compute as pc
+import submitit
+
+from nsl_hpc.failures import record_failure, task_log_path
+from nsl_hpc.manifest import read_manifest, task_config
+from nsl_hpc.plan import predicted_seconds
+from nsl_hpc.rows import row_path
+
+POLL_SECONDS = 0.2
+
+
+def manifest_rows(sweep_dir: Path, task_ids: Sequence[str]) -> list[dict[str, Any]]:
+    """The manifest rows of ``task_ids``, in that order."""
+    table = read_manifest(sweep_dir)
+    wanted = pa.array(list(task_ids), type=pa.string())
+    rows = table.filter(pc.is_in(table["task_id"], value_set=wanted)).to_pylist()
+    by_id = {row["task_id"]: row for row in rows}
+    return [by_id[task_id] for task_id in task_ids]
+
+
+def run_child(sweep_dir: Path, task: Mapping[str, Any], heartbeat) -> None:
+    """Child process body: output to the task's log, one thread, train; exit status 1 on an exception."""
+    log = task_log_path(sweep_dir, task["task_id"])
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "w") as handle:
+        os.dup2(handle.fileno(), 1)
+        os.dup2(handle.fileno(), 2)
+    sys.stdout = open(1, "w", buffering=1, closefd=False)  # noqa: SIM115
+    sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
+    try:
+        from nsl_hpc.task import describe, run_task
+
+        cfg = task_config(sweep_dir, task)
+        result = run_task(cfg, on_epoch=lambda: setattr(heartbeat, "value", time.time()))
+        print(describe(result.row) if result.row else f"skipped: {result.path} exists")
+    except BaseException:
+        traceback.print_exc()
+        sys.stderr.flush()
+        os._exit(1)
+    sys.stdout.flush()
+    os._exit(0)
+
+
+class PackRunner:
+    """The callable submitit pickles into every job: ``PackRunner()(sweep_dir, task_ids)``."""
+
+    def __init__(self) -> None:
+        self.running: tuple[Path, str, multiprocessing.Process] | None = None
+        self.started: set[str] = set()
+
+    def __call__(self, sweep_dir: str, task_ids: Sequence[str]) -> dict[str, int]:
+        """Run every task of the pack that has no row yet; returns counts by outcome."""
+        sweep = Path(sweep_dir)
+        counts: Counter[str] = Counter()
+        for task in manifest_rows(sweep, task_ids):
+            self.started.add(task["task_id"])
+            if row_path(sweep, task["task_id"]).exists():
+                counts["skipped"] += 1
+                continue
+            counts[self.run_watched(sweep, task)] += 1
+        return dict(counts)
+
+    def run_watched(self, sweep: Path, task: Mapping[str, Any]) -> str:
+        """Run one task in a child process under the watchdog; returns ok, failed or frozen."""
+        cfg = task_config(sweep, task)
+        watchdog = cfg.watchdog
+        predicted = predicted_seconds(task["arch"], task["steps"], task["params"], cfg.cost)
+        context = multiprocessing.get_context("fork")
+        heartbeat = context.Value("d", time.time(), lock=False)
+        child = context.Process(target=run_child, args=(sweep, task, heartbeat), daemon=True)
+        started = time.time()
+        child.start()
+        self.running = (sweep, task["task_id"], child)
+        try:
+            while child.is_alive():
+                child.join(POLL_SECONDS)
+                silent, elapsed = time.time() - heartbeat.value, time.time() - started
+                if child.is_alive() and silent > watchdog.heartbeat_timeout_s:
+                    return self.stop_frozen(child, sweep, task, f"no heartbeat for {silent:.0f} s")
+                if child.is_alive() and elapsed > watchdog.overrun_factor * predicted:
+                    return self.stop_frozen(child, sweep, task, f"ran {elapsed:.0f} s, over "
+                                            f"{watchdog.overrun_factor}x its predicted {predicted:.0f} s")
+        finally:
+            self.running = None
+        if child.exitcode == 0 and row_path(sweep, task["task_id"]).exists():
+            log = task_log_path(sweep, task["task_id"])
+            log.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):  # the bucket directory, once empty
+                log.parent.rmdir()
+            return "ok"
+        reason = (f"exit status {child.exitcode}" if child.exitcode >= 0
+                  else f"killed by signal {signal.Signals(-child.exitcode).name}")
+        record_failure(sweep, task["task_id"], "failed", reason)
+        return "failed"
+
+    @staticmethod
+    def stop_frozen(child: multiprocessing.Process, sweep: Path, task: Mapping[str, Any], reason: str) -> str:
+        child.kill()
+        child.join()
+        record_failure(sweep, task["task_id"], "frozen", reason)
+        return "frozen"
+
+    def checkpoint(self, sweep_dir: str, task_ids: Sequence[str]) -> submitit.helpers.DelayedSubmission:
+        """On SLURM's warning signal: record the running task as timeout, requeue the unstarted ones."""
+        if self.running is not None:
+            sweep, task_id, child = self.running
+            with contextlib.suppress(ProcessLookupError):
+                child.kill()
+            record_failure(sweep, task_id, "timeout", "the job reached its time limit while this task ran")
+        remaining = [task_id for task_id in task_ids if task_id not in self.started]
+        return submitit.helpers.DelayedSubmission(PackRunner(), sweep_dir, remaining)
