@@ -31,10 +31,13 @@ def compose_config(overrides: Sequence[str], config_name: str = "config") -> Dic
         with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
             cfg = compose(config_name, overrides=list(overrides))
         OmegaConf.resolve(cfg)
+        missing = sorted(OmegaConf.missing_keys(cfg))
     except MissingConfigException as error:
         raise ConfigError(describe_missing_config(error)) from None
     except (HydraException, OmegaConfBaseException) as error:
         raise ConfigError(one_line(str(error))) from None
+    if missing:
+        raise ConfigError(f"{missing[0]} is required: add {missing[0]}=<value>")
     return cfg
 
 

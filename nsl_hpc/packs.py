@@ -22,11 +22,13 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.compute as pc
 import submitit
+from omegaconf import DictConfig
 
-from nsl_hpc.failures import record_failure, task_log_path
+from nsl_hpc.failures import failure_path, record_failure, task_log_path
 from nsl_hpc.manifest import read_manifest, task_config
 from nsl_hpc.plan import predicted_seconds
 from nsl_hpc.rows import row_path
+from nsl_hpc.task import describe, run_task
 
 POLL_SECONDS = 0.2
 
@@ -40,9 +42,9 @@ def manifest_rows(sweep_dir: Path, task_ids: Sequence[str]) -> list[dict[str, An
     return [by_id[task_id] for task_id in task_ids]
 
 
-def run_child(sweep_dir: Path, task: Mapping[str, Any], heartbeat) -> None:
-    """Child process body: output to the task's log, one thread, train; exit status 1 on an exception."""
-    log = task_log_path(sweep_dir, task["task_id"])
+def run_child(sweep_dir: Path, cfg: DictConfig, heartbeat) -> None:
+    """Child process body: output to the task's log, train; exit status 1 on an exception."""
+    log = task_log_path(sweep_dir, cfg.task_id)
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "w") as handle:
         os.dup2(handle.fileno(), 1)
@@ -50,9 +52,6 @@ def run_child(sweep_dir: Path, task: Mapping[str, Any], heartbeat) -> None:
     sys.stdout = open(1, "w", buffering=1, closefd=False)  # noqa: SIM115
     sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
     try:
-        from nsl_hpc.task import describe, run_task
-
-        cfg = task_config(sweep_dir, task)
         result = run_task(cfg, on_epoch=lambda: setattr(heartbeat, "value", time.time()))
         print(describe(result.row) if result.row else f"skipped: {result.path} exists")
     except BaseException:
@@ -85,11 +84,13 @@ class PackRunner:
     def run_watched(self, sweep: Path, task: Mapping[str, Any]) -> str:
         """Run one task in a child process under the watchdog; returns ok, failed or frozen."""
         cfg = task_config(sweep, task)
+        if cfg.fault.once and failure_path(sweep, task["task_id"]).exists():
+            cfg.fault.kind = None  # test-only faults strike a task's first attempt only
         watchdog = cfg.watchdog
         predicted = predicted_seconds(task["arch"], task["steps"], task["params"], cfg.cost)
         context = multiprocessing.get_context("fork")
         heartbeat = context.Value("d", time.time(), lock=False)
-        child = context.Process(target=run_child, args=(sweep, task, heartbeat), daemon=True)
+        child = context.Process(target=run_child, args=(sweep, cfg, heartbeat), daemon=True)
         started = time.time()
         child.start()
         self.running = (sweep, task["task_id"], child)

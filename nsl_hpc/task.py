@@ -143,7 +143,8 @@ class TaskResult:
 
 def inject_fault(fault: Mapping[str, Any], seed: int) -> None:
     """Test-only fault injection: ``fault.kind`` 'raise' fails the task, 'hang' freezes it (no heartbeat),
-    for tasks of seed ``fault.seed`` (every task when it is null)."""
+    for tasks of seed ``fault.seed`` (every task when it is null). ``fault.once`` is applied by the job
+    runner, which clears the fault for a task that already failed once."""
     if fault["kind"] is None or fault["seed"] not in (None, seed):
         return
     if fault["kind"] == "raise":

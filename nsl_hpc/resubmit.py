@@ -1,0 +1,60 @@
+"""Run again the tasks of a sweep that have no row: failed, frozen, timed out or missing (cancelled,
+lost, never submitted). Finished tasks are never re-run and rows never duplicated; running and pending
+tasks are left alone.
+
+    python -m nsl_hpc.resubmit sweep_dir=runs/input_state
+    python -m nsl_hpc.resubmit sweep_dir=runs/input_state 'states=[timeout]' time_factor=4
+
+It uses the launcher, packing and cost settings the sweep was launched with (<sweep_dir>/launch.yaml).
+"""
+
+import sys
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from nsl_hpc import cli
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.launcher import run_locally, submit_to_slurm
+from nsl_hpc.manifest import manifest_path
+from nsl_hpc.plan import make_packs, predicted_seconds
+from nsl_hpc.sweep import LAUNCH_CONFIG_FILE
+from nsl_hpc.sweep_state import read_sweep_state
+
+RESUBMITTABLE = ("failed", "frozen", "timeout", "missing")
+
+
+def main(cfg: DictConfig) -> int:
+    sweep_dir = Path(cfg.sweep_dir)
+    if not manifest_path(sweep_dir).exists():
+        raise ConfigError(f"sweep_dir={sweep_dir!r} has no manifest.parquet; launch a sweep there first")
+    bad = sorted(set(cfg.states) - set(RESUBMITTABLE))
+    if bad:
+        raise ConfigError(f"states={list(cfg.states)} has {bad[0]!r}; choose from {', '.join(RESUBMITTABLE)}")
+    if not cfg.time_factor >= 1:
+        raise ConfigError(f"time_factor={cfg.time_factor} must be at least 1")
+    launch = OmegaConf.load(f"{sweep_dir}/{LAUNCH_CONFIG_FILE}")
+    state = read_sweep_state(sweep_dir)
+    tasks = [task for task in state.manifest if state.states[task["task_id"]] in cfg.states]
+    if not tasks:
+        print(f"nothing to resubmit: no task is {' / '.join(cfg.states)}")
+        return 0
+    packing = {**launch.packing, "time_safety": launch.packing.time_safety * cfg.time_factor,
+               "enabled": launch.packing.enabled and launch.launcher.name == "slurm"}
+    seconds = [predicted_seconds(t["arch"], t["steps"], t["params"], launch.cost) for t in tasks]
+    packs = make_packs([t["task_id"] for t in tasks], seconds, packing)
+    print(f"resubmitting {len(tasks):,} tasks ({', '.join(cfg.states)}) in {len(packs):,} jobs")
+    if launch.launcher.name == "slurm":
+        submission = submit_to_slurm(sweep_dir, packs, launch.launcher, launch.sweep.name)
+        print(f"submitted {sum(submission.arrays.values()):,} jobs in arrays {', '.join(submission.arrays)}")
+        if submission.left:
+            print(f"{len(submission.left):,} jobs did not fit the cluster's limits: resubmit again later")
+        return 0
+    counts = run_locally(sweep_dir, packs, launch.launcher)
+    print("finished: " + ", ".join(f"{n:,} {outcome}" for outcome, n in sorted(counts.items())))
+    return 0 if set(counts) <= {"ok", "skipped"} else 1
+
+
+if __name__ == "__main__":
+    cli.run(main, __doc__, config_name="resubmit")
+    sys.exit(0)

@@ -1,0 +1,79 @@
+"""Where a sweep stands: done / running / pending / failed / frozen / timeout / missing tasks, a progress
+bar with an ETA, and the failed tasks with the last lines of their logs.
+
+    python -m nsl_hpc.status sweep_dir=runs/demo
+    python -m nsl_hpc.status sweep_dir=runs/input_state wait=true     # until nothing runs or waits
+
+`missing` tasks have no row, no failure record and no active job (cancelled, lost, never submitted):
+`python -m nsl_hpc.resubmit sweep_dir=<dir>` runs them again, with the failed ones.
+"""
+
+import sys
+import time
+
+from omegaconf import DictConfig, OmegaConf
+
+from nsl_hpc import cli
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.manifest import manifest_path
+from nsl_hpc.plan import predicted_seconds
+from nsl_hpc.sweep import LAUNCH_CONFIG_FILE
+from nsl_hpc.sweep_state import STATES, SweepState, read_sweep_state
+
+LOG_LINES = 5  # log lines shown per failed task
+
+
+def remaining_hours(state: SweepState, cost) -> float:
+    """Predicted core-hours of the tasks without a row."""
+    return sum(predicted_seconds(task["arch"], task["steps"], task["params"], cost)
+               for task in state.manifest if state.states[task["task_id"]] != "done") / 3600
+
+
+def summary(state: SweepState, cost) -> str:
+    counts = state.counts()
+    total = len(state.states)
+    bar_width = 40
+    filled = round(bar_width * counts["done"] / total)
+    running = counts["running"]
+    hours = remaining_hours(state, cost)
+    eta = f"ETA {hours / running:.1f} h at {running} running" if running else f"{hours:.1f} core-hours left"
+    line = " | ".join(f"{name} {counts[name]:,}" for name in STATES)
+    return (f"{total:,} tasks: {line}\n[{'#' * filled}{'.' * (bar_width - filled)}] "
+            f"{100 * counts['done'] / total:.1f}% done, {eta}")
+
+
+def failure_report(state: SweepState, limit: int) -> str:
+    failed = [task for task in state.manifest if state.states[task["task_id"]] in ("failed", "frozen", "timeout")]
+    lines = []
+    for task in failed[:limit]:
+        record = state.failures[task["task_id"]]
+        lines.append(f"{record['status']} {task['task_id']} ({task['system']}/{task['arch']} seed={task['seed']} "
+                     f"n_e={task['epochs']}): {record['reason']}")
+        lines += [f"    | {line}" for line in record["log_tail"].splitlines()[-LOG_LINES:]]
+    if len(failed) > limit:
+        lines.append(f"... and {len(failed) - limit:,} more (show_failures=N lists more)")
+    return "\n".join(lines)
+
+
+def main(cfg: DictConfig) -> int:
+    if not manifest_path(cfg.sweep_dir).exists():
+        raise ConfigError(f"sweep_dir={cfg.sweep_dir!r} has no manifest.parquet; launch a sweep there first")
+    cost = OmegaConf.load(f"{cfg.sweep_dir}/{LAUNCH_CONFIG_FILE}").cost
+    interval = cfg.interval_s
+    while True:
+        state = read_sweep_state(cfg.sweep_dir)
+        print(summary(state, cost), flush=True)
+        active = state.counts()["running"] + state.counts()["pending"]
+        if not cfg.wait or not active:
+            break
+        time.sleep(interval)
+        interval = min(interval * 1.5, cfg.max_interval_s)  # back off: sites rate-limit sacct
+    report = failure_report(state, cfg.show_failures)
+    if report:
+        print(report)
+    return 0
+
+
+if __name__ == "__main__":
+    cli.run(main, __doc__, config_name="status")
+    sys.exit(0)

@@ -1,0 +1,58 @@
+"""Where every task of a sweep stands, from the manifest, the rows and failure records on disk, and
+one ``sacct`` call for all of the sweep's arrays."""
+
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from nsl_hpc.failures import read_failures
+from nsl_hpc.launcher import read_submissions
+from nsl_hpc.manifest import read_manifest
+from nsl_hpc.rows import row_path
+from nsl_hpc.slurm import job_states
+
+STATES = ("done", "running", "pending", "failed", "frozen", "timeout", "missing")
+ACTIVE_JOB_STATES = {"RUNNING": "running", "COMPLETING": "running", "PENDING": "pending", "REQUEUED": "pending",
+                     "CONFIGURING": "running", "RESIZING": "running", "SUSPENDED": "pending"}
+
+
+@dataclass(frozen=True)
+class SweepState:
+    """Each task's state (one of STATES) and the failure records behind the failed ones."""
+
+    states: dict[str, str]
+    failures: dict[str, dict[str, Any]]
+    manifest: list[dict[str, Any]]
+
+    def counts(self) -> Counter[str]:
+        return Counter(self.states.values())
+
+
+def read_sweep_state(sweep_dir: Path) -> SweepState:
+    """Classify every task: a row means done; else its latest array element's state while that is active;
+    else its failure record written since that submission (failed, frozen, timeout); else missing."""
+    sweep_dir = Path(sweep_dir)
+    manifest = read_manifest(sweep_dir, columns=["task_id", "system", "arch", "seed", "epochs", "steps", "params"])
+    failures = read_failures(sweep_dir)
+    latest: dict[str, tuple[str, float]] = {}  # task -> (array element, submission time)
+    submissions = read_submissions(sweep_dir)
+    for record in submissions:
+        for index, task_ids in enumerate(record["elements"]):
+            for task_id in task_ids:
+                latest[task_id] = (f"{record['array_id']}_{index}", record["submitted"])
+    element_states = job_states(record["array_id"] for record in submissions) if submissions else {}
+    states = {}
+    for task_id in manifest["task_id"].to_pylist():
+        if row_path(sweep_dir, task_id).exists():
+            states[task_id] = "done"
+            continue
+        element, submitted = latest.get(task_id, (None, 0.0))
+        failure = failures.get(task_id)
+        if failure is not None and failure["time"] >= submitted:
+            states[task_id] = failure["status"]
+        elif element in element_states and element_states[element] in ACTIVE_JOB_STATES:
+            states[task_id] = ACTIVE_JOB_STATES[element_states[element]]
+        else:
+            states[task_id] = "missing"
+    return SweepState(states, failures, manifest.to_pylist())
