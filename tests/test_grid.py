@@ -1,0 +1,77 @@
+"""Grid expansion and the manifest: the study's 63,504 tasks, marginal counts, reproducible draws."""
+
+from collections import Counter
+
+import pytest
+from omegaconf import OmegaConf
+
+from nsl_hpc.cli import compose_config
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.grid import GRID_AXES, expand_grid, grid_size
+from nsl_hpc.manifest import build_manifest
+from nsl_hpc.sweep import pair_configs
+from nsl_hpc.task import task_id
+
+
+def input_state_grid():
+    return compose_config(["+sweep=input_state"], "launch").sweep.grid
+
+
+def test_input_state_grid_has_63504_tasks_with_documented_marginals():
+    grid = input_state_grid()
+    tasks = list(expand_grid(grid))
+    assert len(tasks) == grid_size(grid) == 63_504
+    expected_per_value = {"system": 21_168, "arch": 21_168, "seed": 9_072, "epochs": 4_536, "data_tier": 7_056,
+                          "width_tier": 15_876, "depth_tier": 31_752}
+    for axis in GRID_AXES:
+        counts = Counter(task[axis] for task in tasks)
+        assert set(counts.values()) == {expected_per_value[axis]}, axis
+    assert sorted(Counter(task["epochs"] for task in tasks)) == [2**k for k in range(1, 15)]
+    assert len({tuple(task.values()) for task in tasks}) == 63_504
+
+
+@pytest.fixture(scope="module")
+def demo_manifest():
+    cfg = compose_config(["+sweep=demo"], "launch")
+    return cfg, build_manifest(cfg.sweep.grid, pair_configs(cfg, ["+sweep=demo"]), cfg.sweep_seed)
+
+
+def test_manifest_draws_are_reproducible_and_independent_of_order(demo_manifest):
+    cfg, manifest = demo_manifest
+    configs = pair_configs(cfg, ["+sweep=demo"])
+    again = build_manifest(cfg.sweep.grid, configs, cfg.sweep_seed)
+    assert manifest.equals(again)
+    reversed_grid = {axis: list(reversed(list(cfg.sweep.grid[axis]))) for axis in GRID_AXES}
+    by_id = {row["task_id"]: row for row in build_manifest(reversed_grid, configs, cfg.sweep_seed).to_pylist()}
+    assert all(by_id[row["task_id"]] == row for row in manifest.to_pylist())
+    other_seed = build_manifest(cfg.sweep.grid, configs, cfg.sweep_seed + 1)
+    assert other_seed["data_size"].to_pylist() != manifest["data_size"].to_pylist()
+
+
+def test_manifest_ids_and_sizes_match_the_single_task_path(demo_manifest):
+    """A manifest row equals what `nsl_hpc.train` with the same overrides computes."""
+    _, manifest = demo_manifest
+    for row in manifest.to_pylist()[::37]:
+        cfg = compose_config([f"{key}={row[key]}" for key in GRID_AXES])
+        assert task_id(cfg) == row["task_id"]
+    draws = manifest.to_pylist()
+    for row in draws:
+        assert row["data_tier"] / 2 <= row["data_size"] <= row["data_tier"]
+        assert row["width_tier"] // 2 <= row["width"] <= row["width_tier"]
+    same_but_epochs = {}
+    for row in draws:  # the epoch count never changes the draws
+        key = tuple(row[k] for k in GRID_AXES if k != "epochs")
+        same_but_epochs.setdefault(key, set()).add((row["data_size"], row["width"], row["depth"]))
+    assert all(len(sizes) == 1 for sizes in same_but_epochs.values())
+
+
+@pytest.mark.parametrize(("grid_update", "message"), [
+    ({"epochs": []}, "sweep.grid.epochs is empty: the grid has zero tasks"),
+    ({"color": [1]}, "unknown grid axis 'color'"),
+    ({"seed": [1, 1]}, "repeats a value"),
+])
+def test_bad_grids_are_refused(grid_update, message):
+    grid = OmegaConf.to_container(input_state_grid())
+    grid.update(grid_update)
+    with pytest.raises(ConfigError, match=message):
+        list(expand_grid(grid))

@@ -1,0 +1,96 @@
+"""Launch with the debug and local launchers: manifest, plan, rows, idempotent re-launch, bad input."""
+
+import pyarrow.parquet as pq
+import pytest
+
+from nsl_hpc.grid import GRID_AXES
+from nsl_hpc.rows import read_row
+from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
+
+
+@pytest.mark.parametrize("launcher", ["debug", "local"])
+def test_tiny_sweep_completes_with_one_row_per_task(launcher, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    result = nsl("launch", *TINY_GRID, f"launcher={launcher}", f"sweep_dir={sweep_dir}")
+    assert result.returncode == 0, result.stderr
+    assert "4 tasks, 0 done, 4 to run" in result.stdout and "finished: 4 ok" in result.stdout
+    manifest = pq.read_table(sweep_dir / "manifest.parquet")
+    assert {"task_id", *GRID_AXES, "sweep_seed", "data_size", "width", "depth", "steps", "flops"} <= set(
+        manifest.column_names)
+    rows = [read_row(path) for path in row_files(sweep_dir)]
+    assert sorted(row["task_id"] for row in rows) == sorted(manifest_ids(sweep_dir))
+    assert all(row["status"] == "ok" for row in rows)
+    assert not list((sweep_dir / "logs").glob("*/*.log"))  # logs of finished tasks are not kept
+
+
+def test_relaunch_runs_only_missing_tasks_and_never_rewrites_rows(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    assert nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}").returncode == 0
+    first, *rest = row_files(sweep_dir)
+    before = {path: path.stat().st_mtime_ns for path in rest}
+    first.unlink()
+    again = nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}")
+    assert again.returncode == 0 and "3 done, 1 to run" in again.stdout
+    assert first.exists() and all(path.stat().st_mtime_ns == mtime for path, mtime in before.items())
+    done = nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}")
+    assert "nothing to run" in done.stdout
+
+
+def test_dry_run_writes_manifest_and_plan_only(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    result = nsl("launch", "+sweep=input_state", f"sweep_dir={sweep_dir}", "launcher=slurm", "dry_run=true")
+    assert result.returncode == 0, result.stderr
+    assert "63,504 tasks, 0 done, 63,504 to run" in result.stdout and "core-hours" in result.stdout
+    assert len(manifest_ids(sweep_dir)) == 63_504
+    assert not (sweep_dir / "rows").exists() and not (sweep_dir / "submissions").exists()
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["+sweep=nonexistent"], "unknown sweep 'nonexistent'; choose one of: demo, input_state"),
+    ([], "no sweep chosen: add +sweep=<name>"),
+    (["+sweep=demo", "epochs=8"], "epochs is a grid axis of the sweep"),
+    (["+sweep=demo", "trian.lr=1"], "trian"),
+    (["+sweep=demo", "sweep.grid.epochs=[]"], "the grid has zero tasks"),
+    (["+sweep=demo", "sweep.grid.data_tier=[3]"], "sweep.grid.data_tier value=3 is outside the grid"),
+    (["+sweep=demo", "packing.time_classes_minutes=[0.001]"], "more than the largest of packing.time_classes"),
+])
+def test_bad_launches_fail_before_anything_is_written(args, message, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    result = nsl("launch", *args, f"sweep_dir={sweep_dir}", "launcher=debug")
+    assert result.returncode == 2
+    assert result.stderr.startswith("error: ") and message in result.stderr
+    assert not (sweep_dir / "rows").exists()
+
+
+def test_launch_on_a_directory_of_another_grid_is_refused(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    assert nsl("launch", *TINY_GRID, f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0
+    manifest = (sweep_dir / "manifest.parquet").read_bytes()
+    other = nsl("launch", *TINY_GRID, "train.lr=0.01", f"sweep_dir={sweep_dir}", "launcher=debug")
+    assert other.returncode == 2 and "holds a different grid" in other.stderr
+    assert (sweep_dir / "manifest.parquet").read_bytes() == manifest and not (sweep_dir / "rows").exists()
+
+
+def test_failed_and_frozen_tasks_are_recorded_and_resubmitted(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    hang = nsl("launch", *TINY_GRID, "launcher=local", f"sweep_dir={sweep_dir}", "fault.kind=hang", "fault.seed=1",
+               "watchdog.heartbeat_timeout_s=3")
+    assert hang.returncode == 1 and "1 frozen, 3 ok" in hang.stdout
+    status = nsl("status", f"sweep_dir={sweep_dir}")
+    assert "done 3 | running 0 | pending 0 | failed 0 | frozen 1" in status.stdout
+    assert "no heartbeat for" in status.stdout
+    finished = {path: path.stat().st_mtime_ns for path in row_files(sweep_dir)}
+    again = nsl("resubmit", f"sweep_dir={sweep_dir}")
+    assert again.returncode == 0 and "resubmitting 1 tasks" in again.stdout
+    assert len(row_files(sweep_dir)) == 4
+    assert all(path.stat().st_mtime_ns == mtime for path, mtime in finished.items())
+    assert "done 4 |" in nsl("status", f"sweep_dir={sweep_dir}").stdout
+    assert "nothing to resubmit" in nsl("resubmit", f"sweep_dir={sweep_dir}").stdout
+
+
+def test_raising_task_is_recorded_failed_with_its_log(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    result = nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "fault.kind=raise", "fault.seed=2")
+    assert result.returncode == 1 and "1 failed, 3 ok" in result.stdout
+    status = nsl("status", f"sweep_dir={sweep_dir}")
+    assert "failed 1" in status.stdout and "RuntimeError: injected fault" in status.stdout
