@@ -60,8 +60,9 @@ def submit_array(sweep_dir: Path, packs: Sequence[Pack], time_limit_min: int, la
         stderr_to_stdout=True)
     jobs = executor.map_array(PackRunner(), [str(sweep_dir)] * len(packs), [list(p.task_ids) for p in packs])
     array_id = jobs[0].job_id.split("_")[0]
+    # submitit submits a single element as a plain job: its id has no _<index>.
     record = {"array_id": array_id, "time_limit_min": time_limit_min, "submitted": time.time(),
-              "elements": [list(pack.task_ids) for pack in packs]}
+              "element_ids": [job.job_id for job in jobs], "elements": [list(pack.task_ids) for pack in packs]}
     write_text(json.dumps(record), sweep_dir / SUBMISSIONS_DIR / f"{array_id}.json")
     return array_id
 

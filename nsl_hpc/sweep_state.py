@@ -38,9 +38,9 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
     latest: dict[str, tuple[str, float]] = {}  # task -> (array element, submission time)
     submissions = read_submissions(sweep_dir)
     for record in submissions:
-        for index, task_ids in enumerate(record["elements"]):
+        for element, task_ids in zip(record["element_ids"], record["elements"], strict=True):
             for task_id in task_ids:
-                latest[task_id] = (f"{record['array_id']}_{index}", record["submitted"])
+                latest[task_id] = (element, record["submitted"])
     element_states = job_states(record["array_id"] for record in submissions) if submissions else {}
     states = {}
     for task_id in manifest["task_id"].to_pylist():

@@ -1,0 +1,75 @@
+"""Sweeps on the real cluster: job arrays, array splitting under a lowered MaxArraySize, faults
+(a hanging task, a raising task, scancel of part of an array) and resubmit."""
+
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
+
+REPO = Path(__file__).resolve().parents[2]
+pytestmark = pytest.mark.slurm
+UNPACKED = ["launcher=slurm", "packing.enabled=false"]
+
+
+def wait_for_sweep(sweep_dir: Path) -> str:
+    result = nsl("status", f"sweep_dir={sweep_dir}", "wait=true", "interval_s=1", "max_interval_s=2", timeout=900)
+    assert result.returncode == 0, result.stderr
+    return result.stdout
+
+
+def submitted_arrays(stdout: str) -> list[str]:
+    line = next(line for line in stdout.splitlines() if line.startswith("submitted"))
+    return line.split(": ", 1)[1].split(", ")
+
+
+def test_packed_sweep_completes_on_slurm(slurm_cluster, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    launched = nsl("launch", *TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "packing.pack_minutes=0.05")
+    assert launched.returncode == 0, launched.stderr
+    assert "submitted" in launched.stdout
+    status = wait_for_sweep(sweep_dir)
+    assert "done 4 |" in status
+    assert sorted(path.stem for path in row_files(sweep_dir)) == sorted(manifest_ids(sweep_dir))
+
+
+@pytest.fixture
+def small_max_array_size(slurm_cluster):
+    """The cluster restarted with MaxArraySize=3, restored afterwards."""
+    subprocess.run(["bash", str(REPO / "cluster" / "up.sh")], env={"MAX_ARRAY_SIZE": "3", "PATH": "/usr/bin:/bin:"
+                   "/usr/sbin:/sbin"}, check=True, capture_output=True)
+    yield 3
+    subprocess.run(["bash", str(REPO / "cluster" / "up.sh")], env={"PATH": "/usr/bin:/bin:/usr/sbin:/sbin"},
+                   check=True, capture_output=True)
+
+
+def test_sweep_larger_than_max_array_size_is_split(small_max_array_size, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    launched = nsl("launch", *TINY_GRID, "sweep.grid.seed=[0,1,2,3,4,5,6]", *UNPACKED, f"sweep_dir={sweep_dir}")
+    assert launched.returncode == 0, launched.stderr
+    assert len(submitted_arrays(launched.stdout)) == 3  # 7 elements with indices 0..2 at most: 3 + 3 + 1
+    assert "done 7 |" in wait_for_sweep(sweep_dir)
+
+
+def test_faults_on_slurm_then_resubmit_completes_every_task_once(slurm_cluster, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    launched = nsl("launch", *TINY_GRID, "sweep.grid.seed=[0,1,2,3,4,5]", "sweep.grid.epochs=[2,400]", *UNPACKED,
+                   f"sweep_dir={sweep_dir}", "fault.kind=hang", "fault.seed=1", "watchdog.heartbeat_timeout_s=5")
+    assert launched.returncode == 0, launched.stderr
+    (array,) = submitted_arrays(launched.stdout)
+    time.sleep(1)
+    subprocess.run(["scancel", f"{array}_9", f"{array}_10", f"{array}_11"], check=True)  # part of the array
+    status = wait_for_sweep(sweep_dir)
+    assert "frozen 2 |" in status  # seed 1 at both epoch counts
+    assert "missing 3" in status  # the cancelled elements
+    finished = {path: path.stat().st_mtime_ns for path in row_files(sweep_dir)}
+    assert len(finished) == 7
+
+    resubmitted = nsl("resubmit", f"sweep_dir={sweep_dir}")
+    assert resubmitted.returncode == 0 and "resubmitting 5 tasks" in resubmitted.stdout
+    status = wait_for_sweep(sweep_dir)
+    assert "done 12 |" in status
+    assert sorted(path.stem for path in row_files(sweep_dir)) == sorted(manifest_ids(sweep_dir))
+    assert all(path.stat().st_mtime_ns == mtime for path, mtime in finished.items())  # nothing recomputed
