@@ -1,5 +1,5 @@
 # Set-up and the two everyday commands. Everything installs into .venv on first use.
-#   make demo   run a handful of tasks end to end (the main job at this stage)
+#   make demo   the main job: the demo sweep (216 tasks) on local processes, then its status
 #   make test   start the local SLURM cluster (cluster/up.sh) and run the test suite
 PYTHON ?= python3
 VENV ?= .venv
@@ -19,13 +19,8 @@ $(INSTALLED): pyproject.toml
 	touch $@
 
 demo: $(INSTALLED)
-	@for system in spring ball motor; do \
-	  for arch in unstructured input_affine port_hamiltonian; do \
-	    $(PY) -m nsl_hpc.train system=$$system arch=$$arch epochs=32 data_tier=16 width_tier=8 \
-	      depth_tier=2 seed=0 out_dir=$(DEMO_DIR) || exit 1; \
-	  done; \
-	done
-	@echo "rows: $(DEMO_DIR)/rows/"
+	$(PY) -m nsl_hpc.launch +sweep=demo sweep_dir=$(DEMO_DIR)
+	$(PY) -m nsl_hpc.status sweep_dir=$(DEMO_DIR)
 
 # The SLURM tests need the real single-node cluster; without root they are skipped (under CI=true,
 # a cluster that cannot start fails the run).
