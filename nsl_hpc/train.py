@@ -25,5 +25,5 @@ def main(cfg: DictConfig) -> int:
 
 
 if __name__ == "__main__":
-    cli.run(main, __doc__)
+    cli.run(main, __doc__, config_name="one_task")
     sys.exit(0)
