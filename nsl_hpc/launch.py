@@ -16,8 +16,8 @@ from collections.abc import Sequence
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.launcher import run_locally, submit_to_slurm
-from nsl_hpc.plan import Pack, make_packs
+from nsl_hpc.launcher import dispatch
+from nsl_hpc.plan import Pack, make_packs, packing_for
 from nsl_hpc.sweep import PreparedSweep, prepare_sweep
 
 
@@ -37,26 +37,13 @@ def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str)
 def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
     prepared = prepare_sweep(cfg, overrides)
     todo = prepared.todo
-    # Packing is for the scheduler: local workers balance single tasks.
-    packing = {**cfg.packing, "enabled": cfg.packing.enabled and cfg.launcher.name == "slurm"}
-    packs = make_packs(todo["task_id"].to_pylist(), todo["seconds"].to_pylist(), packing)
+    packs = make_packs(todo["task_id"].to_pylist(), todo["seconds"].to_pylist(),
+                       packing_for(cfg.packing, cfg.launcher.name))
     print(describe_plan(prepared, packs, cfg.launcher.name))
     if cfg.dry_run or not packs:
         print("dry run: nothing submitted" if cfg.dry_run else "nothing to run: every task has a row")
         return 0
-    if cfg.launcher.name == "slurm":
-        submission = submit_to_slurm(prepared.sweep_dir, packs, cfg.launcher, cfg.sweep.name)
-        elements = sum(submission.arrays.values())
-        print(f"submitted {elements:,} jobs in {len(submission.arrays)} arrays: {', '.join(submission.arrays)}")
-        if submission.left:
-            print(f"the cluster's job limits hold no more now: {len(submission.left):,} jobs "
-                  f"({sum(len(p.task_ids) for p in submission.left):,} tasks) were not submitted; launch "
-                  "again (or resubmit) once the queue has room")
-        return 0
-    counts = run_locally(prepared.sweep_dir, packs, cfg.launcher)
-    print("finished: " + ", ".join(f"{n:,} {outcome}" for outcome, n in sorted(counts.items())))
-    return 0 if set(counts) <= {"ok", "skipped"} else 1
-
+    return dispatch(prepared.sweep_dir, packs, cfg.launcher, cfg.sweep.name)
 
 if __name__ == "__main__":
     cli.run(main, __doc__, config_name="launch", pass_overrides=True)

@@ -114,3 +114,20 @@ def run_locally(sweep_dir: Path, packs: Sequence[Pack], launcher: Mapping[str, A
             bar.n = sum(row_path(sweep_dir, task_id).exists() for task_id in task_ids)
             bar.refresh()
     return counts
+
+
+def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Mapping[str, Any], name: str) -> int:
+    """Submit ``packs`` (launcher slurm) or run them here, print what happened; returns the exit status:
+    1 when a task ran here and did not finish."""
+    if launcher["name"] == "slurm":
+        submission = submit_to_slurm(sweep_dir, packs, launcher, name)
+        elements = sum(submission.arrays.values())
+        print(f"submitted {elements:,} jobs in {len(submission.arrays)} arrays: {', '.join(submission.arrays)}")
+        if submission.left:
+            print(f"the cluster's job limits hold no more now: {len(submission.left):,} jobs "
+                  f"({sum(len(p.task_ids) for p in submission.left):,} tasks) were not submitted; launch "
+                  "again (or resubmit) once the queue has room")
+        return 0
+    counts = run_locally(sweep_dir, packs, launcher)
+    print("finished: " + ", ".join(f"{n:,} {outcome}" for outcome, n in sorted(counts.items())))
+    return 0 if set(counts) <= {"ok", "skipped"} else 1

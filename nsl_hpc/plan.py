@@ -35,6 +35,13 @@ def time_limit_minutes(seconds: float, packing: Mapping[str, Any]) -> int:
                       f"{list(packing['time_classes_minutes'])}; add a larger class or lower the safety factor")
 
 
+def packing_for(packing: Mapping[str, Any], launcher_name: str, time_factor: float = 1.0) -> dict[str, Any]:
+    """The packing settings a launcher uses: packing is for the scheduler (local workers balance single
+    tasks), and ``time_factor`` stretches the time limits (resubmission after timeouts)."""
+    return {**packing, "enabled": packing["enabled"] and launcher_name == "slurm",
+            "time_safety": packing["time_safety"] * time_factor}
+
+
 def make_packs(task_ids: Sequence[str], seconds: Sequence[float], packing: Mapping[str, Any]) -> list[Pack]:
     """Group tasks into packs: short tasks (under ``short_task_minutes``) fill packs of about
     ``pack_minutes`` of predicted work; longer ones (or all, with packing disabled) run alone."""

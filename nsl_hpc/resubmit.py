@@ -15,9 +15,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.launcher import run_locally, submit_to_slurm
+from nsl_hpc.launcher import dispatch
 from nsl_hpc.manifest import manifest_path
-from nsl_hpc.plan import make_packs, predicted_seconds
+from nsl_hpc.plan import make_packs, packing_for, predicted_seconds
 from nsl_hpc.sweep import LAUNCH_CONFIG_FILE
 from nsl_hpc.sweep_state import read_sweep_state
 
@@ -39,21 +39,11 @@ def main(cfg: DictConfig) -> int:
     if not tasks:
         print(f"nothing to resubmit: no task is {' / '.join(cfg.states)}")
         return 0
-    packing = {**launch.packing, "time_safety": launch.packing.time_safety * cfg.time_factor,
-               "enabled": launch.packing.enabled and launch.launcher.name == "slurm"}
+    packing = packing_for(launch.packing, launch.launcher.name, cfg.time_factor)
     seconds = [predicted_seconds(t["arch"], t["steps"], t["params"], launch.cost) for t in tasks]
     packs = make_packs([t["task_id"] for t in tasks], seconds, packing)
     print(f"resubmitting {len(tasks):,} tasks ({', '.join(cfg.states)}) in {len(packs):,} jobs")
-    if launch.launcher.name == "slurm":
-        submission = submit_to_slurm(sweep_dir, packs, launch.launcher, launch.sweep.name)
-        print(f"submitted {sum(submission.arrays.values()):,} jobs in arrays {', '.join(submission.arrays)}")
-        if submission.left:
-            print(f"{len(submission.left):,} jobs did not fit the cluster's limits: resubmit again later")
-        return 0
-    counts = run_locally(sweep_dir, packs, launch.launcher)
-    print("finished: " + ", ".join(f"{n:,} {outcome}" for outcome, n in sorted(counts.items())))
-    return 0 if set(counts) <= {"ok", "skipped"} else 1
-
+    return dispatch(sweep_dir, packs, launch.launcher, launch.sweep.name)
 
 if __name__ == "__main__":
     cli.run(main, __doc__, config_name="resubmit")

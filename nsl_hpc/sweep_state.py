@@ -1,6 +1,7 @@
 """Where every task of a sweep stands, from the manifest, the rows and failure records on disk, and
 one ``sacct`` call for all of the sweep's arrays."""
 
+import time
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,6 +13,7 @@ from nsl_hpc.manifest import read_manifest
 from nsl_hpc.rows import row_path
 from nsl_hpc.slurm import job_states
 
+ACCOUNTING_LAG_S = 30  # a just-submitted job may take a while to appear in sacct (slurmdbd restarts, load)
 STATES = ("done", "running", "pending", "failed", "frozen", "timeout", "missing")
 ACTIVE_JOB_STATES = {"RUNNING": "running", "COMPLETING": "running", "PENDING": "pending", "REQUEUED": "pending",
                      "CONFIGURING": "running", "RESIZING": "running", "SUSPENDED": "pending"}
@@ -53,6 +55,8 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
             states[task_id] = failure["status"]
         elif element in element_states and element_states[element] in ACTIVE_JOB_STATES:
             states[task_id] = ACTIVE_JOB_STATES[element_states[element]]
+        elif element is not None and element not in element_states and time.time() - submitted < ACCOUNTING_LAG_S:
+            states[task_id] = "pending"  # submitted, not yet in the accounting database
         else:
             states[task_id] = "missing"
     return SweepState(states, failures, manifest.to_pylist())

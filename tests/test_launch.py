@@ -74,7 +74,7 @@ def test_launch_on_a_directory_of_another_grid_is_refused(tmp_path):
 def test_failed_and_frozen_tasks_are_recorded_and_resubmitted(tmp_path):
     sweep_dir = tmp_path / "sweep"
     hang = nsl("launch", *TINY_GRID, "launcher=local", f"sweep_dir={sweep_dir}", "fault.kind=hang", "fault.seed=1",
-               "watchdog.heartbeat_timeout_s=3")
+               "watchdog.heartbeat_timeout_s=10")
     assert hang.returncode == 1 and "1 frozen, 3 ok" in hang.stdout
     status = nsl("status", f"sweep_dir={sweep_dir}")
     assert "done 3 | running 0 | pending 0 | failed 0 | frozen 1" in status.stdout
