@@ -21,11 +21,13 @@ ACTIVE_JOB_STATES = {"RUNNING": "running", "COMPLETING": "running", "PENDING": "
 
 @dataclass(frozen=True)
 class SweepState:
-    """Each task's state (one of STATES) and the failure records behind the failed ones."""
+    """Each task's state (one of STATES), the failure records behind the failed ones and the sacct
+    state of every array element of the sweep."""
 
     states: dict[str, str]
     failures: dict[str, dict[str, Any]]
     manifest: list[dict[str, Any]]
+    element_states: dict[str, str]
 
     def counts(self) -> Counter[str]:
         return Counter(self.states.values())
@@ -59,4 +61,4 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
             states[task_id] = "pending"  # submitted, not yet in the accounting database
         else:
             states[task_id] = "missing"
-    return SweepState(states, failures, manifest.to_pylist())
+    return SweepState(states, failures, manifest.to_pylist(), element_states)

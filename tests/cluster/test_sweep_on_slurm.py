@@ -33,6 +33,10 @@ def test_packed_sweep_completes_on_slurm(slurm_cluster, tmp_path):
     status = wait_for_sweep(sweep_dir)
     assert "done 4 |" in status
     assert sorted(path.stem for path in row_files(sweep_dir)) == sorted(manifest_ids(sweep_dir))
+    assert any((sweep_dir / "submitit").glob("*/*_submitted.pkl"))
+    assert nsl("clean", f"sweep_dir={sweep_dir}").returncode == 0
+    assert not any((sweep_dir / "submitit").glob("*/*"))  # every element finished
+    assert len(row_files(sweep_dir)) == 4
 
 
 @pytest.fixture
@@ -73,3 +77,23 @@ def test_faults_on_slurm_then_resubmit_completes_every_task_once(slurm_cluster, 
     assert "done 12 |" in status
     assert sorted(path.stem for path in row_files(sweep_dir)) == sorted(manifest_ids(sweep_dir))
     assert all(path.stat().st_mtime_ns == mtime for path, mtime in finished.items())  # nothing recomputed
+
+
+def test_time_limit_records_timeout_requeues_unstarted_tasks_and_resubmit_finishes(slurm_cluster, tmp_path):
+    """Two hanging tasks in one 1-minute job: SLURM's warning (--signal, 45 s before the limit) records
+    the first as timeout and requeues the job with the second, which times out in turn; a resubmit
+    (the fault strikes a first attempt only) finishes both."""
+    sweep_dir = tmp_path / "sweep"
+    launched = nsl("launch", *TINY_GRID, "sweep.grid.seed=[0,1]", "launcher=slurm", f"sweep_dir={sweep_dir}",
+                   "packing.time_classes_minutes=[1]", "launcher.signal_delay_s=45", "fault.kind=hang",
+                   "watchdog.overrun_factor=1000")
+    assert launched.returncode == 0, launched.stderr
+    assert len(submitted_arrays(launched.stdout)) == 1 and "submitted 1 jobs" in launched.stdout
+    status = wait_for_sweep(sweep_dir)
+    assert "timeout 2 |" in status, status
+    assert "reached its time limit" in status
+
+    resubmitted = nsl("resubmit", f"sweep_dir={sweep_dir}", "states=[timeout]", "time_factor=2")
+    assert resubmitted.returncode == 0 and "resubmitting 2 tasks" in resubmitted.stdout
+    assert "done 2 |" in wait_for_sweep(sweep_dir)
+    assert sorted(path.stem for path in row_files(sweep_dir)) == sorted(manifest_ids(sweep_dir))
