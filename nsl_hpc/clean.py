@@ -17,9 +17,8 @@ from omegaconf import DictConfig, OmegaConf
 from nsl_hpc import cli
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.failures import failure_path, task_log_path
-from nsl_hpc.launcher import read_submissions
-from nsl_hpc.manifest import manifest_path
-from nsl_hpc.sweep import LAUNCH_CONFIG_FILE
+from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, manifest_path
+from nsl_hpc.submissions import read_submissions
 from nsl_hpc.sweep_state import ACTIVE_JOB_STATES, read_sweep_state
 
 

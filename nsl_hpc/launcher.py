@@ -2,7 +2,6 @@
 submitted), or local / in-process executors in the foreground with a progress bar."""
 
 import itertools
-import json
 import os
 import time
 from collections.abc import Mapping, Sequence
@@ -13,13 +12,11 @@ from typing import Any
 import submitit
 from tqdm import tqdm
 
-from nsl_hpc.atomic import write_text
 from nsl_hpc.packs import PackRunner
 from nsl_hpc.plan import Pack
 from nsl_hpc.rows import row_path
 from nsl_hpc.slurm import queued_jobs, read_limits
-
-SUBMISSIONS_DIR = "submissions"
+from nsl_hpc.submissions import record_submission
 
 
 @dataclass(frozen=True)
@@ -28,6 +25,7 @@ class Submission:
 
     arrays: dict[str, int]
     left: list[Pack]
+    refusal: str | None = None  # sbatch's message when it refused an array
 
 
 def submit_to_slurm(sweep_dir: Path, packs: Sequence[Pack], launcher: Mapping[str, Any], name: str) -> Submission:
@@ -38,14 +36,24 @@ def submit_to_slurm(sweep_dir: Path, packs: Sequence[Pack], launcher: Mapping[st
         room = min(room, limits.max_submit_jobs - queued_jobs(user_only=True))
     ordered = sorted(packs, key=lambda pack: pack.time_limit_min)
     now, left = ordered[:max(room, 0)], ordered[max(room, 0):]
+    chunks = array_chunks(now, limits.max_array_size)
     arrays = {}
-    for limit, group in itertools.groupby(now, key=lambda pack: pack.time_limit_min):
-        group = list(group)
-        for start in range(0, len(group), limits.max_array_size):
-            chunk = group[start:start + limits.max_array_size]
-            array_id = submit_array(sweep_dir, chunk, limit, launcher, name)
-            arrays[array_id] = len(chunk)
+    for index, chunk in enumerate(chunks):
+        try:
+            arrays[submit_array(sweep_dir, chunk, chunk[0].time_limit_min, launcher, name)] = len(chunk)
+        except submitit.core.utils.FailedJobError as error:  # e.g. the controller is full: keep what went in
+            refused = [pack for later in chunks[index:] for pack in later]
+            return Submission(arrays, refused + left, refusal=" ".join(str(error).split())[-300:])
     return Submission(arrays, left)
+
+
+def array_chunks(packs: Sequence[Pack], max_array_size: int) -> list[list[Pack]]:
+    """``packs`` (sorted by time limit) cut into arrays of one time limit and at most ``max_array_size``."""
+    chunks = []
+    for _, same_limit in itertools.groupby(packs, key=lambda pack: pack.time_limit_min):
+        group = list(same_limit)
+        chunks += [group[start:start + max_array_size] for start in range(0, len(group), max_array_size)]
+    return chunks
 
 
 def submit_array(sweep_dir: Path, packs: Sequence[Pack], time_limit_min: int, launcher: Mapping[str, Any],
@@ -59,18 +67,10 @@ def submit_array(sweep_dir: Path, packs: Sequence[Pack], time_limit_min: int, la
         additional_parameters=dict(launcher["extra_sbatch"]), setup=list(launcher["setup"]),
         stderr_to_stdout=True)
     jobs = executor.map_array(PackRunner(), [str(sweep_dir)] * len(packs), [list(p.task_ids) for p in packs])
-    array_id = jobs[0].job_id.split("_")[0]
-    # submitit submits a single element as a plain job: its id has no _<index>.
-    record = {"array_id": array_id, "time_limit_min": time_limit_min, "submitted": time.time(),
-              "element_ids": [job.job_id for job in jobs], "elements": [list(pack.task_ids) for pack in packs]}
-    write_text(json.dumps(record), sweep_dir / SUBMISSIONS_DIR / f"{array_id}.json")
+    array_id = jobs[0].job_id.split("_")[0]  # a single element is a plain job: its id has no _<index>
+    record_submission(sweep_dir, array_id, time_limit_min, [job.job_id for job in jobs],
+                      [pack.task_ids for pack in packs])
     return array_id
-
-
-def read_submissions(sweep_dir: Path) -> list[dict[str, Any]]:
-    """Every array submitted for the sweep, oldest first."""
-    records = [json.loads(p.read_text()) for p in (Path(sweep_dir) / SUBMISSIONS_DIR).glob("*.json")]
-    return sorted(records, key=lambda record: record["submitted"])
 
 
 def balance(packs: Sequence[Pack], workers: int) -> list[list[str]]:
@@ -123,6 +123,8 @@ def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Mapping[str, Any]
         submission = submit_to_slurm(sweep_dir, packs, launcher, name)
         elements = sum(submission.arrays.values())
         print(f"submitted {elements:,} jobs in {len(submission.arrays)} arrays: {', '.join(submission.arrays)}")
+        if submission.refusal:
+            print(f"sbatch refused the next array: {submission.refusal}")
         if submission.left:
             print(f"the cluster's job limits hold no more now: {len(submission.left):,} jobs "
                   f"({sum(len(p.task_ids) for p in submission.left):,} tasks) were not submitted; launch "

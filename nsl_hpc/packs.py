@@ -22,13 +22,13 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.compute as pc
 import submitit
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.failures import failure_path, record_failure, task_log_path
-from nsl_hpc.manifest import read_manifest, task_config
+from nsl_hpc.manifest import base_config_path, read_manifest
 from nsl_hpc.plan import predicted_seconds
 from nsl_hpc.rows import row_path
-from nsl_hpc.task import describe, run_task
+from nsl_hpc.task import TASK_OUTCOME_KEYS, describe, run_task
 
 POLL_SECONDS = 0.2
 
@@ -40,6 +40,14 @@ def manifest_rows(sweep_dir: Path, task_ids: Sequence[str]) -> list[dict[str, An
     rows = table.filter(pc.is_in(table["task_id"], value_set=wanted)).to_pylist()
     by_id = {row["task_id"]: row for row in rows}
     return [by_id[task_id] for task_id in task_ids]
+
+
+def task_config(sweep_dir: Path, task: Mapping[str, Any]) -> DictConfig:
+    """The full config of one manifest row ``task`` (a dict with the manifest's columns)."""
+    cfg = OmegaConf.load(base_config_path(sweep_dir, task["system"], task["arch"]))
+    for key in (*TASK_OUTCOME_KEYS, "task_id"):  # system and arch are the base config's groups
+        cfg[key] = task[key]
+    return cfg
 
 
 def run_child(sweep_dir: Path, cfg: DictConfig, heartbeat) -> None:

@@ -10,7 +10,8 @@ from nsl_hpc.errors import ConfigError
 
 
 def predicted_seconds(arch: str, steps: int, params: int, cost: Mapping[str, Any]) -> float:
-    """Predicted wall time (s) of one task on one core, from the ``cost`` config."""
+    """Predicted wall time (s) of one task on one core, from the ``cost`` config (a plain dict when
+    called per task of a large sweep: DictConfig lookups are slow)."""
     per_step = cost["step_seconds"][arch] * (1 + params / cost["params_per_overhead"])
     return cost["startup_s"] + steps * per_step
 

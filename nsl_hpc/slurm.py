@@ -55,8 +55,10 @@ def read_limits(launcher: Mapping[str, Any]) -> Limits:
 
 
 def queued_jobs(user_only: bool) -> int:
-    """Pending and running jobs (array elements expanded) in the system or of this user."""
-    args = ["squeue", "-h", "-r", "-o", "%i"] + (["-u", getpass.getuser()] if user_only else [])
+    """Jobs (array elements expanded) that count against a limit: this user's pending and running ones
+    (MaxSubmitJobs), or every job record the controller holds (MaxJobCount: finished jobs count until
+    MinJobAge purges them)."""
+    args = ["squeue", "-h", "-r", "-o", "%i"] + (["-u", getpass.getuser()] if user_only else ["-t", "all"])
     return len(slurm_command(*args).split())
 
 

@@ -15,9 +15,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.manifest import manifest_path
+from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, manifest_path
 from nsl_hpc.plan import predicted_seconds
-from nsl_hpc.sweep import LAUNCH_CONFIG_FILE
 from nsl_hpc.sweep_state import STATES, SweepState, read_sweep_state
 
 LOG_LINES = 5  # log lines shown per failed task
@@ -58,7 +57,7 @@ def failure_report(state: SweepState, limit: int) -> str:
 def main(cfg: DictConfig) -> int:
     if not manifest_path(cfg.sweep_dir).exists():
         raise ConfigError(f"sweep_dir={cfg.sweep_dir!r} has no manifest.parquet; launch a sweep there first")
-    cost = OmegaConf.load(f"{cfg.sweep_dir}/{LAUNCH_CONFIG_FILE}").cost
+    cost = OmegaConf.to_container(OmegaConf.load(f"{cfg.sweep_dir}/{LAUNCH_CONFIG_FILE}").cost)
     interval = cfg.interval_s
     while True:
         state = read_sweep_state(cfg.sweep_dir)

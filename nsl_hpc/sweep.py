@@ -12,13 +12,11 @@ from omegaconf import DictConfig, OmegaConf
 from nsl_hpc.atomic import write_text
 from nsl_hpc.cli import compose_config
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.grid import GRID_AXES, grid_size, validate_grid
-from nsl_hpc.manifest import build_manifest, manifest_path, read_manifest, write_sweep
+from nsl_hpc.grid import GRID_AXES, build_manifest, grid_size, validate_grid
+from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, manifest_path, read_manifest, write_sweep
 from nsl_hpc.plan import predicted_seconds
 from nsl_hpc.rows import row_path
 from nsl_hpc.task import require_member, require_positive_int
-
-LAUNCH_CONFIG_FILE = "launch.yaml"
 
 
 def override_key(override: str) -> str:
@@ -77,7 +75,8 @@ def prepare_sweep(cfg: DictConfig, overrides: Sequence[str]) -> PreparedSweep:
     else:
         write_sweep(sweep_dir, manifest, configs)
         write_text(OmegaConf.to_yaml(cfg), sweep_dir / LAUNCH_CONFIG_FILE)
-    return PreparedSweep(sweep_dir, manifest, pending_tasks(sweep_dir, manifest, cfg.cost), reused)
+    return PreparedSweep(sweep_dir, manifest, pending_tasks(sweep_dir, manifest, OmegaConf.to_container(cfg.cost)),
+                         reused)
 
 
 def pending_tasks(sweep_dir: Path, manifest: pa.Table, cost) -> pa.Table:

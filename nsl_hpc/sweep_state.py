@@ -8,10 +8,10 @@ from pathlib import Path
 from typing import Any
 
 from nsl_hpc.failures import read_failures
-from nsl_hpc.launcher import read_submissions
 from nsl_hpc.manifest import read_manifest
 from nsl_hpc.rows import row_path
 from nsl_hpc.slurm import job_states
+from nsl_hpc.submissions import read_submissions
 
 ACCOUNTING_LAG_S = 30  # a just-submitted job may take a while to appear in sacct (slurmdbd restarts, load)
 STATES = ("done", "running", "pending", "failed", "frozen", "timeout", "missing")

@@ -7,8 +7,7 @@ from omegaconf import OmegaConf
 
 from nsl_hpc.cli import compose_config
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.grid import GRID_AXES, expand_grid, grid_size
-from nsl_hpc.manifest import build_manifest
+from nsl_hpc.grid import GRID_AXES, build_manifest, expand_grid, grid_size
 from nsl_hpc.sweep import pair_configs
 from nsl_hpc.task import task_id
 

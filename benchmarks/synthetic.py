@@ -1,0 +1,50 @@
+"""A full-size sweep directory without training: the manifest of a real grid and one row per task with
+made-up errors that follow a power law in compute. For benchmarking status, merge and fitting at scale."""
+
+import multiprocessing
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from nsl_hpc.failures import record_failure
+from nsl_hpc.manifest import read_manifest
+from nsl_hpc.rows import row_path, write_row_atomically
+
+
+def synthetic_row(task: dict, rng: np.random.Generator) -> dict:
+    """A row as a task writes it, with nMAE ~ 2 c^-0.15 scattered upwards (c: flops)."""
+    nmae = 2.0 * task["flops"] ** -0.15 * (1 + rng.exponential(0.5))
+    return {**task, "batch_size": 256, "lr": 1e-3, "nmae": nmae, "nmse": nmae**2, "final_loss": nmae,
+            "status": "ok", "train_seconds": 1.0, "wall_seconds": 2.0, "package_version": "synthetic",
+            "torch_version": "", "python_version": "", "host": "synthetic"}
+
+
+def write_rows(sweep_dir: str, tasks: Sequence[dict]) -> None:
+    rng = np.random.default_rng(int(tasks[0]["task_id"][:8], 16))
+    for task in tasks:
+        write_row_atomically(synthetic_row(task, rng), row_path(sweep_dir, task["task_id"]))
+
+
+def fill_sweep(sweep_dir: Path, failed_fraction: float = 0.03, processes: int = 2) -> tuple[int, int]:
+    """Write a row for all but ``failed_fraction`` of the manifest's tasks and a failure record for the
+    rest (alternately failed and frozen); returns (rows, failures)."""
+    tasks = read_manifest(sweep_dir).to_pylist()
+    failing = set(range(0, len(tasks), round(1 / failed_fraction))) if failed_fraction else set()
+    done = [task for index, task in enumerate(tasks) if index not in failing]
+    chunks = [done[start:start + 2000] for start in range(0, len(done), 2000)]
+    with multiprocessing.Pool(processes) as pool:
+        pool.starmap(write_rows, [(str(sweep_dir), chunk) for chunk in chunks])
+    for n, index in enumerate(sorted(failing)):
+        record_failure(sweep_dir, tasks[index]["task_id"], ("failed", "frozen")[n % 2], "synthetic")
+    return len(done), len(failing)
+
+
+def corrupt_rows(sweep_dir: Path, count: int) -> list[Path]:
+    """Truncate ``count`` row files to half their size (half-written shards)."""
+    paths = sorted((Path(sweep_dir) / "rows").glob("*/*.parquet"))[:count]
+    for path in paths:
+        data = path.read_bytes()
+        path.write_bytes(data[: len(data) // 2])
+    return paths
+

@@ -1,0 +1,27 @@
+"""What was submitted to SLURM for a sweep: one record per job array,
+``<sweep_dir>/submissions/<array id>.json`` with its time limit, submission time, element ids and the
+task ids each element runs. ``status``, ``resubmit`` and ``clean`` read them."""
+
+import json
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from nsl_hpc.atomic import write_text
+
+SUBMISSIONS_DIR = "submissions"
+
+
+def record_submission(sweep_dir: Path, array_id: str, time_limit_min: int, element_ids: Sequence[str],
+                      elements: Sequence[Sequence[str]]) -> None:
+    """Record an array whose element ``element_ids[i]`` runs the tasks ``elements[i]``."""
+    record = {"array_id": array_id, "time_limit_min": time_limit_min, "submitted": time.time(),
+              "element_ids": list(element_ids), "elements": [list(task_ids) for task_ids in elements]}
+    write_text(json.dumps(record), Path(sweep_dir) / SUBMISSIONS_DIR / f"{array_id}.json")
+
+
+def read_submissions(sweep_dir: Path) -> list[dict[str, Any]]:
+    """Every array submitted for the sweep, oldest first."""
+    records = [json.loads(p.read_text()) for p in (Path(sweep_dir) / SUBMISSIONS_DIR).glob("*.json")]
+    return sorted(records, key=lambda record: record["submitted"])
