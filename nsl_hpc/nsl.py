@@ -161,7 +161,7 @@ def refine_margin(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, bounds: B
     """Minimise the margin from ``theta`` (bounded trust-region least squares on the log residuals)."""
     result = least_squares(lambda t: log_law(t, x) - log_e, bounds.clip(theta),
                            jac=lambda t: log_law_jacobian(t, x), bounds=(bounds.lower, bounds.upper),
-                           x_scale="jac", max_nfev=500)
+                           x_scale="jac", max_nfev=200)
     return result.x
 
 

@@ -1,0 +1,143 @@
+"""Figures of a sweep's NSLs, like the study's: per NSL a log-log scatter of every outcome (colour and
+marker size from other resources, log colour bar), the lower envelope, the fitted law with its breaks, the
+formula and M; and per (resource, metric) an overview grid architecture x system. PNG and PDF under
+``<sweep_dir>/figures/`` (``nsl/<system>__<arch>__<resource>__<metric>.*``, ``overview__<resource>__<metric>.*``).
+"""
+
+import textwrap
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+from matplotlib.axes import Axes
+from matplotlib.colors import LogNorm
+from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
+from tqdm import tqdm
+
+from nsl_hpc.atomic import replacing
+from nsl_hpc.fit import fit_from_row
+from nsl_hpc.nsl import lower_envelope
+
+FIGURES_DIR = "figures"
+
+
+def figure_stem(sweep_dir: Path, row: Mapping[str, Any]) -> Path:
+    return Path(sweep_dir) / FIGURES_DIR / "nsl" / f"{row['system']}__{row['arch']}__{row['resource']}__{row['metric']}"
+
+
+def overview_stem(sweep_dir: Path, resource: str, metric: str) -> Path:
+    return Path(sweep_dir) / FIGURES_DIR / f"overview__{resource}__{metric}"
+
+
+def save(fig: Figure, stem: Path, figures: Mapping[str, Any]) -> list[Path]:
+    paths = []
+    for fmt in figures["formats"]:
+        path = stem.with_suffix(f".{fmt}")
+        with replacing(path) as temporary:
+            fig.savefig(temporary, format=fmt, dpi=figures["dpi"])
+        paths.append(path)
+    return paths
+
+
+def marker_sizes(values: np.ndarray, limits: tuple[float, float]) -> np.ndarray:
+    """Marker areas growing with log(value) from limits[0] to limits[1]."""
+    logs = np.log(values)
+    span = logs.max() - logs.min()
+    share = (logs - logs.min()) / span if span > 0 else np.full_like(logs, 0.5)
+    return limits[0] + share * (limits[1] - limits[0])
+
+
+def outcomes_of(results: pa.Table, row: Mapping[str, Any], nsl: Mapping[str, Any], figures: Mapping[str, Any]
+                ) -> dict[str, np.ndarray]:
+    """Resource, error, colour and size values of the fitted outcomes of one NSL."""
+    mask = (np.asarray(results["system"].to_pylist()) == row["system"]) & (
+        np.asarray(results["arch"].to_pylist()) == row["arch"])
+    subset = results.filter(mask)
+    resources = nsl["resources"]
+    columns = {"r": resources[row["resource"]]["column"], "c": resources[figures["colour"][row["resource"]]]["column"],
+               "s": resources[figures["size"][row["resource"]]]["column"]}
+    ok = np.asarray(subset["status"].to_pylist()) == "ok"
+    r, e = (subset[columns["r"]].to_numpy().astype(float), subset[row["metric"]].to_numpy().astype(float))
+    keep = ok & np.isfinite(r) & np.isfinite(e) & (r > 0) & (e > 0)
+    return {"r": r[keep], "e": e[keep], "c": subset[columns["c"]].to_numpy().astype(float)[keep],
+            "s": subset[columns["s"]].to_numpy().astype(float)[keep]}
+
+
+def draw_nsl(ax: Axes, data: Mapping[str, np.ndarray], row: Mapping[str, Any], nsl: Mapping[str, Any],
+             figures: Mapping[str, Any], norm: LogNorm, legend: bool):
+    """One NSL on ``ax``; returns the scatter (for a colour bar)."""
+    points = ax.scatter(data["r"], data["e"], c=data["c"], s=marker_sizes(data["s"], figures["marker_size"]),
+                        norm=norm, cmap="viridis", alpha=0.6, linewidths=0, rasterized=True)
+    grid_r, grid_e = lower_envelope(data["r"], data["e"], nsl["K"])
+    ax.step(grid_r, grid_e, where="post", color="black", lw=1.2, label=f"envelope (K={nsl['K']})")
+    if row["error"] is None:
+        fit = fit_from_row(row)
+        dense = np.geomspace(grid_r[0], grid_r[-1], 400)
+        formula = "\n".join(textwrap.wrap(row["formula"], figures["formula_width"]))
+        ax.plot(dense, fit.predict(dense), color="crimson", lw=1.8, label=f"{formula}\nM = {row['margin']:.2g}")
+        for i, (sigma, _, _) in enumerate(fit.breaks):
+            ax.axvline(sigma, color="crimson", ls=":", lw=1, label="breaks" if i == 0 else None)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.grid(True, which="major", alpha=0.3)
+    if legend:
+        ax.legend(loc="lower left", fontsize=7, framealpha=0.85)
+    return points
+
+
+def figure_for_nsl(sweep_dir: Path, results: pa.Table, row: Mapping[str, Any], nsl: Mapping[str, Any],
+                   figures: Mapping[str, Any]) -> list[Path]:
+    data = outcomes_of(results, row, nsl, figures)
+    if len(data["r"]) == 0:
+        return []
+    fig = Figure(figsize=(7.5, 5.2), layout="constrained")
+    ax = fig.subplots()
+    points = draw_nsl(ax, data, row, nsl, figures, LogNorm(data["c"].min(), data["c"].max()), legend=True)
+    colour, size = figures["colour"][row["resource"]], figures["size"][row["resource"]]
+    fig.colorbar(points, ax=ax, label=nsl["resources"][colour]["label"])
+    ax.set_xlabel(nsl["resources"][row["resource"]]["label"])
+    ax.set_ylabel(f"{nsl['metrics'][row['metric']]} (test)")
+    ax.set_title(f"{row['system']} / {row['arch']}: {nsl['metrics'][row['metric']]} vs {row['resource']} "
+                 f"(marker size: {size})", fontsize=10)
+    return save(fig, figure_stem(sweep_dir, row), figures)
+
+
+def overview_figure(sweep_dir: Path, results: pa.Table, rows: list[Mapping[str, Any]], resource: str, metric: str,
+                    nsl: Mapping[str, Any], figures: Mapping[str, Any]) -> list[Path]:
+    """Architecture (rows) x system (columns) grid of the NSLs of one (resource, metric)."""
+    archs = list(dict.fromkeys(row["arch"] for row in rows))
+    systems = list(dict.fromkeys(row["system"] for row in rows))
+    fig = Figure(figsize=(3.6 * len(systems) + 1, 2.9 * len(archs)), layout="constrained")
+    axes = fig.subplots(len(archs), len(systems), squeeze=False, sharex=True)
+    data = {(row["system"], row["arch"]): outcomes_of(results, row, nsl, figures) for row in rows}
+    colours = np.concatenate([d["c"] for d in data.values() if len(d["c"])] or [np.ones(1)])
+    norm, points = LogNorm(colours.min(), colours.max()), None
+    for row in rows:
+        ax = axes[archs.index(row["arch"]), systems.index(row["system"])]
+        if len(data[row["system"], row["arch"]]["r"]):
+            points = draw_nsl(ax, data[row["system"], row["arch"]], row, nsl, figures, norm, legend=False)
+        fitted = "not fitted" if row["error"] else f"b={row['b']}, M={row['margin']:.2g}"
+        ax.set_title(f"{row['system']} / {row['arch']}: {fitted}", fontsize=8)
+    for ax in axes[-1]:
+        ax.set_xlabel(nsl["resources"][resource]["label"], fontsize=8)
+    for ax in axes[:, 0]:
+        ax.set_ylabel(nsl["metrics"][metric], fontsize=8)
+    if points is not None:
+        fig.colorbar(points, ax=axes, label=nsl["resources"][figures["colour"][resource]]["label"], shrink=0.8)
+    return save(fig, overview_stem(sweep_dir, resource, metric), figures)
+
+
+def draw_figures(sweep_dir: Path, results: pa.Table, rows: list[dict[str, Any]], nsl: Mapping[str, Any],
+                 figures: Mapping[str, Any]) -> dict[str, list[Path]]:
+    """Every NSL figure and overview grid; returns their paths by kind ('nsl', 'overview')."""
+    drawn = {"nsl": [], "overview": []}
+    for row in tqdm(rows, desc="figures", unit="NSL", disable=None):
+        drawn["nsl"] += figure_for_nsl(sweep_dir, results, row, nsl, figures)
+    for resource in nsl["resources"]:
+        for metric in nsl["metrics"]:
+            group = [row for row in rows if row["resource"] == resource and row["metric"] == metric]
+            if group:
+                drawn["overview"] += overview_figure(sweep_dir, results, group, resource, metric, nsl, figures)
+    return drawn

@@ -1,0 +1,142 @@
+"""Fit a broken NSL to every (system, arch, resource, metric) of a merged sweep.
+
+    python -m nsl_hpc.fit sweep_dir=runs/demo [nsl.max_breaks=3] [nsl.objective=study]
+
+Reads ``<sweep_dir>/results.parquet`` (``python -m nsl_hpc.merge``) and writes ``<sweep_dir>/nsl_fits.parquet``
+(one row per NSL: system, arch, resource, metric, b, alpha, beta, delta0, sigma_i, phi_i, delta_i, margin,
+formula, extrapolation backtest) and ``<sweep_dir>/nsl_fits.txt``. Only tasks with status ok and finite,
+positive errors are fitted; an NSL that cannot be fitted gets its reason in the ``error`` column.
+"""
+
+import json
+import os
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from nsl_hpc import cli
+from nsl_hpc.atomic import write_parquet, write_text
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.merge import require_sweep, results_path
+from nsl_hpc.nsl import FitSettings, NSLFit, NSLFitError, backtest_nsl, fit_nsl
+
+FITS_FILE = "nsl_fits.parquet"
+FITS_TEXT_FILE = "nsl_fits.txt"
+KEY_COLUMNS = ("system", "arch", "resource", "metric")
+
+
+def fits_path(sweep_dir: Path) -> Path:
+    return Path(sweep_dir) / FITS_FILE
+
+
+def read_results(sweep_dir: Path) -> pa.Table:
+    """The merged outcomes, refused with a one-line error when there are none."""
+    path = results_path(sweep_dir)
+    if not path.exists():
+        raise ConfigError(f"{path} does not exist; run python -m nsl_hpc.merge sweep_dir={sweep_dir} first")
+    results = pq.read_table(path)
+    if results.num_rows == 0:
+        raise ConfigError(f"{path} holds no outcomes: no task of the sweep has finished")
+    return results
+
+
+def fittable(results: pa.Table, column: str, metric: str) -> tuple[np.ndarray, np.ndarray]:
+    """(resources, errors) of tasks with status ok and finite positive values."""
+    ok = np.asarray(results["status"].to_pylist()) == "ok"
+    r = results[column].to_numpy().astype(float)
+    e = results[metric].to_numpy().astype(float)
+    keep = ok & np.isfinite(r) & np.isfinite(e) & (r > 0) & (e > 0)
+    return r[keep], e[keep]
+
+
+def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, nsl: dict[str, Any], symbol: str
+            ) -> dict[str, Any]:
+    """One NSL's row (KEY_COLUMNS, outcomes, b, parameters, margin, formula, backtest; error on failure)."""
+    settings = FitSettings(**{name: nsl[name] for name in FitSettings.__dataclass_fields__})
+    options = {"breaks": nsl["breaks"], "max_breaks": nsl["max_breaks"], "K": nsl["K"], "settings": settings}
+    row: dict[str, Any] = {**key, "outcomes": len(r), "error": None}
+    try:
+        fit = fit_nsl(r, e, **options)
+    except NSLFitError as error:
+        return {**row, "error": str(error)}
+    slots = nsl["breaks"] if nsl["breaks"] is not None else nsl["max_breaks"]
+    padded = fit.breaks + [(None, None, None)] * (slots - fit.b)
+    row.update(b=fit.b, alpha=fit.alpha, beta=fit.beta, delta0=fit.delta0, margin=fit.margin,
+               formula=fit.formula(symbol), margins_by_b=json.dumps(fit.margins), objective=fit.objective)
+    for i, (sigma, phi, delta) in enumerate(padded, start=1):
+        row.update({f"sigma_{i}": sigma, f"phi_{i}": phi, f"delta_{i}": delta})
+    log_r = np.log(r)
+    cut = float(np.exp(log_r.min() + nsl["backtest_cut"] * (log_r.max() - log_r.min())))
+    try:
+        backtest = backtest_nsl(r, e, cut, **options)
+        row.update(backtest_cut=cut, backtest_margin=backtest.margin, backtest_final_ratio=backtest.final_ratio)
+    except NSLFitError:
+        row.update(backtest_cut=cut, backtest_margin=None, backtest_final_ratio=None)
+    return row
+
+
+def fit_from_row(row: dict[str, Any]) -> NSLFit:
+    """The law of an nsl_fits row (envelope not included: recompute it with lower_envelope)."""
+    breaks = [(row[f"sigma_{i}"], row[f"phi_{i}"], row[f"delta_{i}"]) for i in range(1, row["b"] + 1)]
+    return NSLFit(row["alpha"], row["beta"], row["delta0"], breaks, row["margin"], np.empty(0), np.empty(0),
+                  {int(b): m for b, m in json.loads(row["margins_by_b"]).items()}, row["objective"])
+
+
+def fit_sweep(results: pa.Table, nsl: DictConfig, workers: int | None) -> list[dict[str, Any]]:
+    """Every NSL of the sweep, fitted in parallel processes, in (system, arch, resource, metric) order."""
+    plain = OmegaConf.to_container(nsl, resolve=True)
+    jobs = []
+    for system in dict.fromkeys(results["system"].to_pylist()):
+        for arch in dict.fromkeys(results["arch"].to_pylist()):
+            subset = results.filter((np.asarray(results["system"].to_pylist()) == system)
+                                    & (np.asarray(results["arch"].to_pylist()) == arch))
+            for resource, spec in plain["resources"].items():
+                for metric in plain["metrics"]:
+                    r, e = fittable(subset, spec["column"], metric)
+                    key = {"system": system, "arch": arch, "resource": resource, "metric": metric}
+                    jobs.append((key, r, e, plain, spec["symbol"]))
+    with ProcessPoolExecutor(workers or os.cpu_count()) as pool:
+        futures = [pool.submit(fit_one, *job) for job in jobs]
+        return [future.result() for future in tqdm(futures, desc="NSL fits", unit="fit", disable=None)]
+
+
+def describe_fit(row: dict[str, Any]) -> str:
+    key = " / ".join(row[k] for k in KEY_COLUMNS)
+    if row["error"]:
+        return f"{key}: not fitted ({row['error']})"
+    backtest = ("" if row["backtest_margin"] is None else
+                f", backtest M={row['backtest_margin']:.2g} (L/E at the largest resource "
+                f"{row['backtest_final_ratio']:.2f})")
+    return (f"{key}: b={row['b']} M={row['margin']:.2g} from {row['outcomes']:,} outcomes{backtest}\n"
+            f"    {row['formula']}")
+
+
+def write_fits(sweep_dir: Path, rows: list[dict[str, Any]]) -> None:
+    write_parquet(pa.Table.from_pylist(rows), fits_path(sweep_dir))
+    write_text("\n".join(describe_fit(row) for row in rows) + "\n", Path(sweep_dir) / FITS_TEXT_FILE)
+
+
+def read_fits(sweep_dir: Path) -> list[dict[str, Any]]:
+    return pq.read_table(fits_path(sweep_dir)).to_pylist()
+
+
+def main(cfg: DictConfig) -> int:
+    sweep_dir = require_sweep(cfg.sweep_dir)
+    rows = fit_sweep(read_results(sweep_dir), cfg.nsl, cfg.workers)
+    write_fits(sweep_dir, rows)
+    failed = sum(row["error"] is not None for row in rows)
+    print(f"{len(rows) - failed} NSLs fitted ({failed} not fittable) -> {fits_path(sweep_dir)}, "
+          f"{Path(sweep_dir) / FITS_TEXT_FILE}")
+    return 0
+
+
+if __name__ == "__main__":
+    cli.run(main, __doc__, config_name="fit")
+    sys.exit(0)

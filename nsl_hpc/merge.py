@@ -1,0 +1,149 @@
+"""Gather a sweep's rows into ``<sweep_dir>/results.parquet``: one row per task id, joined with the
+manifest; tasks without a row are dropped and accounted for (frozen, failed, timeout, missing).
+
+    python -m nsl_hpc.merge sweep_dir=runs/demo
+
+Corrupt or half-written shards are reported and skipped; duplicate rows of a task and rows of tasks
+outside the manifest are reported and ignored. Merging twice gives the same table. The counts are also
+written to ``<sweep_dir>/merge_summary.json`` (read by the report and MLflow logging).
+"""
+
+import json
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.dataset as ds
+import pyarrow.parquet as pq
+from omegaconf import DictConfig
+
+from nsl_hpc import cli
+from nsl_hpc.atomic import write_parquet, write_text
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.failures import FAILURE_STATES, read_failures
+from nsl_hpc.manifest import manifest_path, read_manifest
+
+RESULTS_FILE = "results.parquet"
+SUMMARY_FILE = "merge_summary.json"
+
+
+@dataclass(frozen=True)
+class MergeSummary:
+    """What the merge kept and dropped (task counts) and which shards it skipped."""
+
+    tasks: int
+    merged: int
+    frozen: int
+    failed: int
+    timeout: int
+    missing: int
+    diverged: int  # merged, but with non-finite errors: kept with status 'diverged', never fitted
+    corrupt_shards: list[str]
+    duplicate_rows: int
+    unknown_rows: int
+
+    @property
+    def dropped(self) -> int:
+        return self.tasks - self.merged
+
+    def describe(self) -> str:
+        share = 100 * self.dropped / self.tasks if self.tasks else 0.0
+        lines = [f"{self.dropped:,} of {self.tasks:,} tasks ({share:.1f}%) dropped: {self.frozen:,} frozen, "
+                 f"{self.failed:,} failed, {self.missing:,} missing"
+                 + (f", {self.timeout:,} timed out" if self.timeout else "")]
+        if self.diverged:
+            lines.append(f"{self.diverged:,} merged tasks diverged (non-finite errors): kept, not fitted")
+        if self.corrupt_shards:
+            lines.append(f"{len(self.corrupt_shards):,} corrupt shards skipped (their tasks count as missing): "
+                         + ", ".join(self.corrupt_shards[:5]) + (" ..." if len(self.corrupt_shards) > 5 else ""))
+        if self.duplicate_rows:
+            lines.append(f"{self.duplicate_rows:,} duplicate rows of already merged tasks ignored")
+        if self.unknown_rows:
+            lines.append(f"{self.unknown_rows:,} rows of tasks outside the manifest ignored")
+        return "\n".join(lines)
+
+
+def results_path(sweep_dir: Path) -> Path:
+    return Path(sweep_dir) / RESULTS_FILE
+
+
+def read_shards(paths: list[Path]) -> tuple[pa.Table, list[Path]]:
+    """All shards as one table (one pyarrow dataset scan); when that fails, each shard on its own to
+    find the unreadable ones, which are returned apart."""
+    if not paths:
+        return pa.table({"task_id": pa.array([], pa.string())}), []
+    try:
+        return ds.dataset([str(p) for p in paths], format="parquet").to_table(), []
+    except (pa.ArrowException, OSError):
+        pass
+
+    def read_one(path: Path) -> pa.Table | None:
+        try:
+            return pq.read_table(path)
+        except (pa.ArrowException, OSError):
+            return None
+
+    with ThreadPoolExecutor() as pool:
+        tables = list(pool.map(read_one, paths))
+    good = [table for table in tables if table is not None]
+    return (pa.concat_tables(good, promote_options="permissive") if good else read_shards([])[0],
+            [path for path, table in zip(paths, tables, strict=True) if table is None])
+
+
+def merge_sweep(sweep_dir: Path) -> MergeSummary:
+    """Write results.parquet and merge_summary.json for the sweep; returns the summary."""
+    sweep_dir = Path(sweep_dir)
+    manifest = read_manifest(sweep_dir)
+    shards = sorted((sweep_dir / "rows").glob("*/*.parquet"))
+    rows, corrupt = read_shards(shards)
+    known = pc.is_in(rows["task_id"], value_set=manifest["task_id"])
+    unknown = rows.num_rows - pc.sum(known).as_py() if rows.num_rows else 0
+    rows = rows.filter(known)
+    _, first = np.unique(rows["task_id"].to_numpy(zero_copy_only=False), return_index=True)
+    duplicates = rows.num_rows - len(first)
+    rows = rows.take(pa.array(np.sort(first), pa.int64()))
+    outcome_columns = ["task_id", *(name for name in rows.column_names if name not in manifest.column_names)]
+    ordered = manifest.append_column("manifest_index", pa.array(np.arange(manifest.num_rows)))
+    results = ordered.join(rows.select(outcome_columns), "task_id", join_type="inner")
+    results = results.sort_by("manifest_index").drop_columns(["manifest_index"])
+    write_parquet(results, results_path(sweep_dir))
+
+    merged = set(results["task_id"].to_pylist())
+    failures = read_failures(sweep_dir)
+    unmerged = [task_id for task_id in manifest["task_id"].to_pylist() if task_id not in merged]
+    states = [failures[task_id]["status"] if task_id in failures else "missing" for task_id in unmerged]
+    diverged = int(pc.sum(pc.not_equal(results["status"], "ok")).as_py() or 0) if results.num_rows else 0
+    summary = MergeSummary(tasks=manifest.num_rows, merged=results.num_rows,
+                           **{state: states.count(state) for state in (*FAILURE_STATES, "missing")},
+                           diverged=diverged, corrupt_shards=[str(p.relative_to(sweep_dir)) for p in corrupt],
+                           duplicate_rows=duplicates, unknown_rows=unknown)
+    write_text(json.dumps(asdict(summary), indent=1), sweep_dir / SUMMARY_FILE)
+    return summary
+
+
+def read_merge_summary(sweep_dir: Path) -> MergeSummary:
+    return MergeSummary(**json.loads((Path(sweep_dir) / SUMMARY_FILE).read_text()))
+
+
+def require_sweep(sweep_dir: str) -> Path:
+    """The sweep directory, refused with a one-line error unless it holds a manifest."""
+    if not manifest_path(sweep_dir).exists():
+        raise ConfigError(f"sweep_dir={sweep_dir!r} has no manifest.parquet; launch a sweep there first")
+    return Path(sweep_dir)
+
+
+def main(cfg: DictConfig) -> int:
+    sweep_dir = require_sweep(cfg.sweep_dir)
+    summary = merge_sweep(sweep_dir)
+    print(f"merged {summary.merged:,} tasks into {results_path(sweep_dir)}")
+    print(summary.describe())
+    return 0
+
+
+if __name__ == "__main__":
+    cli.run(main, __doc__, config_name="merge")
+    sys.exit(0)

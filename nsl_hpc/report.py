@@ -1,0 +1,111 @@
+"""Post-process a sweep in one go: merge the rows, fit every NSL, draw the figures, write the
+self-contained ``<sweep_dir>/report.html`` and log it all to MLflow.
+
+    python -m nsl_hpc.report sweep_dir=runs/demo
+    python -m nsl_hpc.report sweep_dir=runs/demo mlflow.tracking_uri=http://mlflow.example:5000
+
+Safe to re-run while a sweep is still going: every output is replaced atomically and MLflow runs are
+updated, not duplicated. The steps also run alone: ``python -m nsl_hpc.merge``, ``python -m nsl_hpc.fit``.
+"""
+
+import base64
+import html
+import sys
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from nsl_hpc import cli
+from nsl_hpc.atomic import write_text
+from nsl_hpc.figures import draw_figures, figure_stem
+from nsl_hpc.fit import FITS_TEXT_FILE, fit_sweep, fits_path, read_results, write_fits
+from nsl_hpc.manifest import LAUNCH_CONFIG_FILE
+from nsl_hpc.merge import MergeSummary, merge_sweep, require_sweep, results_path
+from nsl_hpc.tracking import log_to_mlflow
+
+REPORT_FILE = "report.html"
+STYLE = """body{font-family:system-ui,sans-serif;margin:2em auto;max-width:1200px;color:#222}
+table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 6px;text-align:left}
+th{background:#f2f2f2}code{font-size:12px}img{max-width:100%}pre{background:#f7f7f7;padding:.6em}"""
+
+
+def embedded_png(path: Path, alt: str) -> str:
+    data = base64.b64encode(path.read_bytes()).decode()
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+
+
+def nsl_table(rows: Sequence[Mapping[str, Any]]) -> str:
+    head = ("<tr><th>system</th><th>arch</th><th>resource</th><th>metric</th><th>outcomes</th><th>b</th>"
+            "<th>M</th><th>backtest M</th><th>law</th></tr>")
+    cells = []
+    for row in rows:
+        fitted = row["error"] is None
+        backtest = row.get("backtest_margin")
+        cells.append("<tr>" + "".join(f"<td>{html.escape(str(v))}</td>" for v in (
+            row["system"], row["arch"], row["resource"], row["metric"], f"{row['outcomes']:,}",
+            row["b"] if fitted else "", f"{row['margin']:.2g}" if fitted else "",
+            f"{backtest:.2g}" if fitted and backtest is not None else "")) +
+            f"<td><code>{html.escape(row['formula'] if fitted else 'not fitted: ' + row['error'])}</code></td></tr>")
+    return f"<table>{head}{''.join(cells)}</table>"
+
+
+def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummary,
+                rows: Sequence[Mapping[str, Any]], figures: Mapping[str, list[Path]]) -> str:
+    grid = launch["sweep"]["grid"]
+    axes = "".join(f"<tr><th>{html.escape(axis)}</th><td>{html.escape(', '.join(map(str, values)))}</td></tr>"
+                   for axis, values in grid.items())
+    overviews = "".join(f"<h3>{html.escape(path.stem.replace('overview__', '').replace('__', ' / '))}</h3>"
+                        + embedded_png(path, path.stem) for path in figures["overview"] if path.suffix == ".png")
+    singles = "".join(f"<details><summary>{html.escape(path.stem.replace('__', ' / '))}</summary>"
+                      f"{embedded_png(path, path.stem)}</details>" for path in figures["nsl"] if path.suffix == ".png")
+    name = html.escape(launch["sweep"]["name"])
+    return f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>NSL report: {name}</title>
+<style>{STYLE}</style></head><body>
+<h1>Neural scaling laws: sweep {name}</h1>
+<p>Sweep directory <code>{html.escape(str(Path(sweep_dir).resolve()))}</code>, sweep seed {launch['sweep_seed']},
+{summary.tasks:,} tasks.</p>
+<h2>Grid</h2><table>{axes}</table>
+<h2>Tasks</h2><p>{summary.merged:,} tasks merged.</p><pre>{html.escape(summary.describe())}</pre>
+<h2>Neural scaling laws ({sum(r['error'] is None for r in rows)} of {len(rows)} fitted)</h2>
+<p>L(r) = &alpha; + &beta; r<sup>&delta;0</sup> &prod;<sub>i</sub>
+[1 + (r/&sigma;<sub>i</sub>)<sup>1/&phi;<sub>i</sub></sup>]<sup>&delta;<sub>i</sub>&phi;<sub>i</sub></sup>
+fitted to the lower envelope of the outcomes; M = mean<sub>k</sub>
+(ln L(r~<sub>k</sub>) &minus; ln E(r~<sub>k</sub>))<sup>2</sup>; backtest M: the law fitted below the middle of the
+log resource range, scored above it.</p>
+{nsl_table(rows)}
+<h2>Overview</h2>{overviews}
+<h2>Every NSL</h2>{singles}
+</body></html>
+"""
+
+
+def main(cfg: DictConfig) -> int:
+    sweep_dir = require_sweep(cfg.sweep_dir)
+    launch = OmegaConf.to_container(OmegaConf.load(sweep_dir / LAUNCH_CONFIG_FILE), resolve=True)
+    summary = merge_sweep(sweep_dir)
+    print(f"merged {summary.merged:,} tasks into {results_path(sweep_dir)}\n{summary.describe()}")
+    results = read_results(sweep_dir)
+    rows = fit_sweep(results, cfg.nsl, cfg.workers)
+    write_fits(sweep_dir, rows)
+    print(f"{sum(row['error'] is None for row in rows)} of {len(rows)} NSLs fitted -> {fits_path(sweep_dir)}")
+    nsl, figure_settings = OmegaConf.to_container(cfg.nsl), OmegaConf.to_container(cfg.figures)
+    figures = draw_figures(sweep_dir, results, rows, nsl, figure_settings)
+    report = sweep_dir / REPORT_FILE
+    write_text(report_html(sweep_dir, launch, summary, rows, figures), report)
+    if cfg.mlflow.enabled:
+        by_key = {"/".join(row[k] for k in ("system", "arch", "resource", "metric")):
+                  figure_stem(sweep_dir, row).with_suffix(".png") for row in rows}
+        artifacts = [results_path(sweep_dir), fits_path(sweep_dir), sweep_dir / FITS_TEXT_FILE, report,
+                     *(path for path in figures["overview"])]
+        run = log_to_mlflow(sweep_dir, cfg.mlflow, launch, summary, rows,
+                            {key: path for key, path in by_key.items() if path.exists()}, artifacts)
+        print(f"MLflow: run {run} in {cfg.mlflow.tracking_uri or 'sqlite:///' + str(sweep_dir / 'mlflow.db')}")
+    print(f"report: {report.resolve()}")
+    return 0
+
+
+if __name__ == "__main__":
+    cli.run(main, __doc__, config_name="report")
+    sys.exit(0)

@@ -1,0 +1,125 @@
+"""MLflow logging of a post-processed sweep: one parent run per sweep (its config as params, task counts
+as metrics, merged table, fits, figures and report as artifacts) and one child run per NSL (its law as
+params, M as metric, its figure). Runs are found again by tags, so post-processing twice updates them:
+a child whose law changed is replaced (MLflow params are write-once), never duplicated.
+
+The default store is ``sqlite:///<sweep_dir>/mlflow.db`` with artifacts in ``<sweep_dir>/mlartifacts``;
+``mlflow.tracking_uri`` points at a team server instead. Only post-processing writes to MLflow: tasks
+write Parquet rows, the source of truth.
+"""
+
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+from mlflow.entities import Metric, Param, RunTag
+from mlflow.tracking import MlflowClient
+
+from nsl_hpc.merge import MergeSummary
+
+SWEEP_TAG = "nsl_hpc.sweep_dir"
+NSL_TAG = "nsl_hpc.nsl"
+PARENT_TAG = "mlflow.parentRunId"
+LAW_COLUMNS = ("b", "alpha", "beta", "delta0")
+
+
+def tracking_uri(sweep_dir: Path, configured: str | None) -> str:
+    return configured or f"sqlite:///{Path(sweep_dir).resolve() / 'mlflow.db'}"
+
+
+def experiment_id(client: MlflowClient, name: str, sweep_dir: Path, default_store: bool) -> str:
+    experiment = client.get_experiment_by_name(name)
+    if experiment is not None:
+        return experiment.experiment_id
+    location = (Path(sweep_dir).resolve() / "mlartifacts").as_uri() if default_store else None
+    return client.create_experiment(name, artifact_location=location)
+
+
+def flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
+    """{'a': {'b': 1}} -> {'a.b': '1'}; lists as their text."""
+    flat = {}
+    for key, value in config.items():
+        if isinstance(value, Mapping):
+            flat.update(flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = str(value)
+    return flat
+
+
+def law_params(row: Mapping[str, Any]) -> dict[str, str]:
+    """An NSL's law as MLflow params: b, alpha, beta, delta0, sigma_i, phi_i, delta_i for i <= b."""
+    params = {name: str(row[name]) for name in LAW_COLUMNS}
+    for i in range(1, row["b"] + 1):
+        params.update({f"{name}_{i}": str(row[f"{name}_{i}"]) for name in ("sigma", "phi", "delta")})
+    return params
+
+
+def find_runs(client: MlflowClient, experiment: str, filter_string: str) -> list:
+    return client.search_runs([experiment], filter_string=filter_string, max_results=10_000)
+
+
+def sweep_run(client: MlflowClient, experiment: str, sweep_dir: Path, name: str, params: dict[str, str]) -> str:
+    """The sweep's parent run (created with its params the first time)."""
+    key = str(Path(sweep_dir).resolve())
+    runs = find_runs(client, experiment, f"tags.`{SWEEP_TAG}` = '{key}' and tags.`{NSL_TAG}` = 'sweep'")
+    if runs:
+        return runs[0].info.run_id
+    run = client.create_run(experiment, run_name=name, tags={SWEEP_TAG: key, NSL_TAG: "sweep"})
+    items = sorted(params.items())
+    for start in range(0, len(items), 100):  # log_batch takes at most 100 params
+        client.log_batch(run.info.run_id, params=[Param(k, v[:6000]) for k, v in items[start:start + 100]])
+    return run.info.run_id
+
+
+def log_nsl_runs(client: MlflowClient, experiment: str, parent: str, rows: Sequence[Mapping[str, Any]],
+                 figures: Mapping[str, Path]) -> None:
+    """One child run per fitted NSL, reused while its law is unchanged, replaced otherwise."""
+    children = find_runs(client, experiment, f"tags.`{PARENT_TAG}` = '{parent}'")
+    existing = {run.data.tags[NSL_TAG]: run for run in children}
+    for row in rows:
+        if row["error"] is not None:
+            continue
+        key = "/".join(row[k] for k in ("system", "arch", "resource", "metric"))
+        params = law_params(row)
+        run = existing.pop(key, None)
+        if run is not None and run.data.params != params:
+            client.delete_run(run.info.run_id)
+            run = None
+        if run is None:
+            run = client.create_run(experiment, run_name=key.replace("/", " "),
+                                    tags={NSL_TAG: key, PARENT_TAG: parent})
+            client.log_batch(run.info.run_id, params=[Param(k, v) for k, v in params.items()])
+        run_id = run.info.run_id
+        metrics = {"M": row["margin"], "outcomes": row["outcomes"]}
+        if row["backtest_margin"] is not None:
+            metrics["backtest_M"] = row["backtest_margin"]
+        client.log_batch(run_id, metrics=[Metric(k, float(v), 0, 0) for k, v in metrics.items()],
+                         tags=[RunTag("formula", row["formula"])])
+        if key in figures:
+            client.log_artifact(run_id, str(figures[key]))
+        client.set_terminated(run_id)
+    for stale in existing.values():  # NSLs no longer fitted
+        client.delete_run(stale.info.run_id)
+
+
+def log_to_mlflow(sweep_dir: Path, settings: Mapping[str, Any], launch_config: Mapping[str, Any],
+                  summary: MergeSummary, rows: Sequence[Mapping[str, Any]], figures: Mapping[str, Path],
+                  artifacts: Sequence[Path]) -> str:
+    """Log (or update) the sweep's runs; returns the parent run id."""
+    client = MlflowClient(tracking_uri(sweep_dir, settings["tracking_uri"]))
+    experiment = experiment_id(client, settings["experiment"], sweep_dir, settings["tracking_uri"] is None)
+    params = flatten({key: launch_config[key] for key in ("sweep", "sweep_seed", "train", "data_per_trajectory")})
+    parent = sweep_run(client, experiment, sweep_dir, launch_config["sweep"]["name"], params)
+    counts = {name: value for name, value in asdict(summary).items() if isinstance(value, int)}
+    metrics = {**counts, "dropped": summary.dropped, "dropped_fraction": summary.dropped / max(summary.tasks, 1),
+               "nsl_fitted": sum(row["error"] is None for row in rows)}
+    client.log_batch(parent, metrics=[Metric(k, float(v), 0, 0) for k, v in metrics.items()])
+    for path in artifacts:
+        if path.is_dir():
+            client.log_artifacts(parent, str(path), artifact_path=path.name)
+        else:
+            client.log_artifact(parent, str(path))
+    log_nsl_runs(client, experiment, parent, rows, figures)
+    client.set_terminated(parent)
+    return parent
