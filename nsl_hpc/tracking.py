@@ -8,6 +8,7 @@ The default store is ``sqlite:///<sweep_dir>/mlflow.db`` with artifacts in ``<sw
 write Parquet rows, the source of truth.
 """
 
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -22,6 +23,11 @@ SWEEP_TAG = "nsl_hpc.sweep_dir"
 NSL_TAG = "nsl_hpc.nsl"
 PARENT_TAG = "mlflow.parentRunId"
 LAW_COLUMNS = ("b", "alpha", "beta", "delta0")
+
+
+def now_ms() -> int:
+    """A metric's timestamp: MLflow shows the latest value of a step, so a re-run's values win."""
+    return int(time.time() * 1000)
 
 
 def tracking_uri(sweep_dir: Path, configured: str | None) -> str:
@@ -94,7 +100,7 @@ def log_nsl_runs(client: MlflowClient, experiment: str, parent: str, rows: Seque
         metrics = {"M": row["margin"], "outcomes": row["outcomes"]}
         if row["backtest_margin"] is not None:
             metrics["backtest_M"] = row["backtest_margin"]
-        client.log_batch(run_id, metrics=[Metric(k, float(v), 0, 0) for k, v in metrics.items()],
+        client.log_batch(run_id, metrics=[Metric(k, float(v), now_ms(), 0) for k, v in metrics.items()],
                          tags=[RunTag("formula", row["formula"])])
         if key in figures:
             client.log_artifact(run_id, str(figures[key]))
@@ -114,7 +120,7 @@ def log_to_mlflow(sweep_dir: Path, settings: Mapping[str, Any], launch_config: M
     counts = {name: value for name, value in asdict(summary).items() if isinstance(value, int)}
     metrics = {**counts, "dropped": summary.dropped, "dropped_fraction": summary.dropped / max(summary.tasks, 1),
                "nsl_fitted": sum(row["error"] is None for row in rows)}
-    client.log_batch(parent, metrics=[Metric(k, float(v), 0, 0) for k, v in metrics.items()])
+    client.log_batch(parent, metrics=[Metric(k, float(v), now_ms(), 0) for k, v in metrics.items()])
     for path in artifacts:
         if path.is_dir():
             client.log_artifacts(parent, str(path), artifact_path=path.name)

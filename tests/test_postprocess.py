@@ -1,0 +1,110 @@
+"""Post-processing a real (small) sweep: merge with corrupt, duplicate and missing shards, NSL fits,
+figures, report and MLflow runs that are updated, not duplicated."""
+
+import shutil
+
+import matplotlib.image
+import pyarrow.parquet as pq
+import pytest
+from mlflow.tracking import MlflowClient
+
+from nsl_hpc.failures import record_failure
+from nsl_hpc.rows import row_path
+from tests.sweeps import manifest_ids, nsl, row_files
+
+# 24 tasks: spring / input_affine, 3 seeds x 2 epoch counts x 2 data tiers x 2 width tiers.
+SMALL_GRID = ["+sweep=demo", "sweep.grid.system=[spring]", "sweep.grid.arch=[input_affine]", "sweep.grid.seed=[0,1,2]",
+              "sweep.grid.epochs=[4,32]", "sweep.grid.data_tier=[2,8]", "sweep.grid.width_tier=[4,16]"]
+NSLS = 6  # 1 system x 1 arch x 3 resources x 2 metrics
+
+
+@pytest.fixture(scope="module")
+def finished_sweep(tmp_path_factory):
+    sweep_dir = tmp_path_factory.mktemp("small") / "sweep"
+    result = nsl("launch", *SMALL_GRID, "launcher=local", f"sweep_dir={sweep_dir}")
+    assert result.returncode == 0, result.stderr
+    return sweep_dir
+
+
+@pytest.fixture
+def sweep_copy(finished_sweep, tmp_path):
+    return shutil.copytree(finished_sweep, tmp_path / "sweep")
+
+
+def test_merge_reports_corrupt_duplicate_and_missing_shards_and_is_idempotent(sweep_copy):
+    ids = manifest_ids(sweep_copy)
+    corrupt, deleted, frozen, copied = (row_path(sweep_copy, ids[i]) for i in range(4))
+    corrupt.write_bytes(corrupt.read_bytes()[:100])  # half-written
+    deleted.unlink()
+    frozen.unlink()
+    record_failure(sweep_copy, ids[2], "frozen", "no heartbeat")
+    shutil.copy(copied, copied.with_name(f"{ids[3]}.copy.parquet"))  # a duplicate row of task 3
+    result = nsl("merge", f"sweep_dir={sweep_copy}")
+    assert result.returncode == 0, result.stderr
+    assert "3 of 24 tasks (12.5%) dropped: 1 frozen, 0 failed, 2 missing" in result.stdout
+    assert "1 corrupt shards skipped" in result.stdout and corrupt.name in result.stdout
+    assert "1 duplicate rows" in result.stdout
+    results = pq.read_table(sweep_copy / "results.parquet")
+    assert results.num_rows == 21 and len(set(results["task_id"].to_pylist())) == 21
+    assert set(results["task_id"].to_pylist()) == set(ids) - set(ids[:3])
+    assert {"system", "epochs", "data_size", "params", "nmae", "nmse", "status"} <= set(results.column_names)
+    assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
+    assert pq.read_table(sweep_copy / "results.parquet").equals(results)
+
+
+def test_fit_writes_one_row_per_nsl(sweep_copy):
+    assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
+    result = nsl("fit", f"sweep_dir={sweep_copy}", "nsl.max_breaks=2")
+    assert result.returncode == 0, result.stderr
+    fits = pq.read_table(sweep_copy / "nsl_fits.parquet").to_pylist()
+    assert len(fits) == NSLS
+    assert {(f["resource"], f["metric"]) for f in fits} == {(r, m) for r in ("compute", "data", "model")
+                                                            for m in ("nmae", "nmse")}
+    assert all(f["error"] is None and 0 <= f["b"] <= 2 and f["margin"] >= 0 and f["outcomes"] == 24 for f in fits)
+    text = (sweep_copy / "nsl_fits.txt").read_text()
+    assert text.count("L(c) = ") == 2 and text.count("L(d) = ") == 2 and text.count("L(p) = ") == 2
+
+
+def test_report_figures_and_mlflow_runs_are_updated_not_duplicated(sweep_copy):
+    result = nsl("report", f"sweep_dir={sweep_copy}", "nsl.max_breaks=1")
+    assert result.returncode == 0, result.stderr
+    report = (sweep_copy / "report.html").read_text()
+    assert report.count("data:image/png;base64,") == NSLS + NSLS  # every NSL and the 6 overview grids
+    assert "0 of 24 tasks (0.0%) dropped" in report and report.count("<td><code>L(") == NSLS
+    for png in (sweep_copy / "figures").rglob("*.png"):
+        image = matplotlib.image.imread(png)
+        assert image.shape[0] > 300 and image.shape[1] > 300 and image.std() > 0
+    pdfs = list((sweep_copy / "figures").rglob("*.pdf"))
+    assert len(pdfs) == 2 * NSLS and all(pdf.read_bytes().startswith(b"%PDF") for pdf in pdfs)
+
+    client = MlflowClient(f"sqlite:///{sweep_copy / 'mlflow.db'}")
+    experiment = client.get_experiment_by_name("nsl_hpc").experiment_id
+    runs = client.search_runs([experiment])
+    assert len(runs) == 1 + NSLS
+    parent = next(run for run in runs if run.data.tags["nsl_hpc.nsl"] == "sweep")
+    assert parent.data.metrics["merged"] == 24 and parent.data.params["sweep.name"] == "demo"
+    assert {a.path for a in client.list_artifacts(parent.info.run_id)} >= {"results.parquet", "report.html"}
+
+    row_path(sweep_copy, manifest_ids(sweep_copy)[0]).unlink()  # one task fewer: some laws change
+    again = nsl("report", f"sweep_dir={sweep_copy}", "nsl.max_breaks=1")
+    assert again.returncode == 0, again.stderr
+    runs = client.search_runs([experiment])
+    assert len(runs) == 1 + NSLS
+    parent = next(run for run in runs if run.data.tags["nsl_hpc.nsl"] == "sweep")
+    assert parent.data.metrics["merged"] == 23 and parent.data.metrics["missing"] == 1
+
+
+def test_post_processing_bad_input_is_a_one_line_error(tmp_path, finished_sweep):
+    for verb in ("merge", "fit", "report"):
+        result = nsl(verb, f"sweep_dir={tmp_path}")
+        assert result.returncode == 2 and "no manifest.parquet" in result.stderr
+        assert result.stderr.strip().count("\n") == 0
+    sweep_dir = tmp_path / "empty"
+    assert nsl("launch", *SMALL_GRID, f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0
+    unmerged = nsl("fit", f"sweep_dir={sweep_dir}")
+    assert unmerged.returncode == 2 and "run python -m nsl_hpc.merge" in unmerged.stderr
+    merged = nsl("merge", f"sweep_dir={sweep_dir}")
+    assert merged.returncode == 0 and "24 of 24 tasks (100.0%) dropped: 0 frozen, 0 failed, 24 missing" in merged.stdout
+    empty = nsl("fit", f"sweep_dir={sweep_dir}")
+    assert empty.returncode == 2 and "holds no outcomes" in empty.stderr
+    assert len(row_files(finished_sweep)) == 24  # the module's sweep is untouched
