@@ -1,5 +1,6 @@
 # Set-up and the two everyday commands. Everything installs into .venv on first use.
-#   make demo   the main job: the demo sweep (216 tasks) on local processes, then its status
+#   make demo   the main job: the demo sweep (216 tasks) on local processes, then merge, NSL fits,
+#               figures, MLflow and report.html
 #   make test   start the local SLURM cluster (cluster/up.sh) and run the test suite
 PYTHON ?= python3
 VENV ?= .venv
@@ -20,7 +21,7 @@ $(INSTALLED): pyproject.toml
 
 demo: $(INSTALLED)
 	$(PY) -m nsl_hpc.launch +sweep=demo sweep_dir=$(DEMO_DIR)
-	$(PY) -m nsl_hpc.status sweep_dir=$(DEMO_DIR)
+	$(PY) -m nsl_hpc.report sweep_dir=$(DEMO_DIR)
 
 # The SLURM tests need the real single-node cluster; without root they are skipped (under CI=true,
 # a cluster that cannot start fails the run).

@@ -48,3 +48,12 @@ def corrupt_rows(sweep_dir: Path, count: int) -> list[Path]:
         path.write_bytes(data[: len(data) // 2])
     return paths
 
+
+
+def synthetic_input_state_sweep(sweep_dir: Path) -> Path:
+    """The input-state grid's manifest (a dry-run launch) in ``sweep_dir``, not yet filled."""
+    from nsl_hpc.cli import compose_config
+    from nsl_hpc.sweep import prepare_sweep
+
+    overrides = ["+sweep=input_state", f"sweep_dir={sweep_dir}", "dry_run=true"]
+    return prepare_sweep(compose_config(overrides, "launch"), overrides).sweep_dir
