@@ -14,6 +14,7 @@ import pyarrow as pa
 from matplotlib.axes import Axes
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
+from matplotlib.ticker import LogLocator, NullFormatter
 from tqdm import tqdm
 
 from nsl_hpc.atomic import replacing
@@ -81,10 +82,20 @@ def draw_nsl(ax: Axes, data: Mapping[str, np.ndarray], row: Mapping[str, Any], n
             ax.axvline(sigma, color="crimson", ls=":", lw=1, label="breaks" if i == 0 else None)
     ax.set_xscale("log")
     ax.set_yscale("log")
+    for axis, values in ((ax.xaxis, data["r"]), (ax.yaxis, data["e"])):
+        log_ticks(axis, values)
     ax.grid(True, which="major", alpha=0.3)
     if legend:
-        ax.legend(loc="lower left", fontsize=7, framealpha=0.85)
+        ax.figure.legend(loc="outside lower center", fontsize=8, ncols=3)
     return points
+
+
+def log_ticks(axis, values: np.ndarray) -> None:
+    """Label a log axis at 1, 2, 5 x 10^k when the values span less than 3 decades, else at 10^k only,
+    and never on minor ticks (their labels collide)."""
+    if np.log10(values.max() / values.min()) < 3:
+        axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    axis.set_minor_formatter(NullFormatter())
 
 
 def figure_for_nsl(sweep_dir: Path, results: pa.Table, row: Mapping[str, Any], nsl: Mapping[str, Any],
