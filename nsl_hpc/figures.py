@@ -18,7 +18,7 @@ from matplotlib.ticker import LogLocator, NullFormatter
 from tqdm import tqdm
 
 from nsl_hpc.atomic import replacing
-from nsl_hpc.fit import fit_from_row
+from nsl_hpc.fit import fit_from_row, fittable
 from nsl_hpc.nsl import lower_envelope
 
 FIGURES_DIR = "figures"
@@ -59,11 +59,9 @@ def outcomes_of(results: pa.Table, row: Mapping[str, Any], nsl: Mapping[str, Any
     resources = nsl["resources"]
     columns = {"r": resources[row["resource"]]["column"], "c": resources[figures["colour"][row["resource"]]]["column"],
                "s": resources[figures["size"][row["resource"]]]["column"]}
-    ok = np.asarray(subset["status"].to_pylist()) == "ok"
-    r, e = (subset[columns["r"]].to_numpy().astype(float), subset[row["metric"]].to_numpy().astype(float))
-    keep = ok & np.isfinite(r) & np.isfinite(e) & (r > 0) & (e > 0)
-    return {"r": r[keep], "e": e[keep], "c": subset[columns["c"]].to_numpy().astype(float)[keep],
-            "s": subset[columns["s"]].to_numpy().astype(float)[keep]}
+    keep = fittable(subset, columns["r"], row["metric"])
+    values = {name: subset[column].to_numpy().astype(float)[keep] for name, column in columns.items()}
+    return {**values, "e": subset[row["metric"]].to_numpy().astype(float)[keep]}
 
 
 def draw_nsl(ax: Axes, data: Mapping[str, np.ndarray], row: Mapping[str, Any], nsl: Mapping[str, Any],

@@ -47,21 +47,21 @@ def read_results(sweep_dir: Path) -> pa.Table:
     return results
 
 
-def fittable(results: pa.Table, column: str, metric: str) -> tuple[np.ndarray, np.ndarray]:
-    """(resources, errors) of tasks with status ok and finite positive values."""
+def fittable(results: pa.Table, column: str, metric: str) -> np.ndarray:
+    """Mask of the tasks that enter a fit: status ok, finite and positive resource and error."""
     ok = np.asarray(results["status"].to_pylist()) == "ok"
     r = results[column].to_numpy().astype(float)
     e = results[metric].to_numpy().astype(float)
-    keep = ok & np.isfinite(r) & np.isfinite(e) & (r > 0) & (e > 0)
-    return r[keep], e[keep]
+    return ok & np.isfinite(r) & np.isfinite(e) & (r > 0) & (e > 0)
 
 
-def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, nsl: dict[str, Any], symbol: str
+def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, nsl: dict[str, Any], symbol: str
             ) -> dict[str, Any]:
-    """One NSL's row (KEY_COLUMNS, outcomes, b, parameters, margin, formula, backtest; error on failure)."""
+    """One NSL's row (KEY_COLUMNS, outcomes, excluded, b, parameters, margin, formula, backtest; error on
+    failure). ``excluded``: merged tasks left out (not ok, or non-finite / non-positive values)."""
     settings = FitSettings(**{name: nsl[name] for name in FitSettings.__dataclass_fields__})
     options = {"breaks": nsl["breaks"], "max_breaks": nsl["max_breaks"], "K": nsl["K"], "settings": settings}
-    row: dict[str, Any] = {**key, "outcomes": len(r), "error": None}
+    row: dict[str, Any] = {**key, "outcomes": len(r), "excluded": excluded, "error": None}
     try:
         fit = fit_nsl(r, e, **options)
     except NSLFitError as error:
@@ -99,9 +99,11 @@ def fit_sweep(results: pa.Table, nsl: DictConfig, workers: int | None) -> list[d
                                     & (np.asarray(results["arch"].to_pylist()) == arch))
             for resource, spec in plain["resources"].items():
                 for metric in plain["metrics"]:
-                    r, e = fittable(subset, spec["column"], metric)
+                    keep = fittable(subset, spec["column"], metric)
+                    r = subset[spec["column"]].to_numpy().astype(float)[keep]
+                    e = subset[metric].to_numpy().astype(float)[keep]
                     key = {"system": system, "arch": arch, "resource": resource, "metric": metric}
-                    jobs.append((key, r, e, plain, spec["symbol"]))
+                    jobs.append((key, r, e, int((~keep).sum()), plain, spec["symbol"]))
     with ProcessPoolExecutor(workers or os.cpu_count()) as pool:
         futures = [pool.submit(fit_one, *job) for job in jobs]
         return [future.result() for future in tqdm(futures, desc="NSL fits", unit="fit", disable=None)]
@@ -114,7 +116,8 @@ def describe_fit(row: dict[str, Any]) -> str:
     backtest = ("" if row["backtest_margin"] is None else
                 f", backtest M={row['backtest_margin']:.2g} (L/E at the largest resource "
                 f"{row['backtest_final_ratio']:.2f})")
-    return (f"{key}: b={row['b']} M={row['margin']:.2g} from {row['outcomes']:,} outcomes{backtest}\n"
+    excluded = f" ({row['excluded']:,} excluded: not ok or non-positive)" if row["excluded"] else ""
+    return (f"{key}: b={row['b']} M={row['margin']:.2g} from {row['outcomes']:,} outcomes{excluded}{backtest}\n"
             f"    {row['formula']}")
 
 

@@ -4,6 +4,7 @@ figures, report and MLflow runs that are updated, not duplicated."""
 import shutil
 
 import matplotlib.image
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from mlflow.tracking import MlflowClient
@@ -52,16 +53,23 @@ def test_merge_reports_corrupt_duplicate_and_missing_shards_and_is_idempotent(sw
     assert pq.read_table(sweep_copy / "results.parquet").equals(results)
 
 
-def test_fit_writes_one_row_per_nsl(sweep_copy):
+def test_fit_writes_one_row_per_nsl_and_reports_excluded_outcomes(sweep_copy):
     assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
+    results = pq.read_table(sweep_copy / "results.parquet")
+    nmae = results["nmae"].to_pylist()
+    nmae[0] = 0.0  # a zero error cannot enter a log-log fit
+    pq.write_table(results.set_column(results.schema.get_field_index("nmae"), "nmae", pa.array(nmae)),
+                   sweep_copy / "results.parquet")
     result = nsl("fit", f"sweep_dir={sweep_copy}", "nsl.max_breaks=2")
     assert result.returncode == 0, result.stderr
     fits = pq.read_table(sweep_copy / "nsl_fits.parquet").to_pylist()
     assert len(fits) == NSLS
     assert {(f["resource"], f["metric"]) for f in fits} == {(r, m) for r in ("compute", "data", "model")
                                                             for m in ("nmae", "nmse")}
-    assert all(f["error"] is None and 0 <= f["b"] <= 2 and f["margin"] >= 0 and f["outcomes"] == 24 for f in fits)
+    assert all(f["error"] is None and 0 <= f["b"] <= 2 and f["margin"] >= 0 for f in fits)
+    assert all((f["outcomes"], f["excluded"]) == ((23, 1) if f["metric"] == "nmae" else (24, 0)) for f in fits)
     text = (sweep_copy / "nsl_fits.txt").read_text()
+    assert text.count("(1 excluded: not ok or non-positive)") == 3
     assert text.count("L(c) = ") == 2 and text.count("L(d) = ") == 2 and text.count("L(p) = ") == 2
 
 
