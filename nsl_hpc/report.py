@@ -23,7 +23,7 @@ from nsl_hpc.figures import draw_figures, figure_stem
 from nsl_hpc.fit import FITS_TEXT_FILE, fit_sweep, fits_path, read_results, write_fits
 from nsl_hpc.manifest import LAUNCH_CONFIG_FILE
 from nsl_hpc.merge import MergeSummary, merge_sweep, require_sweep, results_path
-from nsl_hpc.tracking import log_to_mlflow
+from nsl_hpc.tracking import log_to_mlflow, tracking_uri
 
 REPORT_FILE = "report.html"
 STYLE = """body{font-family:system-ui,sans-serif;margin:2em auto;max-width:1200px;color:#222}
@@ -101,7 +101,7 @@ def main(cfg: DictConfig) -> int:
                      *(path for path in figures["overview"])]
         run = log_to_mlflow(sweep_dir, cfg.mlflow, launch, summary, rows,
                             {key: path for key, path in by_key.items() if path.exists()}, artifacts)
-        print(f"MLflow: run {run} in {cfg.mlflow.tracking_uri or 'sqlite:///' + str(sweep_dir / 'mlflow.db')}")
+        print(f"MLflow: run {run} in {tracking_uri(sweep_dir, cfg.mlflow.tracking_uri)}")
     print(f"report: {report.resolve()}")
     return 0
 
