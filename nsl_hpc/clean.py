@@ -15,9 +15,8 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
-from nsl_hpc.errors import ConfigError
 from nsl_hpc.failures import failure_path, task_log_path
-from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, manifest_path
+from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, require_sweep
 from nsl_hpc.submissions import read_submissions
 from nsl_hpc.sweep_state import ACTIVE_JOB_STATES, read_sweep_state
 
@@ -74,9 +73,7 @@ def remove(path: Path) -> None:
 
 
 def main(cfg: DictConfig) -> int:
-    sweep_dir = Path(cfg.sweep_dir)
-    if not manifest_path(sweep_dir).exists():
-        raise ConfigError(f"sweep_dir={str(sweep_dir)!r} has no manifest.parquet; nothing to clean")
+    sweep_dir = require_sweep(cfg.sweep_dir)
     state = read_sweep_state(sweep_dir)
     done = {task_id for task_id, status in state.states.items() if status == "done"}
     doomed = [*finished_slurm_job_files(sweep_dir, done, state.element_states),

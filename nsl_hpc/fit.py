@@ -24,7 +24,8 @@ from tqdm import tqdm
 from nsl_hpc import cli
 from nsl_hpc.atomic import write_parquet, write_text
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.merge import require_sweep, results_path
+from nsl_hpc.manifest import require_sweep
+from nsl_hpc.merge import results_path
 from nsl_hpc.nsl import FitSettings, NSLFit, NSLFitError, backtest_nsl, fit_nsl
 
 FITS_FILE = "nsl_fits.parquet"
@@ -59,7 +60,7 @@ def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, ns
             ) -> dict[str, Any]:
     """One NSL's row (KEY_COLUMNS, outcomes, excluded, b, parameters, margin, formula, backtest; error on
     failure). ``excluded``: merged tasks left out (not ok, or non-finite / non-positive values)."""
-    settings = FitSettings(**{name: nsl[name] for name in FitSettings.__dataclass_fields__})
+    settings = FitSettings.from_mapping(nsl)
     options = {"breaks": nsl["breaks"], "max_breaks": nsl["max_breaks"], "K": nsl["K"], "settings": settings}
     row: dict[str, Any] = {**key, "outcomes": len(r), "excluded": excluded, "error": None}
     try:

@@ -15,6 +15,7 @@ import pyarrow.parquet as pq
 from omegaconf import OmegaConf
 
 from nsl_hpc.atomic import write_parquet, write_text
+from nsl_hpc.errors import ConfigError
 
 MANIFEST_FILE = "manifest.parquet"
 LAUNCH_CONFIG_FILE = "launch.yaml"  # the launch's whole config: launcher, packing and cost settings
@@ -22,6 +23,13 @@ LAUNCH_CONFIG_FILE = "launch.yaml"  # the launch's whole config: launcher, packi
 
 def manifest_path(sweep_dir: Path) -> Path:
     return Path(sweep_dir) / MANIFEST_FILE
+
+
+def require_sweep(sweep_dir: str | Path) -> Path:
+    """The sweep directory, refused with a one-line error unless it holds a manifest."""
+    if not manifest_path(sweep_dir).exists():
+        raise ConfigError(f"sweep_dir={str(sweep_dir)!r} has no manifest.parquet; launch a sweep there first")
+    return Path(sweep_dir)
 
 
 def base_config_path(sweep_dir: Path, system: str, arch: str) -> Path:

@@ -24,9 +24,8 @@ from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.atomic import write_parquet, write_text
-from nsl_hpc.errors import ConfigError
 from nsl_hpc.failures import FAILURE_STATES, read_failures
-from nsl_hpc.manifest import manifest_path, read_manifest
+from nsl_hpc.manifest import read_manifest, require_sweep
 
 RESULTS_FILE = "results.parquet"
 SUMMARY_FILE = "merge_summary.json"
@@ -103,46 +102,42 @@ def outcome_columns(names: Sequence[str], manifest_names: Sequence[str]) -> list
     return ["task_id", *(name for name in names if name not in manifest_names)]
 
 
+def one_row_per_manifest_task(rows: pa.Table, task_ids: pa.ChunkedArray) -> tuple[pa.Table, int, int]:
+    """``rows`` without rows of tasks outside ``task_ids`` and without repeated task ids (the first row
+    of a task wins); returns (rows, unknown, duplicates). ``rows`` should be a single chunk (speed)."""
+    known = pc.is_in(rows["task_id"], value_set=task_ids)
+    unknown = rows.num_rows - (pc.sum(known).as_py() or 0)
+    rows = rows.filter(known)
+    _, first = np.unique(rows["task_id"].to_numpy(zero_copy_only=False), return_index=True)
+    return rows.take(pa.array(np.sort(first), pa.int64())), unknown, rows.num_rows - len(first)
+
+
+def dropped_counts(sweep_dir: Path, task_ids: pa.ChunkedArray, merged_ids: pa.ChunkedArray) -> dict[str, int]:
+    """Tasks without a merged row by their failure record's state (failed, frozen, timeout) or missing."""
+    failures = read_failures(sweep_dir)
+    merged = set(merged_ids.to_pylist())
+    states = [failures[t]["status"] if t in failures else "missing" for t in task_ids.to_pylist() if t not in merged]
+    return {state: states.count(state) for state in (*FAILURE_STATES, "missing")}
+
+
 def merge_sweep(sweep_dir: Path) -> MergeSummary:
     """Write results.parquet and merge_summary.json for the sweep; returns the summary."""
     sweep_dir = Path(sweep_dir)
     manifest = read_manifest(sweep_dir)
     shards = sorted((sweep_dir / "rows").glob("*/*.parquet"))
     rows, corrupt = read_shards(shards, manifest.column_names)
-    rows = rows.combine_chunks()  # one chunk per shard would make every later step slow
-    known = pc.is_in(rows["task_id"], value_set=manifest["task_id"])
-    unknown = rows.num_rows - pc.sum(known).as_py() if rows.num_rows else 0
-    rows = rows.filter(known)
-    _, first = np.unique(rows["task_id"].to_numpy(zero_copy_only=False), return_index=True)
-    duplicates = rows.num_rows - len(first)
-    rows = rows.take(pa.array(np.sort(first), pa.int64()))
+    rows, unknown, duplicates = one_row_per_manifest_task(rows.combine_chunks(), manifest["task_id"])
     ordered = manifest.append_column("manifest_index", pa.array(np.arange(manifest.num_rows)))
     results = ordered.join(rows, "task_id", join_type="inner")
     results = results.sort_by("manifest_index").drop_columns(["manifest_index"])
     write_parquet(results, results_path(sweep_dir))
-
-    merged = set(results["task_id"].to_pylist())
-    failures = read_failures(sweep_dir)
-    unmerged = [task_id for task_id in manifest["task_id"].to_pylist() if task_id not in merged]
-    states = [failures[task_id]["status"] if task_id in failures else "missing" for task_id in unmerged]
     diverged = int(pc.sum(pc.not_equal(results["status"], "ok")).as_py() or 0) if results.num_rows else 0
     summary = MergeSummary(tasks=manifest.num_rows, merged=results.num_rows,
-                           **{state: states.count(state) for state in (*FAILURE_STATES, "missing")},
+                           **dropped_counts(sweep_dir, manifest["task_id"], results["task_id"]),
                            diverged=diverged, corrupt_shards=[str(p.relative_to(sweep_dir)) for p in corrupt],
                            duplicate_rows=duplicates, unknown_rows=unknown)
     write_text(json.dumps(asdict(summary), indent=1), sweep_dir / SUMMARY_FILE)
     return summary
-
-
-def read_merge_summary(sweep_dir: Path) -> MergeSummary:
-    return MergeSummary(**json.loads((Path(sweep_dir) / SUMMARY_FILE).read_text()))
-
-
-def require_sweep(sweep_dir: str) -> Path:
-    """The sweep directory, refused with a one-line error unless it holds a manifest."""
-    if not manifest_path(sweep_dir).exists():
-        raise ConfigError(f"sweep_dir={sweep_dir!r} has no manifest.parquet; launch a sweep there first")
-    return Path(sweep_dir)
 
 
 def main(cfg: DictConfig) -> int:

@@ -17,13 +17,17 @@ log residuals (which minimises M directly), and picks the number of breaks b by 
 
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 from scipy.optimize import least_squares
 from scipy.special import expit
+
+from nsl_hpc.cli import config_dir
 
 PHI_MIN = 0.2
 OBJECTIVES = ("margin", "study")
@@ -200,18 +204,28 @@ def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings"
 
 @dataclass(frozen=True)
 class FitSettings:
-    """How fit_nsl searches (see conf/nsl/default.yaml)."""
+    """How fit_nsl searches; the values and their meaning live in conf/nsl/default.yaml."""
 
-    objective: str = "margin"
-    positions: int = 9          # candidate corner positions on the log grid
-    starts: int = 6             # piecewise-linear starts refined per b
-    alpha_share: float = 0.5    # the second start of alpha, as a share of the smallest envelope error
-    max_slope: float = 10.0     # |delta| bound
-    edge: float = 0.05          # breaks stay this share of the log range away from its ends
-    min_gain: float = 0.5       # a break must cut the margin by this share to be kept
-    margin_floor: float = 1e-4  # margins below this count as this when choosing b
-    study_steps: int = 500
-    study_lr: float = 0.05
+    objective: str
+    positions: int
+    starts: int
+    alpha_share: float
+    max_slope: float
+    edge: float
+    min_gain: float
+    margin_floor: float
+    study_steps: int
+    study_lr: float
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], **changes: Any) -> "FitSettings":
+        """Settings from an ``nsl`` config (other keys ignored), with ``changes`` applied."""
+        return cls(**{name: changes.get(name, values[name]) for name in cls.__dataclass_fields__})
+
+    @classmethod
+    def default(cls, **changes: Any) -> "FitSettings":
+        """conf/nsl/default.yaml's settings, with ``changes`` applied."""
+        return cls.from_mapping(OmegaConf.load(config_dir() / "nsl" / "default.yaml"), **changes)
 
 
 def choose_breaks(margins: dict[int, float], min_gain: float, margin_floor: float) -> int:
@@ -251,8 +265,9 @@ def fit_nsl(resources: Sequence[float], errors: Sequence[float], breaks: int | N
     """Fit a broken NSL to the lower envelope of the outcomes (resources[i], errors[i]).
 
     ``breaks``: a fixed number of breaks b; None chooses b in 0..``max_breaks`` (see choose_breaks).
-    ``K``: envelope points. Raises NSLFitError for outcomes that cannot be fitted."""
-    settings = settings or FitSettings()
+    ``K``: envelope points. ``settings``: the search (default: conf/nsl/default.yaml).
+    Raises NSLFitError for outcomes that cannot be fitted."""
+    settings = settings or FitSettings.default()
     if settings.objective not in OBJECTIVES:
         raise NSLFitError(f"objective={settings.objective!r}; choose from {', '.join(OBJECTIVES)}")
     if K < 2:

@@ -131,12 +131,13 @@ class PackRunner:
         record_failure(sweep, task["task_id"], "frozen", reason)
         return "frozen"
 
-    def checkpoint(self, sweep_dir: str, task_ids: Sequence[str]) -> submitit.helpers.DelayedSubmission:
-        """On SLURM's warning signal: record the running task as timeout, requeue the unstarted ones."""
+    def checkpoint(self, sweep_dir: str, task_ids: Sequence[str]) -> submitit.helpers.DelayedSubmission | None:
+        """On SLURM's warning signal: record the running task as timeout, requeue the unstarted ones
+        (none left: no requeue, which SLURM would delay by minutes for nothing)."""
         if self.running is not None:
             sweep, task_id, child = self.running
             with contextlib.suppress(ProcessLookupError):
                 child.kill()
             record_failure(sweep, task_id, "timeout", "the job reached its time limit while this task ran")
         remaining = [task_id for task_id in task_ids if task_id not in self.started]
-        return submitit.helpers.DelayedSubmission(PackRunner(), sweep_dir, remaining)
+        return submitit.helpers.DelayedSubmission(PackRunner(), sweep_dir, remaining) if remaining else None

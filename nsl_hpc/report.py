@@ -21,8 +21,8 @@ from nsl_hpc import cli
 from nsl_hpc.atomic import write_text
 from nsl_hpc.figures import draw_figures, figure_stem
 from nsl_hpc.fit import FITS_TEXT_FILE, fit_sweep, fits_path, read_results, write_fits
-from nsl_hpc.manifest import LAUNCH_CONFIG_FILE
-from nsl_hpc.merge import MergeSummary, merge_sweep, require_sweep, results_path
+from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, require_sweep
+from nsl_hpc.merge import MergeSummary, merge_sweep, results_path
 from nsl_hpc.tracking import log_to_mlflow, tracking_uri
 
 REPORT_FILE = "report.html"

@@ -9,14 +9,13 @@ It uses the launcher, packing and cost settings the sweep was launched with (<sw
 """
 
 import sys
-from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.launcher import dispatch
-from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, manifest_path
+from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, require_sweep
 from nsl_hpc.plan import make_packs, packing_for, predicted_seconds
 from nsl_hpc.sweep_state import read_sweep_state
 
@@ -24,9 +23,7 @@ RESUBMITTABLE = ("failed", "frozen", "timeout", "missing")
 
 
 def main(cfg: DictConfig) -> int:
-    sweep_dir = Path(cfg.sweep_dir)
-    if not manifest_path(sweep_dir).exists():
-        raise ConfigError(f"sweep_dir={sweep_dir!r} has no manifest.parquet; launch a sweep there first")
+    sweep_dir = require_sweep(cfg.sweep_dir)
     bad = sorted(set(cfg.states) - set(RESUBMITTABLE))
     if bad:
         raise ConfigError(f"states={list(cfg.states)} has {bad[0]!r}; choose from {', '.join(RESUBMITTABLE)}")

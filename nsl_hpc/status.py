@@ -14,8 +14,7 @@ import time
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
-from nsl_hpc.errors import ConfigError
-from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, manifest_path
+from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, require_sweep
 from nsl_hpc.plan import predicted_seconds
 from nsl_hpc.sweep_state import STATES, SweepState, read_sweep_state
 
@@ -55,8 +54,7 @@ def failure_report(state: SweepState, limit: int) -> str:
 
 
 def main(cfg: DictConfig) -> int:
-    if not manifest_path(cfg.sweep_dir).exists():
-        raise ConfigError(f"sweep_dir={cfg.sweep_dir!r} has no manifest.parquet; launch a sweep there first")
+    require_sweep(cfg.sweep_dir)
     cost = OmegaConf.to_container(OmegaConf.load(f"{cfg.sweep_dir}/{LAUNCH_CONFIG_FILE}").cost)
     interval = cfg.interval_s
     while True:

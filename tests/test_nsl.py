@@ -96,7 +96,7 @@ def test_extreme_scales_fit_without_overflow_or_nan():
 def test_default_objective_beats_the_studys():
     r, e = outcomes(GENERATING_LAWS[2], 0)
     default = fit_nsl(r, e, breaks=2)
-    study = fit_nsl(r, e, breaks=2, settings=FitSettings(objective="study"))
+    study = fit_nsl(r, e, breaks=2, settings=FitSettings.default(objective="study"))
     assert study.b == 2 and np.isfinite(study.margin)
     assert default.margin < study.margin
 
