@@ -5,10 +5,12 @@ manifest; tasks without a row are dropped and accounted for (frozen, failed, tim
 
 Corrupt or half-written shards are reported and skipped; duplicate rows of a task and rows of tasks
 outside the manifest are reported and ignored. Merging twice gives the same table. The counts are also
-written to ``<sweep_dir>/merge_summary.json`` (read by the report and MLflow logging).
+written to ``<sweep_dir>/merge_summary.json``. Shards read once are kept in ``<sweep_dir>/.merge_cache.parquet``
+with their size and modification time, so merging a running sweep again reads only new or rewritten shards.
 """
 
 import json
+import os
 import sys
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -29,6 +31,8 @@ from nsl_hpc.manifest import read_manifest, require_sweep
 
 RESULTS_FILE = "results.parquet"
 SUMMARY_FILE = "merge_summary.json"
+CACHE_FILE = ".merge_cache.parquet"
+SHARD_KEY = ("shard", "size", "mtime_ns")  # a cached row stands while its shard keeps this key
 
 
 @dataclass(frozen=True)
@@ -71,30 +75,73 @@ def results_path(sweep_dir: Path) -> Path:
     return Path(sweep_dir) / RESULTS_FILE
 
 
-def read_shards(paths: list[Path], skip: Sequence[str]) -> tuple[pa.Table, list[Path]]:
-    """All shards as one table without the columns ``skip`` but task_id (one pyarrow dataset scan: the
-    fewer columns, the faster); when that fails, each shard on its own to find the unreadable ones,
-    which are returned apart."""
+def read_shards(paths: list[str], skip: Sequence[str]) -> tuple[pa.Table, list[str]]:
+    """The shards at ``paths`` as one table of the columns not in ``skip`` (but task_id) and ``shard``, the
+    path each row came from: one pyarrow dataset scan (the fewer columns, the faster); when that fails,
+    each shard on its own to find the unreadable ones, which are returned apart."""
     if not paths:
-        return pa.table({"task_id": pa.array([], pa.string())}), []
+        return pa.table({"task_id": pa.array([], pa.string()), "shard": pa.array([], pa.string())}), []
     try:
-        dataset = ds.dataset([str(p) for p in paths], format="parquet")
-        return dataset.to_table(columns=outcome_columns(dataset.schema.names, skip)), []
+        dataset = ds.dataset(paths, format="parquet")
+        table = dataset.to_table(columns=[*outcome_columns(dataset.schema.names, skip), "__filename"])
+        return table.rename_columns([*table.column_names[:-1], "shard"]), []
     except (pa.ArrowException, OSError):
         pass
 
-    def read_one(path: Path) -> pa.Table | None:
+    def read_one(path: str) -> pa.Table | None:
         try:
             table = pq.read_table(path)
-            return table.select(outcome_columns(table.column_names, skip))
         except (pa.ArrowException, OSError):
             return None
+        table = table.select(outcome_columns(table.column_names, skip))
+        return table.append_column("shard", pa.array([path] * table.num_rows, pa.string()))
 
     with ThreadPoolExecutor() as pool:
         tables = list(pool.map(read_one, paths))
     good = [table for table in tables if table is not None]
     return (pa.concat_tables(good, promote_options="permissive") if good else read_shards([], skip)[0],
             [path for path, table in zip(paths, tables, strict=True) if table is None])
+
+
+def list_shards(sweep_dir: Path) -> pa.Table:
+    """Every row file of the sweep with its SHARD_KEY (shard: path relative to the sweep dir), sorted."""
+    entries = [entry for bucket in os.scandir(Path(sweep_dir) / "rows") if bucket.is_dir()
+               for entry in os.scandir(bucket.path) if entry.name.endswith(".parquet")] \
+        if (Path(sweep_dir) / "rows").is_dir() else []
+    stats = [entry.stat() for entry in entries]
+    shards = [os.path.relpath(entry.path, sweep_dir) for entry in entries]
+    table = pa.table({"shard": shards, "size": [s.st_size for s in stats],
+                      "mtime_ns": [s.st_mtime_ns for s in stats]}, schema=pa.schema(
+                          [("shard", pa.string()), ("size", pa.int64()), ("mtime_ns", pa.int64())]))
+    return table.sort_by("shard")
+
+
+def read_cache(sweep_dir: Path, shards: pa.Table) -> pa.Table | None:
+    """Cached rows whose shard still has the same size and modification time (None without a cache)."""
+    try:
+        cached = pq.read_table(Path(sweep_dir) / CACHE_FILE)
+    except (pa.ArrowException, OSError):
+        return None
+    return cached.join(shards, list(SHARD_KEY), join_type="left semi")
+
+
+def read_rows(sweep_dir: Path, skip: Sequence[str]) -> tuple[pa.Table, list[str]]:
+    """Every readable row of the sweep (with its SHARD_KEY), in shard order, reading only the shards the
+    cache does not hold as they are; returns the rows and the unreadable shards. Updates the cache."""
+    shards = list_shards(sweep_dir)
+    cached = read_cache(sweep_dir, shards)
+    unread = shards if cached is None else shards.join(cached.select(list(SHARD_KEY)), list(SHARD_KEY),
+                                                       join_type="left anti")
+    unread_paths = [os.path.join(sweep_dir, shard) for shard in unread["shard"].to_pylist()]
+    new, corrupt = read_shards(unread_paths, skip)
+    relative = {path: shard for path, shard in zip(unread_paths, unread["shard"].to_pylist(), strict=True)}
+    new = new.set_column(new.schema.get_field_index("shard"), "shard",
+                         pa.array([relative[path] for path in new["shard"].to_pylist()], pa.string()))
+    new = new.join(shards, "shard", join_type="inner")  # add size and mtime_ns
+    rows = new if cached is None else pa.concat_tables([cached, new], promote_options="permissive")
+    rows = rows.combine_chunks().sort_by("shard")  # one chunk per shard would make every later step slow
+    write_parquet(rows, Path(sweep_dir) / CACHE_FILE)
+    return rows, [relative[path] for path in corrupt]
 
 
 def outcome_columns(names: Sequence[str], manifest_names: Sequence[str]) -> list[str]:
@@ -124,9 +171,8 @@ def merge_sweep(sweep_dir: Path) -> MergeSummary:
     """Write results.parquet and merge_summary.json for the sweep; returns the summary."""
     sweep_dir = Path(sweep_dir)
     manifest = read_manifest(sweep_dir)
-    shards = sorted((sweep_dir / "rows").glob("*/*.parquet"))
-    rows, corrupt = read_shards(shards, manifest.column_names)
-    rows, unknown, duplicates = one_row_per_manifest_task(rows.combine_chunks(), manifest["task_id"])
+    rows, corrupt = read_rows(sweep_dir, manifest.column_names)
+    rows, unknown, duplicates = one_row_per_manifest_task(rows.drop_columns(list(SHARD_KEY)), manifest["task_id"])
     ordered = manifest.append_column("manifest_index", pa.array(np.arange(manifest.num_rows)))
     results = ordered.join(rows, "task_id", join_type="inner")
     results = results.sort_by("manifest_index").drop_columns(["manifest_index"])
@@ -134,7 +180,8 @@ def merge_sweep(sweep_dir: Path) -> MergeSummary:
     diverged = int(pc.sum(pc.not_equal(results["status"], "ok")).as_py() or 0) if results.num_rows else 0
     summary = MergeSummary(tasks=manifest.num_rows, merged=results.num_rows,
                            **dropped_counts(sweep_dir, manifest["task_id"], results["task_id"]),
-                           diverged=diverged, corrupt_shards=[str(p.relative_to(sweep_dir)) for p in corrupt],
+                           diverged=diverged,
+                           corrupt_shards=corrupt,
                            duplicate_rows=duplicates, unknown_rows=unknown)
     write_text(json.dumps(asdict(summary), indent=1), sweep_dir / SUMMARY_FILE)
     return summary

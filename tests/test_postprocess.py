@@ -10,7 +10,7 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.failures import record_failure
-from nsl_hpc.rows import row_path
+from nsl_hpc.rows import read_row, row_path, write_row_atomically
 from tests.sweeps import manifest_ids, nsl, row_files
 
 # 24 tasks: spring / input_affine, 3 seeds x 2 epoch counts x 2 data tiers x 2 width tiers.
@@ -116,3 +116,22 @@ def test_post_processing_bad_input_is_a_one_line_error(tmp_path, finished_sweep)
     empty = nsl("fit", f"sweep_dir={sweep_dir}")
     assert empty.returncode == 2 and "holds no outcomes" in empty.stderr
     assert len(row_files(finished_sweep)) == 24  # the module's sweep is untouched
+
+
+def test_merge_again_reads_only_new_or_rewritten_shards_and_matches_a_fresh_merge(sweep_copy):
+    ids = manifest_ids(sweep_copy)
+    assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
+    assert (sweep_copy / ".merge_cache.parquet").exists()
+    rewritten = read_row(row_path(sweep_copy, ids[0]))
+    write_row_atomically({**rewritten, "nmae": 123.0}, row_path(sweep_copy, ids[0]))
+    row_path(sweep_copy, ids[1]).unlink()
+    assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
+    results = pq.read_table(sweep_copy / "results.parquet")
+    by_id = dict(zip(results["task_id"].to_pylist(), results["nmae"].to_pylist(), strict=True))
+    assert by_id[ids[0]] == 123.0 and ids[1] not in by_id and len(by_id) == 23
+    (sweep_copy / ".merge_cache.parquet").write_bytes(b"not parquet")  # a broken cache is rebuilt
+    assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
+    assert pq.read_table(sweep_copy / "results.parquet").equals(results)
+    (sweep_copy / ".merge_cache.parquet").unlink()
+    assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
+    assert pq.read_table(sweep_copy / "results.parquet").equals(results)
