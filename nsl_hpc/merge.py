@@ -83,8 +83,12 @@ def read_shards(paths: list[str], skip: Sequence[str]) -> tuple[pa.Table, list[s
         return pa.table({"task_id": pa.array([], pa.string()), "shard": pa.array([], pa.string())}), []
     try:
         dataset = ds.dataset(paths, format="parquet")
-        table = dataset.to_table(columns=[*outcome_columns(dataset.schema.names, skip), "__filename"])
-        return table.rename_columns([*table.column_names[:-1], "shard"]), []
+        table = dataset.to_table(columns=outcome_columns(dataset.schema.names, skip))
+        if table.num_rows == len(paths) and all(  # one row per shard, in order, named after its task
+                os.path.basename(path).startswith(task_id)
+                for path, task_id in zip(paths, table["task_id"].to_pylist(), strict=True)):
+            return table.append_column("shard", pa.array(paths, pa.string())), []
+        return table.append_column("shard", dataset.to_table(columns=["__filename"])["__filename"]), []
     except (pa.ArrowException, OSError):
         pass
 
