@@ -10,23 +10,17 @@ On a synthetic 63,504-task input-state sweep (97% of rows written, 3% failure re
 
 import os
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
 from omegaconf import OmegaConf
 from synthetic import corrupt_rows, fill_sweep, synthetic_input_state_sweep
+from timing import timed
 
 from nsl_hpc.cli import compose_config
 from nsl_hpc.fit import fit_sweep
 from nsl_hpc.merge import merge_sweep, results_path
-
-
-def timed(function, *args):
-    started = time.perf_counter()
-    result = function(*args)
-    return result, time.perf_counter() - started
 
 
 def main() -> None:

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 from synthetic import fill_sweep
+from timing import timed
 
 from nsl_hpc.cli import compose_config
 from nsl_hpc.launch import main as launch
@@ -31,12 +32,6 @@ INPUT_STATE = ["+sweep=input_state"]
 # 9 (system, arch) x 8 seeds x 9 data tiers x 4 width tiers x 2 depth tiers at 2 epochs = 5,184 tasks.
 SUBMISSION_GRID = [*INPUT_STATE, "sweep.grid.seed=[0,1,2,3,4,5,6,7]", "sweep.grid.epochs=[2]", "launcher=slurm",
                    "+launcher.extra_sbatch.hold=true"]
-
-
-def timed(function, *args):
-    started = time.perf_counter()
-    result = function(*args)
-    return result, time.perf_counter() - started
 
 
 def bench_expansion(root: Path) -> Path:
