@@ -18,7 +18,7 @@ from matplotlib.ticker import LogLocator, NullFormatter
 from tqdm import tqdm
 
 from nsl_hpc.atomic import replacing
-from nsl_hpc.fit import fit_from_row, fittable
+from nsl_hpc.fit import fit_from_row, fittable, pair_outcomes
 from nsl_hpc.nsl import lower_envelope
 
 FIGURES_DIR = "figures"
@@ -53,9 +53,7 @@ def marker_sizes(values: np.ndarray, limits: tuple[float, float]) -> np.ndarray:
 def outcomes_of(results: pa.Table, row: Mapping[str, Any], nsl: Mapping[str, Any], figures: Mapping[str, Any]
                 ) -> dict[str, np.ndarray]:
     """Resource, error, colour and size values of the fitted outcomes of one NSL."""
-    mask = (np.asarray(results["system"].to_pylist()) == row["system"]) & (
-        np.asarray(results["arch"].to_pylist()) == row["arch"])
-    subset = results.filter(mask)
+    subset = pair_outcomes(results, row["system"], row["arch"])
     resources = nsl["resources"]
     columns = {"r": resources[row["resource"]]["column"], "c": resources[figures["colour"][row["resource"]]]["column"],
                "s": resources[figures["size"][row["resource"]]]["column"]}

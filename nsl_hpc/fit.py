@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
@@ -54,6 +55,11 @@ def fittable(results: pa.Table, column: str, metric: str) -> np.ndarray:
     r = results[column].to_numpy().astype(float)
     e = results[metric].to_numpy().astype(float)
     return ok & np.isfinite(r) & np.isfinite(e) & (r > 0) & (e > 0)
+
+
+def pair_outcomes(results: pa.Table, system: str, arch: str) -> pa.Table:
+    """The results of one (system, arch)."""
+    return results.filter(pc.and_(pc.equal(results["system"], system), pc.equal(results["arch"], arch)))
 
 
 def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, nsl: dict[str, Any], symbol: str
@@ -96,8 +102,7 @@ def fit_sweep(results: pa.Table, nsl: DictConfig, workers: int | None) -> list[d
     jobs = []
     for system in dict.fromkeys(results["system"].to_pylist()):
         for arch in dict.fromkeys(results["arch"].to_pylist()):
-            subset = results.filter((np.asarray(results["system"].to_pylist()) == system)
-                                    & (np.asarray(results["arch"].to_pylist()) == arch))
+            subset = pair_outcomes(results, system, arch)
             for resource, spec in plain["resources"].items():
                 for metric in plain["metrics"]:
                     keep = fittable(subset, spec["column"], metric)
