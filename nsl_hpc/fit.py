@@ -11,6 +11,7 @@ positive errors are fitted; an NSL that cannot be fitted gets its reason in the 
 import json
 import os
 import sys
+from collections.abc import Mapping
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,11 @@ from nsl_hpc.nsl import FitSettings, NSLFit, NSLFitError, backtest_nsl, fit_nsl
 FITS_FILE = "nsl_fits.parquet"
 FITS_TEXT_FILE = "nsl_fits.txt"
 KEY_COLUMNS = ("system", "arch", "resource", "metric")
+
+
+def nsl_key(row: Mapping[str, Any]) -> str:
+    """'system/arch/resource/metric': names one NSL (MLflow tags, figure lookup)."""
+    return "/".join(row[k] for k in KEY_COLUMNS)
 
 
 def fits_path(sweep_dir: Path) -> Path:
@@ -116,7 +122,7 @@ def fit_sweep(results: pa.Table, nsl: DictConfig, workers: int | None) -> list[d
 
 
 def describe_fit(row: dict[str, Any]) -> str:
-    key = " / ".join(row[k] for k in KEY_COLUMNS)
+    key = nsl_key(row).replace("/", " / ")
     if row["error"]:
         return f"{key}: not fitted ({row['error']})"
     backtest = ("" if row["backtest_margin"] is None else

@@ -20,7 +20,7 @@ from omegaconf import DictConfig, OmegaConf
 from nsl_hpc import cli
 from nsl_hpc.atomic import write_text
 from nsl_hpc.figures import draw_figures, figure_stem
-from nsl_hpc.fit import FITS_TEXT_FILE, fit_sweep, fits_path, read_results, write_fits
+from nsl_hpc.fit import FITS_TEXT_FILE, fit_sweep, fits_path, nsl_key, read_results, write_fits
 from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, require_sweep
 from nsl_hpc.merge import MergeSummary, merge_sweep, results_path
 from nsl_hpc.tracking import log_to_mlflow, tracking_uri
@@ -95,8 +95,7 @@ def main(cfg: DictConfig) -> int:
     report = sweep_dir / REPORT_FILE
     write_text(report_html(sweep_dir, launch, summary, rows, figures), report)
     if cfg.mlflow.enabled:
-        by_key = {"/".join(row[k] for k in ("system", "arch", "resource", "metric")):
-                  figure_stem(sweep_dir, row).with_suffix(".png") for row in rows}
+        by_key = {nsl_key(row): figure_stem(sweep_dir, row).with_suffix(".png") for row in rows}
         artifacts = [results_path(sweep_dir), fits_path(sweep_dir), sweep_dir / FITS_TEXT_FILE, report,
                      *(path for path in figures["overview"])]
         run = log_to_mlflow(sweep_dir, cfg.mlflow, launch, summary, rows,

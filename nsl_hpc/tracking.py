@@ -17,6 +17,7 @@ from typing import Any
 from mlflow.entities import Metric, Param, RunTag
 from mlflow.tracking import MlflowClient
 
+from nsl_hpc.fit import nsl_key
 from nsl_hpc.merge import MergeSummary
 
 SWEEP_TAG = "nsl_hpc.sweep_dir"
@@ -86,7 +87,7 @@ def log_nsl_runs(client: MlflowClient, experiment: str, parent: str, rows: Seque
     for row in rows:
         if row["error"] is not None:
             continue
-        key = "/".join(row[k] for k in ("system", "arch", "resource", "metric"))
+        key = nsl_key(row)
         params = law_params(row)
         run = existing.pop(key, None)
         if run is not None and run.data.params != params:
