@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
+from nsl_hpc.failures import record_failure
 from nsl_hpc.launcher import dispatch
 from nsl_hpc.plan import Pack, make_packs, packing_for
 from nsl_hpc.sweep import PreparedSweep, prepare_sweep
@@ -24,12 +25,13 @@ from nsl_hpc.sweep import PreparedSweep, prepare_sweep
 def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str) -> str:
     """The plan in a few lines: tasks, jobs, time limits, predicted core-hours."""
     total, todo = prepared.manifest.num_rows, prepared.todo.num_rows
+    done = total - todo - len(prepared.infeasible)
     by_limit: dict[int, int] = {}
     for pack in packs:
         by_limit[pack.time_limit_min] = by_limit.get(pack.time_limit_min, 0) + 1
     classes = ", ".join(f"{n:,} x {limit} min" for limit, n in sorted(by_limit.items()))
     core_hours = sum(pack.seconds for pack in packs) / 3600
-    return (f"sweep {prepared.sweep_dir}: {total:,} tasks, {total - todo:,} done, {todo:,} to run\n"
+    return (f"sweep {prepared.sweep_dir}: {total:,} tasks, {done:,} done, {todo:,} to run\n"
             f"  jobs: {len(packs):,} ({launcher}; time limits: {classes or 'none'})\n"
             f"  predicted: {core_hours:,.1f} core-hours")
 
@@ -40,6 +42,14 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
     packs = make_packs(todo["task_id"].to_pylist(), todo["seconds"].to_pylist(),
                        packing_for(cfg.packing, cfg.launcher.name))
     print(describe_plan(prepared, packs, cfg.launcher.name))
+    if prepared.infeasible:
+        count = len(prepared.infeasible)
+        print(f"  {count:,} task{'s' if count > 1 else ''} cannot run as configured"
+              + (" (dry run: not recorded)" if cfg.dry_run else ": recorded as failed, not submitted")
+              + f"; e.g. {next(iter(prepared.infeasible.values()))}")
+        if not cfg.dry_run:
+            for task_id, reason in prepared.infeasible.items():
+                record_failure(prepared.sweep_dir, task_id, "failed", f"cannot run as configured: {reason}")
     if cfg.dry_run or not packs:
         print("dry run: nothing submitted" if cfg.dry_run else "nothing to run: every task has a row")
         return 0

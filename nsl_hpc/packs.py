@@ -28,7 +28,8 @@ from nsl_hpc.failures import failure_path, record_failure, task_log_path
 from nsl_hpc.manifest import base_config_path, read_manifest
 from nsl_hpc.plan import predicted_seconds
 from nsl_hpc.rows import row_path
-from nsl_hpc.task import TASK_OUTCOME_KEYS, describe, run_task
+from nsl_hpc.studies import study_named
+from nsl_hpc.task import describe, run_task
 
 POLL_SECONDS = 0.2
 
@@ -45,7 +46,7 @@ def manifest_rows(sweep_dir: Path, task_ids: Sequence[str]) -> list[dict[str, An
 def task_config(sweep_dir: Path, task: Mapping[str, Any]) -> DictConfig:
     """The full config of one manifest row ``task`` (a dict with the manifest's columns)."""
     cfg = OmegaConf.load(base_config_path(sweep_dir, task["system"], task["arch"]))
-    for key in (*TASK_OUTCOME_KEYS, "task_id"):  # system and arch are the base config's groups
+    for key in (*study_named(cfg.study.name).task_keys, "task_id"):  # system and arch: the base config's groups
         cfg[key] = task[key]
     return cfg
 

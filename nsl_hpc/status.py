@@ -46,7 +46,7 @@ def failure_report(state: SweepState, limit: int) -> str:
     for task in failed[:limit]:
         record = state.failures[task["task_id"]]
         lines.append(f"{record['status']} {task['task_id']} ({task['system']}/{task['arch']} seed={task['seed']} "
-                     f"n_e={task['epochs']}): {record['reason']}")
+                     f"steps={task['steps']:,}): {record['reason']}")
         lines += [f"    | {line}" for line in record["log_tail"].splitlines()[-LOG_LINES:]]
     if len(failed) > limit:
         lines.append(f"... and {len(failed) - limit:,} more (show_failures=N lists more)")

@@ -1,9 +1,11 @@
 """Preparing a sweep directory: compose each (system, arch) config, expand the grid, write the manifest,
 and find which tasks still need to run. Nothing is submitted here."""
 
-from collections.abc import Sequence
+import itertools
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pyarrow as pa
 import pyarrow.compute as pc
@@ -12,71 +14,97 @@ from omegaconf import DictConfig, OmegaConf
 from nsl_hpc.atomic import write_text
 from nsl_hpc.cli import compose_config
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.grid import GRID_AXES, build_manifest, grid_size, validate_grid
+from nsl_hpc.grid import Grid, build_manifest, sub_grids, validate_grid
 from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, manifest_path, read_manifest, write_sweep
 from nsl_hpc.plan import predicted_seconds
 from nsl_hpc.rows import row_path
-from nsl_hpc.task import require_member, require_positive_int
+from nsl_hpc.studies import Study, require_non_negative_int, study_named, study_of
 
 
 def override_key(override: str) -> str:
     return override.split("=", 1)[0].lstrip("+~")
 
 
-def validate_launch(cfg: DictConfig, overrides: Sequence[str]) -> None:
-    """Refuse, before any work, a launch without a sweep, grid axes set outside the grid, bad grid values."""
+def validate_launch(cfg: DictConfig, overrides: Sequence[str]) -> Study:
+    """Refuse, before any work, a launch without a sweep or with grid axes set outside the grid; returns the
+    sweep's study."""
     if "sweep" not in cfg:
         raise ConfigError("no sweep chosen: add +sweep=<name> (see conf/sweep/, e.g. +sweep=demo)")
+    study = study_named(cfg.study.name)
     for override in overrides:
-        if override_key(override) in GRID_AXES:
+        if override_key(override) in study.axes:
             raise ConfigError(f"{override_key(override)} is a grid axis of the sweep; set "
                               f"sweep.grid.{override_key(override)}=[...] instead of {override}")
-    grid = cfg.sweep.grid
-    validate_grid(grid)
-    for axis in ("epochs", "data_tier", "width_tier", "depth_tier"):
-        for value in grid[axis]:
-            require_positive_int(f"sweep.grid.{axis} value", value)
-    for axis, tiers in (("data_tier", "data"), ("width_tier", "width"), ("depth_tier", "depth")):
-        for value in grid[axis]:
-            require_member(f"sweep.grid.{axis} value", value, list(cfg.tiers[tiers]))
-    for seed in grid.seed:
-        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            raise ConfigError(f"sweep.grid.seed value {seed!r} must be a non-negative integer")
+    validate_grid(OmegaConf.to_container(cfg.sweep.grid), study)
+    return study
 
 
-def pair_configs(cfg: DictConfig, overrides: Sequence[str]) -> dict[tuple[str, str], dict]:
+def validate_grid_values(grid: Grid, study: Study, configs: Mapping[tuple[str, str], Mapping[str, Any]]) -> None:
+    """Check every coordinate value of every sub-grid as a task would, for each of its (system, arch)."""
+    for part in sub_grids(grid):
+        for seed in part["seed"]:
+            require_non_negative_int("sweep.grid.seed value", seed)
+        for system, arch in itertools.product(part["system"], part["arch"]):
+            for axis in study.size_axes:
+                for value in part[axis]:
+                    study.check_coordinate(f"sweep.grid.{axis} value", axis, value, configs[system, arch])
+
+
+def pair_configs(cfg: DictConfig, overrides: Sequence[str], study: Study) -> dict[tuple[str, str], dict]:
     """The resolved plain config of every (system, arch) of the grid, with the launch's overrides."""
-    return {(system, arch): OmegaConf.to_container(
-                compose_config([*overrides, f"system={system}", f"arch={arch}"], "launch"), resolve=True)
-            for system in cfg.sweep.grid.system for arch in cfg.sweep.grid.arch}
+    pairs = {(system, arch) for part in sub_grids(OmegaConf.to_container(cfg.sweep.grid))
+             for system in part["system"] for arch in part["arch"]}
+    configs = {}
+    for system, arch in sorted(pairs):
+        configs[system, arch] = OmegaConf.to_container(
+            compose_config([*overrides, f"system={system}", f"arch={arch}"], "launch"), resolve=True)
+        study_of(configs[system, arch])
+    return configs
 
 
 @dataclass(frozen=True)
 class PreparedSweep:
     sweep_dir: Path
     manifest: pa.Table
-    todo: pa.Table  # manifest rows of tasks without a row, with a `seconds` column (predicted)
+    todo: pa.Table  # manifest rows of runnable tasks without a row, with a `seconds` column (predicted)
     reused: bool  # the sweep directory already held this grid
+    infeasible: dict[str, str]  # task id -> why it cannot run as configured (e.g. a window longer than its data)
 
 
 def prepare_sweep(cfg: DictConfig, overrides: Sequence[str]) -> PreparedSweep:
     """Validate, expand and (first time) write the manifest; refuse a directory holding another grid."""
-    validate_launch(cfg, overrides)
+    study = validate_launch(cfg, overrides)
     sweep_dir = Path(cfg.sweep_dir)
-    configs = pair_configs(cfg, overrides)
-    manifest = build_manifest(cfg.sweep.grid, configs, cfg.sweep_seed)
+    grid = OmegaConf.to_container(cfg.sweep.grid)
+    configs = pair_configs(cfg, overrides, study)
+    validate_grid_values(grid, study, configs)
+    manifest = build_manifest(grid, study, configs, cfg.sweep_seed)
     reused = manifest_path(sweep_dir).exists()
     if reused:
         existing = read_manifest(sweep_dir, columns=["task_id"])["task_id"]
         if existing.to_pylist() != manifest["task_id"].to_pylist():
             raise ConfigError(f"sweep_dir={str(sweep_dir)!r} holds a different grid ({len(existing):,} tasks, "
-                              f"this one has {grid_size(cfg.sweep.grid):,} or other settings); choose another "
+                              f"this one has {len(manifest):,} or other settings); choose another "
                               "sweep_dir or launch with the same sweep and overrides")
     else:
         write_sweep(sweep_dir, manifest, configs)
         write_text(OmegaConf.to_yaml(cfg), sweep_dir / LAUNCH_CONFIG_FILE)
-    return PreparedSweep(sweep_dir, manifest, pending_tasks(sweep_dir, manifest, OmegaConf.to_container(cfg.cost)),
-                         reused)
+    todo = pending_tasks(sweep_dir, manifest, OmegaConf.to_container(cfg.cost))
+    infeasible = infeasible_tasks(todo, study, configs)
+    runnable = pc.invert(pc.is_in(todo["task_id"], value_set=pa.array(list(infeasible), type=pa.string())))
+    return PreparedSweep(sweep_dir, manifest, todo.filter(runnable), reused, infeasible)
+
+
+def infeasible_tasks(tasks: pa.Table, study: Study,
+                     configs: Mapping[tuple[str, str], Mapping[str, Any]]) -> dict[str, str]:
+    """Task id -> reason, for the manifest rows ``tasks`` whose drawn sizes cannot run (``Study.check_task``)."""
+    reasons = {}
+    for task in tasks.to_pylist():
+        try:
+            study.check_task(task, task, configs[task["system"], task["arch"]])
+        except ConfigError as error:
+            reasons[task["task_id"]] = str(error)
+    return reasons
 
 
 def pending_tasks(sweep_dir: Path, manifest: pa.Table, cost) -> pa.Table:

@@ -8,6 +8,6 @@ SYSTEM_NAMES = ["spring", "ball", "motor"]
 ARCH_NAMES = ["unstructured", "input_affine", "port_hamiltonian"]
 
 
-def system_config(name: str) -> dict:
+def system_config(name: str, *overrides: str) -> dict:
     """The plain-dict ``system`` config group of system ``name``."""
-    return OmegaConf.to_container(compose_config([f"system={name}"]).system, resolve=True)
+    return OmegaConf.to_container(compose_config([*overrides, f"system={name}"]).system, resolve=True)

@@ -1,4 +1,4 @@
-"""Grid expansion and the manifest: the study's 63,504 tasks, marginal counts, reproducible draws."""
+"""Grid expansion and the manifest: the studies' 63,504 and 42,120 tasks, marginal counts, reproducible draws."""
 
 from collections import Counter
 
@@ -7,9 +7,13 @@ from omegaconf import OmegaConf
 
 from nsl_hpc.cli import compose_config
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.grid import GRID_AXES, build_manifest, expand_grid, grid_size
+from nsl_hpc.grid import build_manifest, expand_grid, grid_size
+from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import pair_configs
 from nsl_hpc.task import task_id
+
+INPUT_STATE = study_named("input_state")
+INPUT_OUTPUT = study_named("input_output")
 
 
 def input_state_grid():
@@ -18,11 +22,11 @@ def input_state_grid():
 
 def test_input_state_grid_has_63504_tasks_with_documented_marginals():
     grid = input_state_grid()
-    tasks = list(expand_grid(grid))
-    assert len(tasks) == grid_size(grid) == 63_504
+    tasks = list(expand_grid(grid, INPUT_STATE))
+    assert len(tasks) == grid_size(grid, INPUT_STATE) == 63_504
     expected_per_value = {"system": 21_168, "arch": 21_168, "seed": 9_072, "epochs": 4_536, "data_tier": 7_056,
                           "width_tier": 15_876, "depth_tier": 31_752}
-    for axis in GRID_AXES:
+    for axis in INPUT_STATE.axes:
         counts = Counter(task[axis] for task in tasks)
         assert set(counts.values()) == {expected_per_value[axis]}, axis
     assert sorted(Counter(task["epochs"] for task in tasks)) == [2**k for k in range(1, 15)]
@@ -32,18 +36,20 @@ def test_input_state_grid_has_63504_tasks_with_documented_marginals():
 @pytest.fixture(scope="module")
 def demo_manifest():
     cfg = compose_config(["+sweep=demo"], "launch")
-    return cfg, build_manifest(cfg.sweep.grid, pair_configs(cfg, ["+sweep=demo"]), cfg.sweep_seed)
+    return cfg, build_manifest(cfg.sweep.grid, INPUT_STATE, pair_configs(cfg, ["+sweep=demo"], INPUT_STATE),
+                               cfg.sweep_seed)
 
 
 def test_manifest_draws_are_reproducible_and_independent_of_order(demo_manifest):
     cfg, manifest = demo_manifest
-    configs = pair_configs(cfg, ["+sweep=demo"])
-    again = build_manifest(cfg.sweep.grid, configs, cfg.sweep_seed)
+    configs = pair_configs(cfg, ["+sweep=demo"], INPUT_STATE)
+    again = build_manifest(cfg.sweep.grid, INPUT_STATE, configs, cfg.sweep_seed)
     assert manifest.equals(again)
-    reversed_grid = {axis: list(reversed(list(cfg.sweep.grid[axis]))) for axis in GRID_AXES}
-    by_id = {row["task_id"]: row for row in build_manifest(reversed_grid, configs, cfg.sweep_seed).to_pylist()}
+    reversed_grid = {axis: list(reversed(list(cfg.sweep.grid[axis]))) for axis in INPUT_STATE.axes}
+    by_id = {row["task_id"]: row
+             for row in build_manifest(reversed_grid, INPUT_STATE, configs, cfg.sweep_seed).to_pylist()}
     assert all(by_id[row["task_id"]] == row for row in manifest.to_pylist())
-    other_seed = build_manifest(cfg.sweep.grid, configs, cfg.sweep_seed + 1)
+    other_seed = build_manifest(cfg.sweep.grid, INPUT_STATE, configs, cfg.sweep_seed + 1)
     assert other_seed["data_size"].to_pylist() != manifest["data_size"].to_pylist()
 
 
@@ -51,7 +57,7 @@ def test_manifest_ids_and_sizes_match_the_single_task_path(demo_manifest):
     """A manifest row equals what `nsl_hpc.train` with the same overrides computes."""
     _, manifest = demo_manifest
     for row in manifest.to_pylist()[::37]:
-        cfg = compose_config([f"{key}={row[key]}" for key in GRID_AXES])
+        cfg = compose_config([f"{key}={row[key]}" for key in INPUT_STATE.axes])
         assert task_id(cfg) == row["task_id"]
     draws = manifest.to_pylist()
     for row in draws:
@@ -59,7 +65,7 @@ def test_manifest_ids_and_sizes_match_the_single_task_path(demo_manifest):
         assert row["width_tier"] // 2 <= row["width"] <= row["width_tier"]
     same_but_epochs = {}
     for row in draws:  # the epoch count never changes the draws
-        key = tuple(row[k] for k in GRID_AXES if k != "epochs")
+        key = tuple(row[k] for k in INPUT_STATE.axes if k != "epochs")
         same_but_epochs.setdefault(key, set()).add((row["data_size"], row["width"], row["depth"]))
     assert all(len(sizes) == 1 for sizes in same_but_epochs.values())
 
@@ -73,4 +79,39 @@ def test_bad_grids_are_refused(grid_update, message):
     grid = OmegaConf.to_container(input_state_grid())
     grid.update(grid_update)
     with pytest.raises(ConfigError, match=message):
-        list(expand_grid(grid))
+        list(expand_grid(grid, INPUT_STATE))
+
+
+def test_input_output_grid_has_42120_tasks_in_its_four_sub_grids():
+    grid = OmegaConf.to_container(compose_config(["+sweep=input_output"], "launch").sweep.grid)
+    tasks = list(expand_grid(grid, INPUT_OUTPUT))
+    assert len(tasks) == grid_size(grid, INPUT_OUTPUT) == 42_120
+    per_pair = Counter((task["arch"], task["system"]) for task in tasks)
+    assert per_pair == {("narx", "wiener_hammerstein"): 15_552, ("narx", "silverbox"): 10_368,
+                        ("subnet", "wiener_hammerstein"): 9_720, ("subnet", "silverbox"): 6_480}
+    tiers = {system: sorted({t["data_tier"] for t in tasks if t["system"] == system}, reverse=True)
+             for system in ("wiener_hammerstein", "silverbox")}
+    assert tiers == {"wiener_hammerstein": [80000 // 2**k for k in range(9)],
+                     "silverbox": [64000 // 2**k for k in range(9)]}
+    multipliers = {arch: sorted({t["iter_multiplier"] for t in tasks if t["arch"] == arch})
+                   for arch in ("narx", "subnet")}
+    assert multipliers == {"narx": [1, *range(2, 31, 2)], "subnet": list(range(1, 13))}
+    assert len({tuple(task.values()) for task in tasks}) == 42_120
+
+
+def test_input_output_manifest_sizes_follow_the_draw_rules_and_the_single_task_path():
+    overrides = ["+sweep=input_output", "sweep.grid.0.seed=[0]", "sweep.grid.0.iter_multiplier=[1,4]",
+                 "sweep.grid.0.width_tier=[4,64]"]
+    cfg = compose_config(overrides, "launch")
+    grid = OmegaConf.to_container(cfg.sweep.grid)[:1]
+    configs = pair_configs(cfg, overrides, INPUT_OUTPUT)
+    rows = build_manifest(grid, INPUT_OUTPUT, configs, cfg.sweep_seed).to_pylist()
+    assert len(rows) == 9 * 2 * 2 * 3
+    for row in rows:
+        assert row["data_tier"] / 2 <= row["train_points"] <= row["data_tier"]
+        assert row["width_tier"] / 2 <= row["width"] <= row["width_tier"]
+        assert row["steps"] == row["iter_multiplier"] * row["train_points"]
+        assert row["flops"] == row["params"] * row["steps"] * 256  # NARX: c = p n_i B
+    for row in rows[::11]:
+        task = compose_config(["study=input_output", *(f"{key}={row[key]}" for key in INPUT_OUTPUT.axes)])
+        assert task_id(task) == row["task_id"]

@@ -3,8 +3,8 @@
 import pyarrow.parquet as pq
 import pytest
 
-from nsl_hpc.grid import GRID_AXES
 from nsl_hpc.rows import read_row
+from nsl_hpc.studies import study_named
 from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
 
 
@@ -15,8 +15,9 @@ def test_tiny_sweep_completes_with_one_row_per_task(launcher, tmp_path):
     assert result.returncode == 0, result.stderr
     assert "4 tasks, 0 done, 4 to run" in result.stdout and "finished: 4 ok" in result.stdout
     manifest = pq.read_table(sweep_dir / "manifest.parquet")
-    assert {"task_id", *GRID_AXES, "sweep_seed", "data_size", "width", "depth", "steps", "flops"} <= set(
-        manifest.column_names)
+    expected = {"task_id", *study_named("input_state").axes, "sweep_seed", "data_size", "width", "depth", "steps",
+                "flops"}
+    assert expected <= set(manifest.column_names)
     rows = [read_row(path) for path in row_files(sweep_dir)]
     assert sorted(row["task_id"] for row in rows) == sorted(manifest_ids(sweep_dir))
     assert all(row["status"] == "ok" for row in rows)
@@ -46,7 +47,7 @@ def test_dry_run_writes_manifest_and_plan_only(tmp_path):
 
 
 @pytest.mark.parametrize(("args", "message"), [
-    (["+sweep=nonexistent"], "unknown sweep 'nonexistent'; choose one of: demo, input_state"),
+    (["+sweep=nonexistent"], "unknown sweep 'nonexistent'; choose one of: demo, input_output, input_state, io_demo"),
     ([], "no sweep chosen: add +sweep=<name>"),
     (["+sweep=demo", "epochs=8"], "epochs is a grid axis of the sweep"),
     (["+sweep=demo", "trian.lr=1"], "trian"),

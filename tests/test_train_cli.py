@@ -79,7 +79,7 @@ def test_different_seeds_draw_different_sizes(tmp_path, cache_dir):
 
 
 @pytest.mark.parametrize(("override", "message"), [
-    ("system=pendulum", "unknown system 'pendulum'; choose one of: ball, motor, spring"),
+    ("system=pendulum", "unknown system 'pendulum'; choose one of: ball, motor, silverbox, silverbox_sim, spring"),
     ("arch=transformer", "unknown arch 'transformer'; choose one of: input_affine, port_hamiltonian, "
                          "unstructured"),
     ("epochs=0", "epochs=0 must be a positive integer"),
@@ -120,5 +120,5 @@ def test_unwritable_output_dir_fails_before_work(tmp_path, cache_dir):
 def test_help_lists_groups_and_keys():
     result = subprocess.run([sys.executable, "-m", "nsl_hpc.train", "--help"], capture_output=True, text=True)
     assert result.returncode == 0
-    for text in ("python -m nsl_hpc.train", "system: ball, motor, spring", "epochs: 64", "data_tier"):
+    for text in ("python -m nsl_hpc.train", "system: ball, motor, silverbox", "epochs: 64", "data_tier"):
         assert text in result.stdout

@@ -23,5 +23,5 @@ def build_model(arch_cfg: Mapping[str, Any], state_dim: int, input_dim: int, wid
     name = arch_cfg["name"]
     if name not in ARCHITECTURES:
         raise ConfigError(f"unknown arch {name!r}; choose one of: {', '.join(sorted(ARCHITECTURES))}")
-    options = {k: v for k, v in arch_cfg.items() if k != "name"}
+    options = {k: v for k, v in arch_cfg.items() if k not in ("name", "study")}
     return ARCHITECTURES[name](state_dim, input_dim, width, depth, **options)

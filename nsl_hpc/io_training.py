@@ -1,0 +1,163 @@
+"""Training of the input-output models on windows of a training prefix, and their free-run simulation.
+
+Signals are standardised with the training prefix's mean and standard deviation. A NARX model trains on
+one-step-ahead windows (its regressors hold measured past outputs); a SUBNET on sub-sequences: the encoder
+reads P past samples, the model then simulates T steps, and the loss is the mean squared simulation error.
+Both draw mini-batches of B windows from a fresh shuffle of all windows each pass, and train for exactly
+n_i iterations (optimizer steps). Scoring simulates the test record freely (the models' own outputs fed
+back) in float64 with numpy: a step of these tiny MLPs is a few microseconds there, tens in torch.
+"""
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from nsl_hpc.models.narx import NARX
+from nsl_hpc.models.subnet import SUBNET
+from nsl_hpc.records import Record
+from nsl_hpc.training import TrainingOutcome, nonzero, warmup_cosine
+
+
+@dataclass(frozen=True)
+class SignalScaling:
+    """Standard scaling of input and output, fitted on the training prefix."""
+
+    u_mean: float
+    u_std: float
+    y_mean: float
+    y_std: float
+
+    @classmethod
+    def fit(cls, record: Record) -> "SignalScaling":
+        return cls(float(record.u.mean()), float(nonzero(record.u.std())),
+                   float(record.y.mean()), float(nonzero(record.y.std())))
+
+    def normalise(self, record: Record) -> tuple[np.ndarray, np.ndarray]:
+        """Standardised (u, y), each (N,)."""
+        return (record.u - self.u_mean) / self.u_std, (record.y - self.y_mean) / self.y_std
+
+
+def narx_windows(model: NARX, u: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every one-step window of standardised u, y (N,): past outputs (W, n_y), inputs (W, n_u + 1) and the
+    target y_t (W,), for t = P..N-1 with P = max(n_y, n_u); W = N - P."""
+    past = max(model.past_outputs, model.past_inputs)
+    t = torch.arange(past, len(y))
+    past_y = y.unfold(0, model.past_outputs, 1)[t - model.past_outputs]
+    inputs = u.unfold(0, model.past_inputs + 1, 1)[t - model.past_inputs]
+    return past_y, inputs, y[t]
+
+
+def subnet_windows(model: SUBNET, u: torch.Tensor, y: torch.Tensor, horizon: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Views (W, P + T) of every sub-sequence of standardised u and y (N,); W = N - P - T + 1."""
+    length = model.past + horizon
+    return u.unfold(0, length, 1), y.unfold(0, length, 1)
+
+
+def window_loss(model: nn.Module, record: Record, scaling: SignalScaling, horizon: int,
+                dtype: torch.dtype) -> tuple[int, Callable[[torch.Tensor], torch.Tensor]]:
+    """(number of windows W, loss of a batch of window indices (B,)) for ``model`` on ``record``."""
+    u, y = (torch.as_tensor(a, dtype=dtype) for a in scaling.normalise(record))
+    if isinstance(model, NARX):
+        past_y, inputs, target = narx_windows(model, u, y)
+        return len(target), lambda idx: (model(past_y[idx], inputs[idx]) - target[idx]).square().mean()
+    u_windows, y_windows = subnet_windows(model, u, y, horizon)
+    past = model.past
+
+    def loss(idx: torch.Tensor) -> torch.Tensor:
+        batch_u, batch_y = u_windows[idx], y_windows[idx]
+        simulated = model(batch_u[:, :past], batch_y[:, :past], batch_u[:, past:])
+        return (simulated - batch_y[:, past:]).square().mean()
+
+    return len(u_windows), loss
+
+
+def train_io_model(model: nn.Module, record: Record, scaling: SignalScaling, cfg: Mapping[str, Any],
+                   iterations: int, horizon: int, shuffle_seed: int,
+                   on_epoch: Callable[[], None] = lambda: None) -> TrainingOutcome:
+    """Adam (warm-up + cosine over ``iterations`` steps, gradient clipping) on mini-batches of
+    ``cfg.batch_size`` windows (all windows when there are fewer); ``cfg`` is the ``train`` group.
+    ``on_epoch`` is called after each pass over the windows; stops early (finite=False) on a NaN loss."""
+    windows, batch_loss = window_loss(model, record, scaling, horizon, getattr(torch, cfg["dtype"]))
+    batch = min(cfg["batch_size"], windows)
+    schedule = warmup_cosine(iterations, cfg["warmup_fraction"], cfg["lr"])
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg["lr"], foreach=True)
+    generator = torch.Generator().manual_seed(shuffle_seed)
+    parameters = list(model.parameters())
+    model.train()
+    step, loss = 0, torch.tensor(math.nan)
+    with tqdm(total=iterations, desc="iterations", unit="it", disable=None, leave=False) as progress:
+        while step < iterations:
+            order = torch.randperm(windows, generator=generator)
+            for start in range(0, min(windows - batch + 1, (iterations - step) * batch), batch):
+                optimizer.param_groups[0]["lr"] = schedule[step]
+                loss = batch_loss(order[start:start + batch])
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                nn.utils.clip_grad_norm_(parameters, cfg["grad_clip_norm"], foreach=True)
+                optimizer.step()
+                step += 1
+            progress.update(step - progress.n)
+            on_epoch()
+            if not torch.isfinite(loss):
+                return TrainingOutcome(step, loss.item(), finite=False)
+    return TrainingOutcome(step, loss.item(), finite=True)
+
+
+def numpy_layers(net: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(W^T (in, out), b (out,)) of each Linear layer of a tanh MLP, in float64."""
+    return [(layer.weight.detach().double().numpy().T.copy(), layer.bias.detach().double().numpy().copy())
+            for layer in net if isinstance(layer, nn.Linear)]
+
+
+def hidden(layers: list[tuple[np.ndarray, np.ndarray]], first: np.ndarray) -> np.ndarray:
+    """The MLP's output given its first layer's pre-activation ``first`` (..., width)."""
+    h = np.tanh(first)
+    for weight, bias in layers[1:-1]:
+        h = np.tanh(h @ weight + bias)
+    return h @ layers[-1][0] + layers[-1][1]
+
+
+def simulate_narx(model: NARX, u: np.ndarray, y: np.ndarray, init: int) -> np.ndarray:
+    """Free-run simulation (N,) on standardised u, y (N,): y_0..y_{init-1} are given, every later output is
+    predicted from the model's own past predictions. ``init`` >= max(n_y, n_u)."""
+    layers = numpy_layers(model.net)
+    weight, bias = layers[0]
+    w_y, w_u = weight[:model.past_outputs], weight[model.past_outputs:]
+    t = np.arange(init, len(u))
+    windows = np.lib.stride_tricks.sliding_window_view(u, model.past_inputs + 1)[t - model.past_inputs]
+    from_inputs = windows @ w_u + bias  # (N - init, width): the inputs' part of the first layer, all at once
+    simulated = y.astype(float).copy()
+    for k, index in enumerate(t.tolist()):
+        first = from_inputs[k] + simulated[index - model.past_outputs:index] @ w_y
+        simulated[index] = hidden(layers, first)[0]
+    return simulated
+
+
+def simulate_subnet(model: SUBNET, u: np.ndarray, y: np.ndarray, init: int) -> np.ndarray:
+    """Free-run simulation (N,) on standardised u, y (N,): the encoder reads the ``init`` samples before index
+    ``init`` (its past window, init >= P), then x_{k+1} = x_k + f(x_k, u_k), y_k = h(x_k)."""
+    encoder, f, h = (numpy_layers(net) for net in (model.encoder, model.f, model.h))
+    past = np.concatenate([u[init - model.past:init], y[init - model.past:init]])
+    x = hidden(encoder, past @ encoder[0][0] + encoder[0][1])
+    w_x, w_u = f[0][0][:model.state_dim], f[0][0][model.state_dim]
+    from_inputs = np.multiply.outer(u[init:], w_u) + f[0][1]  # (N - init, width)
+    simulated = y.astype(float).copy()
+    for k in range(len(u) - init):
+        simulated[init + k] = hidden(h, x @ h[0][0] + h[0][1])[0]
+        x = x + hidden(f, from_inputs[k] + x @ w_x)
+    return simulated
+
+
+def simulate(model: nn.Module, record: Record, scaling: SignalScaling, init: int) -> np.ndarray:
+    """Free-run simulated output (N,) of ``record`` in its units; the first ``init`` samples are measured."""
+    model.eval()
+    u, y = scaling.normalise(record)
+    with torch.no_grad():
+        run = simulate_narx if isinstance(model, NARX) else simulate_subnet
+        return run(model, u, y, init) * scaling.y_std + scaling.y_mean

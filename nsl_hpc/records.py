@@ -1,0 +1,142 @@
+"""Input-output records of the input-output study: the measured benchmarks (Silverbox, Wiener-Hammerstein),
+read with the standard ``nonlinear_benchmarks`` loaders from ``system.source.data_dir``, or their simulated
+stand-ins, and their split into training pool, validation and test records.
+
+A task trains on the prefix u_1..u_{n_l}, y_1..y_{n_l} of the training pool (the first ``train_samples``
+samples of the benchmark's training record); the rest of that record is the validation split, kept out of
+training and not used for selection. The score is a free-run simulation of the test record.
+"""
+
+import contextlib
+import io
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nsl_hpc.cache import ArrayCache
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.seeding import stable_seed
+from nsl_hpc.systems.duffing import simulate_duffing
+from nsl_hpc.systems.wiener_hammerstein import simulate_wiener_hammerstein
+
+# Bump when the stand-in simulations change results, so cached records are not reused.
+STANDIN_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Record:
+    """One single-input single-output record; both arrays (N,), float64, in the benchmark's units (V)."""
+
+    u: np.ndarray
+    y: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.y)
+
+    def head(self, samples: int) -> "Record":
+        return Record(self.u[:samples], self.y[:samples])
+
+
+@dataclass(frozen=True)
+class Benchmark:
+    train: Record  # the training pool: a task trains on its first n_l samples
+    validation: Record  # the rest of the training record, never trained on
+    test: Record  # scored in free-run simulation after its first `init_samples` samples
+
+
+def load_benchmark(system_cfg: Mapping[str, Any], cache: ArrayCache) -> Benchmark:
+    """The records of an input-output system (measured or simulated), split as configured."""
+    source = system_cfg["source"]
+    if source["kind"] == "benchmark":
+        train, test = read_measured(system_cfg["name"], source)
+        origin = f" of {measured_file(source)}"
+    else:
+        train, test = simulated_records(system_cfg, cache)
+        origin = ""
+    pool = system_cfg["train_samples"]
+    if len(train) < pool:
+        raise ConfigError(f"{system_cfg['name']}: the training record{origin} has {len(train):,} samples, fewer "
+                          f"than system.train_samples={pool:,} (the largest data tier)")
+    return Benchmark(train.head(pool), Record(train.u[pool:], train.y[pool:]), test)
+
+
+def read_measured(name: str, source: Mapping[str, Any]) -> tuple[Record, Record]:
+    """Training and test record read by ``nonlinear_benchmarks.<loader>(dir_placement=data_dir)``; the files
+    are checked first, so a missing copy is our one-line error, never a download attempt."""
+    import nonlinear_benchmarks  # imported here: only tasks on measured data need it
+
+    data_dir = Path(source["data_dir"])
+    for relative in source["files"]:
+        if not (data_dir / relative).is_file():
+            raise ConfigError(f"{name}: data file {data_dir / relative} is missing; place the benchmark's files "
+                              f"under system.source.data_dir={str(data_dir)!r} as {', '.join(source['files'])} "
+                              "(README, 'Benchmark data')")
+    loader = getattr(nonlinear_benchmarks, source["loader"])
+    data_file = measured_file(source)
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            (train,), tests = loader(dir_placement=str(data_dir), always_return_tuples_of_datasets=True)
+    except Exception as error:
+        raise ConfigError(f"{name}: cannot read {data_file} ({type(error).__name__}: {error}); replace it with "
+                          "an intact copy of the benchmark file") from None
+    return (checked_record(name, data_file, "training", train.u, train.y),
+            checked_record(name, data_file, "test", tests[source["test_index"]].u, tests[source["test_index"]].y))
+
+
+def measured_file(source: Mapping[str, Any]) -> Path:
+    """The file the loader reads (the last of ``source.files``)."""
+    return Path(source["data_dir"]) / source["files"][-1]
+
+
+def checked_record(name: str, data_file: Path, part: str, u: Any, y: Any) -> Record:
+    """u and y as a Record, refused unless both are finite, one-dimensional and of equal length."""
+    u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
+    if u.ndim != 1 or u.shape != y.shape:
+        raise ConfigError(f"{name}: {data_file} holds a {part} record of shapes u {u.shape}, y {y.shape}; expected "
+                          "two equally long one-dimensional signals")
+    if not (np.isfinite(u).all() and np.isfinite(y).all()):
+        bad = int((~np.isfinite(u)).sum() + (~np.isfinite(y)).sum())
+        raise ConfigError(f"{name}: {data_file} holds {bad} NaN or infinite values in its {part} record")
+    return Record(u, y)
+
+
+def simulated_records(system_cfg: Mapping[str, Any], cache: ArrayCache) -> tuple[Record, Record]:
+    """Training and test record of a stand-in, simulated once per configuration and then read from cache."""
+    key = {"version": STANDIN_VERSION, "system": dict(system_cfg)}
+
+    def create() -> dict[str, np.ndarray]:
+        parts = {}
+        for part in ("train", "test"):
+            record = simulate_record(system_cfg, part)
+            parts[f"{part}_u"], parts[f"{part}_y"] = record.u, record.y
+        return parts
+
+    arrays = cache.get_or_create(key, create)
+    return Record(arrays["train_u"], arrays["train_y"]), Record(arrays["test_u"], arrays["test_y"])
+
+
+def simulate_record(system_cfg: Mapping[str, Any], part: str) -> Record:
+    """One record of a stand-in: its own input realisation, the simulated output plus white noise."""
+    source, samples = system_cfg["source"], system_cfg["samples"][part]
+    rng = np.random.default_rng(stable_seed("record", system_cfg["name"], source["seed"], part))
+    u = random_phase_multisine(rng, samples, system_cfg["fs_hz"], **system_cfg["excitation"])
+    simulate = {"duffing": simulate_duffing, "wiener_hammerstein": simulate_wiener_hammerstein}[source["kind"]]
+    y = simulate(u, system_cfg["fs_hz"], **source["params"])
+    return Record(u, y + system_cfg["output_noise_std"] * rng.standard_normal(samples))
+
+
+def random_phase_multisine(rng: np.random.Generator, samples: int, fs_hz: float, band_hz: list[float],
+                           rms: float) -> np.ndarray:
+    """(samples,) one period of a multisine with equal amplitudes on every frequency bin in (band_hz[0],
+    band_hz[1]] and uniformly random phases, scaled to ``rms``."""
+    frequencies = np.fft.rfftfreq(samples, d=1.0 / fs_hz)
+    excited = (frequencies > band_hz[0]) & (frequencies <= band_hz[1])
+    if not excited.any():
+        raise ConfigError(f"excitation band {band_hz} Hz holds no frequency bin of a {samples}-sample record")
+    spectrum = np.where(excited, np.exp(2j * math.pi * rng.uniform(size=len(frequencies))), 0.0)
+    signal = np.fft.irfft(spectrum, n=samples)
+    return signal * rms / np.sqrt(np.mean(signal**2))

@@ -1,0 +1,130 @@
+"""The studies a sweep can run, by name. A study says which coordinates a task has (its grid axes), how the
+sizes of a task are drawn from them, and how a task trains and is scored; everything else (task ids, rows,
+manifests, launching, merging, fitting) is shared.
+
+    input_state    spring, ball, motor; unstructured, input_affine, port_hamiltonian  (nsl_hpc.studies.input_state)
+    input_output   silverbox, wiener_hammerstein and their *_sim stand-ins; narx, subnet  (.input_output)
+"""
+
+import math
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig
+
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.seeding import stable_hash, stable_seed
+
+
+def require_member(key: str, value: Any, allowed: list) -> None:
+    if value not in allowed:
+        raise ConfigError(f"{key}={value!r} is outside the grid; allowed: {', '.join(map(str, allowed))}")
+
+
+def require_positive_int(key: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+        raise ConfigError(f"{key}={value!r} must be a positive integer")
+
+
+def require_non_negative_int(key: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ConfigError(f"{key}={value!r} must be a non-negative integer")
+
+
+def draw_tier(rng: np.random.Generator, tier: int) -> int:
+    """An integer drawn uniformly in [ceil(tier / 2), tier]."""
+    return int(rng.integers(math.ceil(tier / 2), tier, endpoint=True))
+
+
+class Study:
+    """What differs between studies. Subclasses set the class attributes and implement the methods."""
+
+    name: str
+    axes: tuple[str, ...]  # grid axes in expansion order: "system", "arch", "seed", then the size coordinates
+    length_axis: str  # the axis of training length; the size draws ignore it (longer runs of the same model)
+    shared_keys: tuple[str, ...]  # config groups and keys that change the outcome of every task of a pair
+
+    @property
+    def size_axes(self) -> tuple[str, ...]:
+        """The coordinates sizes are drawn from and training length is set by (checked by check_coordinate)."""
+        return tuple(axis for axis in self.axes if axis not in ("system", "arch", "seed"))
+
+    @property
+    def task_keys(self) -> tuple[str, ...]:
+        """Scalar coordinates that differ between the tasks of one (system, arch), for the task id."""
+        return ("sweep_seed", *(axis for axis in self.axes if axis not in ("system", "arch")))
+
+    @property
+    def draw_keys(self) -> tuple[str, ...]:
+        """What the random draws of a task depend on (everything but its training length)."""
+        return ("sweep_seed", *(axis for axis in self.axes if axis != self.length_axis))
+
+    def draw_rng(self, task: Mapping[str, Any]) -> np.random.Generator:
+        return np.random.default_rng(stable_seed("sizes", *(task[key] for key in self.draw_keys)))
+
+    def seed_for(self, purpose: str, task: Mapping[str, Any]) -> int:
+        """The seed of one random stream of a task ("init", "shuffle"), independent of its training length."""
+        return stable_seed(purpose, *(task[key] for key in self.draw_keys))
+
+    def shared_identity(self, values: Mapping[str, Any]) -> str:
+        """Hash of the shared outcome-changing groups of a plain config dict (paths left out)."""
+        return stable_hash({key: without_paths(values[key]) for key in self.shared_keys})
+
+    def check_coordinate(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
+        """Raise ConfigError when ``value`` is not allowed for coordinate ``key`` (``label`` names it)."""
+        raise NotImplementedError
+
+    def check_task(self, task: Mapping[str, Any], sizes: Mapping[str, Any], base: Mapping[str, Any]) -> None:
+        """Raise ConfigError when a task's drawn sizes cannot run (checked before any work)."""
+
+    def sizes(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
+        """The sizes a task draws and what follows: at least train_points, params, steps and flops."""
+        drawn = self.draw(task, base)
+        return {**drawn, **self.training_length(task, drawn, base)}
+
+    def draw(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
+        """The sizes drawn from the task's coordinates (its training length aside): train_points, params..."""
+        raise NotImplementedError
+
+    def training_length(self, task: Mapping[str, Any], drawn: Mapping[str, Any],
+                        base: Mapping[str, Any]) -> dict[str, Any]:
+        """steps (optimizer steps) and flops (the compute resource) of a task with sizes ``drawn``."""
+        raise NotImplementedError
+
+    def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
+                        on_epoch: Callable[[], None]) -> dict[str, Any]:
+        """Train the task's model and score it: nmae, nmse, steps, final_loss, finite and study extras."""
+        raise NotImplementedError
+
+
+def without_paths(value: Any) -> Any:
+    """``value`` without its ``data_dir`` entries (where data lies does not change an outcome)."""
+    if isinstance(value, Mapping):
+        return {k: without_paths(v) for k, v in value.items() if k != "data_dir"}
+    return value
+
+
+def studies() -> dict[str, Study]:
+    from nsl_hpc.studies.input_output import InputOutput
+    from nsl_hpc.studies.input_state import InputState
+
+    return {study.name: study for study in (InputState(), InputOutput())}
+
+
+def study_named(name: str) -> Study:
+    known = studies()
+    if name not in known:
+        raise ConfigError(f"unknown study {name!r}; choose one of: {', '.join(sorted(known))}")
+    return known[name]
+
+
+def study_of(cfg: Mapping[str, Any]) -> Study:
+    """The study of a composed config, refusing a system or arch of another study."""
+    study = study_named(cfg["study"]["name"])
+    for group in ("system", "arch"):
+        member = cfg[group].get("study")
+        if member != study.name:
+            raise ConfigError(f"{group}={cfg[group]['name']} belongs to the {member} study, not {study.name}; "
+                              f"add study={member} (or pick a {group} of the {study.name} study)")
+    return study

@@ -1,0 +1,118 @@
+"""The input-output study: NARX and SUBNET models identified from input-output records (Silverbox,
+Wiener-Hammerstein, or their simulated stand-ins), scored in free-run simulation on the test record.
+
+Sizes are drawn from the task's grid coordinates: n_l (training prefix length) an integer in
+[n_l~/2, n_l~], n_h an integer in [n_h~/2, n_h~]; n_d = depth. The draws, the initial weights and the batch
+order leave the iteration multiplier m out, so tasks that differ only in m train the same model on the
+same data for longer: n_i = m n_l iterations of B windows. Compute c = p n_i B (NARX) or p n_i B T (SUBNET,
+whose p leaves out the encoder); data = n_l; model size = p.
+"""
+
+import time
+from collections.abc import Callable, Mapping
+from functools import cache
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch import nn
+
+from nsl_hpc.cache import ArrayCache
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.io_training import SignalScaling, simulate, train_io_model
+from nsl_hpc.metrics import normalized_errors
+from nsl_hpc.models.narx import NARX
+from nsl_hpc.models.subnet import SUBNET
+from nsl_hpc.records import load_benchmark
+from nsl_hpc.studies import Study, draw_tier, require_member, require_positive_int
+
+
+def build_io_model(arch_cfg: Mapping[str, Any], system_cfg: Mapping[str, Any], width: int, depth: int) -> nn.Module:
+    """The architecture ``arch_cfg.name`` (narx or subnet) with n_h = width, n_d = depth."""
+    if arch_cfg["name"] == "narx":
+        return NARX(arch_cfg["past_outputs"], arch_cfg["past_inputs"], width, depth)
+    if arch_cfg["name"] == "subnet":
+        return SUBNET(system_cfg["subnet"]["state_dim"], arch_cfg["past"], width, depth)
+    raise ConfigError(f"unknown arch {arch_cfg['name']!r} for the input_output study; choose one of: narx, subnet")
+
+
+@cache
+def model_parameters(arch_items: tuple, state_dim: int, width: int, depth: int) -> int:
+    """p of one architecture (SUBNET without its encoder), built once per distinct shape."""
+    return build_io_model(dict(arch_items), {"subnet": {"state_dim": state_dim}}, width, depth).counted_parameters()
+
+
+def past_window(arch_cfg: Mapping[str, Any]) -> int:
+    """P: the samples before t a model reads (its regressors, or its encoder's window)."""
+    if arch_cfg["name"] == "narx":
+        return max(arch_cfg["past_outputs"], arch_cfg["past_inputs"])
+    return arch_cfg["past"]
+
+
+def horizon(base: Mapping[str, Any]) -> int:
+    """T, simulated steps per training window: the system's SUBNET horizon, 1 for NARX (one step ahead)."""
+    return base["system"]["subnet"]["horizon"] if base["arch"]["name"] == "subnet" else 1
+
+
+class InputOutput(Study):
+    name = "input_output"
+    axes = ("system", "arch", "seed", "iter_multiplier", "data_tier", "width_tier", "depth")
+    length_axis = "iter_multiplier"
+    shared_keys = ("system", "arch", "train")
+
+    def check_coordinate(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
+        require_positive_int(label, value)
+        allowed = {"data_tier": base["system"]["data_tiers"], "width_tier": base["tiers"]["width"],
+                   "depth": base["tiers"]["depth"]}
+        if key in allowed:
+            require_member(label, value, list(allowed[key]))
+
+    def check_task(self, task: Mapping[str, Any], sizes: Mapping[str, Any], base: Mapping[str, Any]) -> None:
+        system, arch = base["system"], base["arch"]
+        if task["data_tier"] > system["train_samples"]:
+            raise ConfigError(f"data_tier={task['data_tier']} is larger than the training pool of {system['name']} "
+                              f"(system.train_samples={system['train_samples']})")
+        past, steps = past_window(arch), horizon(base)
+        if past > system["init_samples"]:
+            raise ConfigError(f"{arch['name']} reads {past} past samples, more than the {system['init_samples']} "
+                              f"that initialise a test simulation (system.init_samples)")
+        window = past + steps if arch["name"] == "subnet" else past + 1
+        if sizes["train_points"] < window:
+            raise ConfigError(f"the training subset (n_l={sizes['train_points']} samples, data_tier="
+                              f"{task['data_tier']}) is shorter than one {arch['name']} window of {window} samples "
+                              f"({past} past + T={steps}); use a larger data_tier or a shorter horizon")
+
+    def draw(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
+        rng = self.draw_rng(task)
+        points, width = draw_tier(rng, task["data_tier"]), draw_tier(rng, task["width_tier"])
+        state_dim = base["system"]["subnet"]["state_dim"]
+        return {"train_points": points, "width": width,
+                "params": model_parameters(tuple(base["arch"].items()), state_dim, width, task["depth"])}
+
+    def training_length(self, task: Mapping[str, Any], drawn: Mapping[str, Any],
+                        base: Mapping[str, Any]) -> dict[str, Any]:
+        iterations = task["iter_multiplier"] * drawn["train_points"]
+        return {"steps": iterations,
+                "flops": float(drawn["params"]) * iterations * base["train"]["batch_size"] * horizon(base)}
+
+    def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
+                        on_epoch: Callable[[], None]) -> dict[str, Any]:
+        system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+        base = {"system": system_cfg, "arch": OmegaConf.to_container(cfg.arch)}
+        torch.manual_seed(self.seed_for("init", task))
+        model = build_io_model(cfg.arch, system_cfg, sizes["width"], task["depth"])
+        benchmark = load_benchmark(system_cfg, ArrayCache(cfg.cache_dir))
+        record = benchmark.train.head(sizes["train_points"])
+        started = time.perf_counter()
+        scaling = SignalScaling.fit(record)
+        outcome = train_io_model(model, record, scaling, cfg.train, sizes["steps"], horizon(base),
+                                 self.seed_for("shuffle", task), on_epoch)
+        train_seconds = time.perf_counter() - started
+        init = system_cfg["init_samples"]
+        measured, simulated = benchmark.test.y[init:], simulate(model, benchmark.test, scaling, init)[init:]
+        rmse = float(np.sqrt(np.mean(np.square(simulated - measured))))
+        return {**normalized_errors(measured[:, None], simulated[:, None]),
+                "rmse_mv": system_cfg["mv_per_unit"] * rmse,
+                "steps": outcome.steps, "final_loss": outcome.final_loss, "finite": outcome.finite,
+                "train_seconds": train_seconds}

@@ -1,0 +1,81 @@
+"""The input-state study: models of dx/dt and y from (x, u) samples of simulated port-Hamiltonian systems.
+
+Sizes are drawn from the task's grid coordinates: d uniform in [d~/2, d~], n_t = d / 10 trajectories,
+n_h an integer in [n_h~/2, n_h~], n_d an integer in [n_d~/2, n_d~]. The draws, the initial weights and the
+batch order leave the epoch count out, so tasks that differ only in n_e train the same model on the same
+data for longer. Compute c = p n_e N (flops column; N training points), data = N, model size = p.
+"""
+
+import time
+from collections.abc import Callable, Mapping
+from functools import cache
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from nsl_hpc.cache import ArrayCache
+from nsl_hpc.datasets import build_test_set, build_training_set, points_per_trajectory, training_points
+from nsl_hpc.metrics import normalized_errors
+from nsl_hpc.models import build_model
+from nsl_hpc.models.blocks import parameter_count
+from nsl_hpc.studies import Study, draw_tier, require_member, require_positive_int
+from nsl_hpc.systems import SYSTEMS
+from nsl_hpc.training import Scaling, batch_count, predict_derivative, train_model
+
+TIER_OF = {"data_tier": "data", "width_tier": "width", "depth_tier": "depth"}
+
+
+@cache
+def model_parameters(arch_items: tuple, system: str, width: int, depth: int) -> int:
+    """Parameter count of one architecture, built once per distinct shape."""
+    system_class = SYSTEMS[system]
+    model = build_model(dict(arch_items), system_class.state_dim, system_class.input_dim, width, depth)
+    return parameter_count(model)
+
+
+class InputState(Study):
+    name = "input_state"
+    axes = ("system", "arch", "seed", "epochs", "data_tier", "width_tier", "depth_tier")
+    length_axis = "epochs"
+    shared_keys = ("system", "arch", "train", "data_per_trajectory")
+
+    def check_coordinate(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
+        require_positive_int(label, value)
+        if key in TIER_OF:
+            require_member(label, value, list(base["tiers"][TIER_OF[key]]))
+
+    def draw(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
+        rng = self.draw_rng(task)
+        data_size = float(rng.uniform(task["data_tier"] / 2, task["data_tier"]))
+        width, depth = draw_tier(rng, task["width_tier"]), draw_tier(rng, task["depth_tier"])
+        n_traj = data_size / base["data_per_trajectory"]
+        points = training_points(n_traj, points_per_trajectory(base["system"]))
+        params = model_parameters(tuple(base["arch"].items()), task["system"], width, depth)
+        return {"data_size": data_size, "n_traj": n_traj, "width": width, "depth": depth, "train_points": points,
+                "params": params}
+
+    def training_length(self, task: Mapping[str, Any], drawn: Mapping[str, Any],
+                        base: Mapping[str, Any]) -> dict[str, Any]:
+        points = drawn["train_points"]
+        return {"steps": task["epochs"] * batch_count(points, base["train"]["batch_size"]),
+                "flops": float(drawn["params"]) * task["epochs"] * points}
+
+    def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
+                        on_epoch: Callable[[], None]) -> dict[str, Any]:
+        system_class = SYSTEMS[task["system"]]
+        torch.manual_seed(self.seed_for("init", task))
+        model = build_model(cfg.arch, system_class.state_dim, system_class.input_dim, sizes["width"], sizes["depth"])
+        cache_ = ArrayCache(cfg.cache_dir)
+        system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+        train_data = build_training_set(system_cfg, task["seed"], sizes["n_traj"], cache_)
+        test_data = build_test_set(system_cfg, cache_)
+        started = time.perf_counter()
+        scaling = Scaling.fit(train_data)
+        outcome = train_model(model, train_data, scaling, cfg.train, task["epochs"],
+                              self.seed_for("shuffle", task), on_epoch)
+        train_seconds = time.perf_counter() - started
+        dtype = getattr(torch, cfg.train.dtype)
+        metrics = normalized_errors(test_data.dx, predict_derivative(model, test_data, scaling, dtype))
+        return {**metrics, "steps": outcome.steps, "final_loss": outcome.final_loss, "finite": outcome.finite,
+                "train_seconds": train_seconds}

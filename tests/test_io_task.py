@@ -1,0 +1,99 @@
+"""Input-output tasks end to end on the simulated stand-ins: one row with the documented columns and
+resources, determinism, bad input refused before training, and an input_output sweep through launch,
+merge and the NSL fits."""
+
+import json
+import re
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from omegaconf import OmegaConf
+
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.records import load_benchmark
+from nsl_hpc.rows import read_row
+from nsl_hpc.task import resolve_task, run_task
+from tests.sweeps import nsl
+
+NARX_TASK = ["study=input_output", "system=wiener_hammerstein_sim", "arch=narx", "iter_multiplier=2",
+             "data_tier=625", "width_tier=8", "depth=1", "seed=1"]
+SUBNET_TASK = ["study=input_output", "system=silverbox_sim", "arch=subnet", "iter_multiplier=1", "data_tier=500",
+               "width_tier=4", "depth=1", "seed=0"]
+
+
+def test_a_narx_task_writes_one_row_with_the_study_resources(compose):
+    row = run_task(compose(*NARX_TASK)).row
+    assert row["status"] == "ok" and np.isfinite([row["nmae"], row["nmse"], row["rmse_mv"]]).all()
+    assert 313 <= row["train_points"] <= 625 and 4 <= row["width"] <= 8 and row["depth"] == 1
+    assert row["steps"] == 2 * row["train_points"]  # n_i = m n_l
+    assert row["flops"] == row["params"] * row["steps"] * 256  # c = p n_i B
+    assert row["nmse"] < 0.5  # a fitted model, far better than predicting the mean (nMSE 1)
+    again = run_task(compose(*NARX_TASK, "force=true")).row
+    assert (again["nmse"], again["final_loss"]) == (row["nmse"], row["final_loss"])  # config + seed decide
+
+
+def test_a_subnet_task_counts_compute_over_its_horizon_and_reports_rmse_in_mv(compose, cache):
+    cfg = compose(*SUBNET_TASK)
+    row = run_task(cfg).row
+    assert row["status"] == "ok" and row["steps"] == row["train_points"]
+    assert row["flops"] == row["params"] * row["steps"] * 256 * 150  # c = p n_i B T, T = 150 on Silverbox
+    measured = load_benchmark(OmegaConf.to_container(cfg.system, resolve=True), cache).test.y[50:]
+    assert row["rmse_mv"] == pytest.approx(1000 * np.sqrt(row["nmse"]) * measured.std(ddof=1), rel=1e-9)
+
+
+@pytest.mark.parametrize(("override", "message"), [
+    ("data_tier=300", "data_tier=300 is outside the grid; allowed: 64000, 32000"),
+    ("width_tier=128", "width_tier=128 is outside the grid"),
+    ("depth=4", "depth=4 is outside the grid"),
+    ("iter_multiplier=0", "iter_multiplier=0 must be a positive integer"),
+    ("system.subnet.horizon=600", "is shorter than one subnet window of 650 samples (50 past + T=600)"),
+    ("system.data_tiers=[128000]", None),  # set below with a matching data_tier
+    ("arch.past=80", "subnet reads 80 past samples, more than the 50 that initialise a test simulation"),
+])
+def test_bad_input_output_tasks_are_refused_before_training(override, message, compose):
+    overrides = [*SUBNET_TASK, override]
+    if message is None:
+        overrides.append("data_tier=128000")
+        message = "data_tier=128000 is larger than the training pool of silverbox_sim"
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        resolve_task(compose(*overrides))
+
+
+def test_a_system_of_the_other_study_is_refused(compose):
+    with pytest.raises(ConfigError, match="system=spring belongs to the input_state study, not input_output"):
+        resolve_task(compose("study=input_output", "system=spring"))
+
+
+def test_missing_measured_data_fails_the_task_with_one_line(tmp_path, cache_dir):
+    result = nsl("train", "study=input_output", "system=silverbox", f"system.source.data_dir={tmp_path}",
+                 f"out_dir={tmp_path / 'out'}", f"cache_dir={cache_dir}")
+    assert result.returncode == 2
+    assert result.stderr.startswith("error: silverbox: data file ") and "SilverboxFiles.zip is missing" in result.stderr
+    assert not (tmp_path / "out" / "rows").exists()
+
+
+def test_an_input_output_sweep_runs_merges_and_fits(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    grid = ["+sweep=io_demo", "sweep.grid.0.seed=[0]", "sweep.grid.0.iter_multiplier=[1,2]",
+            "sweep.grid.0.data_tier=[250,500,1000]", "sweep.grid.0.width_tier=[2,4]",
+            "sweep.grid.1.seed=[0]", "sweep.grid.1.iter_multiplier=[1]", "sweep.grid.1.data_tier=[312]",
+            "sweep.grid.1.width_tier=[4]", "sweep.grid.2.seed=[0,1]", "sweep.grid.2.data_tier=[312]",
+            "sweep.grid.2.width_tier=[2]", "train.batch_size=32"]
+    launched = nsl("launch", *grid, "launcher=local", f"sweep_dir={sweep_dir}")
+    assert launched.returncode in (0, 1), launched.stderr
+    manifest = pq.read_table(sweep_dir / "manifest.parquet")
+    assert manifest.num_rows == 12 + 1 + 2
+    merged = nsl("merge", f"sweep_dir={sweep_dir}")
+    assert merged.returncode == 0, merged.stderr
+    summary = json.loads((sweep_dir / "merge_summary.json").read_text())
+    infeasible = [line for line in launched.stdout.splitlines() if "cannot run as configured" in line]
+    assert summary["merged"] + summary["failed"] == 15 and summary["failed"] == (1 if infeasible else 0)
+    results = pq.read_table(sweep_dir / "results.parquet")
+    assert {"iter_multiplier", "depth", "rmse_mv", "flops", "train_points", "params"} <= set(results.column_names)
+    fitted = nsl("fit", f"sweep_dir={sweep_dir}", "nsl.max_breaks=1")
+    assert fitted.returncode == 0, fitted.stderr
+    fits = pq.read_table(sweep_dir / "nsl_fits.parquet").to_pylist()
+    narx = [fit for fit in fits if (fit["system"], fit["arch"]) == ("silverbox_sim", "narx")]
+    assert len(narx) == 6 and all(fit["error"] is None for fit in narx)  # 3 resources x 2 metrics
+    assert read_row(next((sweep_dir / "rows").rglob("*.parquet")))["arch"] in ("narx", "subnet")

@@ -1,0 +1,94 @@
+"""Input-output records: the stand-ins' shapes and determinism, the measured files through the real
+nonlinear_benchmarks loader path (when ../shared/data holds them), and bad data files."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+
+from nsl_hpc.cache import ArrayCache
+from nsl_hpc.cli import compose_config
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.place_data import main as place_data
+from nsl_hpc.records import load_benchmark
+from tests.helpers import system_config
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+MEASURED = pytest.mark.skipif(not (SHARED_DATA / "silverbox" / "SNLS80mV.mat").is_file(),
+                              reason="no measured copies in ../shared/data")
+
+
+def io_system(name: str, **source) -> dict:
+    cfg = system_config(name, "study=input_output")
+    cfg["source"].update(source)
+    return cfg
+
+
+@pytest.mark.parametrize(("name", "train", "validation", "test"), [
+    ("silverbox_sim", 64_000, 1_062, 40_475), ("wiener_hammerstein_sim", 80_000, 20_000, 78_800)])
+def test_stand_ins_have_the_benchmarks_shapes_and_are_reproducible(name, train, validation, test, cache, tmp_path):
+    records = load_benchmark(io_system(name), cache)
+    assert (len(records.train), len(records.validation), len(records.test)) == (train, validation, test)
+    for record in (records.train, records.validation, records.test):
+        assert record.u.shape == record.y.shape and np.isfinite(record.y).all()
+        assert 0.01 < record.y.std() < 1.0  # volts, like the measured records
+    fresh = load_benchmark(io_system(name), ArrayCache(tmp_path))  # simulated again, not read from the cache
+    assert np.array_equal(fresh.test.y, records.test.y) and np.array_equal(fresh.train.u, records.train.u)
+    assert not np.allclose(records.train.u[:1000], records.test.u[:1000])  # separate input realisations
+
+
+@MEASURED
+def test_measured_records_load_through_the_loader_with_the_official_split_sizes(tmp_path, cache):
+    place_data(compose_config([f"source={SHARED_DATA}", f"data_dir={tmp_path}"], "place_data"))
+    silverbox = load_benchmark(io_system("silverbox", data_dir=str(tmp_path)), cache)
+    assert (len(silverbox.train), len(silverbox.validation), len(silverbox.test)) == (64_000, 1_062, 40_475)
+    assert silverbox.test.y.std() == pytest.approx(0.05345, abs=1e-4)  # arrow (full): 53.45 mV
+    wh = load_benchmark(io_system("wiener_hammerstein", data_dir=str(tmp_path)), cache)
+    assert (len(wh.train), len(wh.validation), len(wh.test)) == (80_000, 20_000, 78_800)
+    assert wh.test.y.std() == pytest.approx(0.24386, abs=1e-4)
+
+
+def write_wh_file(data_dir: Path, u, y) -> None:
+    folder = data_dir / "WienerHammerBenchMark"
+    folder.mkdir(parents=True)
+    scipy.io.savemat(folder / "WienerHammerBenchMark.mat", {"uBenchMark": u, "yBenchMark": y, "fs": 51200})
+
+
+def test_missing_files_get_our_message_not_a_download(tmp_path, cache):
+    with pytest.raises(ConfigError, match=r"WienerHammerBenchMark.mat is missing; place the benchmark's files "
+                                          r"under system.source.data_dir="):
+        load_benchmark(io_system("wiener_hammerstein", data_dir=str(tmp_path)), cache)
+    assert not any(tmp_path.iterdir())  # the loader never ran (it would create its folder to download into)
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    ("garbage", "cannot read .*WienerHammerBenchMark.mat"),
+    ("nan", "holds 3 NaN or infinite values in its training record"),
+    ("lengths", "cannot read .*WienerHammerBenchMark.mat .AssertionError: input sequence u need to have the same"),
+    ("short", "the training record of .*WienerHammerBenchMark.mat has 0 samples, fewer than system.train_samples"),
+])
+def test_malformed_files_are_refused_with_the_file_named(content, message, tmp_path, cache):
+    n = 188_000
+    rng = np.random.default_rng(0)
+    u, y = rng.standard_normal((n, 1)), rng.standard_normal((n, 1))
+    if content == "garbage":
+        (tmp_path / "WienerHammerBenchMark").mkdir()
+        (tmp_path / "WienerHammerBenchMark" / "WienerHammerBenchMark.mat").write_bytes(b"not a mat file" * 100)
+    else:
+        if content == "nan":
+            y[[6000, 7000, 8000]] = np.nan
+        elif content == "lengths":
+            y = y[:-10]
+        else:
+            u, y = u[:1000], y[:1000]
+        write_wh_file(tmp_path, u, y)
+    with pytest.raises(ConfigError, match=message):
+        load_benchmark(io_system("wiener_hammerstein", data_dir=str(tmp_path)), cache)
+
+
+def test_a_training_record_shorter_than_the_pool_is_refused(cache):
+    cfg = io_system("wiener_hammerstein_sim")
+    cfg["samples"]["train"] = 50_000
+    with pytest.raises(ConfigError, match=r"training record has 50,000 samples, fewer than system\.train_samples"):
+        load_benchmark(cfg, cache)
