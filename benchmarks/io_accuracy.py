@@ -29,10 +29,10 @@ CASES = [(system, arch, coordinates)
 def run_case(case: tuple, data_dir: str, root: str) -> str:
     system, arch, coordinates = case
     overrides = ["study=input_output", f"system={system}", f"arch={arch}", f"out_dir={root}/{system}-{arch}",
-                 f"cache_dir={root}/cache", f"system.source.data_dir={data_dir}" if "sim" not in system else "",
+                 f"cache_dir={root}/cache", f"data_dir={data_dir}",
                  *(f"{key}={value}" for key, value in coordinates.items())]
     try:
-        row = run_task(compose_config([o for o in overrides if o], "one_task")).row
+        row = run_task(compose_config(overrides, "one_task")).row
     except ConfigError as error:
         return f"{system:24s} {arch:7s} skipped: {error}"
     return (f"{system:24s} {arch:7s} {row['train_points']:>6,} {row['steps']:>7,} {row['width']:>4} {row['depth']:>4} "

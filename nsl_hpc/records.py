@@ -1,6 +1,6 @@
 """Input-output records of the input-output study: the measured benchmarks (Silverbox, Wiener-Hammerstein),
-read with the standard ``nonlinear_benchmarks`` loaders from ``system.source.data_dir``, or their simulated
-stand-ins, and their split into training pool, validation and test records.
+read with the standard ``nonlinear_benchmarks`` loaders from ``data_dir`` (``system.source.data_dir``), or
+their simulated stand-ins, and their split into training pool, validation and test records.
 
 A task trains on the prefix u_1..u_{n_l}, y_1..y_{n_l} of the training pool (the first ``train_samples``
 samples of the benchmark's training record); the rest of that record is the validation split, kept out of
@@ -69,12 +69,8 @@ def read_measured(name: str, source: Mapping[str, Any]) -> tuple[Record, Record]
     are checked first, so a missing copy is our one-line error, never a download attempt."""
     import nonlinear_benchmarks  # imported here: only tasks on measured data need it
 
+    require_files(name, source)
     data_dir = Path(source["data_dir"])
-    for relative in source["files"]:
-        if not (data_dir / relative).is_file():
-            raise ConfigError(f"{name}: data file {data_dir / relative} is missing; place the benchmark's files "
-                              f"under system.source.data_dir={str(data_dir)!r} as {', '.join(source['files'])} "
-                              "(README, 'Benchmark data')")
     loader = getattr(nonlinear_benchmarks, source["loader"])
     data_file = measured_file(source)
     try:
@@ -85,6 +81,16 @@ def read_measured(name: str, source: Mapping[str, Any]) -> tuple[Record, Record]
                           "an intact copy of the benchmark file") from None
     return (checked_record(name, data_file, "training", train.u, train.y),
             checked_record(name, data_file, "test", tests[source["test_index"]].u, tests[source["test_index"]].y))
+
+
+def require_files(name: str, source: Mapping[str, Any]) -> None:
+    """Raise ConfigError naming the first of ``source.files`` missing under ``source.data_dir``."""
+    data_dir = Path(source["data_dir"])
+    for relative in source["files"]:
+        if not (data_dir / relative).is_file():
+            raise ConfigError(f"{name}: data file {data_dir / relative} is missing; place the benchmark's files "
+                              f"under data_dir={str(data_dir)!r} as {', '.join(source['files'])} "
+                              "(python -m nsl_hpc.place_data; README, 'The input-output study')")
 
 
 def measured_file(source: Mapping[str, Any]) -> Path:

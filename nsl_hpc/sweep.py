@@ -58,7 +58,7 @@ def pair_configs(cfg: DictConfig, overrides: Sequence[str], study: Study) -> dic
     for system, arch in sorted(pairs):
         configs[system, arch] = OmegaConf.to_container(
             compose_config([*overrides, f"system={system}", f"arch={arch}"], "launch"), resolve=True)
-        study_of(configs[system, arch])
+        study_of(configs[system, arch]).check_pair(configs[system, arch])
     return configs
 
 

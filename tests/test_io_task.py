@@ -66,11 +66,19 @@ def test_a_system_of_the_other_study_is_refused(compose):
 
 
 def test_missing_measured_data_fails_the_task_with_one_line(tmp_path, cache_dir):
-    result = nsl("train", "study=input_output", "system=silverbox", f"system.source.data_dir={tmp_path}",
+    result = nsl("train", "study=input_output", "system=silverbox", f"data_dir={tmp_path}",
                  f"out_dir={tmp_path / 'out'}", f"cache_dir={cache_dir}")
     assert result.returncode == 2
     assert result.stderr.startswith("error: silverbox: data file ") and "SilverboxFiles.zip is missing" in result.stderr
     assert not (tmp_path / "out" / "rows").exists()
+
+
+def test_a_launch_on_missing_measured_data_is_refused_before_anything_is_written(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    result = nsl("launch", "+sweep=input_output", f"sweep_dir={sweep_dir}", "dry_run=true",
+                 f"data_dir={tmp_path / 'nowhere'}")
+    assert result.returncode == 2 and "SilverboxFiles.zip is missing" in result.stderr
+    assert not sweep_dir.exists()
 
 
 def test_an_input_output_sweep_runs_merges_and_fits(tmp_path):

@@ -57,7 +57,7 @@ def write_wh_file(data_dir: Path, u, y) -> None:
 
 def test_missing_files_get_our_message_not_a_download(tmp_path, cache):
     with pytest.raises(ConfigError, match=r"WienerHammerBenchMark.mat is missing; place the benchmark's files "
-                                          r"under system.source.data_dir="):
+                                          r"under data_dir="):
         load_benchmark(io_system("wiener_hammerstein", data_dir=str(tmp_path)), cache)
     assert not any(tmp_path.iterdir())  # the loader never ran (it would create its folder to download into)
 

@@ -75,6 +75,9 @@ class Study:
         """Raise ConfigError when ``value`` is not allowed for coordinate ``key`` (``label`` names it)."""
         raise NotImplementedError
 
+    def check_pair(self, base: Mapping[str, Any]) -> None:
+        """Raise ConfigError when a (system, arch) cannot run at all (e.g. its data is missing)."""
+
     def check_task(self, task: Mapping[str, Any], sizes: Mapping[str, Any], base: Mapping[str, Any]) -> None:
         """Raise ConfigError when a task's drawn sizes cannot run (checked before any work)."""
 

@@ -24,7 +24,7 @@ from nsl_hpc.io_training import SignalScaling, simulate, train_io_model
 from nsl_hpc.metrics import normalized_errors
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
-from nsl_hpc.records import load_benchmark
+from nsl_hpc.records import load_benchmark, require_files
 from nsl_hpc.studies import Study, draw_tier, require_member, require_positive_int
 
 
@@ -67,6 +67,10 @@ class InputOutput(Study):
                    "depth": base["tiers"]["depth"]}
         if key in allowed:
             require_member(label, value, list(allowed[key]))
+
+    def check_pair(self, base: Mapping[str, Any]) -> None:
+        if base["system"]["source"]["kind"] == "benchmark":
+            require_files(base["system"]["name"], base["system"]["source"])
 
     def check_task(self, task: Mapping[str, Any], sizes: Mapping[str, Any], base: Mapping[str, Any]) -> None:
         system, arch = base["system"], base["arch"]
