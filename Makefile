@@ -2,13 +2,17 @@
 #   make demo   the main job: the demo sweep (216 tasks) on local processes, then merge, NSL fits,
 #               figures, MLflow and report.html
 #   make test   start the local SLURM cluster (cluster/up.sh) and run the test suite
+#   make demo-io  the input-output demo (io_demo, 60 tasks on the simulated stand-ins), merge ... report.html
+#   make data   copy the measured Silverbox / Wiener-Hammerstein files from DATA_SOURCE into data/
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 INSTALLED := $(VENV)/.installed
 DEMO_DIR ?= runs/demo
+IO_DEMO_DIR ?= runs/io_demo
+DATA_SOURCE ?= ../shared/data
 
-.PHONY: install demo test lint
+.PHONY: install demo demo-io data test lint
 
 install: $(INSTALLED)
 
@@ -22,6 +26,13 @@ $(INSTALLED): pyproject.toml
 demo: $(INSTALLED)
 	$(PY) -m nsl_hpc.launch +sweep=demo sweep_dir=$(DEMO_DIR)
 	$(PY) -m nsl_hpc.report sweep_dir=$(DEMO_DIR)
+
+demo-io: $(INSTALLED)
+	$(PY) -m nsl_hpc.launch +sweep=io_demo sweep_dir=$(IO_DEMO_DIR)
+	$(PY) -m nsl_hpc.report sweep_dir=$(IO_DEMO_DIR)
+
+data: $(INSTALLED)
+	$(PY) -m nsl_hpc.place_data source=$(DATA_SOURCE) data_dir=data
 
 # The SLURM tests need the real single-node cluster; without root they are skipped (under CI=true,
 # a cluster that cannot start fails the run).

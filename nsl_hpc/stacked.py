@@ -1,0 +1,140 @@
+"""K state-space models of one architecture and shape as one set of stacked tensors: the fast training path.
+
+Every architecture of the input-state study is a few tanh MLPs of one depth ("heads") on the same input,
+plus a small assembly (nsl_hpc.models). Here the heads of all K models are one batched MLP: layer l is a
+(K, M, in_l, out_l) weight, so a forward pass costs depth + 2 batched matmuls however many models and heads
+there are (a per-model, per-head loop costs M K times as many small operations, and at these sizes the
+cost of an operation is its overhead, not its arithmetic). Heads narrower or with fewer inputs or outputs
+than the widest are zero-padded; padded entries get exactly zero gradients and stay zero. The port-Hamiltonian
+grad H is back-propagated through the H head explicitly (first-order operations), not by a double backward.
+
+All parameters of a model are one row of ``theta`` (K, P): the optimizer step and the clipping norm are a
+handful of operations on it.
+"""
+
+import itertools
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from nsl_hpc.models.blocks import positive_semidefinite, skew_symmetric
+from nsl_hpc.models.input_affine import InputAffine
+from nsl_hpc.models.unstructured import Unstructured
+
+
+@dataclass(frozen=True)
+class Head:
+    """One MLP of an architecture: its module name, whether it reads v as well as z, and its sizes."""
+
+    name: str
+    reads_input: bool
+    in_dim: int
+    out_dim: int
+    width: int
+
+
+def heads_of(model: nn.Module) -> list[Head]:
+    """The MLP heads of an input-state model, in its module order."""
+    heads = []
+    for name, module in model.named_children():
+        linears = [layer for layer in module if isinstance(layer, nn.Linear)]
+        heads.append(Head(name, linears[0].in_features > model_state_dim(model), linears[0].in_features,
+                          linears[-1].out_features, linears[0].out_features))
+    return heads
+
+
+def model_state_dim(model: nn.Module) -> int:
+    return model.f[-1].out_features if isinstance(model, Unstructured) else model.n
+
+
+class StackedModels:
+    """K models of one architecture and shape; ``theta`` (K, P) holds every parameter, zero-padded."""
+
+    def __init__(self, models: list[nn.Module], dtype: torch.dtype):
+        first = models[0]
+        self.kind = type(first)
+        self.heads = heads_of(first)
+        self.n = model_state_dim(first)
+        self.m = self.heads[-1].out_dim if isinstance(first, Unstructured) else first.m
+        self.depth = sum(isinstance(layer, nn.Linear) for layer in getattr(first, self.heads[0].name)) - 2
+        self.in_dim = max(head.in_dim for head in self.heads)
+        self.width = max(head.width for head in self.heads)
+        self.out_dim = max(head.out_dim for head in self.heads)
+        dims = [self.in_dim, *[self.width] * (self.depth + 1), self.out_dim]
+        self.shapes = list(itertools.pairwise(dims))  # (in, out) of each layer
+        size = sum(len(self.heads) * (i * o + o) for i, o in self.shapes)
+        self.theta = torch.zeros(len(models), size, dtype=dtype)
+        for k, model in enumerate(models):
+            self.load(k, model)
+        self.theta.requires_grad_(True)
+        self.input_mask = torch.tensor([[1.0] * self.n + [float(h.reads_input)] * (self.in_dim - self.n)
+                                        for h in self.heads], dtype=dtype)[:, None, :]  # (M, 1, in)
+
+    @property
+    def count(self) -> int:
+        return self.theta.shape[0]
+
+    def layers(self, theta: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Views (W (K, M, in, out), b (K, M, 1, out)) of each layer in ``theta`` (K, P)."""
+        views, offset, heads = [], 0, len(self.heads)
+        for i, o in self.shapes:
+            weight = theta[:, offset:offset + heads * i * o].view(-1, heads, i, o)
+            offset += heads * i * o
+            bias = theta[:, offset:offset + heads * o].view(-1, heads, 1, o)
+            offset += heads * o
+            views.append((weight, bias))
+        return views
+
+    def load(self, k: int, model: nn.Module) -> None:
+        """Copy the parameters of ``model`` into row k."""
+        with torch.no_grad():
+            layers = self.layers(self.theta)
+            for h, head in enumerate(self.heads):
+                linears = [layer for layer in getattr(model, head.name) if isinstance(layer, nn.Linear)]
+                for (weight, bias), linear in zip(layers, linears, strict=True):
+                    o, i = linear.weight.shape
+                    weight[k, h, :i, :o] = linear.weight.T
+                    bias[k, h, 0, :o] = linear.bias
+
+    def heads_forward(self, theta: torch.Tensor, z: torch.Tensor, v: torch.Tensor
+                      ) -> tuple[torch.Tensor, list[torch.Tensor], list]:
+        """Outputs (K, M, B, out) of every head for z (K, B, n), v (K, B, m); also the hidden activations and
+        the layer views (for grad H)."""
+        x = torch.cat([z, v], dim=-1) if self.in_dim > self.n else z
+        x = x.unsqueeze(1) * self.input_mask  # (K, M, B, in)
+        layers = self.layers(theta)
+        activations = []
+        for weight, bias in layers[:-1]:
+            x = torch.tanh(torch.baddbmm(bias.flatten(0, 1), x.flatten(0, 1), weight.flatten(0, 1)))
+            x = x.view(theta.shape[0], len(self.heads), *x.shape[1:])
+            activations.append(x)
+        weight, bias = layers[-1]
+        out = torch.baddbmm(bias.flatten(0, 1), x.flatten(0, 1), weight.flatten(0, 1))
+        return out.view(x.shape[0], len(self.heads), *out.shape[1:]), activations, layers
+
+    def forward(self, theta: torch.Tensor, z: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """dz/dt (K, B, n) and y (K, B, m) of every model for its own z (K, B, n), v (K, B, m)."""
+        out, activations, layers = self.heads_forward(theta, z, v)
+        n, m = self.n, self.m
+        if self.kind is Unstructured:
+            return out[:, 0, :, :n], out[:, 1, :, :m]
+        if self.kind is InputAffine:
+            gain = out[:, 1, :, :n * m].reshape(*z.shape[:2], n, m)
+            return out[:, 0, :, :n] + (gain @ v.unsqueeze(-1)).squeeze(-1), out[:, 2, :, :m]
+        grad = self.grad_hamiltonian(out[:, 3], activations, layers)  # (K, B, n)
+        rows = z.shape[0] * z.shape[1]
+        interconnection = skew_symmetric(out[:, 0, :, :n * (n - 1) // 2].reshape(rows, -1), n)
+        dissipation = positive_semidefinite(out[:, 1, :, :n * (n + 1) // 2].reshape(rows, -1), n)
+        gain = out[:, 2, :, :n * m].reshape(rows, n, m)
+        grad = grad.reshape(rows, n, 1)
+        dz = (interconnection - dissipation) @ grad + gain @ v.reshape(rows, m, 1)
+        y = gain.transpose(1, 2) @ grad
+        return dz.view(*z.shape), y.view(*v.shape)
+
+    def grad_hamiltonian(self, h_out: torch.Tensor, activations: list[torch.Tensor], layers: list) -> torch.Tensor:
+        """grad_z of H = ||m(z)||^2 / 2 through the H head (index 3): (K, B, n). ``h_out`` (K, B, out) = m(z)."""
+        g = h_out
+        for (weight, _), activation in zip(layers[:0:-1], activations[::-1], strict=True):
+            g = (g @ weight[:, 3].transpose(1, 2)) * (1 - activation[:, 3].square())
+        return (g @ layers[0][0][:, 3].transpose(1, 2))[..., :self.n]
