@@ -2,9 +2,9 @@
 
     python benchmarks/io_accuracy.py [--data-dir data] [--workers 2]
 
-Each line is one real task (`nsl_hpc.task.run_task`, default train config but SUBNET's lr) on the simulated stand-ins and,
-where `--data-dir` holds the measured files (python -m nsl_hpc.place_data), on Silverbox and
-Wiener-Hammerstein: drawn sizes, training time on one core, free-run test nMSE and RMSE in mV.
+Each line is one real task (`nsl_hpc.task.run_task`, default train config but SUBNET's lr) on the
+simulated stand-ins and, where `--data-dir` holds the measured files (python -m nsl_hpc.place_data), on
+Silverbox and Wiener-Hammerstein: drawn sizes, training time on one core, free-run test nMSE and RMSE in mV.
 """
 
 import argparse
