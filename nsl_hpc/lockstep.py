@@ -2,7 +2,7 @@
 
 Each model keeps its own initial weights, data (size and scaling), shuffle generator, batch order, epoch
 count and learning-rate schedule: at step s model k takes its own s-th mini-batch, exactly the one the
-single-model loop (``nsl_hpc.training.train_model``) would take. Mini-batches of different lengths are
+single-model loop (K = 1) takes. Mini-batches of different lengths are
 padded and masked; a model that has finished (or diverged) is masked: learning rate 0, loss ignored. The
 loss, the gradient-norm clipping and Adam are computed per model, in a few operations on the (K, P)
 parameter rows of ``nsl_hpc.stacked``. K = 1 is the single-model path.
@@ -77,7 +77,7 @@ def stacked_data(members: Sequence[Member], dtype: torch.dtype) -> torch.Tensor:
 
 def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any],
                    on_epoch: Callable[[], None] = lambda: None) -> tuple[StackedModels, list[TrainingOutcome]]:
-    """Train every member as ``train_model`` would (``cfg`` is the ``train`` group); returns the trained
+    """Train every member as if alone (``cfg`` is the ``train`` group); returns the trained
     stack and each member's outcome. ``on_epoch`` is called whenever some member finishes an epoch."""
     dtype = getattr(torch, cfg["dtype"])
     stack = StackedModels([member.model for member in members], dtype)

@@ -8,7 +8,7 @@ import math
 import platform
 import socket
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -99,35 +99,45 @@ def run_task(cfg: DictConfig, on_epoch: Callable[[], None] = lambda: None) -> Ta
     """Train and score the task described by ``cfg`` and write its row under ``cfg.out_dir``.
 
     ``on_epoch`` is called after every pass over the training data (a heartbeat for a job's watchdog)."""
-    started = time.perf_counter()
-    task = resolve_task(cfg)
-    identifier = cfg.task_id or task_id(cfg)
-    out_dir = Path(cfg.out_dir)
-    path = row_path(out_dir, identifier)
-    if path.exists() and not cfg.force:
-        return TaskResult(path, None, skipped=True)
-    ensure_writable_dir(out_dir)
+    return run_tasks([cfg], on_epoch)[0]
 
-    torch.set_num_threads(cfg.threads)
-    inject_fault(cfg.fault, cfg.seed)
-    outcome = task.study.train_and_score(cfg, task.coordinates, task.sizes, on_epoch)
-    finite = outcome.pop("finite") and all(math.isfinite(outcome[key]) for key in ("nmae", "nmse"))
-    row = {
-        "task_id": identifier,
-        **task.coordinates,
-        **task.sizes,
-        "batch_size": cfg.train.batch_size,
-        "lr": cfg.train.lr,
-        **outcome,
-        "status": "ok" if finite else "diverged",
-        "wall_seconds": time.perf_counter() - started,
-        "package_version": nsl_hpc.__version__,
-        "torch_version": torch.__version__,
-        "python_version": platform.python_version(),
-        "host": socket.gethostname(),
-    }
-    write_row_atomically(row, path)
-    return TaskResult(path, row, skipped=False)
+
+def run_tasks(cfgs: Sequence[DictConfig], on_epoch: Callable[[], None] = lambda: None) -> list[TaskResult]:
+    """Train and score tasks of one study and shape together (in lockstep where the study can) and write
+    one row per task, each the row the task would have alone; tasks whose row exists are skipped."""
+    started = time.perf_counter()
+    tasks = [resolve_task(cfg) for cfg in cfgs]
+    paths = [row_path(Path(cfg.out_dir), cfg.task_id or task_id(cfg)) for cfg in cfgs]
+    todo = [i for i, (cfg, path) in enumerate(zip(cfgs, paths, strict=True)) if cfg.force or not path.exists()]
+    results = [TaskResult(path, None, skipped=True) for path in paths]
+    if not todo:
+        return results
+    for i in todo:
+        ensure_writable_dir(Path(cfgs[i].out_dir))
+    torch.set_num_threads(cfgs[todo[0]].threads)
+    for i in todo:
+        inject_fault(cfgs[i].fault, cfgs[i].seed)
+    outcomes = tasks[todo[0]].study.train_and_score_pack(
+        [(cfgs[i], tasks[i].coordinates, tasks[i].sizes) for i in todo], on_epoch)
+    for i, outcome in zip(todo, outcomes, strict=True):
+        finite = outcome.pop("finite") and all(math.isfinite(outcome[key]) for key in ("nmae", "nmse"))
+        row = {
+            "task_id": paths[i].stem,
+            **tasks[i].coordinates,
+            **tasks[i].sizes,
+            "batch_size": cfgs[i].train.batch_size,
+            "lr": cfgs[i].train.lr,
+            **outcome,
+            "status": "ok" if finite else "diverged",
+            "wall_seconds": (time.perf_counter() - started) / len(todo),
+            "package_version": nsl_hpc.__version__,
+            "torch_version": torch.__version__,
+            "python_version": platform.python_version(),
+            "host": socket.gethostname(),
+        }
+        write_row_atomically(row, paths[i])
+        results[i] = TaskResult(paths[i], row, skipped=False)
+    return results
 
 
 def describe(row: Mapping[str, Any]) -> str:

@@ -1,4 +1,6 @@
-"""Training of one state-space model on (x, u) -> (dx/dt, y) samples, and its predictions.
+"""What the training loops share: the input-state scaling, mini-batch bounds, the learning-rate schedule
+and the outcome record. The loops are ``nsl_hpc.lockstep`` (input-state models, alone or K in lockstep) and
+``nsl_hpc.io_training`` (NARX and SUBNET).
 
 Models work in standardised coordinates, fitted on the training data: z = (x - mean_x) / std_x,
 v = (u - mean_u) / std_u, a rescaled time in which dz/dt is O(1), and a rescaled output conjugate to v
@@ -9,15 +11,10 @@ divided by the spread of that column's targets in the batch; they matter for opt
 otherwise spends its steps growing output weights to the targets' magnitude.
 """
 
-import math
-from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
-from tqdm import tqdm
 
 from nsl_hpc.datasets import Dataset
 
@@ -56,12 +53,6 @@ class Scaling:
                 torch.as_tensor(data.y * self.u_std / self.output_rms, dtype=dtype))
 
 
-def batch_normalized_mse(predicted: torch.Tensor, target: torch.Tensor, floor: float) -> torch.Tensor:
-    """Mean of ((predicted - target) / s_j)^2 with s_j the spread of target column j in this batch."""
-    spread = target.std(dim=0, unbiased=False).clamp_min(floor)
-    return ((predicted - target) / spread).square().mean()
-
-
 def batch_count(samples: int, batch_size: int) -> int:
     """Mini-batches per epoch: ceil(samples / batch_size), less one when a single sample would trail."""
     count = -(-samples // batch_size)
@@ -88,51 +79,3 @@ class TrainingOutcome:
     steps: int
     final_loss: float
     finite: bool
-
-
-def train_model(model: nn.Module, data: Dataset, scaling: Scaling, cfg: Mapping[str, Any], epochs: int,
-                shuffle_seed: int, on_epoch: Callable[[], None] = lambda: None) -> TrainingOutcome:
-    """Adam with warm-up + cosine schedule and gradient clipping; ``cfg`` is the ``train`` config group.
-
-    Each epoch shuffles the samples once and walks through them in contiguous mini-batches, then calls
-    ``on_epoch`` (the heartbeat of a watched task). Stops early (finite=False) when the loss becomes NaN
-    or infinite.
-    """
-    dtype = getattr(torch, cfg["dtype"])
-    z, v = scaling.model_inputs(data, dtype)
-    dz, y = scaling.model_targets(data, dtype)
-    bounds = batch_bounds(len(data), cfg["batch_size"])
-    schedule = warmup_cosine(epochs * len(bounds), cfg["warmup_fraction"], cfg["lr"])
-    optimizer = torch.optim.Adam(model.parameters(), lr=cfg["lr"], foreach=True)
-    generator = torch.Generator().manual_seed(shuffle_seed)
-    parameters = list(model.parameters())
-    model.train()
-    step, loss = 0, torch.tensor(math.nan)
-    for _ in tqdm(range(epochs), desc="epochs", unit="ep", disable=None, leave=False):
-        order = torch.randperm(len(data), generator=generator)
-        zs, vs, dzs, ys = z[order], v[order], dz[order], y[order]
-        for start, stop in bounds:
-            optimizer.param_groups[0]["lr"] = schedule[step]
-            predicted_dz, predicted_y = model(zs[start:stop], vs[start:stop])
-            loss = batch_normalized_mse(predicted_dz, dzs[start:stop], cfg["loss_std_floor"])
-            loss = loss + cfg["output_weight"] * batch_normalized_mse(
-                predicted_y, ys[start:stop], cfg["loss_std_floor"])
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            nn.utils.clip_grad_norm_(parameters, cfg["grad_clip_norm"], foreach=True)
-            optimizer.step()
-            step += 1
-        on_epoch()
-        if not torch.isfinite(loss):
-            return TrainingOutcome(step, loss.item(), finite=False)
-    return TrainingOutcome(step, loss.item(), finite=True)
-
-
-def predict_derivative(model: nn.Module, data: Dataset, scaling: Scaling, dtype: torch.dtype,
-                       chunk: int = 8192) -> np.ndarray:
-    """dx/dt predicted by ``model`` in physical units, (N, n), evaluated without a training graph."""
-    model.eval()
-    z, v = scaling.model_inputs(data, dtype)
-    with torch.no_grad():
-        parts = [model(z[i:i + chunk], v[i:i + chunk])[0] for i in range(0, len(data), chunk)]
-    return torch.cat(parts).double().numpy() * scaling.derivative_rms * scaling.x_std

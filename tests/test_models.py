@@ -2,11 +2,15 @@
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
+from nsl_hpc.cli import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import mlp, mlp_parameter_count, parameter_count
 from nsl_hpc.models.port_hamiltonian import PortHamiltonian
+from nsl_hpc.stacked import StackedModels
+from tests.helpers import ARCH_NAMES
 
 # Leading coefficient c of p ~ c n_d n_h^2 (unstructured: f at width 2 n_h, g at n_h).
 LEADING_COEFFICIENT = {"unstructured": 5.0, "input_affine": 3.0, "port_hamiltonian": 4.0}
@@ -90,3 +94,24 @@ def test_width_that_rounds_to_zero_is_refused():
 def test_unknown_architecture_is_refused():
     with pytest.raises(ConfigError, match="unknown arch 'narx'"):
         build_model({"name": "narx"}, 4, 2, width=4, depth=1)
+
+
+@pytest.mark.parametrize("arch", ARCH_NAMES)
+@pytest.mark.parametrize(("state_dim", "input_dim"), [(4, 2), (3, 1)])
+def test_stacked_models_compute_what_each_model_computes(arch, state_dim, input_dim):
+    """The fast path (all heads of K models as one batched MLP, grad H written out) equals the modules,
+    outputs and gradients, in float64."""
+    torch.manual_seed(0)
+    arch_cfg = OmegaConf.to_container(compose_config([f"arch={arch}"]).arch)
+    models = [build_model(arch_cfg, state_dim, input_dim, width=5, depth=2).double() for _ in range(3)]
+    stack = StackedModels(models, torch.float64)
+    z, v = torch.randn(3, 7, state_dim, dtype=torch.float64), torch.randn(3, 7, input_dim, dtype=torch.float64)
+    dz, y = stack.forward(stack.theta, z, v)
+    (grad,) = torch.autograd.grad(dz.square().sum() + y.square().sum(), stack.theta)
+    for k, model in enumerate(models):
+        expected_dz, expected_y = model(z[k], v[k])
+        torch.testing.assert_close(dz[k], expected_dz, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(y[k], expected_y, rtol=1e-12, atol=1e-12)
+        grads = torch.autograd.grad(expected_dz.square().sum() + expected_y.square().sum(), list(model.parameters()))
+        norm = torch.cat([g.flatten() for g in grads]).norm()
+        torch.testing.assert_close(grad[k].norm(), norm, rtol=1e-12, atol=1e-12)  # padding gets no gradient

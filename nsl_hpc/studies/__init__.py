@@ -7,7 +7,7 @@ manifests, launching, merging, fitting) is shared.
 """
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -97,8 +97,15 @@ class Study:
 
     def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
                         on_epoch: Callable[[], None]) -> dict[str, Any]:
-        """Train the task's model and score it: nmae, nmse, steps, final_loss, finite and study extras."""
+        """Train the task's model and score it: nmae, nmse, steps, final_loss, finite, train_seconds and
+        study extras."""
         raise NotImplementedError
+
+    def train_and_score_pack(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
+                             on_epoch: Callable[[], None]) -> list[dict[str, Any]]:
+        """``train_and_score`` of each (cfg, task, sizes): one after another unless a study trains them
+        together."""
+        return [self.train_and_score(cfg, task, sizes, on_epoch) for cfg, task, sizes in items]
 
 
 def without_paths(value: Any) -> Any:

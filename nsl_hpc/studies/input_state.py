@@ -7,7 +7,7 @@ data for longer. Compute c = p n_e N (flops column; N training points), data = N
 """
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from functools import cache
 from typing import Any
 
@@ -16,12 +16,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.datasets import build_test_set, build_training_set, points_per_trajectory, training_points
+from nsl_hpc.lockstep import Member, predict_derivatives, train_lockstep
 from nsl_hpc.metrics import normalized_errors
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
 from nsl_hpc.studies import Study, draw_tier, require_member, require_positive_int
 from nsl_hpc.systems import SYSTEMS
-from nsl_hpc.training import Scaling, batch_count, predict_derivative, train_model
+from nsl_hpc.training import Scaling, batch_count
 
 TIER_OF = {"data_tier": "data", "width_tier": "width", "depth_tier": "depth"}
 
@@ -63,19 +64,29 @@ class InputState(Study):
 
     def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
                         on_epoch: Callable[[], None]) -> dict[str, Any]:
+        return self.train_and_score_pack([(cfg, task, sizes)], on_epoch)[0]
+
+    def train_and_score_pack(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
+                             on_epoch: Callable[[], None]) -> list[dict[str, Any]]:
+        """Train the items' models in lockstep (they share system, arch, width and depth) and score each on
+        the system's test set; train_seconds is the pack's training time divided among its models."""
+        members = [self.member(cfg, task, sizes) for cfg, task, sizes in items]
+        cfg = items[0][0]
+        started = time.perf_counter()
+        stack, outcomes = train_lockstep(members, OmegaConf.to_container(cfg.train), on_epoch)
+        train_seconds = (time.perf_counter() - started) / len(items)
+        test_data = build_test_set(OmegaConf.to_container(cfg.system, resolve=True), ArrayCache(cfg.cache_dir))
+        predictions = predict_derivatives(stack, test_data, [member.scaling for member in members],
+                                          getattr(torch, cfg.train.dtype))
+        return [{**normalized_errors(test_data.dx, predicted), "steps": outcome.steps,
+                 "final_loss": outcome.final_loss, "finite": outcome.finite, "train_seconds": train_seconds}
+                for predicted, outcome in zip(predictions, outcomes, strict=True)]
+
+    def member(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any]) -> Member:
+        """The task's initialised model and training data, ready for ``train_lockstep``."""
         system_class = SYSTEMS[task["system"]]
         torch.manual_seed(self.seed_for("init", task))
         model = build_model(cfg.arch, system_class.state_dim, system_class.input_dim, sizes["width"], sizes["depth"])
-        cache_ = ArrayCache(cfg.cache_dir)
         system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
-        train_data = build_training_set(system_cfg, task["seed"], sizes["n_traj"], cache_)
-        test_data = build_test_set(system_cfg, cache_)
-        started = time.perf_counter()
-        scaling = Scaling.fit(train_data)
-        outcome = train_model(model, train_data, scaling, cfg.train, task["epochs"],
-                              self.seed_for("shuffle", task), on_epoch)
-        train_seconds = time.perf_counter() - started
-        dtype = getattr(torch, cfg.train.dtype)
-        metrics = normalized_errors(test_data.dx, predict_derivative(model, test_data, scaling, dtype))
-        return {**metrics, "steps": outcome.steps, "final_loss": outcome.final_loss, "finite": outcome.finite,
-                "train_seconds": train_seconds}
+        data = build_training_set(system_cfg, task["seed"], sizes["n_traj"], ArrayCache(cfg.cache_dir))
+        return Member(model, data, Scaling.fit(data), task["epochs"], self.seed_for("shuffle", task))
