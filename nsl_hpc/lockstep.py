@@ -108,13 +108,14 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any],
         batch = flat_data[torch.stack(rows_idx) + offsets]  # (K, B, 2n + 2m)
         mask = torch.stack(masks).to(dtype).unsqueeze(-1)  # (K, B, 1)
         z, v, dz, y = batch.split([n, m, n, m], dim=-1)
-        predicted_dz, predicted_y = stack.forward(theta, z, v)
+        predicted_dz, predicted_y = stack.forward(z, v)
         active = mask.amax(dim=1)  # (K, 1): 1 while a model trains
         safe_mask = torch.where(active[:, :, None] > 0, mask, torch.ones_like(mask))  # finished: any finite loss
         losses = masked_normalized_mse(predicted_dz, dz, safe_mask, cfg["loss_std_floor"]) + cfg["output_weight"] * \
             masked_normalized_mse(predicted_y, y, safe_mask, cfg["loss_std_floor"])
-        (grad,) = torch.autograd.grad((losses * active[:, 0]).sum(), theta)
+        grads = torch.autograd.grad((losses * active[:, 0]).sum(), stack.parameters)
         with torch.no_grad():
+            grad = torch.cat([g.reshape(count, -1) for g in grads], dim=1)
             norm = grad.square().sum(dim=1, keepdim=True).sqrt()
             grad.mul_((cfg["grad_clip_norm"] / (norm + CLIP_EPS)).clamp_max(1.0))
             first.lerp_(grad, 1 - beta1)
@@ -144,7 +145,7 @@ def predict_derivatives(stack: StackedModels, data: Dataset, scalings: Sequence[
     inputs = [scaling.model_inputs(data, dtype) for scaling in scalings]
     z, v = torch.stack([pair[0] for pair in inputs]), torch.stack([pair[1] for pair in inputs])
     with torch.no_grad():
-        parts = [stack.forward(stack.theta, z[:, i:i + chunk], v[:, i:i + chunk])[0]
+        parts = [stack.forward(z[:, i:i + chunk], v[:, i:i + chunk])[0]
                  for i in range(0, len(data), chunk)]
     predicted = torch.cat(parts, dim=1).double().numpy()
     return [predicted[k] * scaling.derivative_rms * scaling.x_std for k, scaling in enumerate(scalings)]

@@ -8,8 +8,8 @@ cost of an operation is its overhead, not its arithmetic). Heads narrower or wit
 than the widest are zero-padded; padded entries get exactly zero gradients and stay zero. The port-Hamiltonian
 grad H is back-propagated through the H head explicitly (first-order operations), not by a double backward.
 
-All parameters of a model are one row of ``theta`` (K, P): the optimizer step and the clipping norm are a
-handful of operations on it.
+All parameters of a model are one row of ``theta`` (K, P); the layers are leaf views into it, so the
+optimizer step and the clipping norm are a handful of operations on (K, P) tensors.
 """
 
 import itertools
@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from nsl_hpc.models.blocks import positive_semidefinite, skew_symmetric
 from nsl_hpc.models.input_affine import InputAffine
 from nsl_hpc.models.unstructured import Unstructured
 
@@ -48,6 +47,17 @@ def model_state_dim(model: nn.Module) -> int:
     return model.f[-1].out_features if isinstance(model, Unstructured) else model.n
 
 
+def triangle_map(n: int, offset: int, antisymmetric: bool, dtype: torch.dtype) -> torch.Tensor:
+    """(entries, n * n): maps the entries of a triangle (above the diagonal for offset 1, on and below it
+    for offset 0, in triu/tril index order) to the flattened n x n matrix U - U^T (antisymmetric) or L."""
+    rows, cols = torch.triu_indices(n, n, offset) if offset else torch.tril_indices(n, n)
+    mapping = torch.zeros(len(rows), n * n, dtype=dtype)
+    mapping[torch.arange(len(rows)), rows * n + cols] = 1.0
+    if antisymmetric:
+        mapping[torch.arange(len(rows)), cols * n + rows] = -1.0
+    return mapping
+
+
 class StackedModels:
     """K models of one architecture and shape; ``theta`` (K, P) holds every parameter, zero-padded."""
 
@@ -65,9 +75,12 @@ class StackedModels:
         self.shapes = list(itertools.pairwise(dims))  # (in, out) of each layer
         size = sum(len(self.heads) * (i * o + o) for i, o in self.shapes)
         self.theta = torch.zeros(len(models), size, dtype=dtype)
+        self.parameters = [tensor.requires_grad_(True) for layer in self.layers(self.theta) for tensor in layer]
         for k, model in enumerate(models):
             self.load(k, model)
-        self.theta.requires_grad_(True)
+        n = self.n
+        self.skew = triangle_map(n, offset=1, antisymmetric=True, dtype=dtype)  # entries -> J, flattened
+        self.lower = triangle_map(n, offset=0, antisymmetric=False, dtype=dtype) * n ** -0.25  # L L^T = R
         self.input_mask = torch.tensor([[1.0] * self.n + [float(h.reads_input)] * (self.in_dim - self.n)
                                         for h in self.heads], dtype=dtype)[:, None, :]  # (M, 1, in)
 
@@ -89,7 +102,7 @@ class StackedModels:
     def load(self, k: int, model: nn.Module) -> None:
         """Copy the parameters of ``model`` into row k."""
         with torch.no_grad():
-            layers = self.layers(self.theta)
+            layers = list(zip(self.parameters[::2], self.parameters[1::2], strict=True))
             for h, head in enumerate(self.heads):
                 linears = [layer for layer in getattr(model, head.name) if isinstance(layer, nn.Linear)]
                 for (weight, bias), linear in zip(layers, linears, strict=True):
@@ -97,25 +110,24 @@ class StackedModels:
                     weight[k, h, :i, :o] = linear.weight.T
                     bias[k, h, 0, :o] = linear.bias
 
-    def heads_forward(self, theta: torch.Tensor, z: torch.Tensor, v: torch.Tensor
-                      ) -> tuple[torch.Tensor, list[torch.Tensor], list]:
+    def heads_forward(self, z: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor], list]:
         """Outputs (K, M, B, out) of every head for z (K, B, n), v (K, B, m); also the hidden activations and
-        the layer views (for grad H)."""
+        the layers (for grad H)."""
         x = torch.cat([z, v], dim=-1) if self.in_dim > self.n else z
         x = x.unsqueeze(1) * self.input_mask  # (K, M, B, in)
-        layers = self.layers(theta)
+        layers = list(zip(self.parameters[::2], self.parameters[1::2], strict=True))
         activations = []
         for weight, bias in layers[:-1]:
             x = torch.tanh(torch.baddbmm(bias.flatten(0, 1), x.flatten(0, 1), weight.flatten(0, 1)))
-            x = x.view(theta.shape[0], len(self.heads), *x.shape[1:])
+            x = x.view(self.count, len(self.heads), *x.shape[1:])
             activations.append(x)
         weight, bias = layers[-1]
         out = torch.baddbmm(bias.flatten(0, 1), x.flatten(0, 1), weight.flatten(0, 1))
         return out.view(x.shape[0], len(self.heads), *out.shape[1:]), activations, layers
 
-    def forward(self, theta: torch.Tensor, z: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, z: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """dz/dt (K, B, n) and y (K, B, m) of every model for its own z (K, B, n), v (K, B, m)."""
-        out, activations, layers = self.heads_forward(theta, z, v)
+        out, activations, layers = self.heads_forward(z, v)
         n, m = self.n, self.m
         if self.kind is Unstructured:
             return out[:, 0, :, :n], out[:, 1, :, :m]
@@ -124,8 +136,9 @@ class StackedModels:
             return out[:, 0, :, :n] + (gain @ v.unsqueeze(-1)).squeeze(-1), out[:, 2, :, :m]
         grad = self.grad_hamiltonian(out[:, 3], activations, layers)  # (K, B, n)
         rows = z.shape[0] * z.shape[1]
-        interconnection = skew_symmetric(out[:, 0, :, :n * (n - 1) // 2].reshape(rows, -1), n)
-        dissipation = positive_semidefinite(out[:, 1, :, :n * (n + 1) // 2].reshape(rows, -1), n)
+        interconnection = (out[:, 0, :, :n * (n - 1) // 2].reshape(rows, -1) @ self.skew).view(rows, n, n)
+        lower = (out[:, 1, :, :n * (n + 1) // 2].reshape(rows, -1) @ self.lower).view(rows, n, n)
+        dissipation = lower @ lower.transpose(1, 2)
         gain = out[:, 2, :, :n * m].reshape(rows, n, m)
         grad = grad.reshape(rows, n, 1)
         dz = (interconnection - dissipation) @ grad + gain @ v.reshape(rows, m, 1)

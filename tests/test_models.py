@@ -106,8 +106,9 @@ def test_stacked_models_compute_what_each_model_computes(arch, state_dim, input_
     models = [build_model(arch_cfg, state_dim, input_dim, width=5, depth=2).double() for _ in range(3)]
     stack = StackedModels(models, torch.float64)
     z, v = torch.randn(3, 7, state_dim, dtype=torch.float64), torch.randn(3, 7, input_dim, dtype=torch.float64)
-    dz, y = stack.forward(stack.theta, z, v)
-    (grad,) = torch.autograd.grad(dz.square().sum() + y.square().sum(), stack.theta)
+    dz, y = stack.forward(z, v)
+    grads = torch.autograd.grad(dz.square().sum() + y.square().sum(), stack.parameters)
+    grad = torch.cat([g.reshape(3, -1) for g in grads], dim=1)
     for k, model in enumerate(models):
         expected_dz, expected_y = model(z[k], v[k])
         torch.testing.assert_close(dz[k], expected_dz, rtol=1e-12, atol=1e-12)

@@ -1,0 +1,264 @@
+"""Training-speed benchmark: the study's plain PyTorch loop against ours, side by side in one process.
+
+    python -m nsl_hpc.bench [out=bench.json] [readme=README.md] [steps=300] [pack_size=16]
+
+Prints (and with ``readme=`` writes between the README's bench markers):
+1. per architecture at a small and a large size: samples/s of the reference loop (random mini-batch gather,
+   forward, MSE, backward, Adam step, zero_grad), of ours alone (``nsl_hpc.lockstep`` with K = 1) and per
+   model of ours with K models packed, and the ratios; the same model, data, batch size and step count;
+2. where the time of one task goes: interpreter + imports, data (cache miss and hit), training, scoring, writing;
+3. the achieved flop rate (about 6 p flops per sample and step) against this core's dense-matmul peak;
+4. the projected core-hours of the whole input-state study, reference (one process per task) against ours
+   (tasks of one shape packed K at a time, by similar step counts), from per-step costs measured per
+   (architecture, width, depth) and the grid's step counts;
+5. the peak memory of the largest input-state task.
+Everything runs on one thread. ``out=`` writes the headline figures as JSON.
+"""
+
+import copy
+import json
+import math
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch import nn
+
+from nsl_hpc import cli
+from nsl_hpc.atomic import write_text
+from nsl_hpc.cache import ArrayCache
+from nsl_hpc.datasets import build_test_set, build_training_set
+from nsl_hpc.lockstep import Member, predict_derivatives, train_lockstep
+from nsl_hpc.metrics import normalized_errors
+from nsl_hpc.models import build_model
+from nsl_hpc.models.blocks import parameter_count
+from nsl_hpc.rows import write_row_atomically
+from nsl_hpc.systems import SYSTEMS
+from nsl_hpc.training import Scaling, batch_count
+
+README_START, README_END = "<!-- bench:start -->", "<!-- bench:end -->"
+
+
+def timed(function: Callable[[], Any]) -> tuple[Any, float]:
+    started = time.perf_counter()
+    result = function()
+    return result, time.perf_counter() - started
+
+
+def reference_loop(model: nn.Module, member: Member, steps: int, train: Mapping[str, Any]) -> None:
+    """The plain loop of the study's script: random mini-batch gather, forward, MSE, backward, Adam, zero_grad."""
+    dtype = getattr(torch, train["dtype"])
+    z, v = member.scaling.model_inputs(member.data, dtype)
+    dz, y = member.scaling.model_targets(member.data, dtype)
+    optimizer = torch.optim.Adam(model.parameters(), lr=train["lr"])
+    generator = torch.Generator().manual_seed(member.shuffle_seed)
+    for _ in range(steps):
+        index = torch.randint(len(z), (train["batch_size"],), generator=generator)
+        predicted_dz, predicted_y = model(z[index], v[index])
+        loss = nn.functional.mse_loss(predicted_dz, dz[index]) + nn.functional.mse_loss(predicted_y, y[index])
+        loss.backward()
+        optimizer.step()
+        optimizer.zero_grad()
+
+
+class Bench:
+    """Models and data of the benchmark's system, built once."""
+
+    def __init__(self, cfg: DictConfig, cache: ArrayCache):
+        self.cfg = cfg
+        self.train = OmegaConf.to_container(cfg.train)
+        self.system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+        self.data = build_training_set(self.system_cfg, 0, cfg.n_traj, cache)
+        self.scaling = Scaling.fit(self.data)
+        self.batches = batch_count(len(self.data), self.train["batch_size"])
+
+    def model(self, arch: str, width: int, depth: int, seed: int) -> nn.Module:
+        system = SYSTEMS[self.system_cfg["name"]]
+        torch.manual_seed(seed)
+        arch_cfg = OmegaConf.to_container(cli.compose_config([f"arch={arch}"]).arch)
+        return build_model(arch_cfg, system.state_dim, system.input_dim, width, depth)
+
+    def members(self, arch: str, width: int, depth: int, count: int, steps: int) -> list[Member]:
+        epochs = max(1, math.ceil(steps / self.batches))
+        return [Member(self.model(arch, width, depth, k), self.data, self.scaling, epochs, k) for k in range(count)]
+
+    def step_seconds(self, arch: str, width: int, depth: int, steps: int, pack: int) -> dict[str, float]:
+        """Seconds per optimizer step: reference, ours alone, ours for ``pack`` models at once (the pack)."""
+        member = self.members(arch, width, depth, 1, steps)[0]
+        reference = copy.deepcopy(member.model)
+        _, reference_s = timed(lambda: reference_loop(reference, member, steps, self.train))
+        (_, outcomes), single_s = timed(lambda: train_lockstep([member], self.train))
+        packed_members = self.members(arch, width, depth, pack, steps)
+        (_, packed), packed_s = timed(lambda: train_lockstep(packed_members, self.train))
+        return {"reference": reference_s / steps, "single": single_s / outcomes[0].steps,
+                "packed": packed_s / packed[0].steps, "params": parameter_count(member.model)}
+
+
+def matmul_peak_flops(size: int, repeats: int = 20) -> float:
+    """Dense float32 matmul rate of this core (flop/s)."""
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    torch.mm(a, b)
+    _, seconds = timed(lambda: [torch.mm(a, b) for _ in range(repeats)])
+    return 2.0 * size**3 * repeats / seconds
+
+
+def speed_table(bench: Bench, cfg: DictConfig) -> list[dict[str, Any]]:
+    rows = []
+    for arch in cfg.archs:
+        for size, shape in cfg.sizes.items():
+            seconds = bench.step_seconds(arch, shape.width, shape.depth, cfg.steps, cfg.pack_size)
+            rows.append({"arch": arch, "size": size, **shape, **seconds,
+                         "single_ratio": seconds["reference"] / seconds["single"],
+                         "packed_ratio": seconds["reference"] * cfg.pack_size / seconds["packed"]})
+    return rows
+
+
+def task_breakdown(bench: Bench, cfg: DictConfig, root: Path) -> dict[str, float]:
+    """Seconds spent by one typical task in each phase (``cfg.typical_task``)."""
+    task = cfg.typical_task
+    python = [sys.executable, "-c"]
+    _, interpreter_s = timed(lambda: subprocess.run([*python, "pass"], check=True))
+    _, imports_s = timed(lambda: subprocess.run([*python, "import nsl_hpc.task"], check=True))
+    miss_cache = ArrayCache(root / "miss")
+    (data, _), miss_s = timed(lambda: (build_training_set(bench.system_cfg, 1, task.n_traj, miss_cache),
+                                       build_test_set(bench.system_cfg, miss_cache)))
+    (_, test), hit_s = timed(lambda: (build_training_set(bench.system_cfg, 1, task.n_traj, miss_cache),
+                                      build_test_set(bench.system_cfg, miss_cache)))
+    model = bench.model(task.arch, task.width, task.depth, 0)
+    member = Member(model, data, Scaling.fit(data), task.epochs, 0)
+    (stack, _), train_s = timed(lambda: train_lockstep([member], bench.train))
+    dtype = getattr(torch, bench.train["dtype"])
+    metrics, score_s = timed(lambda: normalized_errors(test.dx, *predict_derivatives(stack, test, [member.scaling],
+                                                                                      dtype)))
+    _, write_s = timed(lambda: write_row_atomically({"task_id": "bench", **metrics}, root / "row.parquet"))
+    return {"interpreter": interpreter_s, "imports": imports_s - interpreter_s, "data (miss)": miss_s,
+            "data (hit)": hit_s, "training": train_s, "scoring": score_s, "writing": write_s}
+
+
+def interpolate(table: Mapping[tuple[int, int], float], widths: list[int], depths: list[int], width: int,
+                depth: int) -> float:
+    """Bilinear interpolation (clamped) of per-step seconds measured on the (width, depth) grid."""
+    w = float(np.clip(width, widths[0], widths[-1]))
+    d = float(np.clip(depth, depths[0], depths[-1]))
+    at_depth = [np.interp(w, widths, [table[wi, dj] for wi in widths]) for dj in depths]
+    return float(np.interp(d, depths, at_depth))
+
+
+def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, float]) -> dict[str, float]:
+    """Core-hours of the input-state study: reference (each task its own process: interpreter, imports,
+    simulated data, its steps, scoring, writing) and ours (tasks of one shape packed ``pack_size`` at a time
+    by step count; a pack costs its longest member's steps at the packed step time; data from the cache)."""
+    from nsl_hpc.grid import build_manifest
+    from nsl_hpc.studies import study_named
+    from nsl_hpc.sweep import pair_configs
+
+    study = study_named("input_state")
+    launch = cli.compose_config(["+sweep=input_state"], "launch")
+    manifest = build_manifest(launch.sweep.grid, study, pair_configs(launch, ["+sweep=input_state"], study),
+                              launch.sweep_seed).to_pylist()
+    grid = cfg.projection
+    costs = {}
+    for arch in sorted({task["arch"] for task in manifest}):
+        measured = defaultdict(dict)
+        for width in grid.widths:
+            for depth in grid.depths:
+                for method, seconds in bench.step_seconds(arch, width, depth, grid.steps, cfg.pack_size).items():
+                    measured[method][width, depth] = seconds
+        costs[arch] = measured
+    per_task = breakdown["data (hit)"] + breakdown["scoring"] + breakdown["writing"]
+    reference = sum(task["steps"] * interpolate(costs[task["arch"]]["reference"], list(grid.widths),
+                                                list(grid.depths), task["width"], task["depth"])
+                    for task in manifest)
+    reference += len(manifest) * (breakdown["interpreter"] + breakdown["imports"] + breakdown["data (miss)"]
+                                  - breakdown["data (hit)"] + per_task)
+    shapes = defaultdict(list)
+    for task in manifest:
+        shapes[task["system"], task["arch"], task["width"], task["depth"]].append(task["steps"])
+    ours = len(manifest) * per_task
+    for (_, arch, width, depth), steps in shapes.items():
+        step = interpolate(costs[arch]["packed"], list(grid.widths), list(grid.depths), width, depth)
+        steps.sort()
+        ours += sum(max(steps[i:i + cfg.pack_size]) * step for i in range(0, len(steps), cfg.pack_size))
+    return {"core_hours_reference": reference / 3600, "core_hours_ours": ours / 3600, "tasks": len(manifest)}
+
+
+def largest_task_peak_memory(cfg: DictConfig, root: Path) -> float:
+    """Peak resident memory (GiB) of `python -m nsl_hpc.train` on the largest input-state task."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    subprocess.run([sys.executable, "-m", "nsl_hpc.train", *cfg.largest_task, f"out_dir={root / 'largest'}",
+                    f"cache_dir={root / 'largest-cache'}"], check=True, capture_output=True)
+    peak_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return max(peak_kib, before) / 2**20
+
+
+def report(speeds: list[dict], breakdown: Mapping[str, float], peak: float, projection: Mapping[str, float],
+           memory_gib: float, cfg: DictConfig) -> str:
+    """The figures as markdown (the README's Performance table)."""
+    lines = [f"Measured by `python -m nsl_hpc.bench` on one core ({torch.get_num_threads()} thread), "
+             f"{cfg.steps} steps of batch {cfg.train.batch_size} on {cfg.system.name}, K = {cfg.pack_size} "
+             "packed models.", "",
+             "| arch | n_h | n_d | p | reference samples/s | ours alone | ratio | ours packed, per model | ratio | "
+             "GFLOP/s packed (% of peak) |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    batch = cfg.train.batch_size
+    for row in speeds:
+        packed_rate = batch * cfg.pack_size / row["packed"]
+        flops = 6 * row["params"] * packed_rate
+        share = 100 * flops / peak
+        lines.append(f"| {row['arch']} | {row['width']} | {row['depth']} | {row['params']:,} | "
+                     f"{batch / row['reference']:,.0f} | {batch / row['single']:,.0f} | {row['single_ratio']:.2f}x | "
+                     f"{packed_rate:,.0f} | {row['packed_ratio']:.1f}x | {flops / 1e9:.2f} ({share:.1f}%) |")
+    lines += ["", f"Dense float32 matmul peak of this core: {peak / 1e9:.1f} GFLOP/s.", "",
+              "| one task (" + ", ".join(f"{k}={v}" for k, v in cfg.typical_task.items()) + ") | seconds |",
+              "|---|---:|"]
+    lines += [f"| {phase} | {seconds:.3f} |" for phase, seconds in breakdown.items()]
+    lines += ["", f"Projected core-hours of the {projection['tasks']:,}-task input-state study: reference "
+              f"{projection['core_hours_reference']:,.0f}, ours {projection['core_hours_ours']:,.0f} "
+              f"({projection['core_hours_reference'] / projection['core_hours_ours']:.1f}x fewer).",
+              f"Peak memory of the largest input-state task: {memory_gib:.2f} GiB."]
+    return "\n".join(lines)
+
+
+def write_readme(path: Path, table: str) -> None:
+    text = path.read_text()
+    if README_START not in text or README_END not in text:
+        raise ValueError(f"{path} lacks the markers {README_START} ... {README_END}")
+    head, rest = text.split(README_START, 1)
+    write_text(f"{head}{README_START}\n{table}\n{README_END}{rest.split(README_END, 1)[1]}", path)
+
+
+def main(cfg: DictConfig) -> int:
+    torch.set_num_threads(1)
+    with tempfile.TemporaryDirectory() as folder:
+        root = Path(folder)
+        bench = Bench(cfg, ArrayCache(root / "cache"))
+        speeds = speed_table(bench, cfg)
+        peak = matmul_peak_flops(cfg.matmul_size)
+        breakdown = task_breakdown(bench, cfg, root)
+        projection = projected_core_hours(bench, cfg, breakdown)
+        memory = largest_task_peak_memory(cfg, root)
+    table = report(speeds, breakdown, peak, projection, memory, cfg)
+    print(table)
+    if cfg.readme:
+        write_readme(Path(cfg.readme), table)
+    if cfg.out:
+        headline = {"single_speedup_min": min(row["single_ratio"] for row in speeds),
+                    "packed_speedup": min(row["packed_ratio"] for row in speeds),
+                    **{k: v for k, v in projection.items() if k.startswith("core_hours")},
+                    "largest_task_peak_gib": memory, "matmul_peak_gflops": peak / 1e9, "speeds": speeds,
+                    "task_seconds": breakdown}
+        write_text(json.dumps(headline, indent=2), Path(cfg.out))
+    return 0
+
+
+if __name__ == "__main__":
+    cli.run(main, __doc__, config_name="bench")
+    sys.exit(0)
