@@ -13,12 +13,12 @@ submitted; watch them with `python -m nsl_hpc.status sweep_dir=<dir>`.
 import sys
 from collections.abc import Sequence
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.failures import record_failure
 from nsl_hpc.launcher import dispatch
-from nsl_hpc.plan import Pack, make_packs, packing_for
+from nsl_hpc.plan import Pack, lockstep_size, make_packs, packing_for, planned_groups
 from nsl_hpc.sweep import PreparedSweep, prepare_sweep
 
 
@@ -39,8 +39,8 @@ def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str)
 def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
     prepared = prepare_sweep(cfg, overrides)
     todo = prepared.todo
-    packs = make_packs(todo["task_id"].to_pylist(), todo["seconds"].to_pylist(),
-                       packing_for(cfg.packing, cfg.launcher.name))
+    groups, seconds = planned_groups(todo.to_pylist(), lockstep_size(cfg), OmegaConf.to_container(cfg.cost))
+    packs = make_packs(groups, seconds, packing_for(cfg.packing, cfg.launcher.name))
     print(describe_plan(prepared, packs, cfg.launcher.name))
     if prepared.infeasible:
         count = len(prepared.infeasible)

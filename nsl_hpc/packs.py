@@ -1,5 +1,6 @@
 """What one job runs: the tasks of its pack, one after another, each in a watched child process.
 
+Tasks of one shape run in lockstep groups (one child trains them together, each writing its own row).
 A child that raises or crashes is recorded as failed; one whose heartbeat (once per epoch) stops for
 ``watchdog.heartbeat_timeout_s``, or that runs ``watchdog.overrun_factor`` times longer than predicted, is
 killed and recorded as frozen. Either way the pack goes on with its next task. On SLURM's warning
@@ -10,6 +11,7 @@ the job is requeued with the tasks it has not started.
 import contextlib
 import multiprocessing
 import os
+import shutil
 import signal
 import sys
 import time
@@ -25,11 +27,11 @@ import submitit
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.failures import failure_path, record_failure, task_log_path
-from nsl_hpc.manifest import base_config_path, read_manifest
-from nsl_hpc.plan import predicted_seconds
+from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, base_config_path, read_manifest
+from nsl_hpc.plan import group_seconds, lockstep_groups, lockstep_size
 from nsl_hpc.rows import row_path
 from nsl_hpc.studies import study_named
-from nsl_hpc.task import describe, run_task
+from nsl_hpc.task import describe, run_tasks
 
 POLL_SECONDS = 0.2
 
@@ -51,9 +53,9 @@ def task_config(sweep_dir: Path, task: Mapping[str, Any]) -> DictConfig:
     return cfg
 
 
-def run_child(sweep_dir: Path, cfg: DictConfig, heartbeat) -> None:
-    """Child process body: output to the task's log, train; exit status 1 on an exception."""
-    log = task_log_path(sweep_dir, cfg.task_id)
+def run_child(sweep_dir: Path, cfgs: Sequence[DictConfig], heartbeat) -> None:
+    """Child process body: output to the first task's log, train the group; exit status 1 on an exception."""
+    log = task_log_path(sweep_dir, cfgs[0].task_id)
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "w") as handle:
         os.dup2(handle.fileno(), 1)
@@ -61,8 +63,8 @@ def run_child(sweep_dir: Path, cfg: DictConfig, heartbeat) -> None:
     sys.stdout = open(1, "w", buffering=1, closefd=False)  # noqa: SIM115
     sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
     try:
-        result = run_task(cfg, on_epoch=lambda: setattr(heartbeat, "value", time.time()))
-        print(describe(result.row) if result.row else f"skipped: {result.path} exists")
+        for result in run_tasks(cfgs, on_epoch=lambda: setattr(heartbeat, "value", time.time())):
+            print(describe(result.row) if result.row else f"skipped: {result.path} exists")
     except BaseException:
         traceback.print_exc()
         sys.stderr.flush()
@@ -72,73 +74,96 @@ def run_child(sweep_dir: Path, cfg: DictConfig, heartbeat) -> None:
 
 
 class PackRunner:
-    """The callable submitit pickles into every job: ``PackRunner()(sweep_dir, task_ids)``."""
+    """The callable submitit pickles into every job: ``PackRunner()(sweep_dir, task_ids)``. The pack's tasks
+    run in lockstep groups (``nsl_hpc.plan.lockstep_groups``, K from the sweep's launch config)."""
 
     def __init__(self) -> None:
-        self.running: tuple[Path, str, multiprocessing.Process] | None = None
+        self.running: tuple[Path, list[str], multiprocessing.Process] | None = None
         self.started: set[str] = set()
 
     def __call__(self, sweep_dir: str, task_ids: Sequence[str]) -> dict[str, int]:
-        """Run every task of the pack that has no row yet; returns counts by outcome."""
+        """Run every task of the pack that has no row yet; returns counts by outcome (per task)."""
         sweep = Path(sweep_dir)
         counts: Counter[str] = Counter()
+        todo = []
         for task in manifest_rows(sweep, task_ids):
-            self.started.add(task["task_id"])
             if row_path(sweep, task["task_id"]).exists():
+                self.started.add(task["task_id"])
                 counts["skipped"] += 1
-                continue
-            counts[self.run_watched(sweep, task)] += 1
+            else:
+                todo.append(task)
+        size = lockstep_size(OmegaConf.load(sweep / LAUNCH_CONFIG_FILE))
+        for group in lockstep_groups(todo, size):
+            self.started.update(task["task_id"] for task in group)
+            counts[self.run_watched(sweep, group)] += len(group)
         return dict(counts)
 
-    def run_watched(self, sweep: Path, task: Mapping[str, Any]) -> str:
-        """Run one task in a child process under the watchdog; returns ok, failed or frozen."""
-        cfg = task_config(sweep, task)
-        if cfg.fault.once and failure_path(sweep, task["task_id"]).exists():
-            cfg.fault.kind = None  # test-only faults strike a task's first attempt only
-        watchdog = cfg.watchdog
-        predicted = predicted_seconds(task["arch"], task["steps"], task["params"], cfg.cost)
+    def run_watched(self, sweep: Path, group: Sequence[Mapping[str, Any]]) -> str:
+        """Run one lockstep group in a child process under the watchdog; returns ok, failed or frozen (the
+        outcome of each of its tasks)."""
+        cfgs = [task_config(sweep, task) for task in group]
+        for cfg in cfgs:
+            if cfg.fault.once and failure_path(sweep, cfg.task_id).exists():
+                cfg.fault.kind = None  # test-only faults strike a task's first attempt only
+        watchdog = cfgs[0].watchdog
+        predicted = group_seconds(group, OmegaConf.to_container(cfgs[0].cost))
+        ids = [task["task_id"] for task in group]
         context = multiprocessing.get_context("fork")
         heartbeat = context.Value("d", time.time(), lock=False)
-        child = context.Process(target=run_child, args=(sweep, cfg, heartbeat), daemon=True)
+        child = context.Process(target=run_child, args=(sweep, cfgs, heartbeat), daemon=True)
         started = time.time()
         child.start()
-        self.running = (sweep, task["task_id"], child)
+        self.running = (sweep, ids, child)
         try:
             while child.is_alive():
                 child.join(POLL_SECONDS)
                 silent, elapsed = time.time() - heartbeat.value, time.time() - started
                 if child.is_alive() and silent > watchdog.heartbeat_timeout_s:
-                    return self.stop_frozen(child, sweep, task, f"no heartbeat for {silent:.0f} s")
+                    return self.stop_frozen(child, sweep, ids, f"no heartbeat for {silent:.0f} s")
                 if child.is_alive() and elapsed > watchdog.overrun_factor * predicted:
-                    return self.stop_frozen(child, sweep, task, f"ran {elapsed:.0f} s, over "
+                    return self.stop_frozen(child, sweep, ids, f"ran {elapsed:.0f} s, over "
                                             f"{watchdog.overrun_factor}x its predicted {predicted:.0f} s")
         finally:
             self.running = None
-        if child.exitcode == 0 and row_path(sweep, task["task_id"]).exists():
-            log = task_log_path(sweep, task["task_id"])
+        if child.exitcode == 0 and all(row_path(sweep, task_id).exists() for task_id in ids):
+            log = task_log_path(sweep, ids[0])
             log.unlink(missing_ok=True)
             with contextlib.suppress(OSError):  # the bucket directory, once empty
                 log.parent.rmdir()
             return "ok"
         reason = (f"exit status {child.exitcode}" if child.exitcode >= 0
                   else f"killed by signal {signal.Signals(-child.exitcode).name}")
-        record_failure(sweep, task["task_id"], "failed", reason)
+        record_group_failure(sweep, ids, "failed", reason)
         return "failed"
 
     @staticmethod
-    def stop_frozen(child: multiprocessing.Process, sweep: Path, task: Mapping[str, Any], reason: str) -> str:
+    def stop_frozen(child: multiprocessing.Process, sweep: Path, ids: Sequence[str], reason: str) -> str:
         child.kill()
         child.join()
-        record_failure(sweep, task["task_id"], "frozen", reason)
+        record_group_failure(sweep, ids, "frozen", reason)
         return "frozen"
 
     def checkpoint(self, sweep_dir: str, task_ids: Sequence[str]) -> submitit.helpers.DelayedSubmission | None:
-        """On SLURM's warning signal: record the running task as timeout, requeue the unstarted ones
+        """On SLURM's warning signal: record the running group's tasks as timeout, requeue the unstarted ones
         (none left: no requeue, which SLURM would delay by minutes for nothing)."""
         if self.running is not None:
-            sweep, task_id, child = self.running
+            sweep, ids, child = self.running
             with contextlib.suppress(ProcessLookupError):
                 child.kill()
-            record_failure(sweep, task_id, "timeout", "the job reached its time limit while this task ran")
+            record_group_failure(sweep, ids, "timeout", "the job reached its time limit while this task ran")
         remaining = [task_id for task_id in task_ids if task_id not in self.started]
         return submitit.helpers.DelayedSubmission(PackRunner(), sweep_dir, remaining) if remaining else None
+
+
+def record_group_failure(sweep: Path, ids: Sequence[str], status: str, reason: str) -> None:
+    """A failure record for each task of a lockstep group without a row; they share the first one's log."""
+    first_log = task_log_path(sweep, ids[0])
+    for task_id in ids:
+        if row_path(sweep, task_id).exists():
+            continue
+        log = task_log_path(sweep, task_id)
+        if task_id != ids[0] and first_log.exists():
+            log.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(first_log, log)
+        group = f" (in a lockstep group of {len(ids)})" if len(ids) > 1 else ""
+        record_failure(sweep, task_id, status, reason + group)

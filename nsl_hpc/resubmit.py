@@ -16,7 +16,7 @@ from nsl_hpc import cli
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.launcher import dispatch
 from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, require_sweep
-from nsl_hpc.plan import make_packs, packing_for, predicted_seconds
+from nsl_hpc.plan import lockstep_size, make_packs, packing_for, planned_groups
 from nsl_hpc.sweep_state import read_sweep_state
 
 RESUBMITTABLE = ("failed", "frozen", "timeout", "missing")
@@ -36,9 +36,8 @@ def main(cfg: DictConfig) -> int:
         print(f"nothing to resubmit: no task is {' / '.join(cfg.states)}")
         return 0
     packing = packing_for(launch.packing, launch.launcher.name, cfg.time_factor)
-    cost = OmegaConf.to_container(launch.cost)
-    seconds = [predicted_seconds(t["arch"], t["steps"], t["params"], cost) for t in tasks]
-    packs = make_packs([t["task_id"] for t in tasks], seconds, packing)
+    groups, seconds = planned_groups(tasks, lockstep_size(launch), OmegaConf.to_container(launch.cost))
+    packs = make_packs(groups, seconds, packing)
     print(f"resubmitting {len(tasks):,} tasks ({', '.join(cfg.states)}) in {len(packs):,} jobs")
     return dispatch(sweep_dir, packs, launch.launcher, launch.sweep.name)
 

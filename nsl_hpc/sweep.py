@@ -16,7 +16,6 @@ from nsl_hpc.cli import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.grid import Grid, build_manifest, sub_grids, validate_grid
 from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, manifest_path, read_manifest, write_sweep
-from nsl_hpc.plan import predicted_seconds
 from nsl_hpc.rows import row_path
 from nsl_hpc.studies import Study, require_non_negative_int, study_named, study_of
 
@@ -66,7 +65,7 @@ def pair_configs(cfg: DictConfig, overrides: Sequence[str], study: Study) -> dic
 class PreparedSweep:
     sweep_dir: Path
     manifest: pa.Table
-    todo: pa.Table  # manifest rows of runnable tasks without a row, with a `seconds` column (predicted)
+    todo: pa.Table  # manifest rows of runnable tasks without a row
     reused: bool  # the sweep directory already held this grid
     infeasible: dict[str, str]  # task id -> why it cannot run as configured (e.g. a window longer than its data)
 
@@ -89,7 +88,7 @@ def prepare_sweep(cfg: DictConfig, overrides: Sequence[str]) -> PreparedSweep:
     else:
         write_sweep(sweep_dir, manifest, configs)
         write_text(OmegaConf.to_yaml(cfg), sweep_dir / LAUNCH_CONFIG_FILE)
-    todo = pending_tasks(sweep_dir, manifest, OmegaConf.to_container(cfg.cost))
+    todo = pending_tasks(sweep_dir, manifest)
     infeasible = infeasible_tasks(todo, study, configs)
     runnable = pc.invert(pc.is_in(todo["task_id"], value_set=pa.array(list(infeasible), type=pa.string())))
     return PreparedSweep(sweep_dir, manifest, todo.filter(runnable), reused, infeasible)
@@ -107,10 +106,7 @@ def infeasible_tasks(tasks: pa.Table, study: Study,
     return reasons
 
 
-def pending_tasks(sweep_dir: Path, manifest: pa.Table, cost) -> pa.Table:
-    """Manifest rows of the tasks that have no row on disk, with their predicted ``seconds``."""
+def pending_tasks(sweep_dir: Path, manifest: pa.Table) -> pa.Table:
+    """Manifest rows of the tasks that have no row on disk."""
     done = [row_path(sweep_dir, task_id).exists() for task_id in manifest["task_id"].to_pylist()]
-    todo = manifest.filter(pc.invert(pa.array(done, type=pa.bool_())))
-    seconds = [predicted_seconds(arch, steps, params, cost) for arch, steps, params in zip(
-        todo["arch"].to_pylist(), todo["steps"].to_pylist(), todo["params"].to_pylist(), strict=True)]
-    return todo.append_column("seconds", pa.array(seconds, type=pa.float64()))
+    return manifest.filter(pc.invert(pa.array(done, type=pa.bool_())))

@@ -37,7 +37,8 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
     """Classify every task: a row means done; else its latest array element's state while that is active;
     else its failure record written since that submission (failed, frozen, timeout); else missing."""
     sweep_dir = Path(sweep_dir)
-    manifest = read_manifest(sweep_dir, columns=["task_id", "system", "arch", "seed", "steps", "params"])
+    manifest = read_manifest(sweep_dir, columns=["task_id", "system", "arch", "seed", "width", "depth", "steps",
+                                                 "params"])
     failures = read_failures(sweep_dir)
     latest: dict[str, tuple[str, float]] = {}  # task -> (array element, submission time)
     submissions = read_submissions(sweep_dir)

@@ -11,6 +11,10 @@ TINY_GRID = ["+sweep=demo", "sweep.grid.system=[spring]", "sweep.grid.arch=[inpu
              "sweep.grid.data_tier=[2]", "sweep.grid.width_tier=[4]", "sweep.grid.seed=[0,1,2,3]"]
 
 
+# Faults strike a whole lockstep group; the tests of per-task faults train every task alone.
+ALONE = "lockstep.enabled=false"
+
+
 def nsl(verb: str, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
     """``python -m nsl_hpc.<verb> args...``."""
     return subprocess.run([sys.executable, "-m", f"nsl_hpc.{verb}", *args], capture_output=True, text=True,

@@ -1,11 +1,11 @@
 """clean: what finished tasks no longer need goes; rows and the records of failures stay."""
 
-from tests.sweeps import TINY_GRID, nsl, row_files
+from tests.sweeps import ALONE, TINY_GRID, nsl, row_files
 
 
 def test_clean_keeps_rows_and_failures_then_removes_them_once_resolved(tmp_path):
     sweep_dir = tmp_path / "sweep"
-    nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "fault.kind=raise", "fault.seed=2")
+    nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "fault.kind=raise", "fault.seed=2", ALONE)
     rows = {path: path.stat().st_mtime_ns for path in row_files(sweep_dir)}
     failure_files = sorted((sweep_dir / "failures").rglob("*.json")) + sorted((sweep_dir / "logs").rglob("*.log"))
     assert len(rows) == 3 and len(failure_files) == 2

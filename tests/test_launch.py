@@ -5,7 +5,7 @@ import pytest
 
 from nsl_hpc.rows import read_row
 from nsl_hpc.studies import study_named
-from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
+from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
 
 
 @pytest.mark.parametrize("launcher", ["debug", "local"])
@@ -75,7 +75,7 @@ def test_launch_on_a_directory_of_another_grid_is_refused(tmp_path):
 def test_failed_and_frozen_tasks_are_recorded_and_resubmitted(tmp_path):
     sweep_dir = tmp_path / "sweep"
     hang = nsl("launch", *TINY_GRID, "launcher=local", f"sweep_dir={sweep_dir}", "fault.kind=hang", "fault.seed=1",
-               "watchdog.heartbeat_timeout_s=10")
+               ALONE, "watchdog.heartbeat_timeout_s=10")
     assert hang.returncode == 1 and "1 frozen, 3 ok" in hang.stdout
     status = nsl("status", f"sweep_dir={sweep_dir}")
     assert "done 3 | running 0 | pending 0 | failed 0 | frozen 1" in status.stdout
@@ -91,7 +91,28 @@ def test_failed_and_frozen_tasks_are_recorded_and_resubmitted(tmp_path):
 
 def test_raising_task_is_recorded_failed_with_its_log(tmp_path):
     sweep_dir = tmp_path / "sweep"
-    result = nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "fault.kind=raise", "fault.seed=2")
+    result = nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "fault.kind=raise", "fault.seed=2",
+                 ALONE)
     assert result.returncode == 1 and "1 failed, 3 ok" in result.stdout
     status = nsl("status", f"sweep_dir={sweep_dir}")
     assert "failed 1" in status.stdout and "RuntimeError: injected fault" in status.stdout
+
+
+def test_lockstep_groups_give_the_rows_of_tasks_trained_alone(tmp_path):
+    """12 tasks of at most 4 shapes: trained in lockstep groups by the local launcher, each task's row holds
+    what training it alone gives (to the packed tolerance of tests/test_training.py)."""
+    grid = [*TINY_GRID, "sweep.grid.width_tier=[2]", "sweep.grid.seed=[0,1,2,3,4,5]", "sweep.grid.epochs=[2,3]"]
+    rows = {}
+    for name, extra in (("packed", "lockstep.size=16"), ("alone", ALONE)):
+        sweep_dir = tmp_path / name
+        result = nsl("launch", *grid, "launcher=local", f"sweep_dir={sweep_dir}", extra)
+        assert result.returncode == 0 and "finished: 12 ok" in result.stdout, result.stderr
+        rows[name] = {row["task_id"]: row for row in map(read_row, row_files(sweep_dir))}
+    manifest = pq.read_table(tmp_path / "packed" / "manifest.parquet").to_pylist()
+    assert len({(t["width"], t["depth"]) for t in manifest}) < 12  # some tasks did share a group
+    assert rows["packed"].keys() == rows["alone"].keys()
+    for task_id, alone in rows["alone"].items():
+        packed = rows["packed"][task_id]
+        assert packed["steps"] == alone["steps"]
+        for key in ("nmae", "nmse", "final_loss"):
+            assert packed[key] == pytest.approx(alone[key], rel=1e-4), key

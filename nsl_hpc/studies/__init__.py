@@ -44,6 +44,7 @@ class Study:
     axes: tuple[str, ...]  # grid axes in expansion order: "system", "arch", "seed", then the size coordinates
     length_axis: str  # the axis of training length; the size draws ignore it (longer runs of the same model)
     shared_keys: tuple[str, ...]  # config groups and keys that change the outcome of every task of a pair
+    lockstep: bool = False  # train_and_score_pack trains same-shape tasks together (nsl_hpc.lockstep)
 
     @property
     def size_axes(self) -> tuple[str, ...]:

@@ -40,6 +40,7 @@ class InputState(Study):
     axes = ("system", "arch", "seed", "epochs", "data_tier", "width_tier", "depth_tier")
     length_axis = "epochs"
     shared_keys = ("system", "arch", "train", "data_per_trajectory")
+    lockstep = True
 
     def check_coordinate(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
         require_positive_int(label, value)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
+from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.slurm
@@ -60,7 +60,8 @@ def test_sweep_larger_than_max_array_size_is_split(small_max_array_size, tmp_pat
 def test_faults_on_slurm_then_resubmit_completes_every_task_once(slurm_cluster, tmp_path):
     sweep_dir = tmp_path / "sweep"
     launched = nsl("launch", *TINY_GRID, "sweep.grid.seed=[0,1,2,3,4,5]", "sweep.grid.epochs=[2,400]", *UNPACKED,
-                   f"sweep_dir={sweep_dir}", "fault.kind=hang", "fault.seed=1", "watchdog.heartbeat_timeout_s=10")
+                   f"sweep_dir={sweep_dir}", "fault.kind=hang", "fault.seed=1", "watchdog.heartbeat_timeout_s=10",
+                   ALONE)
     assert launched.returncode == 0, launched.stderr
     (array,) = submitted_arrays(launched.stdout)
     time.sleep(1)
@@ -85,7 +86,7 @@ def test_time_limit_records_timeout_requeues_unstarted_tasks_and_resubmit_finish
     (the fault strikes a first attempt only) finishes both."""
     sweep_dir = tmp_path / "sweep"
     launched = nsl("launch", *TINY_GRID, "sweep.grid.seed=[0,1]", "launcher=slurm", f"sweep_dir={sweep_dir}",
-                   "packing.time_classes_minutes=[1]", "launcher.signal_delay_s=45", "fault.kind=hang",
+                   "packing.time_classes_minutes=[1]", "launcher.signal_delay_s=45", ALONE, "fault.kind=hang",
                    "watchdog.overrun_factor=1000")
     assert launched.returncode == 0, launched.stderr
     assert len(submitted_arrays(launched.stdout)) == 1 and "submitted 1 jobs" in launched.stdout
