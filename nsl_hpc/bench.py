@@ -112,6 +112,8 @@ def matmul_peak_flops(size: int, repeats: int = 20) -> float:
 
 
 def speed_table(bench: Bench, cfg: DictConfig) -> list[dict[str, Any]]:
+    for arch in cfg.archs:  # warm-up: the first passes through a code path pay one-off costs
+        bench.step_seconds(arch, 2, 1, 16, 2)
     rows = []
     for arch in cfg.archs:
         for size, shape in cfg.sizes.items():
