@@ -100,7 +100,9 @@ def test_input_output_grid_has_42120_tasks_in_its_four_sub_grids():
 
 
 def test_input_output_manifest_sizes_follow_the_draw_rules_and_the_single_task_path():
-    overrides = ["+sweep=input_output", "sweep.grid.0.seed=[0]", "sweep.grid.0.iter_multiplier=[1,4]",
+    stand_ins = [f"sweep.grid.{i}.system=[{name}_sim]"
+                 for i, name in enumerate(["wiener_hammerstein", "silverbox"] * 2)]  # no measured files needed
+    overrides = ["+sweep=input_output", *stand_ins, "sweep.grid.0.seed=[0]", "sweep.grid.0.iter_multiplier=[1,4]",
                  "sweep.grid.0.width_tier=[4,64]"]
     cfg = compose_config(overrides, "launch")
     grid = OmegaConf.to_container(cfg.sweep.grid)[:1]

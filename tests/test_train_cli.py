@@ -80,8 +80,10 @@ def test_different_seeds_draw_different_sizes(tmp_path, cache_dir):
 
 @pytest.mark.parametrize(("override", "message"), [
     ("system=pendulum", "unknown system 'pendulum'; choose one of: ball, motor, silverbox, silverbox_sim, spring"),
-    ("arch=transformer", "unknown arch 'transformer'; choose one of: input_affine, port_hamiltonian, "
-                         "unstructured"),
+    ("arch=transformer", "unknown arch 'transformer'; choose one of: input_affine, narx, port_hamiltonian, "
+                         "subnet, unstructured"),
+    ("system=silverbox_sim", "system=silverbox_sim belongs to the input_output study, not input_state; "
+                             "add study=input_output"),
     ("epochs=0", "epochs=0 must be a positive integer"),
     ("epochs=-4", "epochs=-4 must be a positive integer"),
     ("data_tier=1024", "data_tier=1024 is outside the grid; allowed: 2, 4, 8, 16, 32, 64, 128, 256, 512"),

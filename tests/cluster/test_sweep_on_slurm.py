@@ -11,7 +11,7 @@ from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.slurm
-UNPACKED = ["launcher=slurm", "packing.enabled=false"]
+UNPACKED = ["launcher=slurm", "packing.enabled=false", ALONE]  # one array element per task
 
 
 def wait_for_sweep(sweep_dir: Path) -> str:
@@ -60,8 +60,7 @@ def test_sweep_larger_than_max_array_size_is_split(small_max_array_size, tmp_pat
 def test_faults_on_slurm_then_resubmit_completes_every_task_once(slurm_cluster, tmp_path):
     sweep_dir = tmp_path / "sweep"
     launched = nsl("launch", *TINY_GRID, "sweep.grid.seed=[0,1,2,3,4,5]", "sweep.grid.epochs=[2,400]", *UNPACKED,
-                   f"sweep_dir={sweep_dir}", "fault.kind=hang", "fault.seed=1", "watchdog.heartbeat_timeout_s=10",
-                   ALONE)
+                   f"sweep_dir={sweep_dir}", "fault.kind=hang", "fault.seed=1", "watchdog.heartbeat_timeout_s=10")
     assert launched.returncode == 0, launched.stderr
     (array,) = submitted_arrays(launched.stdout)
     time.sleep(1)
