@@ -1,11 +1,11 @@
 """Training of K input-state models of one shape in lockstep, each as if it were trained alone.
 
 Each model keeps its own initial weights, data (size and scaling), shuffle generator, batch order, epoch
-count and learning-rate schedule: at step s model k takes its own s-th mini-batch, exactly the one the
-single-model loop (K = 1) takes. Mini-batches of different lengths are
-padded and masked; a model that has finished (or diverged) is masked: learning rate 0, loss ignored. The
-loss, the gradient-norm clipping and Adam are computed per model, in a few operations on the (K, P)
-parameter rows of ``nsl_hpc.stacked``. K = 1 is the single-model path.
+count and learning-rate schedule: at step s model k takes its own s-th mini-batch, exactly the one it takes
+when trained alone (K = 1, the single-model path). Mini-batches of different lengths are padded and masked;
+a model that has finished (or diverged) is masked: learning rate 0, loss ignored. The loss, the
+gradient-norm clipping and Adam (torch.optim.Adam's arithmetic) are computed per model, in a few operations
+on the (K, P) parameter rows of ``nsl_hpc.stacked``.
 """
 
 import math
