@@ -56,13 +56,18 @@ def failure_report(state: SweepState, limit: int) -> str:
 def main(cfg: DictConfig) -> int:
     require_sweep(cfg.sweep_dir)
     cost = OmegaConf.to_container(OmegaConf.load(f"{cfg.sweep_dir}/{LAUNCH_CONFIG_FILE}").cost)
-    interval = cfg.interval_s
+    interval, confirming = cfg.interval_s, False
     while True:
         state = read_sweep_state(cfg.sweep_dir)
         print(summary(state, cost), flush=True)
         active = state.counts()["running"] + state.counts()["pending"]
-        if not cfg.wait or not active:
+        if not cfg.wait or (not active and (confirming or not state.counts()["missing"])):
             break
+        if not active:  # a job being requeued can look ended for a moment: look again before calling it missing
+            confirming = True
+            time.sleep(cfg.settle_s)
+            continue
+        confirming = False
         time.sleep(interval)
         interval = min(interval * 1.5, cfg.max_interval_s)  # back off: sites rate-limit sacct
     report = failure_report(state, cfg.show_failures)
