@@ -106,8 +106,11 @@ def fit_sweep(results: pa.Table, nsl: DictConfig, workers: int | None) -> list[d
     """Every NSL of the sweep, fitted in parallel processes, in (system, arch, resource, metric) order."""
     plain = OmegaConf.to_container(nsl, resolve=True)
     jobs = []
+    present = set(zip(results["system"].to_pylist(), results["arch"].to_pylist(), strict=True))
     for system in dict.fromkeys(results["system"].to_pylist()):
         for arch in dict.fromkeys(results["arch"].to_pylist()):
+            if (system, arch) not in present:  # a grid of sub-grids need not hold every pair
+                continue
             subset = pair_outcomes(results, system, arch)
             for resource, spec in plain["resources"].items():
                 for metric in plain["metrics"]:

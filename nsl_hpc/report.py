@@ -21,6 +21,7 @@ from nsl_hpc import cli
 from nsl_hpc.atomic import write_text
 from nsl_hpc.figures import draw_figures, figure_stem
 from nsl_hpc.fit import FITS_TEXT_FILE, fit_sweep, fits_path, nsl_key, read_results, write_fits
+from nsl_hpc.grid import sub_grids
 from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, require_sweep
 from nsl_hpc.merge import MergeSummary, merge_sweep, results_path
 from nsl_hpc.tracking import log_to_mlflow, tracking_uri
@@ -54,8 +55,11 @@ def nsl_table(rows: Sequence[Mapping[str, Any]]) -> str:
 def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummary,
                 rows: Sequence[Mapping[str, Any]], figures: Mapping[str, list[Path]]) -> str:
     grid = launch["sweep"]["grid"]
-    axes = "".join(f"<tr><th>{html.escape(axis)}</th><td>{html.escape(', '.join(map(str, values)))}</td></tr>"
-                   for axis, values in grid.items())
+    parts = sub_grids(grid)
+    axes = "".join((f"<tr><th colspan='2'>sub-grid {index + 1} of {len(parts)}</th></tr>" if len(parts) > 1 else "")
+                   + "".join(f"<tr><th>{html.escape(axis)}</th><td>{html.escape(', '.join(map(str, values)))}</td></tr>"
+                             for axis, values in part.items())
+                   for index, part in enumerate(parts))
     overviews = "".join(f"<h3>{html.escape(path.stem.replace('overview__', '').replace('__', ' / '))}</h3>"
                         + embedded_png(path, path.stem) for path in figures["overview"] if path.suffix == ".png")
     singles = "".join(f"<details><summary>{html.escape(path.stem.replace('__', ' / '))}</summary>"

@@ -19,6 +19,7 @@ from mlflow.tracking import MlflowClient
 
 from nsl_hpc.fit import nsl_key
 from nsl_hpc.merge import MergeSummary
+from nsl_hpc.studies import study_named
 
 SWEEP_TAG = "nsl_hpc.sweep_dir"
 NSL_TAG = "nsl_hpc.nsl"
@@ -116,7 +117,9 @@ def log_to_mlflow(sweep_dir: Path, settings: Mapping[str, Any], launch_config: M
     """Log (or update) the sweep's runs; returns the parent run id."""
     client = MlflowClient(tracking_uri(sweep_dir, settings["tracking_uri"]))
     experiment = experiment_id(client, settings["experiment"], sweep_dir, settings["tracking_uri"] is None)
-    params = flatten({key: launch_config[key] for key in ("sweep", "sweep_seed", "train", "data_per_trajectory")})
+    study = study_named(launch_config["study"]["name"])
+    keys = ("sweep", "sweep_seed", "study", *(key for key in study.shared_keys if key not in ("system", "arch")))
+    params = flatten({key: launch_config[key] for key in keys})
     parent = sweep_run(client, experiment, sweep_dir, launch_config["sweep"]["name"], params)
     counts = {name: value for name, value in asdict(summary).items() if isinstance(value, int)}
     metrics = {**counts, "dropped": summary.dropped, "dropped_fraction": summary.dropped / max(summary.tasks, 1),

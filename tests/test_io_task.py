@@ -99,9 +99,13 @@ def test_an_input_output_sweep_runs_merges_and_fits(tmp_path):
     assert summary["merged"] + summary["failed"] == 15 and summary["failed"] == (1 if infeasible else 0)
     results = pq.read_table(sweep_dir / "results.parquet")
     assert {"iter_multiplier", "depth", "rmse_mv", "flops", "train_points", "params"} <= set(results.column_names)
-    fitted = nsl("fit", f"sweep_dir={sweep_dir}", "nsl.max_breaks=1")
-    assert fitted.returncode == 0, fitted.stderr
+    reported = nsl("report", f"sweep_dir={sweep_dir}", "nsl.max_breaks=1")
+    assert reported.returncode == 0, reported.stderr
     fits = pq.read_table(sweep_dir / "nsl_fits.parquet").to_pylist()
+    pairs = {(fit["system"], fit["arch"]) for fit in fits}
+    assert pairs == {("silverbox_sim", "narx"), ("wiener_hammerstein_sim", "narx"),
+                     ("wiener_hammerstein_sim", "subnet")}  # no fits for the pair no sub-grid holds
     narx = [fit for fit in fits if (fit["system"], fit["arch"]) == ("silverbox_sim", "narx")]
     assert len(narx) == 6 and all(fit["error"] is None for fit in narx)  # 3 resources x 2 metrics
+    assert "sub-grid 3 of 3" in (sweep_dir / "report.html").read_text()
     assert read_row(next((sweep_dir / "rows").rglob("*.parquet")))["arch"] in ("narx", "subnet")
