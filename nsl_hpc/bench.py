@@ -80,12 +80,13 @@ class Bench:
         self.data = build_training_set(self.system_cfg, 0, cfg.n_traj, cache)
         self.scaling = Scaling.fit(self.data)
         self.batches = batch_count(len(self.data), self.train["batch_size"])
+        self.arch_cfgs = {arch: OmegaConf.to_container(cli.compose_config([f"arch={arch}"]).arch)
+                          for arch in {*cfg.archs, cfg.typical_task.arch}}  # composed once, not per model
 
     def model(self, arch: str, width: int, depth: int, seed: int) -> nn.Module:
         system = SYSTEMS[self.system_cfg["name"]]
         torch.manual_seed(seed)
-        arch_cfg = OmegaConf.to_container(cli.compose_config([f"arch={arch}"]).arch)
-        return build_model(arch_cfg, system.state_dim, system.input_dim, width, depth)
+        return build_model(self.arch_cfgs[arch], system.state_dim, system.input_dim, width, depth)
 
     def members(self, arch: str, width: int, depth: int, count: int, steps: int) -> list[Member]:
         epochs = max(1, math.ceil(steps / self.batches))
