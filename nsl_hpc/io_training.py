@@ -79,10 +79,10 @@ def window_loss(model: nn.Module, record: Record, scaling: SignalScaling, horizo
 
 def train_io_model(model: nn.Module, record: Record, scaling: SignalScaling, cfg: Mapping[str, Any],
                    iterations: int, horizon: int, shuffle_seed: int,
-                   on_epoch: Callable[[], None] = lambda: None) -> TrainingOutcome:
+                   on_progress: Callable[[], None] = lambda: None) -> TrainingOutcome:
     """Adam (warm-up + cosine over ``iterations`` steps, gradient clipping) on mini-batches of
     ``cfg.batch_size`` windows (all windows when there are fewer); ``cfg`` is the ``train`` group.
-    ``on_epoch`` is called after each pass over the windows; stops early (finite=False) on a NaN loss."""
+    ``on_progress`` is called after each pass over the windows; stops early (finite=False) on a NaN loss."""
     windows, batch_loss = window_loss(model, record, scaling, horizon, getattr(torch, cfg["dtype"]))
     batch = min(cfg["batch_size"], windows)
     schedule = warmup_cosine(iterations, cfg["warmup_fraction"], cfg["lr"])
@@ -103,7 +103,7 @@ def train_io_model(model: nn.Module, record: Record, scaling: SignalScaling, cfg
                 optimizer.step()
                 step += 1
             progress.update(step - progress.n)
-            on_epoch()
+            on_progress()
             if not torch.isfinite(loss):
                 return TrainingOutcome(step, loss.item(), finite=False)
     return TrainingOutcome(step, loss.item(), finite=True)

@@ -3,9 +3,13 @@
 Each model keeps its own initial weights, data (size and scaling), shuffle generator, batch order, epoch
 count and learning-rate schedule: at step s model k takes its own s-th mini-batch, exactly the one it takes
 when trained alone (K = 1, the single-model path). Mini-batches of different lengths are padded and masked;
-a model that has finished (or diverged) is masked: learning rate 0, loss ignored. The loss, the
-gradient-norm clipping and Adam (torch.optim.Adam's arithmetic) are computed per model, in a few operations
-on the (K, P) parameter rows of ``nsl_hpc.stacked``.
+a model that has finished (or diverged) gets padding only: zero loss weight and learning rate 0. The loss,
+the gradient-norm clipping and Adam (torch.optim.Adam's arithmetic) are computed per model, in a few
+operations on the (K, P) parameter rows of ``nsl_hpc.stacked``.
+
+Everything that does not depend on the parameters is prepared for a block of steps at once: the batches'
+rows (one gather), their loss weights (the batch spreads of the targets) and the learning rates. A step is
+then the forward pass, a four-operation loss, the backward pass and the optimizer step.
 """
 
 import math
@@ -20,9 +24,10 @@ from tqdm import tqdm
 
 from nsl_hpc.datasets import Dataset
 from nsl_hpc.stacked import StackedModels
-from nsl_hpc.training import Scaling, TrainingOutcome, batch_bounds, warmup_cosine
+from nsl_hpc.training import Scaling, TrainingOutcome, batch_bounds, warmup_cosine_at
 
 ADAM_BETAS, ADAM_EPS, CLIP_EPS = (0.9, 0.999), 1e-8, 1e-6  # torch.optim.Adam and clip_grad_norm_ defaults
+BLOCK_STEPS = 32  # steps prepared at once: (K, BLOCK_STEPS, batch) rows of data in memory
 
 
 @dataclass(frozen=True)
@@ -37,106 +42,143 @@ class Member:
 
 
 class BatchPlan:
-    """The mini-batches of one member: its own shuffle per epoch, padded to ``width`` indices."""
+    """The mini-batches of one member, step after step: each epoch a new permutation of its samples
+    (``torch.randperm`` on its own generator) cut into ``batch_bounds`` slices, padded to ``width`` rows
+    with the index ``pad``; once its ``steps`` are taken, only padding."""
 
-    def __init__(self, samples: int, batch_size: int, epochs: int, seed: int, width: int):
-        self.samples, self.bounds = samples, batch_bounds(samples, batch_size)
-        self.steps = epochs * len(self.bounds)
+    def __init__(self, samples: int, batch_size: int, epochs: int, seed: int, width: int, pad: int):
+        bounds = batch_bounds(samples, batch_size)
+        self.samples, self.pad, self.steps, self.remaining = samples, pad, epochs * len(bounds), epochs * len(bounds)
         self.generator = torch.Generator().manual_seed(seed)
-        self.mask = torch.zeros(len(self.bounds), width)
-        for j, (start, stop) in enumerate(self.bounds):
-            self.mask[j, :stop - start] = 1.0
-        self.epoch_indices = torch.zeros(len(self.bounds), width, dtype=torch.long)
+        self.slots = torch.full((len(bounds), width), samples)  # position in the permutation; `samples`: padding
+        for j, (start, stop) in enumerate(bounds):
+            self.slots[j, :stop - start] = torch.arange(start, stop)
+        self.pending = torch.empty(0, width, dtype=torch.long)  # this epoch's batches not yet taken
 
-    def new_epoch(self) -> None:
-        order = torch.randperm(self.samples, generator=self.generator)
-        for j, (start, stop) in enumerate(self.bounds):
-            self.epoch_indices[j, :stop - start] = order[start:stop]
+    def take(self, count: int) -> torch.Tensor:
+        """Row indices (count, width) of the next ``count`` steps' batches."""
+        wanted = min(count, self.remaining)
+        parts = [self.pending]
+        available = len(self.pending)
+        while available < wanted:
+            order = torch.randperm(self.samples, generator=self.generator)
+            parts.append(torch.cat([order, order.new_tensor([self.pad])])[self.slots])
+            available += len(self.slots)
+        rows = torch.cat(parts)
+        self.pending, self.remaining = rows[wanted:], self.remaining - wanted
+        padding = rows.new_full((count - wanted, rows.shape[1]), self.pad)
+        return torch.cat([rows[:wanted], padding])
+
+    def stop(self) -> None:
+        """Take no more batches (the model diverged)."""
+        self.remaining = 0
 
 
-def masked_normalized_mse(predicted: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
-                          floor: float) -> torch.Tensor:
-    """Per model (K,): mean of ((predicted - target) / s_j)^2 over the unmasked samples, with s_j the spread
-    (ddof 0) of target column j over them. predicted, target (K, B, c); mask (K, B, 1)."""
-    count = mask.sum(dim=1, keepdim=True)  # (K, 1, 1)
-    mean = (target * mask).sum(dim=1, keepdim=True) / count
-    spread = (((target - mean) * mask).square().sum(dim=1, keepdim=True) / count).sqrt().clamp_min(floor)
-    return (((predicted - target) / spread).square() * mask).sum(dim=(1, 2)) / (count[:, 0, 0] * target.shape[-1])
+def loss_weights(targets: torch.Tensor, mask: torch.Tensor, outputs: int, output_weight: float,
+                 floor: float) -> torch.Tensor:
+    """r (..., B, c) such that the loss of a batch is sum over b, c of ((predicted - target) r)^2: the mean
+    over the unmasked samples and the state columns of ((predicted - target) / s_j)^2, plus ``output_weight``
+    times that mean over the last ``outputs`` (output) columns, with s_j the spread (ddof 0, at least
+    ``floor``) of target column j over the batch. targets (..., B, c); mask (..., B, 1) of 0 / 1; a batch with
+    no unmasked sample gets r = 0."""
+    count = mask.sum(dim=-2, keepdim=True).clamp_min(1.0)
+    mean = (targets * mask).sum(dim=-2, keepdim=True) / count
+    spread = (((targets - mean) * mask).square().sum(dim=-2, keepdim=True) / count).sqrt().clamp_min(floor)
+    states = targets.shape[-1] - outputs
+    column = targets.new_tensor([1.0 / states] * states + [output_weight / outputs] * outputs)
+    return mask * (column / count).sqrt() / spread
 
 
 def stacked_data(members: Sequence[Member], dtype: torch.dtype) -> torch.Tensor:
-    """(K, N_max, 2n + 2m): each member's scaled z, v, dz, y, zero-padded to the longest data set."""
+    """(K, N_max + 1, 2n + 2m): each member's scaled z, v, dz, y, zero-padded to the longest data set plus one
+    row of zeros (the padding row of every member)."""
     parts = []
     for member in members:
         z, v = member.scaling.model_inputs(member.data, dtype)
         dz, y = member.scaling.model_targets(member.data, dtype)
         parts.append(torch.cat([z, v, dz, y], dim=1))
-    rows = max(len(part) for part in parts)
+    rows = max(len(part) for part in parts) + 1
     return torch.stack([nn.functional.pad(part, (0, 0, 0, rows - len(part))) for part in parts])
 
 
+class Adam:
+    """torch.optim.Adam with gradient-norm clipping, per row of ``theta`` (K, P); ``trainable`` (K, P)
+    zeroes the gradient of padding entries (None: every entry trains)."""
+
+    def __init__(self, theta: torch.Tensor, clip_norm: float, trainable: torch.Tensor | None):
+        self.theta, self.clip_norm, self.trainable = theta, clip_norm, trainable
+        self.first, self.second = torch.zeros_like(theta), torch.zeros_like(theta)
+        self.steps = 0
+
+    def step(self, grad: torch.Tensor, lr: torch.Tensor) -> None:
+        """One update from ``grad`` (K, P), overwritten, with learning rates ``lr`` (K, 1)."""
+        if self.trainable is not None:
+            grad.mul_(self.trainable)
+        norm = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
+        grad.mul_((self.clip_norm / (norm + CLIP_EPS)).clamp_max_(1.0))
+        beta1, beta2 = ADAM_BETAS
+        self.steps += 1
+        self.first.lerp_(grad, 1 - beta1)
+        self.second.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+        denominator = self.second.sqrt().div_(math.sqrt(1 - beta2 ** self.steps)).add_(ADAM_EPS)
+        self.theta.addcdiv_(self.first * (lr / (1 - beta1 ** self.steps)), denominator, value=-1.0)
+
+
 def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any],
-                   on_epoch: Callable[[], None] = lambda: None) -> tuple[StackedModels, list[TrainingOutcome]]:
-    """Train every member as if alone (``cfg`` is the ``train`` group); returns the trained
-    stack and each member's outcome. ``on_epoch`` is called whenever some member finishes an epoch."""
+                   on_progress: Callable[[], None] = lambda: None) -> tuple[StackedModels, list[TrainingOutcome]]:
+    """Train every member as if alone (``cfg`` is the ``train`` group); returns the trained stack and each
+    member's outcome. ``on_progress`` is called after every block of ``BLOCK_STEPS`` steps (a heartbeat)."""
     dtype = getattr(torch, cfg["dtype"])
     stack = StackedModels([member.model for member in members], dtype)
-    theta, count = stack.theta, len(members)
     n, m = stack.n, stack.m
     data = stacked_data(members, dtype)
-    flat_data, rows = data.flatten(0, 1), data.shape[1]
+    flat_data, pad = data.flatten(0, 1), data.shape[1] - 1
     width = max(max(stop - start for start, stop in batch_bounds(len(mb.data), cfg["batch_size"])) for mb in members)
-    plans = [BatchPlan(len(mb.data), cfg["batch_size"], mb.epochs, mb.shuffle_seed, width) for mb in members]
-    total = max(plan.steps for plan in plans)
-    schedule = torch.zeros(total, count, 1, dtype=dtype)  # lr of each model before each step; 0 once done
-    for k, plan in enumerate(plans):
-        schedule[:plan.steps, k, 0] = torch.as_tensor(warmup_cosine(plan.steps, cfg["warmup_fraction"], cfg["lr"]))
-    offsets = (torch.arange(count) * rows)[:, None]
-    first, second = torch.zeros_like(theta), torch.zeros_like(theta)
-    beta1, beta2 = ADAM_BETAS
-    done = [False] * count
-    outcomes: list[TrainingOutcome | None] = [None] * count
-    last_loss = torch.full((count,), math.nan, dtype=dtype)
-    for step in tqdm(range(total), desc="steps", unit="step", disable=None, leave=False, mininterval=1.0):
-        rows_idx, masks, epoch_end = [], [], False
-        for k, plan in enumerate(plans):
-            j = step % len(plan.bounds) if not done[k] else 0
-            if j == 0 and not done[k]:
-                plan.new_epoch()
-            rows_idx.append(plan.epoch_indices[j])
-            masks.append(plan.mask[j] * (not done[k]))
-        batch = flat_data[torch.stack(rows_idx) + offsets]  # (K, B, 2n + 2m)
-        mask = torch.stack(masks).to(dtype).unsqueeze(-1)  # (K, B, 1)
-        z, v, dz, y = batch.split([n, m, n, m], dim=-1)
-        predicted_dz, predicted_y = stack.forward(z, v)
-        active = mask.amax(dim=1)  # (K, 1): 1 while a model trains
-        safe_mask = torch.where(active[:, :, None] > 0, mask, torch.ones_like(mask))  # finished: any finite loss
-        losses = masked_normalized_mse(predicted_dz, dz, safe_mask, cfg["loss_std_floor"]) + cfg["output_weight"] * \
-            masked_normalized_mse(predicted_y, y, safe_mask, cfg["loss_std_floor"])
-        grads = torch.autograd.grad((losses * active[:, 0]).sum(), stack.parameters)
-        with torch.no_grad():
-            grad = torch.cat([g.reshape(count, -1) for g in grads], dim=1)
-            norm = grad.square().sum(dim=1, keepdim=True).sqrt()
-            grad.mul_((cfg["grad_clip_norm"] / (norm + CLIP_EPS)).clamp_max(1.0))
-            first.lerp_(grad, 1 - beta1)
-            second.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-            bias1, bias2 = 1 - beta1 ** (step + 1), 1 - beta2 ** (step + 1)
-            denominator = (second.sqrt() / math.sqrt(bias2)).add_(ADAM_EPS)
-            theta.addcdiv_(first * (schedule[step] / bias1), denominator, value=-1.0)
-        last_loss = torch.where(active[:, 0] > 0, losses.detach(), last_loss)
-        for k, plan in enumerate(plans):
-            if not done[k] and (step + 1) % len(plan.bounds) == 0:
-                epoch_end = True
-                loss = float(last_loss[k])
-                if step + 1 == plan.steps or not math.isfinite(loss):
-                    outcomes[k] = TrainingOutcome(step + 1, loss, finite=math.isfinite(loss))
-                    done[k] = True
-                    schedule[step + 1:, k] = 0.0
-        if epoch_end:
-            on_epoch()
-        if all(done):
-            break
+    plans = [BatchPlan(len(mb.data), cfg["batch_size"], mb.epochs, mb.shuffle_seed, width, pad) for mb in members]
+    totals = np.array([plan.steps for plan in plans])
+    offsets = (torch.arange(len(members)) * data.shape[1])[:, None, None]
+    optimizer = Adam(stack.theta, cfg["grad_clip_norm"], stack.trainable)
+    outcomes: list[TrainingOutcome | None] = [None if plan.steps else TrainingOutcome(0, math.nan, finite=True)
+                                              for plan in plans]
+    total = int(totals.max(initial=0))
+    with tqdm(total=total, desc="steps", unit="step", disable=None, leave=False, mininterval=1.0) as bar:
+        for start in range(0, total, BLOCK_STEPS):
+            size = min(BLOCK_STEPS, total - start)
+            active = [min(size, plan.remaining) for plan in plans]  # steps of each model in this block
+            rows = torch.stack([plan.take(size) for plan in plans])  # (K, L, W)
+            batches = flat_data[(rows + offsets).transpose(0, 1)]  # (L, K, W, 2n + 2m)
+            inputs, targets = batches[..., :n + m], batches[..., n + m:]
+            weights = loss_weights(targets, (rows != pad).transpose(0, 1).unsqueeze(-1).to(dtype), m,
+                                   cfg["output_weight"], cfg["loss_std_floor"])
+            rates = warmup_cosine_at(np.arange(start, start + size)[:, None], totals, cfg["warmup_fraction"], cfg["lr"])
+            rates = torch.as_tensor(rates, dtype=dtype).unsqueeze(-1)  # (L, K, 1)
+            losses = torch.empty(size, len(members), dtype=dtype)
+            for i in range(size):
+                predicted_dz, predicted_y = stack.forward(inputs[i, :, :, :n], inputs[i, :, :, n:])
+                residual = (torch.cat([predicted_dz, predicted_y], dim=-1) - targets[i]) * weights[i]
+                step_losses = residual.square().sum(dim=(1, 2))
+                grads = torch.autograd.grad(step_losses.sum(), stack.parameters)
+                optimizer.step(torch.cat([g.reshape(len(members), -1) for g in grads], dim=1), rates[i])
+                losses[i] = step_losses.detach()
+            for k, plan in enumerate(plans):
+                if outcomes[k] is None and active[k]:
+                    outcomes[k] = settle(plan, losses[:active[k], k], start)
+            bar.update(size)
+            on_progress()
     return stack, outcomes
+
+
+def settle(plan: BatchPlan, losses: torch.Tensor, start: int) -> TrainingOutcome | None:
+    """A model's outcome after a block in which its steps from ``start`` on had ``losses``: diverged (steps up to
+    the first non-finite loss; its plan stops) or, when its last step was in the block, its final loss;
+    None while it trains on."""
+    bad = torch.nonzero(~torch.isfinite(losses))
+    if len(bad):
+        plan.stop()
+        return TrainingOutcome(start + int(bad[0, 0]) + 1, math.nan, finite=False)
+    if plan.remaining == 0:
+        return TrainingOutcome(plan.steps, float(losses[-1]), finite=True)
+    return None
 
 
 def predict_derivatives(stack: StackedModels, data: Dataset, scalings: Sequence[Scaling], dtype: torch.dtype,

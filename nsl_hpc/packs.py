@@ -1,9 +1,9 @@
 """What one job runs: the tasks of its pack, one after another, each in a watched child process.
 
 Tasks of one shape run in lockstep groups (one child trains them together, each writing its own row).
-A child that raises or crashes is recorded as failed; one whose heartbeat (once per epoch) stops for
-``watchdog.heartbeat_timeout_s``, or that runs ``watchdog.overrun_factor`` times longer than predicted, is
-killed and recorded as frozen. Either way the pack goes on with its next task. On SLURM's warning
+A child that raises or crashes is recorded as failed; one whose heartbeat (every 32 steps or
+epoch) stops for ``watchdog.heartbeat_timeout_s``, or that runs ``watchdog.overrun_factor`` times longer
+than predicted, is killed and recorded as frozen. Either way the pack goes on with its next task. On SLURM's warning
 signal before the time limit (submitit calls ``checkpoint``) the running task is recorded as timeout and
 the job is requeued with the tasks it has not started.
 """
@@ -63,7 +63,7 @@ def run_child(sweep_dir: Path, cfgs: Sequence[DictConfig], heartbeat) -> None:
     sys.stdout = open(1, "w", buffering=1, closefd=False)  # noqa: SIM115
     sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
     try:
-        for result in run_tasks(cfgs, on_epoch=lambda: setattr(heartbeat, "value", time.time())):
+        for result in run_tasks(cfgs, on_progress=lambda: setattr(heartbeat, "value", time.time())):
             print(describe(result.row) if result.row else f"skipped: {result.path} exists")
     except BaseException:
         traceback.print_exc()

@@ -4,8 +4,9 @@ Every architecture of the input-state study is a few tanh MLPs of one depth ("he
 plus a small assembly (nsl_hpc.models). Here the heads of all K models are one batched MLP: layer l is a
 (K, M, in_l, out_l) weight, so a forward pass costs depth + 2 batched matmuls however many models and heads
 there are (a per-model, per-head loop costs M K times as many small operations, and at these sizes the
-cost of an operation is its overhead, not its arithmetic). Heads narrower or with fewer inputs or outputs
-than the widest are zero-padded; padded entries get exactly zero gradients and stay zero. The port-Hamiltonian
+cost of an operation is its overhead, not its arithmetic). Heads (and models) narrower or with fewer inputs
+or outputs than the widest are zero-padded; padded units compute exactly zero, and ``trainable`` masks their
+entries' gradients to exactly zero, so a padded model computes and learns what it does alone. The port-Hamiltonian
 grad H is back-propagated through the H head explicitly (first-order operations), not by a double backward.
 
 All parameters of a model are one row of ``theta`` (K, P); the layers are leaf views into it, so the
@@ -43,6 +44,11 @@ def heads_of(model: nn.Module) -> list[Head]:
     return heads
 
 
+def model_depth(model: nn.Module) -> int:
+    """n_d: the hidden-to-hidden layers of each head."""
+    return sum(isinstance(layer, nn.Linear) for layer in next(model.children())) - 2
+
+
 def model_state_dim(model: nn.Module) -> int:
     return model.f[-1].out_features if isinstance(model, Unstructured) else model.n
 
@@ -67,17 +73,22 @@ class StackedModels:
         self.heads = heads_of(first)
         self.n = model_state_dim(first)
         self.m = self.heads[-1].out_dim if isinstance(first, Unstructured) else first.m
-        self.depth = sum(isinstance(layer, nn.Linear) for layer in getattr(first, self.heads[0].name)) - 2
+        self.depth = model_depth(first)
+        if any(type(model) is not self.kind or model_depth(model) != self.depth for model in models):
+            raise ValueError(f"models stacked together need one architecture and depth ({self.kind.__name__}, "
+                             f"n_d {self.depth}); widths may differ")
         self.in_dim = max(head.in_dim for head in self.heads)
-        self.width = max(head.width for head in self.heads)
+        self.width = max(head.width for model in models for head in heads_of(model))
         self.out_dim = max(head.out_dim for head in self.heads)
         dims = [self.in_dim, *[self.width] * (self.depth + 1), self.out_dim]
         self.shapes = list(itertools.pairwise(dims))  # (in, out) of each layer
         size = sum(len(self.heads) * (i * o + o) for i, o in self.shapes)
         self.theta = torch.zeros(len(models), size, dtype=dtype)
         self.parameters = [tensor.requires_grad_(True) for layer in self.layers(self.theta) for tensor in layer]
+        mask = torch.zeros_like(self.theta)
         for k, model in enumerate(models):
-            self.load(k, model)
+            self.load(k, model, mask)
+        self.trainable = None if bool(mask.all()) else mask  # (K, P): 1 on a model's own parameters
         n = self.n
         self.skew = triangle_map(n, offset=1, antisymmetric=True, dtype=dtype)  # entries -> J, flattened
         self.lower = triangle_map(n, offset=0, antisymmetric=False, dtype=dtype) * n ** -0.25  # L L^T = R
@@ -99,16 +110,19 @@ class StackedModels:
             views.append((weight, bias))
         return views
 
-    def load(self, k: int, model: nn.Module) -> None:
-        """Copy the parameters of ``model`` into row k."""
+    def load(self, k: int, model: nn.Module, mask: torch.Tensor) -> None:
+        """Copy the parameters of ``model`` into row k, and set its entries of ``mask`` (K, P) to 1."""
         with torch.no_grad():
             layers = list(zip(self.parameters[::2], self.parameters[1::2], strict=True))
+            mask_layers = self.layers(mask)
             for h, head in enumerate(self.heads):
                 linears = [layer for layer in getattr(model, head.name) if isinstance(layer, nn.Linear)]
-                for (weight, bias), linear in zip(layers, linears, strict=True):
+                for (weight, bias), (weight_mask, bias_mask), linear in zip(layers, mask_layers, linears, strict=True):
                     o, i = linear.weight.shape
                     weight[k, h, :i, :o] = linear.weight.T
                     bias[k, h, 0, :o] = linear.bias
+                    weight_mask[k, h, :i, :o] = 1.0
+                    bias_mask[k, h, 0, :o] = 1.0
 
     def heads_forward(self, z: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor], list]:
         """Outputs (K, M, B, out) of every head for z (K, B, n), v (K, B, m); also the hidden layers' s (for

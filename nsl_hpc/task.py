@@ -95,14 +95,15 @@ def inject_fault(fault: Mapping[str, Any], seed: int) -> None:
     raise ConfigError(f"fault.kind={fault['kind']!r}; allowed: null, raise, hang")
 
 
-def run_task(cfg: DictConfig, on_epoch: Callable[[], None] = lambda: None) -> TaskResult:
+def run_task(cfg: DictConfig, on_progress: Callable[[], None] = lambda: None) -> TaskResult:
     """Train and score the task described by ``cfg`` and write its row under ``cfg.out_dir``.
 
-    ``on_epoch`` is called after every pass over the training data (a heartbeat for a job's watchdog)."""
-    return run_tasks([cfg], on_epoch)[0]
+    ``on_progress`` is called as training goes on (a heartbeat for a job's watchdog: at least once per epoch
+    or per 32 steps)."""
+    return run_tasks([cfg], on_progress)[0]
 
 
-def run_tasks(cfgs: Sequence[DictConfig], on_epoch: Callable[[], None] = lambda: None) -> list[TaskResult]:
+def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lambda: None) -> list[TaskResult]:
     """Train and score tasks of one study and shape together (in lockstep where the study can) and write
     one row per task, each the row the task would have alone; tasks whose row exists are skipped."""
     started = time.perf_counter()
@@ -118,7 +119,7 @@ def run_tasks(cfgs: Sequence[DictConfig], on_epoch: Callable[[], None] = lambda:
     for i in todo:
         inject_fault(cfgs[i].fault, cfgs[i].seed)
     outcomes = tasks[todo[0]].study.train_and_score_pack(
-        [(cfgs[i], tasks[i].coordinates, tasks[i].sizes) for i in todo], on_epoch)
+        [(cfgs[i], tasks[i].coordinates, tasks[i].sizes) for i in todo], on_progress)
     for i, outcome in zip(todo, outcomes, strict=True):
         finite = outcome.pop("finite") and all(math.isfinite(outcome[key]) for key in ("nmae", "nmse"))
         row = {

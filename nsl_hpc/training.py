@@ -66,12 +66,19 @@ def batch_bounds(samples: int, batch_size: int) -> list[tuple[int, int]]:
 
 
 def warmup_cosine(total_steps: int, warmup_fraction: float, lr: float) -> np.ndarray:
-    """Learning rate before each step: linear warm-up over the first fraction, then cosine decay to 0."""
-    warmup = max(1, round(warmup_fraction * total_steps))
-    step = np.arange(total_steps)
+    """Learning rate before each step (total_steps,): linear warm-up over the first fraction, then cosine
+    decay to 0."""
+    return warmup_cosine_at(np.arange(total_steps), np.asarray(total_steps), warmup_fraction, lr)
+
+
+def warmup_cosine_at(step: np.ndarray, total_steps: np.ndarray, warmup_fraction: float, lr: float) -> np.ndarray:
+    """``warmup_cosine`` at steps ``step`` of schedules ``total_steps`` steps long (broadcast together);
+    0 at and after a schedule's end."""
+    warmup = np.maximum(1, np.round(warmup_fraction * total_steps))
     rising = lr * (step + 1) / warmup
-    progress = (step - warmup) / max(1, total_steps - warmup)
-    return np.where(step < warmup, rising, lr * 0.5 * (1 + np.cos(np.pi * progress)))
+    progress = (step - warmup) / np.maximum(1, total_steps - warmup)
+    rate = np.where(step < warmup, rising, lr * 0.5 * (1 + np.cos(np.pi * progress)))
+    return np.where(step < total_steps, rate, 0.0)
 
 
 @dataclass(frozen=True)

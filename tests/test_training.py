@@ -6,7 +6,7 @@ import torch
 from omegaconf import OmegaConf
 
 from nsl_hpc.datasets import build_test_set, build_training_set
-from nsl_hpc.lockstep import Member, masked_normalized_mse, predict_derivatives, train_lockstep
+from nsl_hpc.lockstep import Member, loss_weights, predict_derivatives, train_lockstep
 from nsl_hpc.metrics import normalized_errors
 from nsl_hpc.models import build_model
 from nsl_hpc.systems import SYSTEMS
@@ -35,11 +35,15 @@ def test_batch_bounds(samples, expected):
     assert batch_count(samples, 256) == len(expected)
 
 
-def test_normalized_mse_divides_by_the_spread_of_the_unmasked_batch():
-    target = torch.tensor([[[0.0, 0.0], [2.0, 20.0], [50.0, -7.0]]])  # unmasked spreads (ddof 0): 1 and 10
-    predicted = target + torch.tensor([[[1.0, 10.0], [1.0, 10.0], [99.0, 99.0]]])
-    mask = torch.tensor([[[1.0], [1.0], [0.0]]])
-    assert masked_normalized_mse(predicted, target, mask, floor=1e-6).item() == pytest.approx(1.0)
+def test_loss_divides_by_the_spread_of_the_unmasked_batch():
+    """Columns: two states, one output (weight 0.25). Unmasked spreads (ddof 0): 1, 10 and 2; the errors are
+    one spread each, so the loss is 1 (states) + 0.25 (output); a fully masked batch weighs nothing."""
+    target = torch.tensor([[0.0, 0.0, 1.0], [2.0, 20.0, 5.0], [50.0, -7.0, 3.0]])
+    predicted = target + torch.tensor([[1.0, 10.0, 2.0], [1.0, 10.0, 2.0], [99.0, 99.0, 99.0]])
+    mask = torch.tensor([[1.0], [1.0], [0.0]])
+    weights = loss_weights(target, mask, outputs=1, output_weight=0.25, floor=1e-6)
+    assert ((predicted - target) * weights).square().sum().item() == pytest.approx(1.25)
+    assert not loss_weights(target, torch.zeros(3, 1), outputs=1, output_weight=0.25, floor=1e-6).any()
 
 
 @pytest.mark.parametrize("system", SYSTEM_NAMES)
@@ -62,7 +66,7 @@ def test_short_training_beats_untrained_model(system, arch, compose, cache):
 
 
 # Packed training is the single-model loop per model: the final loss and metrics of a model trained with
-# others of other data sizes and epoch counts agree with it trained alone to this relative tolerance
+# others of other widths, data sizes and epoch counts agree with it trained alone to this relative tolerance
 # (float32; the batched operations sum in another order). Measured: 1e-6 and below.
 PACKED_RTOL = 1e-4
 
@@ -73,10 +77,10 @@ def test_a_model_trained_in_a_pack_matches_it_trained_alone(arch, compose, cache
     system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
     test = build_test_set(system_cfg, cache)
     members = []
-    for seed, (n_traj, epochs) in enumerate([(0.7, 7), (1.3, 4), (2.05, 3)]):
+    for seed, (n_traj, epochs, width) in enumerate([(0.7, 7, 6), (1.3, 4, 3), (2.05, 3, 6)]):
         data = build_training_set(system_cfg, seed, n_traj, cache)
         torch.manual_seed(seed)
-        model = build_model(cfg.arch, 4, 2, width=6, depth=2)
+        model = build_model(cfg.arch, 4, 2, width=width, depth=2)  # the narrower one is zero-padded
         members.append(Member(model, data, Scaling.fit(data), epochs, shuffle_seed=10 + seed))
     stack, outcomes = train_lockstep(members, cfg.train)
     packed = predict_derivatives(stack, test, [m.scaling for m in members], torch.float32)

@@ -97,16 +97,16 @@ class Study:
         raise NotImplementedError
 
     def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
-                        on_epoch: Callable[[], None]) -> dict[str, Any]:
+                        on_progress: Callable[[], None]) -> dict[str, Any]:
         """Train the task's model and score it: nmae, nmse, steps, final_loss, finite, train_seconds and
         study extras."""
         raise NotImplementedError
 
     def train_and_score_pack(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
-                             on_epoch: Callable[[], None]) -> list[dict[str, Any]]:
+                             on_progress: Callable[[], None]) -> list[dict[str, Any]]:
         """``train_and_score`` of each (cfg, task, sizes): one after another unless a study trains them
         together."""
-        return [self.train_and_score(cfg, task, sizes, on_epoch) for cfg, task, sizes in items]
+        return [self.train_and_score(cfg, task, sizes, on_progress) for cfg, task, sizes in items]
 
 
 def without_paths(value: Any) -> Any:

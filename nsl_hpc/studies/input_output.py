@@ -101,7 +101,7 @@ class InputOutput(Study):
                 "flops": float(drawn["params"]) * iterations * base["train"]["batch_size"] * horizon(base)}
 
     def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
-                        on_epoch: Callable[[], None]) -> dict[str, Any]:
+                        on_progress: Callable[[], None]) -> dict[str, Any]:
         system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
         base = {"system": system_cfg, "arch": OmegaConf.to_container(cfg.arch)}
         torch.manual_seed(self.seed_for("init", task))
@@ -111,7 +111,7 @@ class InputOutput(Study):
         started = time.perf_counter()
         scaling = SignalScaling.fit(record)
         outcome = train_io_model(model, record, scaling, cfg.train, sizes["steps"], horizon(base),
-                                 self.seed_for("shuffle", task), on_epoch)
+                                 self.seed_for("shuffle", task), on_progress)
         train_seconds = time.perf_counter() - started
         init = system_cfg["init_samples"]
         measured, simulated = benchmark.test.y[init:], simulate(model, benchmark.test, scaling, init)[init:]

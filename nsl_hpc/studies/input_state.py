@@ -64,17 +64,17 @@ class InputState(Study):
                 "flops": float(drawn["params"]) * task["epochs"] * points}
 
     def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
-                        on_epoch: Callable[[], None]) -> dict[str, Any]:
-        return self.train_and_score_pack([(cfg, task, sizes)], on_epoch)[0]
+                        on_progress: Callable[[], None]) -> dict[str, Any]:
+        return self.train_and_score_pack([(cfg, task, sizes)], on_progress)[0]
 
     def train_and_score_pack(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
-                             on_epoch: Callable[[], None]) -> list[dict[str, Any]]:
+                             on_progress: Callable[[], None]) -> list[dict[str, Any]]:
         """Train the items' models in lockstep (they share system, arch, width and depth) and score each on
         the system's test set; train_seconds is the pack's training time divided among its models."""
         members = [self.member(cfg, task, sizes) for cfg, task, sizes in items]
         cfg = items[0][0]
         started = time.perf_counter()
-        stack, outcomes = train_lockstep(members, OmegaConf.to_container(cfg.train), on_epoch)
+        stack, outcomes = train_lockstep(members, OmegaConf.to_container(cfg.train), on_progress)
         train_seconds = (time.perf_counter() - started) / len(items)
         test_data = build_test_set(OmegaConf.to_container(cfg.system, resolve=True), ArrayCache(cfg.cache_dir))
         predictions = predict_derivatives(stack, test_data, [member.scaling for member in members],
