@@ -9,8 +9,9 @@ Prints (and with ``readme=`` writes between the README's bench markers):
 2. where the time of one task goes: interpreter + imports, data (cache miss and hit), training, scoring, writing;
 3. the achieved flop rate (about 6 p flops per sample and step) against this core's dense-matmul peak;
 4. the projected core-hours of the whole input-state study, reference (one process per task) against ours
-   (tasks of one shape packed K at a time, by similar step counts), from per-step costs measured per
-   (architecture, width, depth) and the grid's step counts;
+   (the launcher's lockstep groups of K tasks of one system, architecture, depth and width bucket, by
+   similar step counts), from per-step costs measured per (architecture, width, depth) and the grid's
+   step counts;
 5. the peak memory of the largest input-state task.
 Everything runs on one thread. ``out=`` writes the headline figures as JSON.
 """
@@ -158,9 +159,11 @@ def interpolate(table: Mapping[tuple[int, int], float], widths: list[int], depth
 
 def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, float]) -> dict[str, float]:
     """Core-hours of the input-state study: reference (each task its own process: interpreter, imports,
-    simulated data, its steps, scoring, writing) and ours (tasks of one shape packed ``pack_size`` at a time
-    by step count; a pack costs its longest member's steps at the packed step time; data from the cache)."""
+    simulated data, its steps, scoring, writing) and ours (the launcher's lockstep groups of ``pack_size``:
+    a group costs its longest member's steps at the step time of its widest member and its size, between
+    the measured K = 1 and K = ``pack_size``; per task data from the cache, scoring and writing)."""
     from nsl_hpc.grid import build_manifest
+    from nsl_hpc.plan import lockstep_groups, lockstep_settings
     from nsl_hpc.studies import study_named
     from nsl_hpc.sweep import pair_configs
 
@@ -177,21 +180,22 @@ def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, 
                 for method, seconds in bench.step_seconds(arch, width, depth, grid.steps, cfg.pack_size).items():
                     measured[method][width, depth] = seconds
         costs[arch] = measured
+    step_cost = lambda arch, method, width, depth: interpolate(  # noqa: E731
+        costs[arch][method], list(grid.widths), list(grid.depths), width, depth)
     per_task = breakdown["data (hit)"] + breakdown["scoring"] + breakdown["writing"]
-    reference = sum(task["steps"] * interpolate(costs[task["arch"]]["reference"], list(grid.widths),
-                                                list(grid.depths), task["width"], task["depth"])
+    reference = sum(task["steps"] * step_cost(task["arch"], "reference", task["width"], task["depth"])
                     for task in manifest)
     reference += len(manifest) * (breakdown["interpreter"] + breakdown["imports"] + breakdown["data (miss)"]
                                   - breakdown["data (hit)"] + per_task)
-    shapes = defaultdict(list)
-    for task in manifest:
-        shapes[task["system"], task["arch"], task["width"], task["depth"]].append(task["steps"])
+    groups = lockstep_groups(manifest, {**lockstep_settings(launch), "size": cfg.pack_size})
     ours = len(manifest) * per_task
-    for (_, arch, width, depth), steps in shapes.items():
-        step = interpolate(costs[arch]["packed"], list(grid.widths), list(grid.depths), width, depth)
-        steps.sort()
-        ours += sum(max(steps[i:i + cfg.pack_size]) * step for i in range(0, len(steps), cfg.pack_size))
-    return {"core_hours_reference": reference / 3600, "core_hours_ours": ours / 3600, "tasks": len(manifest)}
+    for group in groups:
+        arch, width, depth = group[0]["arch"], max(t["width"] for t in group), group[0]["depth"]
+        single, packed = step_cost(arch, "single", width, depth), step_cost(arch, "packed", width, depth)
+        step = single + (packed - single) * (len(group) - 1) / max(1, cfg.pack_size - 1)
+        ours += max(t["steps"] for t in group) * step
+    return {"core_hours_reference": reference / 3600, "core_hours_ours": ours / 3600, "tasks": len(manifest),
+            "groups": len(groups)}
 
 
 def largest_task_peak_memory(cfg: DictConfig, root: Path) -> float:
@@ -225,7 +229,8 @@ def report(speeds: list[dict], breakdown: Mapping[str, float], peak: float, proj
     lines += [f"| {phase} | {seconds:.3f} |" for phase, seconds in breakdown.items()]
     lines += ["", f"Projected core-hours of the {projection['tasks']:,}-task input-state study: reference "
               f"{projection['core_hours_reference']:,.0f}, ours {projection['core_hours_ours']:,.0f} "
-              f"({projection['core_hours_reference'] / projection['core_hours_ours']:.1f}x fewer).",
+              f"({projection['core_hours_reference'] / projection['core_hours_ours']:.1f}x fewer; "
+              f"{projection['groups']:,} lockstep groups of up to K = {cfg.pack_size}).",
               f"Peak memory of the largest input-state task: {memory_gib:.2f} GiB."]
     return "\n".join(lines)
 

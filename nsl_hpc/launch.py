@@ -18,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from nsl_hpc import cli
 from nsl_hpc.failures import record_failure
 from nsl_hpc.launcher import dispatch
-from nsl_hpc.plan import Pack, lockstep_size, make_packs, packing_for, planned_groups
+from nsl_hpc.plan import Pack, lockstep_settings, make_packs, packing_for, planned_groups
 from nsl_hpc.sweep import PreparedSweep, prepare_sweep
 
 
@@ -39,7 +39,7 @@ def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str)
 def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
     prepared = prepare_sweep(cfg, overrides)
     todo = prepared.todo
-    groups, seconds = planned_groups(todo.to_pylist(), lockstep_size(cfg), OmegaConf.to_container(cfg.cost))
+    groups, seconds = planned_groups(todo.to_pylist(), lockstep_settings(cfg), OmegaConf.to_container(cfg.cost))
     packs = make_packs(groups, seconds, packing_for(cfg.packing, cfg.launcher.name))
     print(describe_plan(prepared, packs, cfg.launcher.name))
     if prepared.infeasible:

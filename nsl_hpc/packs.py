@@ -28,7 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.failures import failure_path, record_failure, task_log_path
 from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, base_config_path, read_manifest
-from nsl_hpc.plan import group_seconds, lockstep_groups, lockstep_size
+from nsl_hpc.plan import group_seconds, lockstep_groups, lockstep_settings
 from nsl_hpc.rows import row_path
 from nsl_hpc.studies import study_named
 from nsl_hpc.task import describe, run_tasks
@@ -92,8 +92,8 @@ class PackRunner:
                 counts["skipped"] += 1
             else:
                 todo.append(task)
-        size = lockstep_size(OmegaConf.load(sweep / LAUNCH_CONFIG_FILE))
-        for group in lockstep_groups(todo, size):
+        lockstep = lockstep_settings(OmegaConf.load(sweep / LAUNCH_CONFIG_FILE))
+        for group in lockstep_groups(todo, lockstep):
             self.started.update(task["task_id"] for task in group)
             counts[self.run_watched(sweep, group)] += len(group)
         return dict(counts)

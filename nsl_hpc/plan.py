@@ -17,34 +17,43 @@ def predicted_seconds(arch: str, steps: int, params: int, cost: Mapping[str, Any
     return cost["startup_s"] + steps * per_step
 
 
-SHAPE_KEYS = ("system", "arch", "width", "depth")  # tasks that agree on these can train in lockstep
+def padded_width(width: int, buckets: Sequence[int]) -> int:
+    """The width a task trains at in a lockstep group: the smallest of ``buckets`` that holds it (its own
+    width when none does)."""
+    return min((bucket for bucket in buckets if bucket >= width), default=width)
 
 
-def lockstep_groups(tasks: Sequence[Mapping[str, Any]], size: int) -> list[list[Mapping[str, Any]]]:
-    """Manifest rows in groups of at most ``size`` tasks of one shape (SHAPE_KEYS) that train in lockstep,
-    by step count so that a group's members run about equally long; size 1 trains every task alone."""
-    by_shape: dict[tuple, list[Mapping[str, Any]]] = {}
+def lockstep_key(task: Mapping[str, Any], buckets: Sequence[int]) -> tuple:
+    """Tasks with equal keys can train in lockstep: one system, architecture and depth, widths in one bucket."""
+    return task["system"], task["arch"], task["depth"], padded_width(task["width"], buckets)
+
+
+def lockstep_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any]) -> list[list[Mapping[str, Any]]]:
+    """Manifest rows in groups of at most ``lockstep["size"]`` tasks of one ``lockstep_key`` that train in
+    lockstep, by step count so that a group's members run about equally long; size 1 trains every task alone."""
+    by_key: dict[tuple, list[Mapping[str, Any]]] = {}
     for task in tasks:
-        by_shape.setdefault(tuple(task[key] for key in SHAPE_KEYS), []).append(task)
-    groups = []
-    for shape in sorted(by_shape, key=str):
-        members = sorted(by_shape[shape], key=lambda task: (task["steps"], task["task_id"]))
+        by_key.setdefault(lockstep_key(task, lockstep["width_buckets"]), []).append(task)
+    groups, size = [], lockstep["size"]
+    for key in sorted(by_key, key=str):
+        members = sorted(by_key[key], key=lambda task: (task["steps"], task["task_id"]))
         groups += [members[start:start + size] for start in range(0, len(members), size)]
     return groups
 
 
 def group_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any]) -> float:
-    """Predicted wall time (s) of a lockstep group: its longest member, each further member adding
-    ``cost.lockstep_extra`` of a step."""
+    """Predicted wall time (s) of a lockstep group: its longest member at its largest member's size, each
+    further member adding ``cost.lockstep_extra`` of a step."""
     longest = max(group, key=lambda task: task["steps"])
-    alone = predicted_seconds(longest["arch"], longest["steps"], longest["params"], cost)
+    params = max(task["params"] for task in group)
+    alone = predicted_seconds(longest["arch"], longest["steps"], params, cost)
     return cost["startup_s"] + (alone - cost["startup_s"]) * (1 + (len(group) - 1) * cost["lockstep_extra"])
 
 
-def planned_groups(tasks: Sequence[Mapping[str, Any]], size: int, cost: Mapping[str, Any]
+def planned_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any], cost: Mapping[str, Any]
                    ) -> tuple[list[tuple[str, ...]], list[float]]:
     """The lockstep groups of ``tasks`` as task-id tuples, and their predicted seconds (``make_packs``'s input)."""
-    groups = lockstep_groups(tasks, size)
+    groups = lockstep_groups(tasks, lockstep)
     return ([tuple(task["task_id"] for task in group) for group in groups],
             [group_seconds(group, cost) for group in groups])
 
@@ -69,12 +78,17 @@ def time_limit_minutes(seconds: float, packing: Mapping[str, Any]) -> int:
                       f"{list(packing['time_classes_minutes'])}; add a larger class or lower the safety factor")
 
 
-def lockstep_size(launch: Mapping[str, Any]) -> int:
-    """K, the models a job trains in lockstep: ``lockstep.size`` when enabled and the study can, else 1."""
-    from nsl_hpc.studies import study_named
+def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
+    """``size`` (K, the models a job trains in lockstep: ``lockstep.size`` when enabled and the study can,
+    else 1) and ``width_buckets`` of a launch config."""
+    from nsl_hpc.studies import require_positive_int, study_named
 
-    enabled = launch["lockstep"]["enabled"] and study_named(launch["study"]["name"]).lockstep
-    return int(launch["lockstep"]["size"]) if enabled else 1
+    settings = launch["lockstep"]
+    require_positive_int("lockstep.size", settings["size"])
+    for width in settings["width_buckets"]:
+        require_positive_int("lockstep.width_buckets value", width)
+    enabled = settings["enabled"] and study_named(launch["study"]["name"]).lockstep
+    return {"size": settings["size"] if enabled else 1, "width_buckets": list(settings["width_buckets"])}
 
 
 def packing_for(packing: Mapping[str, Any], launcher_name: str, time_factor: float = 1.0) -> dict[str, Any]:

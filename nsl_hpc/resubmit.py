@@ -16,7 +16,7 @@ from nsl_hpc import cli
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.launcher import dispatch
 from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, require_sweep
-from nsl_hpc.plan import lockstep_size, make_packs, packing_for, planned_groups
+from nsl_hpc.plan import lockstep_settings, make_packs, packing_for, planned_groups
 from nsl_hpc.sweep_state import read_sweep_state
 
 RESUBMITTABLE = ("failed", "frozen", "timeout", "missing")
@@ -36,7 +36,7 @@ def main(cfg: DictConfig) -> int:
         print(f"nothing to resubmit: no task is {' / '.join(cfg.states)}")
         return 0
     packing = packing_for(launch.packing, launch.launcher.name, cfg.time_factor)
-    groups, seconds = planned_groups(tasks, lockstep_size(launch), OmegaConf.to_container(launch.cost))
+    groups, seconds = planned_groups(tasks, lockstep_settings(launch), OmegaConf.to_container(launch.cost))
     packs = make_packs(groups, seconds, packing)
     print(f"resubmitting {len(tasks):,} tasks ({', '.join(cfg.states)}) in {len(packs):,} jobs")
     return dispatch(sweep_dir, packs, launch.launcher, launch.sweep.name)

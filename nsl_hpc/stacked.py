@@ -1,13 +1,14 @@
-"""K state-space models of one architecture and shape as one set of stacked tensors: the fast training path.
+"""K state-space models of one architecture and depth as one set of stacked tensors: the fast training path.
 
 Every architecture of the input-state study is a few tanh MLPs of one depth ("heads") on the same input,
-plus a small assembly (nsl_hpc.models). Here the heads of all K models are one batched MLP: layer l is a
-(K, M, in_l, out_l) weight, so a forward pass costs depth + 2 batched matmuls however many models and heads
-there are (a per-model, per-head loop costs M K times as many small operations, and at these sizes the
-cost of an operation is its overhead, not its arithmetic). Heads (and models) narrower or with fewer inputs
-or outputs than the widest are zero-padded; padded units compute exactly zero, and ``trainable`` masks their
-entries' gradients to exactly zero, so a padded model computes and learns what it does alone. The port-Hamiltonian
-grad H is back-propagated through the H head explicitly (first-order operations), not by a double backward.
+plus a small assembly (nsl_hpc.models). Here the heads of one width, of all K models, are one batched MLP
+(a "chain"): layer l is a (K, M, in_l, out_l) weight, so a forward pass costs depth + 2 batched matmuls per
+chain however many models and heads there are (a per-model, per-head loop costs M K times as many small
+operations, and at these sizes the cost of an operation is its overhead, not its arithmetic). Heads (and
+models) narrower or with fewer inputs or outputs than the widest of their chain are zero-padded; padded
+units compute exactly zero, and ``trainable`` masks their entries' gradients to exactly zero, so a padded
+model computes and learns what it does alone. The port-Hamiltonian grad H is back-propagated through the
+H head explicitly (first-order operations), not by a double backward.
 
 All parameters of a model are one row of ``theta`` (K, P); the layers are leaf views into it, so the
 optimizer step and the clipping norm are a handful of operations on (K, P) tensors.
@@ -64,8 +65,17 @@ def triangle_map(n: int, offset: int, antisymmetric: bool, dtype: torch.dtype) -
     return mapping
 
 
+@dataclass(frozen=True)
+class Chain:
+    """Heads of one width, computed as one batched MLP: ``heads`` are head indices; layer l of the chain is
+    a (K, len(heads), in_l, out_l) weight."""
+
+    heads: tuple[int, ...]
+    shapes: tuple[tuple[int, int], ...]  # (in, out) of each layer
+
+
 class StackedModels:
-    """K models of one architecture and shape; ``theta`` (K, P) holds every parameter, zero-padded."""
+    """K models of one architecture and depth; ``theta`` (K, P) holds every parameter, zero-padded."""
 
     def __init__(self, models: list[nn.Module], dtype: torch.dtype):
         first = models[0]
@@ -77,14 +87,10 @@ class StackedModels:
         if any(type(model) is not self.kind or model_depth(model) != self.depth for model in models):
             raise ValueError(f"models stacked together need one architecture and depth ({self.kind.__name__}, "
                              f"n_d {self.depth}); widths may differ")
-        self.in_dim = max(head.in_dim for head in self.heads)
-        self.width = max(head.width for model in models for head in heads_of(model))
-        self.out_dim = max(head.out_dim for head in self.heads)
-        dims = [self.in_dim, *[self.width] * (self.depth + 1), self.out_dim]
-        self.shapes = list(itertools.pairwise(dims))  # (in, out) of each layer
-        size = sum(len(self.heads) * (i * o + o) for i, o in self.shapes)
-        self.theta = torch.zeros(len(models), size, dtype=dtype)
-        self.parameters = [tensor.requires_grad_(True) for layer in self.layers(self.theta) for tensor in layer]
+        self.chains = self.chains_of([heads_of(model) for model in models])
+        self.theta = torch.zeros(len(models), sum(self.chain_size(chain) for chain in self.chains), dtype=dtype)
+        self.parameters = [tensor.requires_grad_(True) for layers in self.layers(self.theta)
+                           for layer in layers for tensor in layer]
         mask = torch.zeros_like(self.theta)
         for k, model in enumerate(models):
             self.load(k, model, mask)
@@ -92,88 +98,123 @@ class StackedModels:
         n = self.n
         self.skew = triangle_map(n, offset=1, antisymmetric=True, dtype=dtype)  # entries -> J, flattened
         self.lower = triangle_map(n, offset=0, antisymmetric=False, dtype=dtype) * n ** -0.25  # L L^T = R
-        self.input_mask = torch.tensor([[1.0] * self.n + [float(h.reads_input)] * (self.in_dim - self.n)
-                                        for h in self.heads], dtype=dtype)[:, None, :]  # (M, 1, in)
+        self.input_masks = [torch.tensor([[1.0] * n + [float(self.heads[h].reads_input)] * (chain.shapes[0][0] - n)
+                                          for h in chain.heads], dtype=dtype)[:, None, :]  # (M_c, 1, in)
+                            for chain in self.chains]
+
+    def chains_of(self, model_heads: list[list[Head]]) -> list[Chain]:
+        """Heads of equal width (in the first model) share a chain, padded to the widest of any model (the
+        unstructured f, twice as wide as g, is a chain of its own: padding g to f's width would cost more
+        arithmetic than a second chain costs overhead)."""
+        by_width: dict[int, list[int]] = {}
+        for h, head in enumerate(model_heads[0]):
+            by_width.setdefault(head.width, []).append(h)
+        chains = []
+        for heads in by_width.values():
+            in_dim = max(model_heads[0][h].in_dim for h in heads)
+            out_dim = max(model_heads[0][h].out_dim for h in heads)
+            width = max(one[h].width for one in model_heads for h in heads)
+            dims = [in_dim, *[width] * (self.depth + 1), out_dim]
+            chains.append(Chain(tuple(heads), tuple(itertools.pairwise(dims))))
+        return chains
+
+    @staticmethod
+    def chain_size(chain: Chain) -> int:
+        return sum(len(chain.heads) * (i * o + o) for i, o in chain.shapes)
 
     @property
     def count(self) -> int:
         return self.theta.shape[0]
 
-    def layers(self, theta: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """Views (W (K, M, in, out), b (K, M, 1, out)) of each layer in ``theta`` (K, P)."""
-        views, offset, heads = [], 0, len(self.heads)
-        for i, o in self.shapes:
-            weight = theta[:, offset:offset + heads * i * o].view(-1, heads, i, o)
-            offset += heads * i * o
-            bias = theta[:, offset:offset + heads * o].view(-1, heads, 1, o)
-            offset += heads * o
-            views.append((weight, bias))
-        return views
+    def layers(self, theta: torch.Tensor) -> list[list[tuple[torch.Tensor, torch.Tensor]]]:
+        """Per chain, views (W (K, M_c, in, out), b (K, M_c, 1, out)) of each layer in ``theta`` (K, P)."""
+        chains, offset = [], 0
+        for chain in self.chains:
+            views, heads = [], len(chain.heads)
+            for i, o in chain.shapes:
+                weight = theta[:, offset:offset + heads * i * o].view(-1, heads, i, o)
+                offset += heads * i * o
+                bias = theta[:, offset:offset + heads * o].view(-1, heads, 1, o)
+                offset += heads * o
+                views.append((weight, bias))
+            chains.append(views)
+        return chains
+
+    def chain_parameters(self) -> list[list[tuple[torch.Tensor, torch.Tensor]]]:
+        """The trainable leaf views of ``layers(theta)``."""
+        pairs = iter(zip(self.parameters[::2], self.parameters[1::2], strict=True))
+        return [[next(pairs) for _ in chain.shapes] for chain in self.chains]
 
     def load(self, k: int, model: nn.Module, mask: torch.Tensor) -> None:
         """Copy the parameters of ``model`` into row k, and set its entries of ``mask`` (K, P) to 1."""
         with torch.no_grad():
-            layers = list(zip(self.parameters[::2], self.parameters[1::2], strict=True))
-            mask_layers = self.layers(mask)
-            for h, head in enumerate(self.heads):
-                linears = [layer for layer in getattr(model, head.name) if isinstance(layer, nn.Linear)]
-                for (weight, bias), (weight_mask, bias_mask), linear in zip(layers, mask_layers, linears, strict=True):
-                    o, i = linear.weight.shape
-                    weight[k, h, :i, :o] = linear.weight.T
-                    bias[k, h, 0, :o] = linear.bias
-                    weight_mask[k, h, :i, :o] = 1.0
-                    bias_mask[k, h, 0, :o] = 1.0
+            for chain, layers, mask_layers in zip(self.chains, self.chain_parameters(), self.layers(mask), strict=True):
+                for position, h in enumerate(chain.heads):
+                    linears = [layer for layer in getattr(model, self.heads[h].name) if isinstance(layer, nn.Linear)]
+                    for (weight, bias), (weight_mask, bias_mask), linear in zip(layers, mask_layers, linears,
+                                                                                 strict=True):
+                        o, i = linear.weight.shape
+                        weight[k, position, :i, :o] = linear.weight.T
+                        bias[k, position, 0, :o] = linear.bias
+                        weight_mask[k, position, :i, :o] = 1.0
+                        bias_mask[k, position, 0, :o] = 1.0
 
-    def heads_forward(self, z: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor], list]:
-        """Outputs (K, M, B, out) of every head for z (K, B, n), v (K, B, m); also the hidden layers' s (for
-        grad H) and the layers.
+    def heads_forward(self, z: torch.Tensor, v: torch.Tensor) -> tuple[list[torch.Tensor], list]:
+        """Output (K, B, out) of every head for z (K, B, n), v (K, B, m); and per chain, its hidden layers'
+        s (K, M_c, B, width) and its layers (for grad H).
 
         tanh(p) is computed as 2 s - 1 with s = sigmoid(2 p): torch's CPU sigmoid and its backward are several
         times faster than tanh's. The factor 2 of 2 p goes into the weights and the 2 s - 1 is folded into
         the next layer, (2 s - 1) W + b = 2 s W + (b - 1^T W), so a hidden layer is one matmul and one sigmoid.
         """
-        x = torch.cat([z, v], dim=-1) if self.in_dim > self.n else z
-        x = (x.unsqueeze(1) * self.input_mask).flatten(0, 1)  # (K M, B, in)
-        layers = list(zip(self.parameters[::2], self.parameters[1::2], strict=True))
-        shape = (self.count, len(self.heads))
-        sigmoids = []
-        for index, (weight, bias) in enumerate(layers):
-            weight, bias = weight.flatten(0, 1), bias.flatten(0, 1)
-            if index:  # x is s of the previous layer: its tanh is 2 s - 1
-                bias, scale = bias - weight.sum(dim=1, keepdim=True), 2.0
-            else:
-                scale = 1.0
-            if index == len(layers) - 1:
-                out = torch.baddbmm(bias, x, weight * scale)
-                return out.view(*shape, *out.shape[1:]), sigmoids, layers
-            # the factors scale the small weight and bias tensors, not the (K M, B, width) activations
-            x = torch.sigmoid(torch.baddbmm(bias * 2.0, x, weight * (2.0 * scale)))
-            sigmoids.append(x.view(*shape, *x.shape[1:]))
-        raise AssertionError("a model has at least two layers")
+        outputs: list[torch.Tensor | None] = [None] * len(self.heads)
+        internals = []
+        zv = torch.cat([z, v], dim=-1) if any(chain.shapes[0][0] > self.n for chain in self.chains) else z
+        for chain, layers, input_mask in zip(self.chains, self.chain_parameters(), self.input_masks, strict=True):
+            x = zv if chain.shapes[0][0] > self.n else z
+            x = (x.unsqueeze(1) * input_mask).flatten(0, 1)  # (K M_c, B, in)
+            shape = (self.count, len(chain.heads))
+            sigmoids = []
+            for index, (weight, bias) in enumerate(layers):
+                weight, bias = weight.flatten(0, 1), bias.flatten(0, 1)
+                if index:  # x is s of the previous layer: its tanh is 2 s - 1
+                    bias, scale = bias - weight.sum(dim=1, keepdim=True), 2.0
+                else:
+                    scale = 1.0
+                if index == len(layers) - 1:
+                    out = torch.baddbmm(bias, x, weight * scale).view(*shape, x.shape[1], -1)
+                    break
+                # the factors scale the small weight and bias tensors, not the (K M, B, width) activations
+                x = torch.sigmoid(torch.baddbmm(bias * 2.0, x, weight * (2.0 * scale)))
+                sigmoids.append(x.view(*shape, *x.shape[1:]))
+            for h, head_out in zip(chain.heads, out.unbind(1), strict=True):
+                outputs[h] = head_out
+            internals.append((sigmoids, layers))
+        return outputs, internals
 
     def forward(self, z: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """dz/dt (K, B, n) and y (K, B, m) of every model for its own z (K, B, n), v (K, B, m)."""
-        out, sigmoids, layers = self.heads_forward(z, v)
+        out, internals = self.heads_forward(z, v)
         n, m = self.n, self.m
         if self.kind is Unstructured:
-            return out[:, 0, :, :n], out[:, 1, :, :m]
+            return out[0][..., :n], out[1][..., :m]
         if self.kind is InputAffine:
-            gain = out[:, 1, :, :n * m].reshape(*z.shape[:2], n, m)
-            return out[:, 0, :, :n] + (gain @ v.unsqueeze(-1)).squeeze(-1), out[:, 2, :, :m]
-        grad = self.grad_hamiltonian(out[:, 3], sigmoids, layers)  # (K, B, n)
+            gain = out[1][..., :n * m].reshape(*z.shape[:2], n, m)
+            return out[0][..., :n] + (gain @ v.unsqueeze(-1)).squeeze(-1), out[2][..., :m]
+        grad = self.grad_hamiltonian(out[3], *internals[0])  # (K, B, n)
         rows = z.shape[0] * z.shape[1]
-        interconnection = (out[:, 0, :, :n * (n - 1) // 2].reshape(rows, -1) @ self.skew).view(rows, n, n)
-        lower = (out[:, 1, :, :n * (n + 1) // 2].reshape(rows, -1) @ self.lower).view(rows, n, n)
+        interconnection = (out[0][..., :n * (n - 1) // 2].reshape(rows, -1) @ self.skew).view(rows, n, n)
+        lower = (out[1][..., :n * (n + 1) // 2].reshape(rows, -1) @ self.lower).view(rows, n, n)
         dissipation = lower @ lower.transpose(1, 2)
-        gain = out[:, 2, :, :n * m].reshape(rows, n, m)
+        gain = out[2][..., :n * m].reshape(rows, n, m)
         grad = grad.reshape(rows, n, 1)
         dz = (interconnection - dissipation) @ grad + gain @ v.reshape(rows, m, 1)
         y = gain.transpose(1, 2) @ grad
         return dz.view(*z.shape), y.view(*v.shape)
 
     def grad_hamiltonian(self, h_out: torch.Tensor, sigmoids: list[torch.Tensor], layers: list) -> torch.Tensor:
-        """grad_z of H = ||m(z)||^2 / 2 through the H head (index 3): (K, B, n). ``h_out`` (K, B, out) = m(z);
-        a hidden layer's tanh' = 1 - (2 s - 1)^2 = 4 s (1 - s)."""
+        """grad_z of H = ||m(z)||^2 / 2 through the H head (index 3 of the one chain): (K, B, n). ``h_out``
+        (K, B, out) = m(z); a hidden layer's tanh' = 1 - (2 s - 1)^2 = 4 s (1 - s)."""
         g = h_out
         for (weight, _), sigmoid in zip(layers[:0:-1], sigmoids[::-1], strict=True):
             s = sigmoid[:, 3]

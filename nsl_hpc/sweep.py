@@ -16,6 +16,7 @@ from nsl_hpc.cli import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.grid import Grid, build_manifest, sub_grids, validate_grid
 from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, manifest_path, read_manifest, write_sweep
+from nsl_hpc.plan import lockstep_settings
 from nsl_hpc.rows import row_path
 from nsl_hpc.studies import Study, require_non_negative_int, study_named, study_of
 
@@ -35,6 +36,7 @@ def validate_launch(cfg: DictConfig, overrides: Sequence[str]) -> Study:
             raise ConfigError(f"{override_key(override)} is a grid axis of the sweep; set "
                               f"sweep.grid.{override_key(override)}=[...] instead of {override}")
     validate_grid(OmegaConf.to_container(cfg.sweep.grid), study)
+    lockstep_settings(cfg)
     return study
 
 
