@@ -98,17 +98,19 @@ def test_unknown_architecture_is_refused():
 
 @pytest.mark.parametrize("arch", ARCH_NAMES)
 @pytest.mark.parametrize(("state_dim", "input_dim"), [(4, 2), (3, 1)])
-def test_stacked_models_compute_what_each_model_computes(arch, state_dim, input_dim):
-    """The fast path (all heads of K models as one batched MLP, grad H written out) equals the modules,
-    outputs and gradients, in float64."""
+@pytest.mark.parametrize("count", [3, 24])  # 24 x 12 >= SPLIT_WIDTH: the unstructured f and g in two chains
+def test_stacked_models_compute_what_each_model_computes(arch, state_dim, input_dim, count):
+    """The fast path (the heads of K models, of widths 4-6 zero-padded, as batched MLPs, grad H written out)
+    equals the modules, outputs and gradients, in float64."""
     torch.manual_seed(0)
     arch_cfg = OmegaConf.to_container(compose_config([f"arch={arch}"]).arch)
-    models = [build_model(arch_cfg, state_dim, input_dim, width=5, depth=2).double() for _ in range(3)]
+    models = [build_model(arch_cfg, state_dim, input_dim, width=4 + k % 3, depth=2).double() for k in range(count)]
     stack = StackedModels(models, torch.float64)
-    z, v = torch.randn(3, 7, state_dim, dtype=torch.float64), torch.randn(3, 7, input_dim, dtype=torch.float64)
+    z = torch.randn(count, 7, state_dim, dtype=torch.float64)
+    v = torch.randn(count, 7, input_dim, dtype=torch.float64)
     dz, y = stack.forward(z, v)
     grads = torch.autograd.grad(dz.square().sum() + y.square().sum(), stack.parameters)
-    grad = torch.cat([g.reshape(3, -1) for g in grads], dim=1)
+    grad = torch.cat([g.reshape(count, -1) for g in grads], dim=1)
     for k, model in enumerate(models):
         expected_dz, expected_y = model(z[k], v[k])
         torch.testing.assert_close(dz[k], expected_dz, rtol=1e-12, atol=1e-12)
