@@ -102,18 +102,17 @@ def stacked_data(members: Sequence[Member], dtype: torch.dtype) -> torch.Tensor:
 
 
 class Adam:
-    """torch.optim.Adam with gradient-norm clipping, per row of ``theta`` (K, P); ``trainable`` (K, P)
-    zeroes the gradient of padding entries (None: every entry trains)."""
+    """torch.optim.Adam with gradient-norm clipping, per row of ``theta`` (K, P), which stores the parameters
+    times ``scale`` (1, P): moments and clipping work on the parameters themselves."""
 
-    def __init__(self, theta: torch.Tensor, clip_norm: float, trainable: torch.Tensor | None):
-        self.theta, self.clip_norm, self.trainable = theta, clip_norm, trainable
+    def __init__(self, theta: torch.Tensor, clip_norm: float, scale: torch.Tensor):
+        self.theta, self.clip_norm, self.scale = theta, clip_norm, scale
         self.first, self.second = torch.zeros_like(theta), torch.zeros_like(theta)
         self.steps = 0
 
     def step(self, grad: torch.Tensor, lr: torch.Tensor) -> None:
-        """One update from ``grad`` (K, P), overwritten, with learning rates ``lr`` (K, 1)."""
-        if self.trainable is not None:
-            grad.mul_(self.trainable)
+        """One update from the parameters' gradient ``grad`` (K, P), overwritten, with learning rates ``lr``
+        (K, 1)."""
         norm = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
         grad.mul_((self.clip_norm / (norm + CLIP_EPS)).clamp_max_(1.0))
         beta1, beta2 = ADAM_BETAS
@@ -121,7 +120,8 @@ class Adam:
         self.first.lerp_(grad, 1 - beta1)
         self.second.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
         denominator = self.second.sqrt().div_(math.sqrt(1 - beta2 ** self.steps)).add_(ADAM_EPS)
-        self.theta.addcdiv_(self.first * (lr / (1 - beta1 ** self.steps)), denominator, value=-1.0)
+        step_size = (lr / (1 - beta1 ** self.steps)) * self.scale  # (K, P)
+        self.theta.addcdiv_(self.first * step_size, denominator, value=-1.0)
 
 
 def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any],
@@ -137,7 +137,7 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any],
     plans = [BatchPlan(len(mb.data), cfg["batch_size"], mb.epochs, mb.shuffle_seed, width, pad) for mb in members]
     totals = np.array([plan.steps for plan in plans])
     offsets = (torch.arange(len(members)) * data.shape[1])[:, None, None]
-    optimizer = Adam(stack.theta, cfg["grad_clip_norm"], stack.trainable)
+    optimizer = Adam(stack.theta, cfg["grad_clip_norm"], stack.scale)
     outcomes: list[TrainingOutcome | None] = [None if plan.steps else TrainingOutcome(0, math.nan, finite=True)
                                               for plan in plans]
     total = int(totals.max(initial=0))
@@ -157,8 +157,7 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any],
                 predicted_dz, predicted_y = stack.forward(inputs[i, :, :, :n], inputs[i, :, :, n:])
                 residual = (torch.cat([predicted_dz, predicted_y], dim=-1) - targets[i]) * weights[i]
                 step_losses = residual.square().sum(dim=(1, 2))
-                grads = torch.autograd.grad(step_losses.sum(), stack.parameters)
-                optimizer.step(torch.cat([g.reshape(len(members), -1) for g in grads], dim=1), rates[i])
+                optimizer.step(stack.parameter_gradient(step_losses.sum()), rates[i])
                 losses[i] = step_losses.detach()
             for k, plan in enumerate(plans):
                 if outcomes[k] is None and active[k]:

@@ -6,7 +6,7 @@ plus a small assembly (nsl_hpc.models). Here the heads of one width, of all K mo
 chain however many models and heads there are (a per-model, per-head loop costs M K times as many small
 operations, and at these sizes the cost of an operation is its overhead, not its arithmetic). Heads (and
 models) narrower or with fewer inputs or outputs than the widest of their chain are zero-padded; padded
-units compute exactly zero, and ``trainable`` masks their entries' gradients to exactly zero, so a padded
+units compute exactly zero, and ``parameter_gradient`` masks their entries' gradients to exactly zero, so a padded
 model computes and learns what it does alone. The port-Hamiltonian grad H is back-propagated through the
 H head explicitly (first-order operations), not by a double backward.
 
@@ -95,16 +95,14 @@ class StackedModels:
         self.theta = torch.zeros(len(models), sum(self.chain_size(chain) for chain in self.chains), dtype=dtype)
         self.parameters = [tensor.requires_grad_(True) for layers in self.layers(self.theta)
                            for layer in layers for tensor in layer]
+        self.scale = self.storage_scale(dtype)
         mask = torch.zeros_like(self.theta)
         for k, model in enumerate(models):
             self.load(k, model, mask)
-        self.trainable = None if bool(mask.all()) else mask  # (K, P): 1 on a model's own parameters
+        self.gradient_scale = self.scale * mask  # (K, P): 0 on padding
         n = self.n
         self.skew = triangle_map(n, offset=1, antisymmetric=True, dtype=dtype)  # entries -> J, flattened
         self.lower = triangle_map(n, offset=0, antisymmetric=False, dtype=dtype) * n ** -0.25  # L L^T = R
-        self.input_masks = [torch.tensor([[1.0] * n + [float(self.heads[h].reads_input)] * (chain.shapes[0][0] - n)
-                                          for h in chain.heads], dtype=dtype)[:, None, :]  # (M_c, 1, in)
-                            for chain in self.chains]
 
     def chains_of(self, model_heads: list[list[Head]]) -> list[Chain]:
         """One chain of all heads, padded to the widest head of any model; or, when K times that width is at
@@ -122,6 +120,24 @@ class StackedModels:
             dims = [in_dim, *[width] * (self.depth + 1), out_dim]
             chains.append(Chain(tuple(heads), tuple(itertools.pairwise(dims))))
         return chains
+
+    def storage_scale(self, dtype: torch.dtype) -> torch.Tensor:
+        """(1, P): ``theta`` holds each parameter times this factor, which puts the tanh-as-sigmoid factors
+        into storage (see ``heads_forward``): weight and bias of a first layer 2, of a hidden layer 4 and 2,
+        of a last layer 2 and 1."""
+        scale = torch.ones(1, self.theta.shape[1], dtype=dtype)
+        for chain, layers in zip(self.chains, self.layers(scale), strict=True):
+            for index, (weight, bias) in enumerate(layers):
+                last, hidden = index == len(chain.shapes) - 1, 0 < index < len(chain.shapes) - 1
+                weight.fill_(4.0 if hidden else 2.0)
+                bias.fill_(1.0 if last else 2.0)
+        return scale
+
+    def parameter_gradient(self, loss: torch.Tensor) -> torch.Tensor:
+        """d loss / d parameters (K, P), as the modules' parameters (not their stored multiples), exactly 0 on
+        padding entries."""
+        grads = torch.autograd.grad(loss, self.parameters)
+        return torch.cat([grad.reshape(self.count, -1) for grad in grads], dim=1).mul_(self.gradient_scale)
 
     @staticmethod
     def chain_size(chain: Chain) -> int:
@@ -151,7 +167,7 @@ class StackedModels:
         return [[next(pairs) for _ in chain.shapes] for chain in self.chains]
 
     def load(self, k: int, model: nn.Module, mask: torch.Tensor) -> None:
-        """Copy the parameters of ``model`` into row k, and set its entries of ``mask`` (K, P) to 1."""
+        """Copy the parameters of ``model`` (times ``scale``) into row k; set its entries of ``mask`` (K, P) to 1."""
         with torch.no_grad():
             for chain, layers, mask_layers in zip(self.chains, self.chain_parameters(), self.layers(mask), strict=True):
                 for position, h in enumerate(chain.heads):
@@ -163,34 +179,34 @@ class StackedModels:
                         bias[k, position, 0, :o] = linear.bias
                         weight_mask[k, position, :i, :o] = 1.0
                         bias_mask[k, position, 0, :o] = 1.0
+            self.theta[k] *= self.scale[0]
 
     def heads_forward(self, z: torch.Tensor, v: torch.Tensor) -> tuple[list[torch.Tensor], list]:
         """Output (K, B, out) of every head for z (K, B, n), v (K, B, m); and per chain, its hidden layers'
         s (K, M_c, B, width) and its layers (for grad H).
 
         tanh(p) is computed as 2 s - 1 with s = sigmoid(2 p): torch's CPU sigmoid and its backward are several
-        times faster than tanh's. The factor 2 of 2 p goes into the weights and the 2 s - 1 is folded into
-        the next layer, (2 s - 1) W + b = 2 s W + (b - 1^T W), so a hidden layer is one matmul and one sigmoid.
+        times faster than tanh's. The factor 2 of 2 p is in the stored weights (``storage_scale``) and the
+        2 s - 1 is folded into the next layer, (2 s - 1) W + b = 2 s W + (b - 1^T W), so a layer is one matmul
+        (its bias less half the stored weights' column sums) and one sigmoid. A head that reads fewer inputs
+        than its chain has zero (padding) weights on the others.
         """
         outputs: list[torch.Tensor | None] = [None] * len(self.heads)
         internals = []
         zv = torch.cat([z, v], dim=-1) if any(chain.shapes[0][0] > self.n for chain in self.chains) else z
-        for chain, layers, input_mask in zip(self.chains, self.chain_parameters(), self.input_masks, strict=True):
+        for chain, layers in zip(self.chains, self.chain_parameters(), strict=True):
             x = zv if chain.shapes[0][0] > self.n else z
-            x = (x.unsqueeze(1) * input_mask).flatten(0, 1)  # (K M_c, B, in)
+            x = x.unsqueeze(1).expand(-1, len(chain.heads), -1, -1).flatten(0, 1)  # (K M_c, B, in)
             shape = (self.count, len(chain.heads))
             sigmoids = []
             for index, (weight, bias) in enumerate(layers):
                 weight, bias = weight.flatten(0, 1), bias.flatten(0, 1)
                 if index:  # x is s of the previous layer: its tanh is 2 s - 1
-                    bias, scale = bias - weight.sum(dim=1, keepdim=True), 2.0
-                else:
-                    scale = 1.0
+                    bias = torch.sub(bias, weight.sum(dim=1, keepdim=True), alpha=0.5)
                 if index == len(layers) - 1:
-                    out = torch.baddbmm(bias, x, weight * scale).view(*shape, x.shape[1], -1)
+                    out = torch.baddbmm(bias, x, weight).view(*shape, x.shape[1], -1)
                     break
-                # the factors scale the small weight and bias tensors, not the (K M, B, width) activations
-                x = torch.sigmoid(torch.baddbmm(bias * 2.0, x, weight * (2.0 * scale)))
+                x = torch.sigmoid(torch.baddbmm(bias, x, weight))
                 sigmoids.append(x.view(*shape, *x.shape[1:]))
             for h, head_out in zip(chain.heads, out.unbind(1), strict=True):
                 outputs[h] = head_out
@@ -219,9 +235,10 @@ class StackedModels:
 
     def grad_hamiltonian(self, h_out: torch.Tensor, sigmoids: list[torch.Tensor], layers: list) -> torch.Tensor:
         """grad_z of H = ||m(z)||^2 / 2 through the H head (index 3 of the one chain): (K, B, n). ``h_out``
-        (K, B, out) = m(z); a hidden layer's tanh' = 1 - (2 s - 1)^2 = 4 s (1 - s)."""
+        (K, B, out) = m(z); a hidden layer's tanh' = 1 - (2 s - 1)^2 = 4 s (1 - s). With the stored weights
+        (2, 4, ..., 4, 2 times the modules') the factors 4 of the depth + 1 tanh' cancel."""
         g = h_out
         for (weight, _), sigmoid in zip(layers[:0:-1], sigmoids[::-1], strict=True):
             s = sigmoid[:, 3]
-            g = (g @ weight[:, 3].transpose(1, 2)) * (4 * s * (1 - s))
+            g = (g @ weight[:, 3].transpose(1, 2)) * (s - s.square())
         return (g @ layers[0][0][:, 3].transpose(1, 2))[..., :self.n]
