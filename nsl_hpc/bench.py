@@ -98,11 +98,11 @@ class Bench:
         member = self.members(arch, width, depth, 1, steps)[0]
         reference = copy.deepcopy(member.model)
         _, reference_s = timed(lambda: reference_loop(reference, member, steps, self.train))
-        (_, outcomes), single_s = timed(lambda: train_lockstep([member], self.train))
+        (_, single), single_s = timed(lambda: train_lockstep([member], self.train))
         packed_members = self.members(arch, width, depth, pack, steps)
         (_, packed), packed_s = timed(lambda: train_lockstep(packed_members, self.train))
-        return {"reference": reference_s / steps, "single": single_s / outcomes[0].steps,
-                "packed": packed_s / packed[0].steps, "params": parameter_count(member.model)}
+        return {"reference": reference_s / steps, "single": single_s / single[0][-1].outcome.steps,
+                "packed": packed_s / packed[0][-1].outcome.steps, "params": parameter_count(member.model)}
 
 
 def matmul_peak_flops(size: int, repeats: int = 20) -> float:

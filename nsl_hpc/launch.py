@@ -11,15 +11,25 @@ submitted; watch them with `python -m nsl_hpc.status sweep_dir=<dir>`.
 """
 
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.failures import record_failure
 from nsl_hpc.launcher import dispatch
-from nsl_hpc.plan import Pack, lockstep_settings, make_packs, packing_for, planned_groups
+from nsl_hpc.plan import Pack, lockstep_settings, make_packs, packing_for, planned_groups, run_key
 from nsl_hpc.sweep import PreparedSweep, prepare_sweep
+
+
+def describe_lockstep(tasks: Sequence[Mapping[str, Any]], groups: Sequence[Sequence[str]],
+                      lockstep: Mapping[str, Any]) -> str:
+    """How the tasks to run train: as how many models, in how many lockstep groups."""
+    models = len({run_key(task, lockstep) for task in tasks})
+    return (f"  lockstep: {len(tasks):,} tasks as {models:,} models in {len(groups):,} groups of up to "
+            f"{lockstep['size']} models" + (" (epoch milestones: a row per task after its epochs)"
+                                            if lockstep["run_keys"] else ""))
 
 
 def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str) -> str:
@@ -39,9 +49,12 @@ def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str)
 def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
     prepared = prepare_sweep(cfg, overrides)
     todo = prepared.todo
-    groups, seconds = planned_groups(todo.to_pylist(), lockstep_settings(cfg), OmegaConf.to_container(cfg.cost))
+    lockstep, tasks = lockstep_settings(cfg), todo.to_pylist()
+    groups, seconds = planned_groups(tasks, lockstep, OmegaConf.to_container(cfg.cost))
     packs = make_packs(groups, seconds, packing_for(cfg.packing, cfg.launcher.name))
     print(describe_plan(prepared, packs, cfg.launcher.name))
+    if tasks and (lockstep["size"] > 1 or lockstep["run_keys"]):
+        print(describe_lockstep(tasks, groups, lockstep))
     if prepared.infeasible:
         count = len(prepared.infeasible)
         print(f"  {count:,} task{'s' if count > 1 else ''} cannot run as configured"

@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from nsl_hpc.datasets import Dataset
 from nsl_hpc.stacked import StackedModels
-from nsl_hpc.training import Scaling, TrainingOutcome, batch_bounds, warmup_cosine_at
+from nsl_hpc.training import Scaling, TrainingOutcome, batch_bounds, learning_rate_at
 
 ADAM_BETAS, ADAM_EPS, CLIP_EPS = (0.9, 0.999), 1e-8, 1e-6  # torch.optim.Adam and clip_grad_norm_ defaults
 BLOCK_STEPS = 32  # steps prepared at once: (K, BLOCK_STEPS, batch) rows of data in memory
@@ -32,13 +32,27 @@ BLOCK_STEPS = 32  # steps prepared at once: (K, BLOCK_STEPS, batch) rows of data
 
 @dataclass(frozen=True)
 class Member:
-    """One model of a lockstep pack, initialised, with what it trains on."""
+    """One model of a lockstep pack, initialised, with what it trains on: ``epochs`` of a learning-rate
+    schedule ``schedule_epochs`` long (0: ``epochs``), kept (``Snapshot``) after each of ``milestones``
+    epochs (and after ``epochs``)."""
 
     model: nn.Module
     data: Dataset
     scaling: Scaling
     epochs: int
     shuffle_seed: int
+    milestones: tuple[int, ...] = ()
+    schedule_epochs: int = 0
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """A model after ``epochs`` epochs: how training went (``outcome.steps`` steps; a model that diverged
+    before has its outcome of then) and its parameters, a row (P,) of the stack's ``theta``."""
+
+    epochs: int
+    outcome: TrainingOutcome
+    theta: torch.Tensor
 
 
 class BatchPlan:
@@ -124,10 +138,11 @@ class Adam:
         self.theta.addcdiv_(self.first * step_size, denominator, value=-1.0)
 
 
-def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any],
-                   on_progress: Callable[[], None] = lambda: None) -> tuple[StackedModels, list[TrainingOutcome]]:
+def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progress: Callable[[], None] = lambda: None
+                   ) -> tuple[StackedModels, list[list[Snapshot]]]:
     """Train every member as if alone (``cfg`` is the ``train`` group); returns the trained stack and each
-    member's outcome. ``on_progress`` is called after every block of ``BLOCK_STEPS`` steps (a heartbeat)."""
+    member's snapshots, by epochs (the last after its ``epochs``). ``on_progress`` is called after every
+    block of ``BLOCK_STEPS`` steps (a heartbeat)."""
     dtype = getattr(torch, cfg["dtype"])
     stack = StackedModels([member.model for member in members], dtype)
     n, m = stack.n, stack.m
@@ -136,6 +151,13 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any],
     width = max(max(stop - start for start, stop in batch_bounds(len(mb.data), cfg["batch_size"])) for mb in members)
     plans = [BatchPlan(len(mb.data), cfg["batch_size"], mb.epochs, mb.shuffle_seed, width, pad) for mb in members]
     totals = np.array([plan.steps for plan in plans])
+    schedules = np.array([(mb.schedule_epochs or mb.epochs) * len(plan.slots) for mb, plan in zip(members, plans,
+                                                                                                  strict=True)])
+    due: dict[int, list[tuple[int, int]]] = {}  # step index -> (member, epochs) snapshotted after it
+    for k, (member, plan) in enumerate(zip(members, plans, strict=True)):
+        for epochs in sorted({*member.milestones, member.epochs}):
+            due.setdefault(epochs * len(plan.slots) - 1, []).append((k, epochs))
+    snapshots: list[list[Snapshot]] = [[] for _ in members]
     offsets = (torch.arange(len(members)) * data.shape[1])[:, None, None]
     optimizer = Adam(stack.theta, cfg["grad_clip_norm"], stack.scale)
     outcomes: list[TrainingOutcome | None] = [None if plan.steps else TrainingOutcome(0, math.nan, finite=True)
@@ -150,8 +172,9 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any],
             inputs, targets = batches[..., :n + m], batches[..., n + m:]
             weights = loss_weights(targets, (rows != pad).transpose(0, 1).unsqueeze(-1).to(dtype), m,
                                    cfg["output_weight"], cfg["loss_std_floor"])
-            rates = warmup_cosine_at(np.arange(start, start + size)[:, None], totals, cfg["warmup_fraction"], cfg["lr"])
-            rates = torch.as_tensor(rates, dtype=dtype).unsqueeze(-1)  # (L, K, 1)
+            steps = np.arange(start, start + size)[:, None]
+            rates = learning_rate_at(steps, schedules, cfg["schedule"], cfg["warmup_fraction"], cfg["lr"])
+            rates = torch.as_tensor(rates * (steps < totals), dtype=dtype).unsqueeze(-1)  # (L, K, 1)
             losses = torch.empty(size, len(members), dtype=dtype)
             for i in range(size):
                 predicted_dz, predicted_y = stack.forward(inputs[i, :, :, :n], inputs[i, :, :, n:])
@@ -159,12 +182,24 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any],
                 step_losses = residual.square().sum(dim=(1, 2))
                 optimizer.step(stack.parameter_gradient(step_losses.sum()), rates[i])
                 losses[i] = step_losses.detach()
+                for k, epochs in due.get(start + i, ()):
+                    loss = float(losses[i, k])
+                    outcome = TrainingOutcome(start + i + 1, loss, finite=math.isfinite(loss))
+                    snapshots[k].append(Snapshot(epochs, outcome, stack.theta[k].detach().clone()))
             for k, plan in enumerate(plans):
                 if outcomes[k] is None and active[k]:
                     outcomes[k] = settle(plan, losses[:active[k], k], start)
             bar.update(size)
             on_progress()
-    return stack, outcomes
+    return stack, [[with_divergence(snapshot, outcome) for snapshot in member_snapshots]
+                   for member_snapshots, outcome in zip(snapshots, outcomes, strict=True)]
+
+
+def with_divergence(snapshot: Snapshot, final: TrainingOutcome | None) -> Snapshot:
+    """``snapshot`` with the outcome of its model's divergence when that came at or before its steps."""
+    if final is not None and not final.finite and final.steps <= snapshot.outcome.steps:
+        return Snapshot(snapshot.epochs, final, snapshot.theta)
+    return snapshot
 
 
 def settle(plan: BatchPlan, losses: torch.Tensor, start: int) -> TrainingOutcome | None:
@@ -181,12 +216,13 @@ def settle(plan: BatchPlan, losses: torch.Tensor, start: int) -> TrainingOutcome
 
 
 def predict_derivatives(stack: StackedModels, data: Dataset, scalings: Sequence[Scaling], dtype: torch.dtype,
-                        chunk: int = 4096) -> list[np.ndarray]:
-    """dx/dt (N, n) of every model of ``stack`` on the same ``data``, in physical units, without a graph."""
+                        theta: torch.Tensor | None = None, chunk: int = 4096) -> list[np.ndarray]:
+    """dx/dt (N, n) on the same ``data``, in physical units, without a graph, of every model of ``stack`` or,
+    given ``theta`` (R, P), of the models with those parameters (a row per scaling)."""
     inputs = [scaling.model_inputs(data, dtype) for scaling in scalings]
     z, v = torch.stack([pair[0] for pair in inputs]), torch.stack([pair[1] for pair in inputs])
     with torch.no_grad():
-        parts = [stack.forward(z[:, i:i + chunk], v[:, i:i + chunk])[0]
+        parts = [stack.forward(z[:, i:i + chunk], v[:, i:i + chunk], theta)[0]
                  for i in range(0, len(data), chunk)]
     predicted = torch.cat(parts, dim=1).double().numpy()
     return [predicted[k] * scaling.derivative_rms * scaling.x_std for k, scaling in enumerate(scalings)]

@@ -95,10 +95,10 @@ class PackRunner:
         lockstep = lockstep_settings(OmegaConf.load(sweep / LAUNCH_CONFIG_FILE))
         for group in lockstep_groups(todo, lockstep):
             self.started.update(task["task_id"] for task in group)
-            counts[self.run_watched(sweep, group)] += len(group)
+            counts[self.run_watched(sweep, group, lockstep)] += len(group)
         return dict(counts)
 
-    def run_watched(self, sweep: Path, group: Sequence[Mapping[str, Any]]) -> str:
+    def run_watched(self, sweep: Path, group: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any]) -> str:
         """Run one lockstep group in a child process under the watchdog; returns ok, failed or frozen (the
         outcome of each of its tasks)."""
         cfgs = [task_config(sweep, task) for task in group]
@@ -106,7 +106,7 @@ class PackRunner:
             if cfg.fault.once and failure_path(sweep, cfg.task_id).exists():
                 cfg.fault.kind = None  # test-only faults strike a task's first attempt only
         watchdog = cfgs[0].watchdog
-        predicted = group_seconds(group, OmegaConf.to_container(cfgs[0].cost))
+        predicted = group_seconds(group, OmegaConf.to_container(cfgs[0].cost), lockstep)
         ids = [task["task_id"] for task in group]
         context = multiprocessing.get_context("fork")
         heartbeat = context.Value("d", time.time(), lock=False)

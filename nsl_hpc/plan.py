@@ -28,26 +28,37 @@ def lockstep_key(task: Mapping[str, Any], buckets: Sequence[int]) -> tuple:
     return task["system"], task["arch"], task["depth"], padded_width(task["width"], buckets)
 
 
+def run_key(task: Mapping[str, Any], lockstep: Mapping[str, Any]) -> tuple:
+    """Tasks with equal keys are one model (with epoch milestones: they differ only in epochs)."""
+    return tuple(task[key] for key in lockstep["run_keys"]) if lockstep["run_keys"] else (task["task_id"],)
+
+
 def lockstep_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any]) -> list[list[Mapping[str, Any]]]:
-    """Manifest rows in groups of at most ``lockstep["size"]`` tasks of one ``lockstep_key`` that train in
-    lockstep, by step count so that a group's members run about equally long; size 1 trains every task alone."""
-    by_key: dict[tuple, list[Mapping[str, Any]]] = {}
+    """Manifest rows in groups of the tasks of at most ``lockstep["size"]`` models (``run_key``) of one
+    ``lockstep_key`` that train in lockstep, by step count so that a group's models run about equally long;
+    size 1 trains every model alone."""
+    runs: dict[tuple, list[Mapping[str, Any]]] = {}
     for task in tasks:
-        by_key.setdefault(lockstep_key(task, lockstep["width_buckets"]), []).append(task)
+        runs.setdefault(run_key(task, lockstep), []).append(task)
+    by_key: dict[tuple, list[list[Mapping[str, Any]]]] = {}
+    for run in runs.values():
+        by_key.setdefault(lockstep_key(run[0], lockstep["width_buckets"]), []).append(run)
     groups, size = [], lockstep["size"]
     for key in sorted(by_key, key=str):
-        members = sorted(by_key[key], key=lambda task: (task["steps"], task["task_id"]))
-        groups += [members[start:start + size] for start in range(0, len(members), size)]
+        members = sorted(by_key[key], key=lambda run: (max(task["steps"] for task in run), run[0]["task_id"]))
+        groups += [[task for run in members[start:start + size] for task in run]
+                   for start in range(0, len(members), size)]
     return groups
 
 
-def group_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any]) -> float:
+def group_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any], lockstep: Mapping[str, Any]) -> float:
     """Predicted wall time (s) of a lockstep group: its longest member at its largest member's size, each
-    further member adding ``cost.lockstep_extra`` of a step."""
+    further model adding ``cost.lockstep_extra`` of a step."""
     longest = max(group, key=lambda task: task["steps"])
     params = max(task["params"] for task in group)
     alone = predicted_seconds(longest["arch"], longest["steps"], params, cost)
-    return cost["startup_s"] + (alone - cost["startup_s"]) * (1 + (len(group) - 1) * cost["lockstep_extra"])
+    models = len({run_key(task, lockstep) for task in group})
+    return cost["startup_s"] + (alone - cost["startup_s"]) * (1 + (models - 1) * cost["lockstep_extra"])
 
 
 def planned_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any], cost: Mapping[str, Any]
@@ -55,7 +66,7 @@ def planned_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, An
     """The lockstep groups of ``tasks`` as task-id tuples, and their predicted seconds (``make_packs``'s input)."""
     groups = lockstep_groups(tasks, lockstep)
     return ([tuple(task["task_id"] for task in group) for group in groups],
-            [group_seconds(group, cost) for group in groups])
+            [group_seconds(group, cost, lockstep) for group in groups])
 
 
 @dataclass(frozen=True)
@@ -79,16 +90,18 @@ def time_limit_minutes(seconds: float, packing: Mapping[str, Any]) -> int:
 
 
 def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
-    """``size`` (K, the models a job trains in lockstep: ``lockstep.size`` when enabled and the study can,
-    else 1) and ``width_buckets`` of a launch config."""
+    """Of a launch config: ``size`` (K, the models a job trains in lockstep: ``lockstep.size`` when enabled
+    and the study can, else 1), ``width_buckets``, and ``run_keys``, the keys of one model: with epoch
+    milestones (train.schedule_epochs) the study's draw keys, else none (a model per task)."""
     from nsl_hpc.studies import require_positive_int, study_named
 
-    settings = launch["lockstep"]
+    settings, study = launch["lockstep"], study_named(launch["study"]["name"])
     require_positive_int("lockstep.size", settings["size"])
     for width in settings["width_buckets"]:
         require_positive_int("lockstep.width_buckets value", width)
-    enabled = settings["enabled"] and study_named(launch["study"]["name"]).lockstep
-    return {"size": settings["size"] if enabled else 1, "width_buckets": list(settings["width_buckets"])}
+    milestones = study.lockstep and launch["train"].get("schedule_epochs") is not None
+    return {"size": settings["size"] if settings["enabled"] and study.lockstep else 1,
+            "width_buckets": list(settings["width_buckets"]), "run_keys": list(study.draw_keys) if milestones else []}
 
 
 def packing_for(packing: Mapping[str, Any], launcher_name: str, time_factor: float = 1.0) -> dict[str, Any]:

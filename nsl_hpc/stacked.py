@@ -181,9 +181,11 @@ class StackedModels:
                         bias_mask[k, position, 0, :o] = 1.0
             self.theta[k] *= self.scale[0]
 
-    def heads_forward(self, z: torch.Tensor, v: torch.Tensor) -> tuple[list[torch.Tensor], list]:
-        """Output (K, B, out) of every head for z (K, B, n), v (K, B, m); and per chain, its hidden layers'
-        s (K, M_c, B, width) and its layers (for grad H).
+    def heads_forward(self, z: torch.Tensor, v: torch.Tensor, theta: torch.Tensor | None = None
+                      ) -> tuple[list[torch.Tensor], list]:
+        """Output (K, B, out) of every head for z (K, B, n), v (K, B, m), with the trained parameters or the
+        rows of ``theta`` (K, P); and per chain, its hidden layers' s (K, M_c, B, width) and its layers (for
+        grad H).
 
         tanh(p) is computed as 2 s - 1 with s = sigmoid(2 p): torch's CPU sigmoid and its backward are several
         times faster than tanh's. The factor 2 of 2 p is in the stored weights (``storage_scale``) and the
@@ -194,10 +196,11 @@ class StackedModels:
         outputs: list[torch.Tensor | None] = [None] * len(self.heads)
         internals = []
         zv = torch.cat([z, v], dim=-1) if any(chain.shapes[0][0] > self.n for chain in self.chains) else z
-        for chain, layers in zip(self.chains, self.chain_parameters(), strict=True):
+        chains = self.chain_parameters() if theta is None else self.layers(theta)
+        for chain, layers in zip(self.chains, chains, strict=True):
             x = zv if chain.shapes[0][0] > self.n else z
             x = x.unsqueeze(1).expand(-1, len(chain.heads), -1, -1).flatten(0, 1)  # (K M_c, B, in)
-            shape = (self.count, len(chain.heads))
+            shape = (z.shape[0], len(chain.heads))
             sigmoids = []
             for index, (weight, bias) in enumerate(layers):
                 weight, bias = weight.flatten(0, 1), bias.flatten(0, 1)
@@ -213,9 +216,11 @@ class StackedModels:
             internals.append((sigmoids, layers))
         return outputs, internals
 
-    def forward(self, z: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """dz/dt (K, B, n) and y (K, B, m) of every model for its own z (K, B, n), v (K, B, m)."""
-        out, internals = self.heads_forward(z, v)
+    def forward(self, z: torch.Tensor, v: torch.Tensor, theta: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """dz/dt (K, B, n) and y (K, B, m) of every model (or of the rows of ``theta`` (K, P)) for its own
+        z (K, B, n), v (K, B, m)."""
+        out, internals = self.heads_forward(z, v, theta)
         n, m = self.n, self.m
         if self.kind is Unstructured:
             return out[0][..., :n], out[1][..., :m]

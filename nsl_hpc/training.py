@@ -65,19 +65,26 @@ def batch_bounds(samples: int, batch_size: int) -> list[tuple[int, int]]:
     return [(start, stop) for start, stop in zip(starts, [*starts[1:], samples], strict=True)]
 
 
+SCHEDULES = ("warmup_cosine", "constant")
+
+
 def warmup_cosine(total_steps: int, warmup_fraction: float, lr: float) -> np.ndarray:
     """Learning rate before each step (total_steps,): linear warm-up over the first fraction, then cosine
     decay to 0."""
-    return warmup_cosine_at(np.arange(total_steps), np.asarray(total_steps), warmup_fraction, lr)
+    return learning_rate_at(np.arange(total_steps), np.asarray(total_steps), "warmup_cosine", warmup_fraction, lr)
 
 
-def warmup_cosine_at(step: np.ndarray, total_steps: np.ndarray, warmup_fraction: float, lr: float) -> np.ndarray:
-    """``warmup_cosine`` at steps ``step`` of schedules ``total_steps`` steps long (broadcast together);
-    0 at and after a schedule's end."""
-    warmup = np.maximum(1, np.round(warmup_fraction * total_steps))
-    rising = lr * (step + 1) / warmup
-    progress = (step - warmup) / np.maximum(1, total_steps - warmup)
-    rate = np.where(step < warmup, rising, lr * 0.5 * (1 + np.cos(np.pi * progress)))
+def learning_rate_at(step: np.ndarray, total_steps: np.ndarray, schedule: str, warmup_fraction: float,
+                     lr: float) -> np.ndarray:
+    """The learning rate of ``schedule`` (one of SCHEDULES) at steps ``step`` of schedules ``total_steps`` steps
+    long (broadcast together); 0 at and after a schedule's end."""
+    if schedule == "constant":
+        rate = np.full(np.broadcast(step, total_steps).shape, lr)
+    else:
+        warmup = np.maximum(1, np.round(warmup_fraction * total_steps))
+        rising = lr * (step + 1) / warmup
+        progress = (step - warmup) / np.maximum(1, total_steps - warmup)
+        rate = np.where(step < warmup, rising, lr * 0.5 * (1 + np.cos(np.pi * progress)))
     return np.where(step < total_steps, rate, 0.0)
 
 

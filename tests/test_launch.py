@@ -116,3 +116,28 @@ def test_lockstep_groups_give_the_rows_of_tasks_trained_alone(tmp_path):
         assert packed["steps"] == alone["steps"]
         for key in ("nmae", "nmse", "final_loss"):
             assert packed[key] == pytest.approx(alone[key], rel=1e-4), key
+
+
+def test_epoch_milestone_rows_with_a_constant_learning_rate_are_the_rows_of_separate_runs(tmp_path):
+    """6 tasks (3 models x epochs 2 and 4) with train.schedule_epochs=4: each model trains once, to 4 epochs,
+    and writes a row after 2 and after 4, marked milestone; with a constant learning rate these rows hold what
+    separate runs give."""
+    grid = [*TINY_GRID, "sweep.grid.seed=[0,1,2]", "sweep.grid.epochs=[2,4]", "train.schedule=constant"]
+    rows = {}
+    for name, extra in (("milestones", "train.schedule_epochs=4"), ("separate", ALONE)):
+        sweep_dir = tmp_path / name
+        result = nsl("launch", *grid, "launcher=local", f"sweep_dir={sweep_dir}", extra)
+        assert result.returncode == 0 and "finished: 6 ok" in result.stdout, result.stderr
+        assert name == "separate" or "6 tasks as 3 models" in result.stdout
+        rows[name] = {(row["seed"], row["epochs"]): row for row in map(read_row, row_files(sweep_dir))}
+    assert rows["milestones"].keys() == rows["separate"].keys() and len(rows["separate"]) == 6
+    for key, separate in rows["separate"].items():
+        milestone = rows["milestones"][key]
+        assert milestone["milestone"] and not separate["milestone"]
+        assert milestone["steps"] == separate["steps"]
+        for column in ("nmae", "nmse", "final_loss"):
+            assert milestone[column] == pytest.approx(separate[column], rel=1e-4), column
+    refused = nsl("launch", *grid, "launcher=local", f"sweep_dir={tmp_path / 'short'}", "train.schedule_epochs=3")
+    assert refused.returncode == 2
+    assert "sweep.grid.epochs value=4 is more than train.schedule_epochs=3" in refused.stderr
+    assert not (tmp_path / "short").exists()

@@ -59,7 +59,8 @@ def test_short_training_beats_untrained_model(system, arch, compose, cache):
     untrained_stack, _ = train_lockstep([Member(model, train, member.scaling, 0, 0)], cfg.train)
     untrained = normalized_errors(test.dx, *predict_derivatives(untrained_stack, test, [member.scaling],
                                                                 torch.float32))["nmae"]
-    stack, (outcome,) = train_lockstep([member], cfg.train)
+    stack, ((*_, last),) = train_lockstep([member], cfg.train)
+    outcome = last.outcome
     trained = normalized_errors(test.dx, *predict_derivatives(stack, test, [member.scaling], torch.float32))["nmae"]
     assert outcome.finite and outcome.steps == 60 * 8
     assert trained < LEARNING_MARGIN * untrained, f"{system}/{arch}: {trained:.3f} vs {untrained:.3f}"
@@ -82,11 +83,42 @@ def test_a_model_trained_in_a_pack_matches_it_trained_alone(arch, compose, cache
         torch.manual_seed(seed)
         model = build_model(cfg.arch, 4, 2, width=width, depth=2)  # the narrower one is zero-padded
         members.append(Member(model, data, Scaling.fit(data), epochs, shuffle_seed=10 + seed))
-    stack, outcomes = train_lockstep(members, cfg.train)
+    stack, snapshots = train_lockstep(members, cfg.train)
+    outcomes = [member_snapshots[-1].outcome for member_snapshots in snapshots]
     packed = predict_derivatives(stack, test, [m.scaling for m in members], torch.float32)
     for member, outcome, predicted in zip(members, outcomes, packed, strict=True):
-        alone, (single,) = train_lockstep([member], cfg.train)
+        alone, ((*_, last),) = train_lockstep([member], cfg.train)
+        single = last.outcome
         assert outcome.steps == single.steps == member.epochs * batch_count(len(member.data), 256)
         assert outcome.final_loss == pytest.approx(single.final_loss, rel=PACKED_RTOL)
         expected = normalized_errors(test.dx, *predict_derivatives(alone, test, [member.scaling], torch.float32))
         assert normalized_errors(test.dx, predicted) == pytest.approx(expected, rel=PACKED_RTOL)
+
+
+def milestone_run(compose, cache, schedule: str, epochs: int, milestones=(), schedule_epochs: int = 0):
+    """Snapshots of one spring / input-affine model trained for ``epochs`` (1.3 trajectories, 6 batches per epoch)."""
+    cfg = compose("system=spring", "arch=input_affine", f"train.schedule={schedule}")
+    data = build_training_set(OmegaConf.to_container(cfg.system, resolve=True), 0, 1.3, cache)
+    torch.manual_seed(0)
+    model = build_model(cfg.arch, 4, 2, width=6, depth=2)
+    member = Member(model, data, Scaling.fit(data), epochs, 7, milestones, schedule_epochs)
+    return train_lockstep([member], OmegaConf.to_container(cfg.train))[1][0]
+
+
+def test_epoch_milestones_with_a_constant_learning_rate_are_the_separate_runs(compose, cache):
+    snapshots = milestone_run(compose, cache, "constant", 6, milestones=(2, 4), schedule_epochs=6)
+    assert [snapshot.epochs for snapshot in snapshots] == [2, 4, 6]
+    for snapshot in snapshots:
+        (alone,) = milestone_run(compose, cache, "constant", snapshot.epochs)
+        assert snapshot.outcome.steps == alone.outcome.steps == snapshot.epochs * 6
+        assert snapshot.outcome.final_loss == pytest.approx(alone.outcome.final_loss, rel=1e-6)
+        torch.testing.assert_close(snapshot.theta, alone.theta, rtol=1e-6, atol=1e-7)
+
+
+def test_epoch_milestones_with_warmup_cosine_follow_the_longer_schedule(compose, cache):
+    """After 2 of 6 scheduled epochs the learning rate is still high: not the model of a 2-epoch schedule,
+    which has decayed to 0 (README, "Epoch milestones", measures the difference in the errors)."""
+    first, _ = milestone_run(compose, cache, "warmup_cosine", 6, milestones=(2,), schedule_epochs=6)
+    (alone,) = milestone_run(compose, cache, "warmup_cosine", 2)
+    assert first.outcome.steps == alone.outcome.steps
+    assert (first.theta - alone.theta).abs().max() > 1e-3

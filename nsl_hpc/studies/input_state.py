@@ -16,13 +16,14 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.datasets import build_test_set, build_training_set, points_per_trajectory, training_points
-from nsl_hpc.lockstep import Member, predict_derivatives, train_lockstep
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.lockstep import Member, Snapshot, predict_derivatives, train_lockstep
 from nsl_hpc.metrics import normalized_errors
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
 from nsl_hpc.studies import Study, draw_tier, require_member, require_positive_int
 from nsl_hpc.systems import SYSTEMS
-from nsl_hpc.training import Scaling, batch_count
+from nsl_hpc.training import SCHEDULES, Scaling, batch_count
 
 TIER_OF = {"data_tier": "data", "width_tier": "width", "depth_tier": "depth"}
 
@@ -46,6 +47,15 @@ class InputState(Study):
         require_positive_int(label, value)
         if key in TIER_OF:
             require_member(label, value, list(base["tiers"][TIER_OF[key]]))
+        if key == self.length_axis:
+            train = base["train"]
+            require_member("train.schedule", train["schedule"], list(SCHEDULES))
+            if train["schedule_epochs"] is not None:
+                require_positive_int("train.schedule_epochs", train["schedule_epochs"])
+                if value > train["schedule_epochs"]:
+                    raise ConfigError(f"{label}={value} is more than train.schedule_epochs="
+                                      f"{train['schedule_epochs']}, the epochs of the milestone runs; raise it "
+                                      "to the largest epoch count or set it to null")
 
     def draw(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
         rng = self.draw_rng(task)
@@ -69,25 +79,40 @@ class InputState(Study):
 
     def train_and_score_pack(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
                              on_progress: Callable[[], None]) -> list[dict[str, Any]]:
-        """Train the items' models in lockstep (they share system, arch, width and depth) and score each on
-        the system's test set; train_seconds is the pack's training time divided among its models."""
-        members = [self.member(cfg, task, sizes) for cfg, task, sizes in items]
+        """Train the items' models in lockstep (they share system, arch and depth) and score each on the
+        system's test set; with epoch milestones (train.schedule_epochs), items that differ only in epochs are
+        one model, scored after each one's epochs. train_seconds is the training time divided among the items."""
+        runs: dict[tuple, list[int]] = {}
+        for i, (cfg, task, _) in enumerate(items):
+            milestones = cfg.train.schedule_epochs is not None
+            runs.setdefault(tuple(task[key] for key in self.draw_keys) if milestones else (i,), []).append(i)
+        members = [self.member(*items[run[0]], epochs=[items[i][1]["epochs"] for i in run]) for run in runs.values()]
         cfg = items[0][0]
         started = time.perf_counter()
-        stack, outcomes = train_lockstep(members, OmegaConf.to_container(cfg.train), on_progress)
+        stack, snapshots = train_lockstep(members, OmegaConf.to_container(cfg.train), on_progress)
         train_seconds = (time.perf_counter() - started) / len(items)
+        kept: list[tuple[Member, Snapshot]] = [None] * len(items)  # per item: its run's member, its snapshot
+        for member, run, member_snapshots in zip(members, runs.values(), snapshots, strict=True):
+            by_epochs = {snapshot.epochs: snapshot for snapshot in member_snapshots}
+            for i in run:
+                kept[i] = (member, by_epochs[items[i][1]["epochs"]])
         test_data = build_test_set(OmegaConf.to_container(cfg.system, resolve=True), ArrayCache(cfg.cache_dir))
-        predictions = predict_derivatives(stack, test_data, [member.scaling for member in members],
-                                          getattr(torch, cfg.train.dtype))
-        return [{**normalized_errors(test_data.dx, predicted), "steps": outcome.steps,
-                 "final_loss": outcome.final_loss, "finite": outcome.finite, "train_seconds": train_seconds}
-                for predicted, outcome in zip(predictions, outcomes, strict=True)]
+        theta = torch.stack([snapshot.theta for _, snapshot in kept])
+        predictions = predict_derivatives(stack, test_data, [member.scaling for member, _ in kept],
+                                          getattr(torch, cfg.train.dtype), theta)
+        return [{**normalized_errors(test_data.dx, predicted), "steps": snapshot.outcome.steps,
+                 "final_loss": snapshot.outcome.final_loss, "finite": snapshot.outcome.finite,
+                 "train_seconds": train_seconds, "milestone": cfg.train.schedule_epochs is not None}
+                for predicted, (_, snapshot) in zip(predictions, kept, strict=True)]
 
-    def member(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any]) -> Member:
-        """The task's initialised model and training data, ready for ``train_lockstep``."""
+    def member(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
+               epochs: Sequence[int]) -> Member:
+        """The task's initialised model and training data, ready for ``train_lockstep``, trained to the largest
+        of ``epochs`` and kept after each."""
         system_class = SYSTEMS[task["system"]]
         torch.manual_seed(self.seed_for("init", task))
         model = build_model(cfg.arch, system_class.state_dim, system_class.input_dim, sizes["width"], sizes["depth"])
         system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
         data = build_training_set(system_cfg, task["seed"], sizes["n_traj"], ArrayCache(cfg.cache_dir))
-        return Member(model, data, Scaling.fit(data), task["epochs"], self.seed_for("shuffle", task))
+        return Member(model, data, Scaling.fit(data), max(epochs), self.seed_for("shuffle", task),
+                      milestones=tuple(epochs), schedule_epochs=cfg.train.schedule_epochs or 0)
