@@ -160,10 +160,10 @@ def interpolate(table: Mapping[tuple[int, int], float], widths: list[int], depth
 def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, float]) -> dict[str, float]:
     """Core-hours of the input-state study: reference (each task its own process: interpreter, imports,
     simulated data, its steps, scoring, writing) and ours (the launcher's lockstep groups of ``pack_size``:
-    a group costs its longest member's steps at the step time of its widest member and its size, between
-    the measured K = 1 and K = ``pack_size``; per task data from the cache, scoring and writing)."""
+    a step costs the step time of its widest member for the models still training, between the measured
+    K = 1 and K = ``pack_size``; per task data from the cache, scoring and writing)."""
     from nsl_hpc.grid import build_manifest
-    from nsl_hpc.plan import lockstep_groups, lockstep_settings, run_key
+    from nsl_hpc.plan import lockstep_groups, lockstep_settings, model_steps
     from nsl_hpc.studies import study_named
     from nsl_hpc.sweep import pair_configs
 
@@ -195,9 +195,11 @@ def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, 
         for group in groups:
             arch, width, depth = group[0]["arch"], max(t["width"] for t in group), group[0]["depth"]
             single, packed = step_cost(arch, "single", width, depth), step_cost(arch, "packed", width, depth)
-            models = len({run_key(task, settings) for task in group})
-            step = single + (packed - single) * (models - 1) / max(1, cfg.pack_size - 1)
-            seconds += max(t["steps"] for t in group) * step
+            steps, done = model_steps(group, settings), 0
+            for index, stop in enumerate(steps):  # models that have finished leave the stack
+                training = len(steps) - index
+                seconds += (stop - done) * (single + (packed - single) * (training - 1) / max(1, cfg.pack_size - 1))
+                done = stop
         return seconds, len(groups)
 
     (faithful, groups), (milestones, _) = ours(lockstep), ours({**lockstep, "run_keys": list(study.draw_keys)})

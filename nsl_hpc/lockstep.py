@@ -124,6 +124,10 @@ class Adam:
         self.first, self.second = torch.zeros_like(theta), torch.zeros_like(theta)
         self.steps = 0
 
+    def keep(self, rows: torch.Tensor, theta: torch.Tensor) -> None:
+        """Keep the moments of ``rows``; ``theta`` is the stack's new parameter tensor."""
+        self.theta, self.first, self.second = theta, self.first[rows], self.second[rows]
+
     def step(self, grad: torch.Tensor, lr: torch.Tensor) -> None:
         """One update from the parameters' gradient ``grad`` (K, P), overwritten, with learning rates ``lr``
         (K, 1)."""
@@ -138,61 +142,106 @@ class Adam:
         self.theta.addcdiv_(self.first * step_size, denominator, value=-1.0)
 
 
+class Lockstep:
+    """The state of the models still training: their rows of the stack and of Adam's moments, their data and
+    batch plans; ``member`` maps a row to its member's index."""
+
+    def __init__(self, members: Sequence[Member], cfg: Mapping[str, Any]):
+        self.cfg, self.dtype = cfg, getattr(torch, cfg["dtype"])
+        self.stack = StackedModels([member.model for member in members], self.dtype)
+        self.optimizer = Adam(self.stack.theta, cfg["grad_clip_norm"], self.stack.scale)
+        self.data = stacked_data(members, self.dtype)
+        self.pad = self.data.shape[1] - 1
+        width = max(max(stop - start for start, stop in batch_bounds(len(mb.data), cfg["batch_size"]))
+                    for mb in members)
+        self.plans = [BatchPlan(len(mb.data), cfg["batch_size"], mb.epochs, mb.shuffle_seed, width, self.pad)
+                      for mb in members]
+        self.totals = np.array([plan.steps for plan in self.plans])
+        self.schedules = np.array([(mb.schedule_epochs or mb.epochs) * len(plan.slots)
+                                   for mb, plan in zip(members, self.plans, strict=True)])
+        self.member = list(range(len(members)))
+
+    def keep(self, rows: list[int]) -> None:
+        """Train only these rows from now on (the others have finished)."""
+        index = torch.tensor(rows, dtype=torch.long)
+        self.stack.keep(index)
+        self.optimizer.keep(index, self.stack.theta)
+        self.data = self.data[index]
+        self.plans = [self.plans[row] for row in rows]
+        self.totals, self.schedules = self.totals[rows], self.schedules[rows]
+        self.member = [self.member[row] for row in rows]
+
+    def train_block(self, start: int, size: int, after_step: Callable[[int, torch.Tensor], None]) -> torch.Tensor:
+        """Steps start .. start + size - 1 of every row; returns their losses (size, rows).
+        ``after_step(step, losses)`` is called after each update."""
+        n, m, cfg, dtype = self.stack.n, self.stack.m, self.cfg, self.dtype
+        rows = torch.stack([plan.take(size) for plan in self.plans])  # (K, L, W)
+        offsets = (torch.arange(len(self.plans)) * self.data.shape[1])[:, None, None]
+        batches = self.data.flatten(0, 1)[(rows + offsets).transpose(0, 1)]  # (L, K, W, 2n + 2m)
+        inputs, targets = batches[..., :n + m], batches[..., n + m:]
+        weights = loss_weights(targets, (rows != self.pad).transpose(0, 1).unsqueeze(-1).to(dtype), m,
+                               cfg["output_weight"], cfg["loss_std_floor"])
+        steps = np.arange(start, start + size)[:, None]
+        rates = learning_rate_at(steps, self.schedules, cfg["schedule"], cfg["warmup_fraction"], cfg["lr"])
+        rates = torch.as_tensor(rates * (steps < self.totals), dtype=dtype).unsqueeze(-1)  # (L, K, 1)
+        losses = torch.empty(size, len(self.plans), dtype=dtype)
+        for i in range(size):
+            predicted_dz, predicted_y = self.stack.forward(inputs[i, :, :, :n], inputs[i, :, :, n:])
+            residual = (torch.cat([predicted_dz, predicted_y], dim=-1) - targets[i]) * weights[i]
+            step_losses = residual.square().sum(dim=(1, 2))
+            self.optimizer.step(self.stack.parameter_gradient(step_losses.sum()), rates[i])
+            losses[i] = step_losses.detach()
+            after_step(start + i, losses[i])
+        return losses
+
+
 def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progress: Callable[[], None] = lambda: None
                    ) -> tuple[StackedModels, list[list[Snapshot]]]:
-    """Train every member as if alone (``cfg`` is the ``train`` group); returns the trained stack and each
-    member's snapshots, by epochs (the last after its ``epochs``). ``on_progress`` is called after every
-    block of ``BLOCK_STEPS`` steps (a heartbeat)."""
-    dtype = getattr(torch, cfg["dtype"])
-    stack = StackedModels([member.model for member in members], dtype)
-    n, m = stack.n, stack.m
-    data = stacked_data(members, dtype)
-    flat_data, pad = data.flatten(0, 1), data.shape[1] - 1
-    width = max(max(stop - start for start, stop in batch_bounds(len(mb.data), cfg["batch_size"])) for mb in members)
-    plans = [BatchPlan(len(mb.data), cfg["batch_size"], mb.epochs, mb.shuffle_seed, width, pad) for mb in members]
-    totals = np.array([plan.steps for plan in plans])
-    schedules = np.array([(mb.schedule_epochs or mb.epochs) * len(plan.slots) for mb, plan in zip(members, plans,
-                                                                                                  strict=True)])
+    """Train every member as if alone (``cfg`` is the ``train`` group); returns the stack and each member's
+    snapshots, by epochs (the last after its ``epochs``). Models that have finished leave the stack at the
+    end of a block, so the stack holds the models that trained longest. ``on_progress`` is called after
+    every block of ``BLOCK_STEPS`` steps (a heartbeat)."""
+    run = Lockstep(members, cfg)
     due: dict[int, list[tuple[int, int]]] = {}  # step index -> (member, epochs) snapshotted after it
-    for k, (member, plan) in enumerate(zip(members, plans, strict=True)):
+    for k, (member, plan) in enumerate(zip(members, run.plans, strict=True)):
         for epochs in sorted({*member.milestones, member.epochs}):
             due.setdefault(epochs * len(plan.slots) - 1, []).append((k, epochs))
     snapshots: list[list[Snapshot]] = [[] for _ in members]
-    offsets = (torch.arange(len(members)) * data.shape[1])[:, None, None]
-    optimizer = Adam(stack.theta, cfg["grad_clip_norm"], stack.scale)
     outcomes: list[TrainingOutcome | None] = [None if plan.steps else TrainingOutcome(0, math.nan, finite=True)
-                                              for plan in plans]
-    total = int(totals.max(initial=0))
+                                              for plan in run.plans]
+
+    def take_snapshots(step: int, losses: torch.Tensor) -> None:
+        for k, epochs in due.get(step, ()):
+            if k not in run.member:  # it diverged and left; its snapshots are taken
+                continue
+            row = run.member.index(k)
+            loss = float(losses[row])
+            snapshots[k].append(Snapshot(epochs, TrainingOutcome(step + 1, loss, finite=math.isfinite(loss)),
+                                         run.stack.theta[row].detach().clone()))
+
+    total = int(run.totals.max(initial=0))
     with tqdm(total=total, desc="steps", unit="step", disable=None, leave=False, mininterval=1.0) as bar:
         for start in range(0, total, BLOCK_STEPS):
             size = min(BLOCK_STEPS, total - start)
-            active = [min(size, plan.remaining) for plan in plans]  # steps of each model in this block
-            rows = torch.stack([plan.take(size) for plan in plans])  # (K, L, W)
-            batches = flat_data[(rows + offsets).transpose(0, 1)]  # (L, K, W, 2n + 2m)
-            inputs, targets = batches[..., :n + m], batches[..., n + m:]
-            weights = loss_weights(targets, (rows != pad).transpose(0, 1).unsqueeze(-1).to(dtype), m,
-                                   cfg["output_weight"], cfg["loss_std_floor"])
-            steps = np.arange(start, start + size)[:, None]
-            rates = learning_rate_at(steps, schedules, cfg["schedule"], cfg["warmup_fraction"], cfg["lr"])
-            rates = torch.as_tensor(rates * (steps < totals), dtype=dtype).unsqueeze(-1)  # (L, K, 1)
-            losses = torch.empty(size, len(members), dtype=dtype)
-            for i in range(size):
-                predicted_dz, predicted_y = stack.forward(inputs[i, :, :, :n], inputs[i, :, :, n:])
-                residual = (torch.cat([predicted_dz, predicted_y], dim=-1) - targets[i]) * weights[i]
-                step_losses = residual.square().sum(dim=(1, 2))
-                optimizer.step(stack.parameter_gradient(step_losses.sum()), rates[i])
-                losses[i] = step_losses.detach()
-                for k, epochs in due.get(start + i, ()):
-                    loss = float(losses[i, k])
-                    outcome = TrainingOutcome(start + i + 1, loss, finite=math.isfinite(loss))
-                    snapshots[k].append(Snapshot(epochs, outcome, stack.theta[k].detach().clone()))
-            for k, plan in enumerate(plans):
-                if outcomes[k] is None and active[k]:
-                    outcomes[k] = settle(plan, losses[:active[k], k], start)
+            active = [min(size, plan.remaining) for plan in run.plans]  # steps of each row in this block
+            losses = run.train_block(start, size, take_snapshots)
+            for row, k in enumerate(run.member):
+                if outcomes[k] is None and active[row]:
+                    outcomes[k] = settle(run.plans[row], losses[:active[row], row], start)
+            training = [row for row, k in enumerate(run.member) if outcomes[k] is None]
+            if len(training) < len(run.member) and start + size < total:
+                for row, k in enumerate(run.member):  # a diverged model's later snapshots: its last parameters
+                    if outcomes[k] is not None:
+                        snapshots[k] += [Snapshot(epochs, outcomes[k], run.stack.theta[row].detach().clone())
+                                         for step, entries in due.items() if step >= start + size
+                                         for kk, epochs in entries if kk == k]
+                if not training:
+                    break
+                run.keep(training)
             bar.update(size)
             on_progress()
-    return stack, [[with_divergence(snapshot, outcome) for snapshot in member_snapshots]
-                   for member_snapshots, outcome in zip(snapshots, outcomes, strict=True)]
+    return run.stack, [[with_divergence(snapshot, outcome) for snapshot in member_snapshots]
+                       for member_snapshots, outcome in zip(snapshots, outcomes, strict=True)]
 
 
 def with_divergence(snapshot: Snapshot, final: TrainingOutcome | None) -> Snapshot:

@@ -51,14 +51,26 @@ def lockstep_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, A
     return groups
 
 
+def model_steps(group: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any]) -> list[int]:
+    """The steps each model of a lockstep group trains (its longest task's), ascending."""
+    steps: dict[tuple, int] = {}
+    for task in group:
+        key = run_key(task, lockstep)
+        steps[key] = max(steps.get(key, 0), task["steps"])
+    return sorted(steps.values())
+
+
 def group_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any], lockstep: Mapping[str, Any]) -> float:
-    """Predicted wall time (s) of a lockstep group: its longest member at its largest member's size, each
-    further model adding ``cost.lockstep_extra`` of a step."""
-    longest = max(group, key=lambda task: task["steps"])
-    params = max(task["params"] for task in group)
-    alone = predicted_seconds(longest["arch"], longest["steps"], params, cost)
-    models = len({run_key(task, lockstep) for task in group})
-    return cost["startup_s"] + (alone - cost["startup_s"]) * (1 + (models - 1) * cost["lockstep_extra"])
+    """Predicted wall time (s) of a lockstep group: a step of its largest member costs what it costs alone,
+    plus ``cost.lockstep_extra`` of that for each further model still training (finished ones leave)."""
+    largest = max(group, key=lambda task: task["params"])
+    per_step = predicted_seconds(largest["arch"], 1, largest["params"], cost) - cost["startup_s"]
+    steps = model_steps(group, lockstep)
+    seconds, done = cost["startup_s"], 0
+    for index, stop in enumerate(steps):
+        seconds += (stop - done) * per_step * (1 + (len(steps) - index - 1) * cost["lockstep_extra"])
+        done = stop
+    return seconds
 
 
 def planned_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any], cost: Mapping[str, Any]

@@ -121,6 +121,13 @@ class StackedModels:
             chains.append(Chain(tuple(heads), tuple(itertools.pairwise(dims))))
         return chains
 
+    def keep(self, rows: torch.Tensor) -> None:
+        """Keep only the models of ``rows`` (K',): ``theta`` becomes a new (K', P) tensor."""
+        self.theta = self.theta.detach()[rows]
+        self.parameters = [tensor.requires_grad_(True) for layers in self.layers(self.theta)
+                           for layer in layers for tensor in layer]
+        self.gradient_scale = self.gradient_scale[rows]
+
     def storage_scale(self, dtype: torch.dtype) -> torch.Tensor:
         """(1, P): ``theta`` holds each parameter times this factor, which puts the tanh-as-sigmoid factors
         into storage (see ``heads_forward``): weight and bias of a first layer 2, of a hidden layer 4 and 2,

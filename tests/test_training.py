@@ -1,5 +1,7 @@
 """Training: schedule, batching, loss, and real learning of every architecture on every system."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -78,14 +80,16 @@ def test_a_model_trained_in_a_pack_matches_it_trained_alone(arch, compose, cache
     system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
     test = build_test_set(system_cfg, cache)
     members = []
-    for seed, (n_traj, epochs, width) in enumerate([(0.7, 7, 6), (1.3, 4, 3), (2.05, 3, 6)]):
+    for seed, (n_traj, epochs, width) in enumerate([(0.7, 7, 6), (1.3, 4, 3), (2.05, 6, 6)]):
         data = build_training_set(system_cfg, seed, n_traj, cache)
         torch.manual_seed(seed)
         model = build_model(cfg.arch, 4, 2, width=width, depth=2)  # the narrower one is zero-padded
         members.append(Member(model, data, Scaling.fit(data), epochs, shuffle_seed=10 + seed))
     stack, snapshots = train_lockstep(members, cfg.train)
+    assert stack.count == 1  # the models that finished sooner left the stack
     outcomes = [member_snapshots[-1].outcome for member_snapshots in snapshots]
-    packed = predict_derivatives(stack, test, [m.scaling for m in members], torch.float32)
+    packed = predict_derivatives(stack, test, [m.scaling for m in members], torch.float32,
+                                 torch.stack([member_snapshots[-1].theta for member_snapshots in snapshots]))
     for member, outcome, predicted in zip(members, outcomes, packed, strict=True):
         alone, ((*_, last),) = train_lockstep([member], cfg.train)
         single = last.outcome
@@ -122,3 +126,23 @@ def test_epoch_milestones_with_warmup_cosine_follow_the_longer_schedule(compose,
     (alone,) = milestone_run(compose, cache, "warmup_cosine", 2)
     assert first.outcome.steps == alone.outcome.steps
     assert (first.theta - alone.theta).abs().max() > 1e-3
+
+
+def test_a_diverging_model_leaves_the_others_of_its_pack_as_they_are_alone(compose, cache):
+    """A model whose data hold a NaN diverges at its first batch (outcome not finite, snapshots of its later
+    milestones not finite either); the other models of its pack train as they do alone."""
+    cfg = compose("system=spring", "arch=port_hamiltonian")
+    data = build_training_set(OmegaConf.to_container(cfg.system, resolve=True), 0, 1.3, cache)
+    poisoned = dataclasses.replace(data, dx=np.where(np.arange(len(data))[:, None] == 5, np.nan, data.dx))
+
+    def member(dataset, epochs, milestones=()):
+        torch.manual_seed(0)
+        model = build_model(cfg.arch, 4, 2, width=4, depth=1)
+        return Member(model, dataset, Scaling.fit(data), epochs, 3, milestones)
+
+    _, (bad, good) = train_lockstep([member(poisoned, 8, (2,)), member(data, 10)], cfg.train)
+    assert [snapshot.epochs for snapshot in bad] == [2, 8]
+    assert all(not snapshot.outcome.finite and snapshot.outcome.steps <= 6 for snapshot in bad)
+    _, (alone,) = train_lockstep([member(data, 10)], cfg.train)
+    assert good[-1].outcome.finite and good[-1].outcome.final_loss == pytest.approx(alone[-1].outcome.final_loss,
+                                                                                    rel=PACKED_RTOL)
