@@ -98,16 +98,22 @@ def test_raising_task_is_recorded_failed_with_its_log(tmp_path):
     assert "failed 1" in status.stdout and "RuntimeError: injected fault" in status.stdout
 
 
+def rows_of_local_sweep(sweep_dir, grid, extra, tasks):
+    """Launch ``grid`` with the local launcher into ``sweep_dir`` (all ``tasks`` must finish ok); the launch
+    output and the rows."""
+    result = nsl("launch", *grid, "launcher=local", f"sweep_dir={sweep_dir}", extra)
+    assert result.returncode == 0 and f"finished: {tasks} ok" in result.stdout, result.stderr
+    return result.stdout, [read_row(path) for path in row_files(sweep_dir)]
+
+
 def test_lockstep_groups_give_the_rows_of_tasks_trained_alone(tmp_path):
     """12 tasks of at most 4 shapes: trained in lockstep groups by the local launcher, each task's row holds
     what training it alone gives (to the packed tolerance of tests/test_training.py)."""
     grid = [*TINY_GRID, "sweep.grid.width_tier=[2]", "sweep.grid.seed=[0,1,2,3,4,5]", "sweep.grid.epochs=[2,3]"]
     rows = {}
     for name, extra in (("packed", "lockstep.size=16"), ("alone", ALONE)):
-        sweep_dir = tmp_path / name
-        result = nsl("launch", *grid, "launcher=local", f"sweep_dir={sweep_dir}", extra)
-        assert result.returncode == 0 and "finished: 12 ok" in result.stdout, result.stderr
-        rows[name] = {row["task_id"]: row for row in map(read_row, row_files(sweep_dir))}
+        _, found = rows_of_local_sweep(tmp_path / name, grid, extra, 12)
+        rows[name] = {row["task_id"]: row for row in found}
     manifest = pq.read_table(tmp_path / "packed" / "manifest.parquet").to_pylist()
     assert len({(t["width"], t["depth"]) for t in manifest}) < 12  # some tasks did share a group
     assert rows["packed"].keys() == rows["alone"].keys()
@@ -125,11 +131,9 @@ def test_epoch_milestone_rows_with_a_constant_learning_rate_are_the_rows_of_sepa
     grid = [*TINY_GRID, "sweep.grid.seed=[0,1,2]", "sweep.grid.epochs=[2,4]", "train.schedule=constant"]
     rows = {}
     for name, extra in (("milestones", "train.schedule_epochs=4"), ("separate", ALONE)):
-        sweep_dir = tmp_path / name
-        result = nsl("launch", *grid, "launcher=local", f"sweep_dir={sweep_dir}", extra)
-        assert result.returncode == 0 and "finished: 6 ok" in result.stdout, result.stderr
-        assert name == "separate" or "6 tasks as 3 models" in result.stdout
-        rows[name] = {(row["seed"], row["epochs"]): row for row in map(read_row, row_files(sweep_dir))}
+        output, found = rows_of_local_sweep(tmp_path / name, grid, extra, 6)
+        assert name == "separate" or "6 tasks as 3 models" in output
+        rows[name] = {(row["seed"], row["epochs"]): row for row in found}
     assert rows["milestones"].keys() == rows["separate"].keys() and len(rows["separate"]) == 6
     for key, separate in rows["separate"].items():
         milestone = rows["milestones"][key]
