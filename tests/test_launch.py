@@ -54,6 +54,9 @@ def test_dry_run_writes_manifest_and_plan_only(tmp_path):
     (["+sweep=demo", "sweep.grid.epochs=[]"], "the grid has zero tasks"),
     (["+sweep=demo", "sweep.grid.data_tier=[3]"], "sweep.grid.data_tier value=3 is outside the grid"),
     (["+sweep=demo", "packing.time_classes_minutes=[0.001]"], "more than the largest of packing.time_classes"),
+    (["+sweep=demo", "lockstep.size=0"], "lockstep.size=0 must be a positive integer"),
+    (["+sweep=demo", "lockstep.width_buckets=[4,x]"], "lockstep.width_buckets value='x' must be a positive integer"),
+    (["+sweep=demo", "train.schedule=linear"], "train.schedule='linear' is unknown; choose one of"),
 ])
 def test_bad_launches_fail_before_anything_is_written(args, message, tmp_path):
     sweep_dir = tmp_path / "sweep"

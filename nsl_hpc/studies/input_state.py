@@ -49,7 +49,9 @@ class InputState(Study):
             require_member(label, value, list(base["tiers"][TIER_OF[key]]))
         if key == self.length_axis:
             train = base["train"]
-            require_member("train.schedule", train["schedule"], list(SCHEDULES))
+            if train["schedule"] not in SCHEDULES:
+                raise ConfigError(f"train.schedule={train['schedule']!r} is unknown; choose one of: "
+                                  f"{', '.join(SCHEDULES)}")
             if train["schedule_epochs"] is not None:
                 require_positive_int("train.schedule_epochs", train["schedule_epochs"])
                 if value > train["schedule_epochs"]:
