@@ -41,9 +41,10 @@ def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str)
         by_limit[pack.time_limit_min] = by_limit.get(pack.time_limit_min, 0) + 1
     classes = ", ".join(f"{n:,} x {limit} min" for limit, n in sorted(by_limit.items()))
     core_hours = sum(pack.seconds for pack in packs) / 3600
+    predicted = f"{core_hours:,.1f} core-hours" if core_hours >= 1 else f"{core_hours * 60:.1f} core-minutes"
     return (f"sweep {prepared.sweep_dir}: {total:,} tasks, {done:,} done, {todo:,} to run\n"
             f"  jobs: {len(packs):,} ({launcher}; time limits: {classes or 'none'})\n"
-            f"  predicted: {core_hours:,.1f} core-hours")
+            f"  predicted: {predicted}")
 
 
 def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
