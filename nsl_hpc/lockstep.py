@@ -1,11 +1,12 @@
-"""Training of K input-state models of one shape in lockstep, each as if it were trained alone.
+"""Training of K input-state models of one architecture and depth in lockstep, each as if trained alone.
 
-Each model keeps its own initial weights, data (size and scaling), shuffle generator, batch order, epoch
-count and learning-rate schedule: at step s model k takes its own s-th mini-batch, exactly the one it takes
-when trained alone (K = 1, the single-model path). Mini-batches of different lengths are padded and masked;
-a model that has finished (or diverged) gets padding only: zero loss weight and learning rate 0. The loss,
-the gradient-norm clipping and Adam (torch.optim.Adam's arithmetic) are computed per model, in a few
-operations on the (K, P) parameter rows of ``nsl_hpc.stacked``.
+Each model keeps its own initial weights, width, data (size and scaling), shuffle generator, batch order,
+epoch count and learning-rate schedule: at step s model k takes its own s-th mini-batch, exactly the one it
+takes when trained alone (K = 1, the single-model path). Mini-batches of different lengths are padded and
+masked; a model that has finished (or diverged) gets padding only (zero loss weight, learning rate 0) until
+the end of the block, then leaves the stack. The loss, the gradient-norm clipping and Adam
+(torch.optim.Adam's arithmetic) are computed per model, in a few operations on the (K, P) parameter rows of
+``nsl_hpc.stacked``. A model is kept (``Snapshot``) after its epochs and after each of its milestones.
 
 Everything that does not depend on the parameters is prepared for a block of steps at once: the batches'
 rows (one gather), their loss weights (the batch spreads of the targets) and the learning rates. A step is
