@@ -165,7 +165,7 @@ def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, 
     a step costs the step time of its widest member for the models still training, between the measured
     K = 1 and K = ``pack_size``; per task data from the cache, scoring and writing)."""
     from nsl_hpc.grid import build_manifest
-    from nsl_hpc.plan import lockstep_groups, lockstep_settings, model_steps
+    from nsl_hpc.plan import lockstep_groups, lockstep_settings, training_segments
     from nsl_hpc.studies import study_named
     from nsl_hpc.sweep import pair_configs
 
@@ -197,11 +197,8 @@ def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, 
         for group in groups:
             arch, width, depth = group[0]["arch"], max(t["width"] for t in group), group[0]["depth"]
             single, packed = step_cost(arch, "single", width, depth), step_cost(arch, "packed", width, depth)
-            steps, done = model_steps(group, settings), 0
-            for index, stop in enumerate(steps):  # models that have finished leave the stack
-                training = len(steps) - index
-                seconds += (stop - done) * (single + (packed - single) * (training - 1) / max(1, cfg.pack_size - 1))
-                done = stop
+            seconds += sum(steps * (single + (packed - single) * (models - 1) / max(1, cfg.pack_size - 1))
+                           for steps, models in training_segments(group, settings))
         return seconds, len(groups)
 
     (faithful, groups), (milestones, _) = ours(lockstep), ours({**lockstep, "run_keys": list(study.draw_keys)})

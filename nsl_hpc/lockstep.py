@@ -203,9 +203,10 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progres
     end of a block, so the stack holds the models that trained longest. ``on_progress`` is called after
     every block of ``BLOCK_STEPS`` steps (a heartbeat)."""
     run = Lockstep(members, cfg)
-    due: dict[int, list[tuple[int, int]]] = {}  # step index -> (member, epochs) snapshotted after it
-    for k, (member, plan) in enumerate(zip(members, run.plans, strict=True)):
-        for epochs in sorted({*member.milestones, member.epochs}):
+    pending = [sorted({*member.milestones, member.epochs}) for member in members]  # epochs not yet kept, per member
+    due: dict[int, list[tuple[int, int]]] = {}  # step index -> (member, epochs) kept after it
+    for k, plan in enumerate(run.plans):
+        for epochs in pending[k]:
             due.setdefault(epochs * len(plan.slots) - 1, []).append((k, epochs))
     snapshots: list[list[Snapshot]] = [[] for _ in members]
     outcomes: list[TrainingOutcome | None] = [None if plan.steps else TrainingOutcome(0, math.nan, finite=True)
@@ -213,12 +214,13 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progres
 
     def take_snapshots(step: int, losses: torch.Tensor) -> None:
         for k, epochs in due.get(step, ()):
-            if k not in run.member:  # it diverged and left; its snapshots are taken
+            if epochs not in pending[k]:  # it diverged and left with its snapshots
                 continue
             row = run.member.index(k)
             loss = float(losses[row])
             snapshots[k].append(Snapshot(epochs, TrainingOutcome(step + 1, loss, finite=math.isfinite(loss)),
                                          run.stack.theta[row].detach().clone()))
+            pending[k].remove(epochs)
 
     total = int(run.totals.max(initial=0))
     with tqdm(total=total, desc="steps", unit="step", disable=None, leave=False, mininterval=1.0) as bar:
@@ -234,8 +236,8 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progres
                 for row, k in enumerate(run.member):  # a diverged model's later snapshots: its last parameters
                     if outcomes[k] is not None:
                         snapshots[k] += [Snapshot(epochs, outcomes[k], run.stack.theta[row].detach().clone())
-                                         for step, entries in due.items() if step >= start + size
-                                         for kk, epochs in entries if kk == k]
+                                         for epochs in pending[k]]
+                        pending[k] = []
                 if not training:
                     break
                 run.keep(training)

@@ -60,17 +60,20 @@ def model_steps(group: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any])
     return sorted(steps.values())
 
 
+def training_segments(group: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any]) -> list[tuple[int, int]]:
+    """(steps, models training) of a lockstep group, segment by segment: models that finish leave."""
+    steps = model_steps(group, lockstep)
+    return [(stop - start, len(steps) - index)
+            for index, (start, stop) in enumerate(zip([0, *steps[:-1]], steps, strict=True))]
+
+
 def group_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any], lockstep: Mapping[str, Any]) -> float:
     """Predicted wall time (s) of a lockstep group: a step of its largest member costs what it costs alone,
     plus ``cost.lockstep_extra`` of that for each further model still training (finished ones leave)."""
     largest = max(group, key=lambda task: task["params"])
     per_step = predicted_seconds(largest["arch"], 1, largest["params"], cost) - cost["startup_s"]
-    steps = model_steps(group, lockstep)
-    seconds, done = cost["startup_s"], 0
-    for index, stop in enumerate(steps):
-        seconds += (stop - done) * per_step * (1 + (len(steps) - index - 1) * cost["lockstep_extra"])
-        done = stop
-    return seconds
+    return cost["startup_s"] + sum(steps * per_step * (1 + (models - 1) * cost["lockstep_extra"])
+                                   for steps, models in training_segments(group, lockstep))
 
 
 def planned_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any], cost: Mapping[str, Any]

@@ -92,9 +92,7 @@ class StackedModels:
             raise ValueError(f"models stacked together need one architecture and depth ({self.kind.__name__}, "
                              f"n_d {self.depth}); widths may differ")
         self.chains = self.chains_of([heads_of(model) for model in models])
-        self.theta = torch.zeros(len(models), sum(self.chain_size(chain) for chain in self.chains), dtype=dtype)
-        self.parameters = [tensor.requires_grad_(True) for layers in self.layers(self.theta)
-                           for layer in layers for tensor in layer]
+        self.use_theta(torch.zeros(len(models), sum(self.chain_size(chain) for chain in self.chains), dtype=dtype))
         self.scale = self.storage_scale(dtype)
         mask = torch.zeros_like(self.theta)
         for k, model in enumerate(models):
@@ -121,11 +119,15 @@ class StackedModels:
             chains.append(Chain(tuple(heads), tuple(itertools.pairwise(dims))))
         return chains
 
+    def use_theta(self, theta: torch.Tensor) -> None:
+        """Hold the parameters in ``theta`` (K, P); ``parameters`` are its layers' trainable leaf views."""
+        self.theta = theta
+        self.parameters = [tensor.requires_grad_(True) for layers in self.layers(theta)
+                           for layer in layers for tensor in layer]
+
     def keep(self, rows: torch.Tensor) -> None:
         """Keep only the models of ``rows`` (K',): ``theta`` becomes a new (K', P) tensor."""
-        self.theta = self.theta.detach()[rows]
-        self.parameters = [tensor.requires_grad_(True) for layers in self.layers(self.theta)
-                           for layer in layers for tensor in layer]
+        self.use_theta(self.theta.detach()[rows])
         self.gradient_scale = self.gradient_scale[rows]
 
     def storage_scale(self, dtype: torch.dtype) -> torch.Tensor:
