@@ -1,7 +1,9 @@
 """Training and test sets of a simulated system, assembled from cached trajectories.
 
 Trajectory i of seed s is the same wherever it is used: a task with n_t trajectories takes a prefix of
-the pool (system, s), so tasks of one seed share cached simulations. The test set has its own seed.
+the pool (system, s), so tasks of one seed share cached simulations. The test set (``system.test_set``:
+100 trajectories in the study) has a seed of its own, is simulated in one go and is the same for every task
+of a system.
 """
 
 import math
@@ -17,7 +19,7 @@ from nsl_hpc.systems import build_system
 from nsl_hpc.systems.simulation import Trajectory, draw_multisine, simulate
 
 # Bump when the simulation code changes results, so cached trajectories are not reused.
-SIMULATION_VERSION = 1
+SIMULATION_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -51,35 +53,39 @@ def training_points(n_traj: float, points: int) -> int:
     return whole * points + partial
 
 
+FIELDS = ("t", "x", "u", "dx", "y")
+
+
+def simulation_key(system_cfg: Mapping[str, Any], **where: Any) -> dict[str, Any]:
+    """Cache key of simulated data: everything the simulation depends on, and ``where`` in which pool."""
+    return {"version": SIMULATION_VERSION,
+            "system": {k: system_cfg[k] for k in ("name", "params", "initial_box", "input", "simulation")}, **where}
+
+
 def load_trajectory(system_cfg: Mapping[str, Any], split: str, seed: int, index: int,
                     cache: ArrayCache) -> Trajectory:
     """Trajectory ``index`` of the pool (system, split, seed), simulated once and then read from cache."""
-    key = {
-        "version": SIMULATION_VERSION,
-        "system": {k: system_cfg[k] for k in ("name", "params", "initial_box", "input", "simulation")},
-        "split": split,
-        "seed": seed,
-        "index": index,
-    }
+    key = simulation_key(system_cfg, split=split, seed=seed, index=index)
 
     def create() -> dict[str, np.ndarray]:
-        trajectory = simulate_trajectory(system_cfg, stable_seed("trajectory", key))
-        return {field: getattr(trajectory, field) for field in ("t", "x", "u", "dx", "y")}
+        (trajectory,) = simulate_experiments(system_cfg, stable_seed("trajectory", key), 1)
+        return {field: getattr(trajectory, field) for field in FIELDS}
 
     return Trajectory(**cache.get_or_create(key, create))
 
 
-def simulate_trajectory(system_cfg: Mapping[str, Any], seed: int) -> Trajectory:
-    """One experiment: x0 uniform in the initial box, a fresh multisine per input channel."""
+def simulate_experiments(system_cfg: Mapping[str, Any], seed: int, count: int) -> list[Trajectory]:
+    """``count`` experiments simulated together: x0 uniform in the initial box, a fresh multisine per
+    experiment and input channel."""
     system = build_system(system_cfg["name"], system_cfg["params"])
     rng = np.random.default_rng(seed)
     box = np.asarray(system_cfg["initial_box"], dtype=float)  # (n, 2)
-    x0 = rng.uniform(box[:, 0], box[:, 1])
-    excitation = draw_multisine(rng, system.input_dim, **system_cfg["input"])
-    trajectory = simulate(system, x0, excitation, **system_cfg["simulation"])
-    if not np.all(np.isfinite(trajectory.x)):
+    x0 = rng.uniform(box[:, 0], box[:, 1], size=(count, len(box)))
+    excitation = draw_multisine(rng, count, system.input_dim, **system_cfg["input"])
+    trajectories = simulate(system, x0, excitation, **system_cfg["simulation"])
+    if not all(np.all(np.isfinite(trajectory.x)) for trajectory in trajectories):
         raise FloatingPointError(f"simulation of {system_cfg['name']} (seed {seed}) diverged")
-    return trajectory
+    return trajectories
 
 
 def stack(trajectories: list[Trajectory]) -> Dataset:
@@ -96,7 +102,14 @@ def build_training_set(system_cfg: Mapping[str, Any], seed: int, n_traj: float, 
 
 
 def build_test_set(system_cfg: Mapping[str, Any], cache: ArrayCache) -> Dataset:
-    """The fixed test set of a system, shared by every task of that system."""
+    """The fixed test set of a system (``test_set.trajectories`` experiments of its own seed, simulated
+    together once), shared by every task of that system: N = trajectories x points rows."""
     spec = system_cfg["test_set"]
-    return stack([load_trajectory(system_cfg, "test", spec["seed"], i, cache)
-                  for i in range(spec["trajectories"])])
+    key = simulation_key(system_cfg, split="test", seed=spec["seed"], trajectories=spec["trajectories"])
+
+    def create() -> dict[str, np.ndarray]:
+        trajectories = simulate_experiments(system_cfg, stable_seed("test set", key), spec["trajectories"])
+        return {field: np.concatenate([getattr(t, field) for t in trajectories]) for field in FIELDS}
+
+    stored = cache.get_or_create(key, create)
+    return Dataset(*(stored[field] for field in ("x", "u", "dx", "y")))

@@ -73,11 +73,11 @@ def build_manifest(grid: Grid, study: Study, base_configs: Mapping[tuple[str, st
     Refuses a grid with a repeated task (overlapping sub-grids)."""
     identities = {pair: study.shared_identity(values) for pair, values in base_configs.items()}
     columns: dict[str, list] = {"task_id": []}
-    sizes: dict[tuple, dict[str, Any]] = {}  # the draws do not depend on the training length: reuse them
+    sizes: dict[tuple, dict[str, Any]] = {}  # tasks of equal draw keys (shared draws) draw alike: reuse
     for task in expand_grid(grid, study):
         task["sweep_seed"] = sweep_seed
-        key = tuple(task[axis] for axis in study.draw_keys)
         base = base_configs[task["system"], task["arch"]]
+        key = tuple(task[axis] for axis in study.draw_keys(base["draws"]))
         if key not in sizes:
             sizes[key] = study.draw(task, base)
         drawn = {**sizes[key], **study.training_length(task, sizes[key], base)}

@@ -18,6 +18,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from nsl_hpc.models.blocks import LAYER_NORM_EPS
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.records import Record
@@ -109,25 +110,51 @@ def train_io_model(model: nn.Module, record: Record, scaling: SignalScaling, cfg
     return TrainingOutcome(step, loss.item(), finite=True)
 
 
-def numpy_layers(net: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(W^T (in, out), b (out,)) of each Linear layer of a tanh MLP, in float64."""
-    return [(layer.weight.detach().double().numpy().T.copy(), layer.bias.detach().double().numpy().copy())
-            for layer in net if isinstance(layer, nn.Linear)]
+@dataclass(frozen=True)
+class NumpyLayer:
+    """One layer of an MLP in float64: weight (in, out), bias (out,) and, for a hidden layer, its activation
+    (LayerNorm scale and shift (out,) then SiLU, or tanh when ``norm`` is None)."""
+
+    weight: np.ndarray
+    bias: np.ndarray
+    norm: tuple[np.ndarray, np.ndarray] | None = None
+
+    def activate(self, pre: np.ndarray) -> np.ndarray:
+        """The hidden activation of the pre-activation ``pre`` (..., out)."""
+        if self.norm is None:
+            return np.tanh(pre)
+        centered = pre - pre.mean(axis=-1, keepdims=True)
+        scale, shift = self.norm
+        t = centered / np.sqrt(np.mean(np.square(centered), axis=-1, keepdims=True) + LAYER_NORM_EPS) * scale + shift
+        return t / (1.0 + np.exp(-t))
 
 
-def hidden(layers: list[tuple[np.ndarray, np.ndarray]], first: np.ndarray) -> np.ndarray:
+def numpy_layers(net: nn.Sequential) -> list[NumpyLayer]:
+    """The layers of an MLP (``nsl_hpc.models.blocks.mlp``) in float64."""
+    as_numpy = lambda tensor: tensor.detach().double().numpy().copy()  # noqa: E731
+    layers: list[NumpyLayer] = []
+    for module in net:
+        if isinstance(module, nn.Linear):
+            layers.append(NumpyLayer(as_numpy(module.weight).T.copy(), as_numpy(module.bias)))
+        elif isinstance(module, nn.LayerNorm):
+            norm = (as_numpy(module.weight), as_numpy(module.bias))
+            layers[-1] = NumpyLayer(layers[-1].weight, layers[-1].bias, norm)
+    return layers
+
+
+def hidden(layers: list[NumpyLayer], first: np.ndarray) -> np.ndarray:
     """The MLP's output given its first layer's pre-activation ``first`` (..., width)."""
-    h = np.tanh(first)
-    for weight, bias in layers[1:-1]:
-        h = np.tanh(h @ weight + bias)
-    return h @ layers[-1][0] + layers[-1][1]
+    h = layers[0].activate(first)
+    for layer in layers[1:-1]:
+        h = layer.activate(h @ layer.weight + layer.bias)
+    return h @ layers[-1].weight + layers[-1].bias
 
 
 def simulate_narx(model: NARX, u: np.ndarray, y: np.ndarray, init: int) -> np.ndarray:
     """Free-run simulation (N,) on standardised u, y (N,): y_0..y_{init-1} are given, every later output is
     predicted from the model's own past predictions. ``init`` >= max(n_y, n_u)."""
     layers = numpy_layers(model.net)
-    weight, bias = layers[0]
+    weight, bias = layers[0].weight, layers[0].bias
     w_y, w_u = weight[:model.past_outputs], weight[model.past_outputs:]
     t = np.arange(init, len(u))
     windows = np.lib.stride_tricks.sliding_window_view(u, model.past_inputs + 1)[t - model.past_inputs]
@@ -144,12 +171,12 @@ def simulate_subnet(model: SUBNET, u: np.ndarray, y: np.ndarray, init: int) -> n
     ``init`` (its past window, init >= P), then x_{k+1} = x_k + f(x_k, u_k), y_k = h(x_k)."""
     encoder, f, h = (numpy_layers(net) for net in (model.encoder, model.f, model.h))
     past = np.concatenate([u[init - model.past:init], y[init - model.past:init]])
-    x = hidden(encoder, past @ encoder[0][0] + encoder[0][1])
-    w_x, w_u = f[0][0][:model.state_dim], f[0][0][model.state_dim]
-    from_inputs = np.multiply.outer(u[init:], w_u) + f[0][1]  # (N - init, width)
+    x = hidden(encoder, past @ encoder[0].weight + encoder[0].bias)
+    w_x, w_u = f[0].weight[:model.state_dim], f[0].weight[model.state_dim]
+    from_inputs = np.multiply.outer(u[init:], w_u) + f[0].bias  # (N - init, width)
     simulated = y.astype(float).copy()
     for k in range(len(u) - init):
-        simulated[init + k] = hidden(h, x @ h[0][0] + h[0][1])[0]
+        simulated[init + k] = hidden(h, x @ h[0].weight + h[0].bias)[0]
         x = x + hidden(f, from_inputs[k] + x @ w_x)
     return simulated
 

@@ -89,19 +89,34 @@ class BatchPlan:
         self.remaining = 0
 
 
-def loss_weights(targets: torch.Tensor, mask: torch.Tensor, outputs: int, output_weight: float,
-                 floor: float) -> torch.Tensor:
-    """r (..., B, c) such that the loss of a batch is sum over b, c of ((predicted - target) r)^2: the mean
-    over the unmasked samples and the state columns of ((predicted - target) / s_j)^2, plus ``output_weight``
-    times that mean over the last ``outputs`` (output) columns, with s_j the spread (ddof 0, at least
-    ``floor``) of target column j over the batch. targets (..., B, c); mask (..., B, 1) of 0 / 1; a batch with
-    no unmasked sample gets r = 0."""
-    count = mask.sum(dim=-2, keepdim=True).clamp_min(1.0)
-    mean = (targets * mask).sum(dim=-2, keepdim=True) / count
-    spread = (((targets - mean) * mask).square().sum(dim=-2, keepdim=True) / count).sqrt().clamp_min(floor)
+LOSSES = ("normalised_mse", "per_column")
+
+
+def loss_weights(targets: torch.Tensor, mask: torch.Tensor, outputs: int, loss: str, output_weight: float,
+                 eps: float) -> torch.Tensor:
+    """r (..., B, c) such that the loss of a batch is sum over b, c of ((predicted - target) r)^2. targets
+    (..., B, c): the state columns, then ``outputs`` output columns; mask (..., B, 1) of 0 / 1 (a batch with no
+    unmasked sample gets r = 0).
+
+    normalised_mse (the authors'): the mean over the unmasked entries of the state columns of
+    ((predicted - target) / (s + eps))^2, s the standard deviation (ddof 1) of all those entries of the target,
+    plus ``output_weight`` times the same for the output columns. per_column: the mean over the unmasked
+    samples and the state columns of ((predicted - target) / s_j)^2, s_j the spread (ddof 0, at least eps) of
+    target column j, plus ``output_weight`` times that mean over the output columns."""
+    samples = mask.sum(dim=-2, keepdim=True).clamp_min(1.0)  # (..., 1, 1)
     states = targets.shape[-1] - outputs
-    column = targets.new_tensor([1.0 / states] * states + [output_weight / outputs] * outputs)
-    return mask * (column / count).sqrt() / spread
+    weights = []
+    for block, share in ((targets[..., :states], 1.0), (targets[..., states:], output_weight)):
+        entries = samples * block.shape[-1]
+        if loss == "per_column":
+            mean = (block * mask).sum(dim=-2, keepdim=True) / samples
+            spread = (((block - mean) * mask).square().sum(dim=-2, keepdim=True) / samples).sqrt().clamp_min(eps)
+        else:
+            mean = (block * mask).sum(dim=(-2, -1), keepdim=True) / entries
+            deviation = ((block - mean) * mask).square().sum(dim=(-2, -1), keepdim=True)
+            spread = (deviation / (entries - 1).clamp_min(1.0)).sqrt() + eps
+        weights.append((mask * (share / entries).sqrt() / spread).expand_as(block))
+    return torch.cat(weights, dim=-1)
 
 
 def stacked_data(members: Sequence[Member], dtype: torch.dtype) -> torch.Tensor:
@@ -117,11 +132,10 @@ def stacked_data(members: Sequence[Member], dtype: torch.dtype) -> torch.Tensor:
 
 
 class Adam:
-    """torch.optim.Adam with gradient-norm clipping, per row of ``theta`` (K, P), which stores the parameters
-    times ``scale`` (1, P): moments and clipping work on the parameters themselves."""
+    """torch.optim.Adam with gradient-norm clipping (clip_grad_norm_), per row of ``theta`` (K, P)."""
 
-    def __init__(self, theta: torch.Tensor, clip_norm: float, scale: torch.Tensor):
-        self.theta, self.clip_norm, self.scale = theta, clip_norm, scale
+    def __init__(self, theta: torch.Tensor, clip_norm: float):
+        self.theta, self.clip_norm = theta, clip_norm
         self.first, self.second = torch.zeros_like(theta), torch.zeros_like(theta)
         self.steps = 0
 
@@ -139,7 +153,7 @@ class Adam:
         self.first.lerp_(grad, 1 - beta1)
         self.second.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
         denominator = self.second.sqrt().div_(math.sqrt(1 - beta2 ** self.steps)).add_(ADAM_EPS)
-        step_size = (lr / (1 - beta1 ** self.steps)) * self.scale  # (K, P)
+        step_size = lr / (1 - beta1 ** self.steps)  # (K, 1)
         self.theta.addcdiv_(self.first * step_size, denominator, value=-1.0)
 
 
@@ -150,7 +164,7 @@ class Lockstep:
     def __init__(self, members: Sequence[Member], cfg: Mapping[str, Any]):
         self.cfg, self.dtype = cfg, getattr(torch, cfg["dtype"])
         self.stack = StackedModels([member.model for member in members], self.dtype)
-        self.optimizer = Adam(self.stack.theta, cfg["grad_clip_norm"], self.stack.scale)
+        self.optimizer = Adam(self.stack.theta, cfg["grad_clip_norm"])
         self.data = stacked_data(members, self.dtype)
         self.pad = self.data.shape[1] - 1
         width = max(max(stop - start for start, stop in batch_bounds(len(mb.data), cfg["batch_size"]))
@@ -180,8 +194,8 @@ class Lockstep:
         offsets = (torch.arange(len(self.plans)) * self.data.shape[1])[:, None, None]
         batches = self.data.flatten(0, 1)[(rows + offsets).transpose(0, 1)]  # (L, K, W, 2n + 2m)
         inputs, targets = batches[..., :n + m], batches[..., n + m:]
-        weights = loss_weights(targets, (rows != self.pad).transpose(0, 1).unsqueeze(-1).to(dtype), m,
-                               cfg["output_weight"], cfg["loss_std_floor"])
+        weights = loss_weights(targets, (rows != self.pad).transpose(0, 1).unsqueeze(-1).to(dtype), m, cfg["loss"],
+                               cfg["output_weight"], cfg["loss_std_eps"])
         steps = np.arange(start, start + size)[:, None]
         rates = learning_rate_at(steps, self.schedules, cfg["schedule"], cfg["warmup_fraction"], cfg["lr"])
         rates = torch.as_tensor(rates * (steps < self.totals), dtype=dtype).unsqueeze(-1)  # (L, K, 1)
@@ -268,13 +282,16 @@ def settle(plan: BatchPlan, losses: torch.Tensor, start: int) -> TrainingOutcome
 
 
 def predict_derivatives(stack: StackedModels, data: Dataset, scalings: Sequence[Scaling], dtype: torch.dtype,
-                        theta: torch.Tensor | None = None, chunk: int = 4096) -> list[np.ndarray]:
+                        theta: torch.Tensor | None = None, models: Sequence[int] | None = None,
+                        chunk: int = 4096) -> list[np.ndarray]:
     """dx/dt (N, n) on the same ``data``, in physical units, without a graph, of every model of ``stack`` or,
-    given ``theta`` (R, P), of the models with those parameters (a row per scaling)."""
+    given ``theta`` (R, P), of the ``models`` (R indices of the stack's members) with those parameters; a
+    scaling per row."""
     inputs = [scaling.model_inputs(data, dtype) for scaling in scalings]
     z, v = torch.stack([pair[0] for pair in inputs]), torch.stack([pair[1] for pair in inputs])
+    rows = None if models is None else torch.as_tensor(models, dtype=torch.long)
     with torch.no_grad():
-        parts = [stack.forward(z[:, i:i + chunk], v[:, i:i + chunk], theta)[0]
+        parts = [stack.forward(z[:, i:i + chunk], v[:, i:i + chunk], theta, rows)[0]
                  for i in range(0, len(data), chunk)]
     predicted = torch.cat(parts, dim=1).double().numpy()
-    return [predicted[k] * scaling.derivative_rms * scaling.x_std for k, scaling in enumerate(scalings)]
+    return [predicted[k] * scaling.derivative_unit for k, scaling in enumerate(scalings)]

@@ -107,7 +107,7 @@ def time_limit_minutes(seconds: float, packing: Mapping[str, Any]) -> int:
 def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
     """Of a launch config: ``size`` (K, the models a job trains in lockstep: ``lockstep.size`` when enabled
     and the study can, else 1), ``width_buckets``, and ``run_keys``, the keys of one model: with epoch
-    milestones (train.schedule_epochs) the study's draw keys, else none (a model per task)."""
+    milestones (train.schedule_epochs, shared draws) the study's draw keys, else none (a model per task)."""
     from nsl_hpc.studies import require_positive_int, study_named
 
     settings, study = launch["lockstep"], study_named(launch["study"]["name"])
@@ -116,7 +116,8 @@ def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
         require_positive_int("lockstep.width_buckets value", width)
     milestones = study.lockstep and launch["train"].get("schedule_epochs") is not None
     return {"size": settings["size"] if settings["enabled"] and study.lockstep else 1,
-            "width_buckets": list(settings["width_buckets"]), "run_keys": list(study.draw_keys) if milestones else []}
+            "width_buckets": list(settings["width_buckets"]),
+            "run_keys": list(study.draw_keys(launch["draws"])) if milestones else []}
 
 
 def packing_for(packing: Mapping[str, Any], launcher_name: str, time_factor: float = 1.0) -> dict[str, Any]:

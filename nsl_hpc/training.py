@@ -2,13 +2,11 @@
 and the outcome record. The loops are ``nsl_hpc.lockstep`` (input-state models, alone or K in lockstep) and
 ``nsl_hpc.io_training`` (NARX and SUBNET).
 
-Models work in standardised coordinates, fitted on the training data: z = (x - mean_x) / std_x,
-v = (u - mean_u) / std_u, a rescaled time in which dz/dt is O(1), and a rescaled output conjugate to v
-(y std_u, divided by its RMS). A port-Hamiltonian model in these coordinates is one in x, u, t as well:
-the diagonal std_x keeps J skew and R PSD, and the two scalar rescalings (of time and of energy) only
-scale J, R and H. The loss is invariant to these per-column scalings anyway: each column's error is
-divided by the spread of that column's targets in the batch; they matter for optimisation, which
-otherwise spends its steps growing output weights to the targets' magnitude.
+Models read standardised inputs, fitted on the training data (ddof 0, as scikit-learn's StandardScaler):
+z = (x - mean_x) / std_x, v = (u - mean_u) / std_u. Their targets are dx/dt and y as they are (the study's,
+``train.rescale_targets: false``), or rescaled (``true``, nsl_hpc before): dx/dt / std_x in a time unit in
+which it is O(1), and y std_u divided by its RMS (a port-Hamiltonian model in these coordinates is one in x,
+u, t as well: the diagonal std_x keeps J skew and R PSD, and the two scalar rescalings only scale J, R and H).
 """
 
 from dataclasses import dataclass
@@ -26,21 +24,24 @@ def nonzero(scale: np.ndarray | float) -> np.ndarray | float:
 
 @dataclass(frozen=True)
 class Scaling:
-    """Standard scaling fitted on training data: arrays are (n,) or (m,), the rest scalars."""
+    """Input standardisation and target units fitted on training data; arrays are (n,) or (m,)."""
 
     x_mean: np.ndarray
     x_std: np.ndarray
     u_mean: np.ndarray
     u_std: np.ndarray
-    derivative_rms: float  # RMS of dx/dt / std_x: the time rescaling
-    output_rms: float  # RMS of y std_u: the output (energy) rescaling
+    derivative_unit: np.ndarray  # a model's dz/dt target is dx/dt / derivative_unit
+    output_unit: np.ndarray  # and its y target y / output_unit
 
     @classmethod
-    def fit(cls, data: Dataset) -> "Scaling":
+    def fit(cls, data: Dataset, rescale_targets: bool) -> "Scaling":
         x_std, u_std = nonzero(data.x.std(axis=0)), nonzero(data.u.std(axis=0))
+        if not rescale_targets:
+            return cls(data.x.mean(axis=0), x_std, data.u.mean(axis=0), u_std, np.ones_like(x_std),
+                       np.ones_like(u_std))
         rms = lambda a: float(nonzero(np.sqrt(np.mean(np.square(a)))))  # noqa: E731
-        return cls(data.x.mean(axis=0), x_std, data.u.mean(axis=0), u_std,
-                   rms(data.dx / x_std), rms(data.y * u_std))
+        return cls(data.x.mean(axis=0), x_std, data.u.mean(axis=0), u_std, x_std * rms(data.dx / x_std),
+                   rms(data.y * u_std) / u_std)
 
     def model_inputs(self, data: Dataset, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """z (N, n), v (N, m)."""
@@ -48,9 +49,9 @@ class Scaling:
                 torch.as_tensor((data.u - self.u_mean) / self.u_std, dtype=dtype))
 
     def model_targets(self, data: Dataset, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
-        """Rescaled dz/dt (N, n) and conjugate output (N, m)."""
-        return (torch.as_tensor(data.dx / self.x_std / self.derivative_rms, dtype=dtype),
-                torch.as_tensor(data.y * self.u_std / self.output_rms, dtype=dtype))
+        """The dz/dt (N, n) and y (N, m) a model is trained to output."""
+        return (torch.as_tensor(data.dx / self.derivative_unit, dtype=dtype),
+                torch.as_tensor(data.y / self.output_unit, dtype=dtype))
 
 
 def batch_count(samples: int, batch_size: int) -> int:
@@ -69,7 +70,7 @@ SCHEDULES = ("warmup_cosine", "constant")
 
 
 def warmup_cosine(total_steps: int, warmup_fraction: float, lr: float) -> np.ndarray:
-    """Learning rate before each step (total_steps,): linear warm-up over the first fraction, then cosine
+    """Learning rate of each step (total_steps,): linear warm-up from 0 over the first fraction, then cosine
     decay to 0."""
     return learning_rate_at(np.arange(total_steps), np.asarray(total_steps), "warmup_cosine", warmup_fraction, lr)
 
@@ -77,13 +78,14 @@ def warmup_cosine(total_steps: int, warmup_fraction: float, lr: float) -> np.nda
 def learning_rate_at(step: np.ndarray, total_steps: np.ndarray, schedule: str, warmup_fraction: float,
                      lr: float) -> np.ndarray:
     """The learning rate of ``schedule`` (one of SCHEDULES) at steps ``step`` of schedules ``total_steps`` steps
-    long (broadcast together); 0 at and after a schedule's end."""
+    long (broadcast together); 0 at and after a schedule's end. warmup_cosine is the authors' LambdaLR factor
+    (stepped per batch): s / (w T) while s < w T, then (1 + cos(pi (s - w T) / ((1 - w) T))) / 2."""
     if schedule == "constant":
         rate = np.full(np.broadcast(step, total_steps).shape, lr)
     else:
-        warmup = np.maximum(1, np.round(warmup_fraction * total_steps))
-        rising = lr * (step + 1) / warmup
-        progress = (step - warmup) / np.maximum(1, total_steps - warmup)
+        warmup = warmup_fraction * np.asarray(total_steps, dtype=float)
+        rising = lr * step / np.maximum(warmup, 1e-12)
+        progress = (step - warmup) / np.maximum(total_steps - warmup, 1e-12)
         rate = np.where(step < warmup, rising, lr * 0.5 * (1 + np.cos(np.pi * progress)))
     return np.where(step < total_steps, rate, 0.0)
 

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from scipy.integrate import odeint
 
-from nsl_hpc.datasets import simulate_trajectory
+from nsl_hpc.datasets import simulate_experiments
 from nsl_hpc.systems import build_system
-from nsl_hpc.systems.simulation import draw_multisine
+from nsl_hpc.systems.simulation import Multisine, draw_multisine, simulate
 from tests.helpers import SYSTEM_NAMES, system_config
 
 # Largest |state| seen over 5 study trajectories: spring 3.2, ball 3.2, motor 3.7; bounds with margin.
@@ -30,7 +30,7 @@ def test_power_balance_along_trajectories(name):
     """dH/dt = -grad H^T R grad H + y^T u pointwise, and integrated along a simulated trajectory."""
     cfg = system_config(name)
     system = build_system(name, cfg["params"])
-    trajectory = simulate_trajectory(cfg, seed=7)
+    (trajectory,) = simulate_experiments(cfg, seed=7, count=1)
     pointwise = np.sum(system.grad_hamiltonian(trajectory.x) * trajectory.dx, axis=1)
     balance = system.power_balance(trajectory.x, trajectory.u)
     np.testing.assert_allclose(pointwise, balance, rtol=1e-10, atol=1e-10 * np.abs(balance).max())
@@ -39,11 +39,11 @@ def test_power_balance_along_trajectories(name):
     rng = np.random.default_rng(3)
     box = np.asarray(cfg["initial_box"])
     x0 = rng.uniform(box[:, 0], box[:, 1])
-    excitation = draw_multisine(rng, system.input_dim, **cfg["input"])
+    excitation = draw_multisine(rng, 1, system.input_dim, **cfg["input"])
     n = system.state_dim
 
     def augmented(state, t):
-        x, u = state[None, :n], excitation(t)
+        x, u = state[None, :n], excitation(t)[0]
         return np.append(system.derivative(x, u)[0], system.power_balance(x, u)[0])
 
     t = np.linspace(0.0, 2.0, 201)
@@ -56,8 +56,7 @@ def test_power_balance_along_trajectories(name):
 @pytest.mark.parametrize("name", SYSTEM_NAMES)
 def test_trajectories_finite_and_bounded(name):
     cfg = system_config(name)
-    for seed in range(5):
-        trajectory = simulate_trajectory(cfg, seed)
+    for trajectory in simulate_experiments(cfg, seed=0, count=5):
         assert trajectory.x.shape == (1000, len(cfg["initial_box"]))
         assert np.all(np.isfinite(trajectory.x)) and np.all(np.isfinite(trajectory.dx))
         assert np.abs(trajectory.x).max() < STATE_BOUND[name]
@@ -66,10 +65,27 @@ def test_trajectories_finite_and_bounded(name):
 
 def test_multisine_has_the_configured_harmonics():
     rng = np.random.default_rng(0)
-    excitation = draw_multisine(rng, channels=2, amplitude=0.4, f0_hz=0.1, harmonics=40)
+    excitation = draw_multisine(rng, experiments=1, channels=2, amplitude=0.4, f0_hz=0.1, harmonics=40)
     t = np.arange(1000) * 0.01  # exactly one period of f0
-    u = excitation(t)
+    u = excitation(t)[:, 0]
     spectrum = np.abs(np.fft.rfft(u, axis=0)) / (len(t) / 2)
     np.testing.assert_allclose(spectrum[1:41], 0.4, rtol=1e-9)
     assert spectrum[41:].max() < 1e-9
     assert not np.allclose(u[:, 0], u[:, 1])  # independent phases per channel
+
+
+@pytest.mark.parametrize("name", SYSTEM_NAMES)
+def test_experiments_simulated_together_match_each_simulated_alone(name):
+    """The test set's 100 experiments are one odeint call; each agrees with its own integration."""
+    cfg = system_config(name)
+    system = build_system(name, cfg["params"])
+    rng = np.random.default_rng(11)
+    box = np.asarray(cfg["initial_box"])
+    x0 = rng.uniform(box[:, 0], box[:, 1], size=(6, len(box)))
+    excitation = draw_multisine(rng, 6, system.input_dim, **cfg["input"])
+    together = simulate(system, x0, excitation, **cfg["simulation"])
+    for e in (0, 5):
+        (alone,) = simulate(system, x0[e:e + 1], Multisine(excitation.amplitude, excitation.f0_hz,
+                                                            excitation.phases[e:e + 1]), **cfg["simulation"])
+        np.testing.assert_allclose(together[e].x, alone.x, rtol=0, atol=1e-6 * np.abs(alone.x).max())
+        np.testing.assert_array_equal(together[e].u, alone.u)

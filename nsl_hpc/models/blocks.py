@@ -1,44 +1,57 @@
-"""Building blocks shared by the architectures: the MLP and the skew-symmetric / PSD converters."""
+"""The MLP every architecture is built from, and the declaration of an architecture's MLPs ("heads").
 
-import math
+An MLP of depth n_d has n_d hidden layers of width n_h and a linear output layer. A hidden layer is
+Linear -> LayerNorm -> SiLU (``block: layernorm_silu``, the authors' code) or Linear -> tanh
+(``block: tanh``, nsl_hpc before the study's own configuration).
+"""
 
-import torch
+from dataclasses import dataclass
+
 from torch import nn
 
+from nsl_hpc.errors import ConfigError
 
-def mlp(in_dim: int, out_dim: int, width: int, depth: int) -> nn.Sequential:
-    """tanh MLP with ``depth`` hidden-to-hidden (width x width) layers: depth + 1 tanh layers in all.
+BLOCKS = ("layernorm_silu", "tanh")
+LAYER_NORM_EPS = 1e-5  # torch.nn.LayerNorm's default
 
-    Parameters: (in_dim + 1) width + depth (width + 1) width + (width + 1) out_dim.
-    """
-    layers: list[nn.Module] = [nn.Linear(in_dim, width), nn.Tanh()]
-    for _ in range(depth):
-        layers += [nn.Linear(width, width), nn.Tanh()]
+
+def require_block(block: str) -> None:
+    if block not in BLOCKS:
+        raise ConfigError(f"arch.block={block!r} is unknown; choose one of: {', '.join(BLOCKS)}")
+
+
+def mlp(in_dim: int, out_dim: int, width: int, depth: int, block: str) -> nn.Sequential:
+    """``depth`` hidden layers of ``width`` units, then a Linear to ``out_dim``: a flat Sequential
+    [Linear, LayerNorm, SiLU, ..., Linear] (or [Linear, Tanh, ..., Linear])."""
+    require_block(block)
+    if depth < 1:
+        raise ConfigError(f"an MLP needs at least one hidden layer; got depth {depth}")
+    layers: list[nn.Module] = []
+    for index in range(depth):
+        layers.append(nn.Linear(in_dim if index == 0 else width, width))
+        layers += [nn.LayerNorm(width, eps=LAYER_NORM_EPS), nn.SiLU()] if block == "layernorm_silu" else [nn.Tanh()]
     layers.append(nn.Linear(width, out_dim))
     return nn.Sequential(*layers)
 
 
-def mlp_parameter_count(in_dim: int, out_dim: int, width: int, depth: int) -> int:
-    """Closed form of the parameter count of ``mlp(in_dim, out_dim, width, depth)``."""
-    return (in_dim + 1) * width + depth * (width + 1) * width + (width + 1) * out_dim
-
-
-def skew_symmetric(entries: torch.Tensor, n: int) -> torch.Tensor:
-    """J = U - U^T from the n(n-1)/2 strictly-upper entries of U; (B, n(n-1)/2) -> (B, n, n)."""
-    rows, cols = torch.triu_indices(n, n, offset=1)
-    upper = entries.new_zeros(entries.shape[0], n, n)
-    upper[:, rows, cols] = entries
-    return upper - upper.transpose(1, 2)
-
-
-def positive_semidefinite(entries: torch.Tensor, n: int) -> torch.Tensor:
-    """R = L L^T / sqrt(n) from the n(n+1)/2 lower-triangular entries of L; (B, n(n+1)/2) -> (B, n, n)."""
-    rows, cols = torch.tril_indices(n, n)
-    lower = entries.new_zeros(entries.shape[0], n, n)
-    lower[:, rows, cols] = entries
-    return lower @ lower.transpose(1, 2) / math.sqrt(n)
+def mlp_parameter_count(in_dim: int, out_dim: int, width: int, depth: int, block: str) -> int:
+    """Closed form of the parameter count of ``mlp(in_dim, out_dim, width, depth, block)``:
+    (in+1) w + (n_d-1)(w+1) w + (w+1) out, plus 2 w per hidden layer with LayerNorm."""
+    norm = 2 * width * depth if block == "layernorm_silu" else 0
+    return (in_dim + 1) * width + (depth - 1) * (width + 1) * width + (width + 1) * out_dim + norm
 
 
 def parameter_count(module: nn.Module) -> int:
     """Number of trainable scalars."""
     return sum(p.numel() for p in module.parameters() if p.requires_grad)
+
+
+@dataclass(frozen=True)
+class Head:
+    """One MLP of an input-state architecture: its name, whether it reads (x, u) or x alone, its outputs and
+    its hidden width."""
+
+    name: str
+    reads_input: bool
+    out_dim: int
+    width: int

@@ -1,22 +1,31 @@
-"""Input-affine state-space model: dz/dt = h(z) + j(z) v, y = k(z), with j(z) an n x m matrix."""
+"""Input-affine state-space model (3b): dx/dt = h(x) + j(x) u, y = k(x), with j(x) an n x m matrix.
+
+The study's form is the paper's: three MLPs of width n_h. The authors' code adds a feedthrough D(x) u to y
+(``feedthrough: true``, a fourth MLP of m x m outputs) and doubles the width (``width_factor: 2``).
+"""
 
 import torch
-from torch import nn
 
-from nsl_hpc.models.blocks import mlp
+from nsl_hpc.models.blocks import Head
+from nsl_hpc.models.state_space import Outputs, StateSpaceArchitecture
 
 
-class InputAffine(nn.Module):
-    """Three MLPs of width n_h and depth n_d: parameters ~ 3 n_d n_h^2."""
+class InputAffine(StateSpaceArchitecture):
+    def __init__(self, state_dim: int, input_dim: int, width: int, width_factor: float, feedthrough: bool):
+        super().__init__(state_dim, input_dim, width)
+        self.head_width, self.feedthrough = self.scaled_width(width_factor), feedthrough
 
-    def __init__(self, state_dim: int, input_dim: int, width: int, depth: int):
-        super().__init__()
-        self.n, self.m = state_dim, input_dim
-        self.h = mlp(state_dim, state_dim, width, depth)
-        self.j = mlp(state_dim, state_dim * input_dim, width, depth)
-        self.k = mlp(state_dim, input_dim, width, depth)
+    def heads(self) -> list[Head]:
+        n, m, width = self.n, self.m, self.head_width
+        heads = [Head("h", False, n, width), Head("j", False, n * m, width), Head("k", False, m, width)]
+        return [*heads, Head("d", False, m * m, width)] if self.feedthrough else heads
 
-    def forward(self, z: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """z (B, n), v (B, m) -> dz/dt (B, n), y (B, m)."""
-        gain = self.j(z).view(-1, self.n, self.m)  # (B, n, m)
-        return self.h(z) + (gain @ v.unsqueeze(-1)).squeeze(-1), self.k(z)
+    def assemble(self, outputs: Outputs, v: torch.Tensor, grad_energy: torch.Tensor | None
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+        n, m = self.n, self.m
+        gain = outputs["j"].unflatten(-1, (n, m))  # (B, n, m)
+        dz = outputs["h"] + (gain @ v.unsqueeze(-1)).squeeze(-1)
+        y = outputs["k"]
+        if self.feedthrough:
+            y = y + (outputs["d"].unflatten(-1, (m, m)) @ v.unsqueeze(-1)).squeeze(-1)
+        return dz, y

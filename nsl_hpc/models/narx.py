@@ -7,12 +7,12 @@ from nsl_hpc.models.blocks import mlp
 
 
 class NARX(nn.Module):
-    """F: (n_y + n_u + 1) -> 1 with ``depth`` hidden tanh layers of ``width`` units."""
+    """F: (n_y + n_u + 1) -> 1, an MLP with ``depth`` hidden layers of ``width`` units (``block``)."""
 
-    def __init__(self, past_outputs: int, past_inputs: int, width: int, depth: int):
+    def __init__(self, past_outputs: int, past_inputs: int, width: int, depth: int, block: str):
         super().__init__()
         self.past_outputs, self.past_inputs = past_outputs, past_inputs
-        self.net = mlp(past_outputs + past_inputs + 1, 1, width, depth - 1)
+        self.net = mlp(past_outputs + past_inputs + 1, 1, width, depth, block)
 
     def forward(self, past_y: torch.Tensor, inputs: torch.Tensor) -> torch.Tensor:
         """past_y (B, n_y) = y_{t-n_y..t-1}, inputs (B, n_u + 1) = u_{t-n_u..t} (oldest first) -> y_t (B,)."""

@@ -1,48 +1,81 @@
-"""Port-Hamiltonian model: dz/dt = (J(z) - R(z)) grad H(z) + B(z) v, y = B(z)^T grad H(z).
+"""Port-Hamiltonian model (3c): dx/dt = (J(x) - R(x)) grad H(x) + G(x) u, y = G(x)^T grad H(x).
 
-J is skew-symmetric and R symmetric positive semi-definite by construction (for every parameter value),
-and H(z) = ||m(z)||^2 / 2 >= 0. grad H comes from autograd, with a graph while training so the loss can
-be differentiated through it.
+J = S - S^T with the n(n-1)/2 outputs of an MLP strictly above the diagonal of S (skew-symmetric for every
+parameter value); R = Q Q^T / sqrt(n) with Q an n x n matrix of MLP outputs (``dissipation: square``, the
+authors') or a lower-triangular one from n(n+1)/2 outputs (``lower_triangular``), positive semi-definite either
+way; G an MLP with n m outputs viewed as n x m; H(x) from one more MLP (``hamiltonian``): ``abs`` |MLP(x)| >= 0
+(the paper requires H >= 0; the authors' nonnegative variant), ``plain`` MLP(x) (the authors' default, H
+unconstrained), ``half_square`` ||MLP(x)||^2 / 2 >= 0 with n outputs. Every MLP has width n_h.
 """
 
+import math
+
 import torch
-from torch import nn
 
-from nsl_hpc.models.blocks import mlp, positive_semidefinite, skew_symmetric
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.models.blocks import Head
+from nsl_hpc.models.state_space import Outputs, StateSpaceArchitecture
+
+HAMILTONIANS = ("abs", "plain", "half_square")
+DISSIPATIONS = ("square", "lower_triangular")
 
 
-class PortHamiltonian(nn.Module):
-    """Four MLPs of width n_h and depth n_d (J, R, B and H): parameters ~ 4 n_d n_h^2."""
+def entries_to_matrix(n: int, entries: str, dtype: torch.dtype) -> torch.Tensor:
+    """(k, n * n): maps k entries to a flattened n x n matrix: ``strict_upper`` to S - S^T (S strictly upper,
+    row-major order), ``lower`` to a lower-triangular L, ``full`` to itself."""
+    if entries == "full":
+        return torch.eye(n * n, dtype=dtype)
+    rows, cols = torch.triu_indices(n, n, offset=1) if entries == "strict_upper" else torch.tril_indices(n, n)
+    mapping = torch.zeros(len(rows), n * n, dtype=dtype)
+    mapping[torch.arange(len(rows)), rows * n + cols] = 1.0
+    if entries == "strict_upper":
+        mapping[torch.arange(len(rows)), cols * n + rows] = -1.0
+    return mapping
 
-    def __init__(self, state_dim: int, input_dim: int, width: int, depth: int):
-        super().__init__()
-        n, m = state_dim, input_dim
-        self.n, self.m = n, m
-        self.J = mlp(n, n * (n - 1) // 2, width, depth)
-        self.R = mlp(n, n * (n + 1) // 2, width, depth)
-        self.B = mlp(n, n * m, width, depth)
-        self.H = mlp(n, n, width, depth)
 
-    def hamiltonian(self, z: torch.Tensor) -> torch.Tensor:
-        """H(z) >= 0, (B,)."""
-        return 0.5 * self.H(z).square().sum(dim=-1)
+class PortHamiltonian(StateSpaceArchitecture):
+    energy_head = "H"
 
-    def structure(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """J(z) (B, n, n) skew, R(z) (B, n, n) PSD, B(z) (B, n, m)."""
-        return (skew_symmetric(self.J(z), self.n), positive_semidefinite(self.R(z), self.n),
-                self.B(z).view(-1, self.n, self.m))
+    def __init__(self, state_dim: int, input_dim: int, width: int, hamiltonian: str, dissipation: str):
+        super().__init__(state_dim, input_dim, width)
+        for key, value, allowed in (("hamiltonian", hamiltonian, HAMILTONIANS),
+                                    ("dissipation", dissipation, DISSIPATIONS)):
+            if value not in allowed:
+                raise ConfigError(f"arch.{key}={value!r} is unknown; choose one of: {', '.join(allowed)}")
+        self.hamiltonian, self.dissipation = hamiltonian, dissipation
+        self.maps: dict[torch.dtype, tuple[torch.Tensor, torch.Tensor]] = {}
 
-    def grad_hamiltonian(self, z: torch.Tensor) -> torch.Tensor:
-        """grad H(z), (B, n); differentiable when the model is in training mode."""
-        with torch.enable_grad():
-            if not z.requires_grad:
-                z = z.detach().requires_grad_(True)
-            (grad,) = torch.autograd.grad(self.hamiltonian(z).sum(), z, create_graph=self.training)
-        return grad
+    def heads(self) -> list[Head]:
+        n, m, width = self.n, self.m, self.width
+        q_entries = n * n if self.dissipation == "square" else n * (n + 1) // 2
+        return [Head("J", False, n * (n - 1) // 2, width), Head("R", False, q_entries, width),
+                Head("G", False, n * m, width), Head("H", False, n if self.hamiltonian == "half_square" else 1, width)]
 
-    def forward(self, z: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """z (B, n), v (B, m) -> dz/dt (B, n), y (B, m)."""
-        grad = self.grad_hamiltonian(z).unsqueeze(-1)  # (B, n, 1)
-        interconnection, dissipation, gain = self.structure(z)
+    def energy(self, output: torch.Tensor) -> torch.Tensor:
+        if self.hamiltonian == "half_square":
+            return 0.5 * output.square().sum(dim=-1)
+        return output[..., 0].abs() if self.hamiltonian == "abs" else output[..., 0]
+
+    def energy_slope(self, output: torch.Tensor) -> torch.Tensor:
+        if self.hamiltonian == "half_square":
+            return output
+        return output.sign() if self.hamiltonian == "abs" else torch.ones_like(output)
+
+    def matrices(self, outputs: Outputs) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """J (B, n, n) skew-symmetric, R (B, n, n) symmetric PSD and G (B, n, m) from the heads' outputs."""
+        n, dtype = self.n, outputs["J"].dtype
+        if dtype not in self.maps:
+            self.maps[dtype] = (entries_to_matrix(n, "strict_upper", dtype),
+                                entries_to_matrix(n, "full" if self.dissipation == "square" else "lower", dtype))
+        skew, factor = self.maps[dtype]
+        interconnection = (outputs["J"] @ skew).unflatten(-1, (n, n))
+        q = (outputs["R"] @ factor).unflatten(-1, (n, n))
+        dissipation = q @ q.transpose(-1, -2) / math.sqrt(n)
+        return interconnection, dissipation, outputs["G"].unflatten(-1, (n, self.m))
+
+    def assemble(self, outputs: Outputs, v: torch.Tensor, grad_energy: torch.Tensor | None
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+        interconnection, dissipation, gain = self.matrices(outputs)
+        grad = grad_energy.unsqueeze(-1)  # (B, n, 1)
         dz = (interconnection - dissipation) @ grad + gain @ v.unsqueeze(-1)
-        return dz.squeeze(-1), (gain.transpose(1, 2) @ grad).squeeze(-1)
+        return dz.squeeze(-1), (gain.transpose(-1, -2) @ grad).squeeze(-1)

@@ -10,14 +10,14 @@ from nsl_hpc.models.blocks import mlp
 
 class SUBNET(nn.Module):
     """encoder: (u_{t-P..t-1}, y_{t-P..t-1}) -> x_t;  f: (n_x + 1) -> n_x;  h: n_x -> 1; every MLP has ``depth``
-    hidden tanh layers of ``width`` units; P = ``past`` samples."""
+    hidden layers of ``width`` units (``block``); P = ``past`` samples."""
 
-    def __init__(self, state_dim: int, past: int, width: int, depth: int):
+    def __init__(self, state_dim: int, past: int, width: int, depth: int, block: str):
         super().__init__()
         self.state_dim, self.past = state_dim, past
-        self.encoder = mlp(2 * past, state_dim, width, depth - 1)
-        self.f = mlp(state_dim + 1, state_dim, width, depth - 1)
-        self.h = mlp(state_dim, 1, width, depth - 1)
+        self.encoder = mlp(2 * past, state_dim, width, depth, block)
+        self.f = mlp(state_dim + 1, state_dim, width, depth, block)
+        self.h = mlp(state_dim, 1, width, depth, block)
 
     def encode(self, past_u: torch.Tensor, past_y: torch.Tensor) -> torch.Tensor:
         """past_u, past_y (B, P), oldest first -> initial state x_t (B, n_x)."""

@@ -1,27 +1,33 @@
-"""Unstructured state-space model: dz/dt = f(z, v), y = g(z), with f twice as wide as the other MLPs."""
+"""Unstructured state-space model (3a): dx/dt = f(x, u), y = g(x).
+
+``form: joint`` (the study's, the authors' Baseline): one MLP of width round(width_factor n_h) from (x, u) to
+(dx/dt, y), so y may depend on u too. ``form: split``: f of width round(width_factor n_h) on (x, u) and g of
+width n_h on x alone, as (3a) is written.
+"""
 
 import torch
-from torch import nn
 
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.models.blocks import mlp
+from nsl_hpc.models.blocks import Head
+from nsl_hpc.models.state_space import Outputs, StateSpaceArchitecture
+
+FORMS = ("joint", "split")
 
 
-class Unstructured(nn.Module):
-    """f: (n + m) -> n of width round(width_factor * n_h); g: n -> m of width n_h.
+class Unstructured(StateSpaceArchitecture):
+    def __init__(self, state_dim: int, input_dim: int, width: int, form: str, width_factor: float):
+        super().__init__(state_dim, input_dim, width)
+        if form not in FORMS:
+            raise ConfigError(f"arch.form={form!r} is unknown; choose one of: {', '.join(FORMS)}")
+        self.form, self.f_width = form, self.scaled_width(width_factor)
 
-    Parameters ~ (width_factor^2 + 1) n_d n_h^2 = 5 n_d n_h^2 for the default factor 2.
-    """
+    def heads(self) -> list[Head]:
+        if self.form == "joint":
+            return [Head("f", True, self.n + self.m, self.f_width)]
+        return [Head("f", True, self.n, self.f_width), Head("g", False, self.m, self.width)]
 
-    def __init__(self, state_dim: int, input_dim: int, width: int, depth: int, width_factor: float):
-        super().__init__()
-        f_width = round(width_factor * width)
-        if f_width < 1:
-            raise ConfigError(f"arch.width_factor={width_factor} gives f a width of round({width_factor} * "
-                              f"{width}) = {f_width}; use a factor of at least {0.5 / width}")
-        self.f = mlp(state_dim + input_dim, state_dim, f_width, depth)
-        self.g = mlp(state_dim, input_dim, width, depth)
-
-    def forward(self, z: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """z (B, n), v (B, m) -> dz/dt (B, n), y (B, m)."""
-        return self.f(torch.cat([z, v], dim=-1)), self.g(z)
+    def assemble(self, outputs: Outputs, v: torch.Tensor, grad_energy: torch.Tensor | None
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.form == "joint":
+            return outputs["f"][..., :self.n], outputs["f"][..., self.n:]
+        return outputs["f"], outputs["g"]

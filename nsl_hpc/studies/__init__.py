@@ -32,6 +32,9 @@ def require_non_negative_int(key: str, value: Any) -> None:
         raise ConfigError(f"{key}={value!r} must be a non-negative integer")
 
 
+DRAWS = ("per_task", "shared_across_epochs")
+
+
 def draw_tier(rng: np.random.Generator, tier: int) -> int:
     """An integer drawn uniformly in [ceil(tier / 2), tier]."""
     return int(rng.integers(math.ceil(tier / 2), tier, endpoint=True))
@@ -42,7 +45,7 @@ class Study:
 
     name: str
     axes: tuple[str, ...]  # grid axes in expansion order: "system", "arch", "seed", then the size coordinates
-    length_axis: str  # the axis of training length; the size draws ignore it (longer runs of the same model)
+    length_axis: str  # the axis of training length (with shared draws, longer runs of the same model)
     shared_keys: tuple[str, ...]  # config groups and keys that change the outcome of every task of a pair
     lockstep: bool = False  # train_and_score_pack trains same-shape tasks together (nsl_hpc.lockstep)
 
@@ -56,25 +59,32 @@ class Study:
         """Scalar coordinates that differ between the tasks of one (system, arch), for the task id."""
         return ("sweep_seed", *(axis for axis in self.axes if axis not in ("system", "arch")))
 
-    @property
-    def draw_keys(self) -> tuple[str, ...]:
-        """What the random draws of a task depend on (everything but its training length)."""
-        return ("sweep_seed", *(axis for axis in self.axes if axis != self.length_axis))
+    def draw_keys(self, draws: str) -> tuple[str, ...]:
+        """What the random draws of a task (sizes, initial weights, batch order) depend on: every coordinate
+        (``draws: per_task``, Algorithms 1 and 2) or all but the training length (``shared_across_epochs``)."""
+        return ("sweep_seed", *(axis for axis in self.axes if draws == "per_task" or axis != self.length_axis))
 
-    def draw_rng(self, task: Mapping[str, Any]) -> np.random.Generator:
-        return np.random.default_rng(stable_seed("sizes", *(task[key] for key in self.draw_keys)))
+    def draw_rng(self, task: Mapping[str, Any], draws: str) -> np.random.Generator:
+        return np.random.default_rng(stable_seed("sizes", *(task[key] for key in self.draw_keys(draws))))
 
-    def seed_for(self, purpose: str, task: Mapping[str, Any]) -> int:
-        """The seed of one random stream of a task ("init", "shuffle"), independent of its training length."""
-        return stable_seed(purpose, *(task[key] for key in self.draw_keys))
+    def seed_for(self, purpose: str, task: Mapping[str, Any], draws: str) -> int:
+        """The seed of one random stream of a task ("init", "shuffle")."""
+        return stable_seed(purpose, *(task[key] for key in self.draw_keys(draws)))
 
     def shared_identity(self, values: Mapping[str, Any]) -> str:
         """Hash of the shared outcome-changing groups of a plain config dict (paths left out)."""
         return stable_hash({key: without_paths(values[key]) for key in self.shared_keys})
 
     def check_coordinate(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
-        """Raise ConfigError when ``value`` is not allowed for coordinate ``key`` (``label`` names it)."""
-        raise NotImplementedError
+        """Raise ConfigError when ``value`` is not allowed for coordinate ``key`` (``label`` names it), or, for
+        the training length, when the settings that go with it are not."""
+        require_positive_int(label, value)
+        if key == self.length_axis and base["draws"] not in DRAWS:
+            raise ConfigError(f"draws={base['draws']!r} is unknown; choose one of: {', '.join(DRAWS)}")
+        self.check_size(label, key, value, base)
+
+    def check_size(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
+        """The study's own checks of a coordinate (``check_coordinate``)."""
 
     def check_pair(self, base: Mapping[str, Any]) -> None:
         """Raise ConfigError when a (system, arch) cannot run at all (e.g. its data is missing)."""

@@ -3,8 +3,9 @@ Wiener-Hammerstein, or their simulated stand-ins), scored in free-run simulation
 
 Sizes are drawn from the task's grid coordinates: n_l (training prefix length) an integer in
 [n_l~/2, n_l~], n_h an integer in [n_h~/2, n_h~]; n_d = depth. The draws, the initial weights and the batch
-order leave the iteration multiplier m out, so tasks that differ only in m train the same model on the
-same data for longer: n_i = m n_l iterations of B windows. Compute c = p n_i B (NARX) or p n_i B T (SUBNET,
+order depend on every coordinate (``draws: per_task``, Algorithm 2), or on all but the iteration multiplier m
+(``shared_across_epochs``: tasks that differ only in m train the same model on the same data for longer);
+n_i = m n_l iterations of B windows. Compute c = p n_i B (NARX) or p n_i B T (SUBNET,
 whose p leaves out the encoder); data = n_l; model size = p.
 """
 
@@ -22,18 +23,20 @@ from nsl_hpc.cache import ArrayCache
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.io_training import SignalScaling, simulate, train_io_model
 from nsl_hpc.metrics import normalized_errors
+from nsl_hpc.models.blocks import require_block
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.records import load_benchmark, require_files
-from nsl_hpc.studies import Study, draw_tier, require_member, require_positive_int
+from nsl_hpc.studies import Study, draw_tier, require_member
 
 
 def build_io_model(arch_cfg: Mapping[str, Any], system_cfg: Mapping[str, Any], width: int, depth: int) -> nn.Module:
     """The architecture ``arch_cfg.name`` (narx or subnet) with n_h = width, n_d = depth."""
+    require_block(arch_cfg["block"])
     if arch_cfg["name"] == "narx":
-        return NARX(arch_cfg["past_outputs"], arch_cfg["past_inputs"], width, depth)
+        return NARX(arch_cfg["past_outputs"], arch_cfg["past_inputs"], width, depth, arch_cfg["block"])
     if arch_cfg["name"] == "subnet":
-        return SUBNET(system_cfg["subnet"]["state_dim"], arch_cfg["past"], width, depth)
+        return SUBNET(system_cfg["subnet"]["state_dim"], arch_cfg["past"], width, depth, arch_cfg["block"])
     raise ConfigError(f"unknown arch {arch_cfg['name']!r} for the input_output study; choose one of: narx, subnet")
 
 
@@ -59,10 +62,9 @@ class InputOutput(Study):
     name = "input_output"
     axes = ("system", "arch", "seed", "iter_multiplier", "data_tier", "width_tier", "depth")
     length_axis = "iter_multiplier"
-    shared_keys = ("system", "arch", "train")
+    shared_keys = ("system", "arch", "train", "draws")
 
-    def check_coordinate(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
-        require_positive_int(label, value)
+    def check_size(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
         allowed = {"data_tier": base["system"]["data_tiers"], "width_tier": base["tiers"]["width"],
                    "depth": base["tiers"]["depth"]}
         if key in allowed:
@@ -88,7 +90,7 @@ class InputOutput(Study):
                               f"({past} past + T={steps}); use a larger data_tier or a shorter horizon")
 
     def draw(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
-        rng = self.draw_rng(task)
+        rng = self.draw_rng(task, base["draws"])
         points, width = draw_tier(rng, task["data_tier"]), draw_tier(rng, task["width_tier"])
         state_dim = base["system"]["subnet"]["state_dim"]
         return {"train_points": points, "width": width,
@@ -104,14 +106,14 @@ class InputOutput(Study):
                         on_progress: Callable[[], None]) -> dict[str, Any]:
         system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
         base = {"system": system_cfg, "arch": OmegaConf.to_container(cfg.arch)}
-        torch.manual_seed(self.seed_for("init", task))
+        torch.manual_seed(self.seed_for("init", task, cfg.draws))
         model = build_io_model(cfg.arch, system_cfg, sizes["width"], task["depth"])
         benchmark = load_benchmark(system_cfg, ArrayCache(cfg.cache_dir))
         record = benchmark.train.head(sizes["train_points"])
         started = time.perf_counter()
         scaling = SignalScaling.fit(record)
         outcome = train_io_model(model, record, scaling, cfg.train, sizes["steps"], horizon(base),
-                                 self.seed_for("shuffle", task), on_progress)
+                                 self.seed_for("shuffle", task, cfg.draws), on_progress)
         train_seconds = time.perf_counter() - started
         init = system_cfg["init_samples"]
         measured, simulated = benchmark.test.y[init:], simulate(model, benchmark.test, scaling, init)[init:]

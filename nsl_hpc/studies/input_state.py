@@ -2,8 +2,9 @@
 
 Sizes are drawn from the task's grid coordinates: d uniform in [d~/2, d~], n_t = d / 10 trajectories,
 n_h an integer in [n_h~/2, n_h~], n_d an integer in [n_d~/2, n_d~]. The draws, the initial weights and the
-batch order leave the epoch count out, so tasks that differ only in n_e train the same model on the same
-data for longer. Compute c = p n_e N (flops column; N training points), data = N, model size = p.
+batch order depend on every coordinate (``draws: per_task``, Algorithm 1), or on all but the epoch count
+(``shared_across_epochs``: tasks that differ only in n_e train the same model on the same data for longer).
+Compute c = p n_e N (flops column; N training points), data = N, model size = p.
 """
 
 import time
@@ -17,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.datasets import build_test_set, build_training_set, points_per_trajectory, training_points
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.lockstep import Member, Snapshot, predict_derivatives, train_lockstep
+from nsl_hpc.lockstep import LOSSES, Member, Snapshot, predict_derivatives, train_lockstep
 from nsl_hpc.metrics import normalized_errors
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
@@ -40,27 +41,31 @@ class InputState(Study):
     name = "input_state"
     axes = ("system", "arch", "seed", "epochs", "data_tier", "width_tier", "depth_tier")
     length_axis = "epochs"
-    shared_keys = ("system", "arch", "train", "data_per_trajectory")
+    shared_keys = ("system", "arch", "train", "data_per_trajectory", "draws")
     lockstep = True
 
-    def check_coordinate(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
-        require_positive_int(label, value)
+    def check_size(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
         if key in TIER_OF:
             require_member(label, value, list(base["tiers"][TIER_OF[key]]))
         if key == self.length_axis:
             train = base["train"]
-            if train["schedule"] not in SCHEDULES:
-                raise ConfigError(f"train.schedule={train['schedule']!r} is unknown; choose one of: "
-                                  f"{', '.join(SCHEDULES)}")
+            for setting, allowed in (("schedule", SCHEDULES), ("loss", LOSSES)):
+                if train[setting] not in allowed:
+                    raise ConfigError(f"train.{setting}={train[setting]!r} is unknown; choose one of: "
+                                      f"{', '.join(allowed)}")
             if train["schedule_epochs"] is not None:
                 require_positive_int("train.schedule_epochs", train["schedule_epochs"])
+                if base["draws"] != "shared_across_epochs":
+                    raise ConfigError(f"train.schedule_epochs={train['schedule_epochs']} (epoch milestones) needs "
+                                      f"tasks that differ only in epochs to be one model: add "
+                                      f"draws=shared_across_epochs (now draws={base['draws']})")
                 if value > train["schedule_epochs"]:
                     raise ConfigError(f"{label}={value} is more than train.schedule_epochs="
                                       f"{train['schedule_epochs']}, the epochs of the milestone runs; raise it "
                                       "to the largest epoch count or set it to null")
 
     def draw(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
-        rng = self.draw_rng(task)
+        rng = self.draw_rng(task, base["draws"])
         data_size = float(rng.uniform(task["data_tier"] / 2, task["data_tier"]))
         width, depth = draw_tier(rng, task["width_tier"]), draw_tier(rng, task["depth_tier"])
         n_traj = data_size / base["data_per_trajectory"]
@@ -87,21 +92,21 @@ class InputState(Study):
         runs: dict[tuple, list[int]] = {}
         for i, (cfg, task, _) in enumerate(items):
             milestones = cfg.train.schedule_epochs is not None
-            runs.setdefault(tuple(task[key] for key in self.draw_keys) if milestones else (i,), []).append(i)
+            runs.setdefault(tuple(task[key] for key in self.draw_keys(cfg.draws)) if milestones else (i,), []).append(i)
         members = [self.member(*items[run[0]], epochs=[items[i][1]["epochs"] for i in run]) for run in runs.values()]
         cfg = items[0][0]
         started = time.perf_counter()
         stack, snapshots = train_lockstep(members, OmegaConf.to_container(cfg.train), on_progress)
         train_seconds = (time.perf_counter() - started) / len(items)
-        kept: list[tuple[Member, Snapshot]] = [None] * len(items)  # per item: its run's member, its snapshot
-        for member, run, member_snapshots in zip(members, runs.values(), snapshots, strict=True):
+        kept: list[tuple[int, Snapshot]] = [None] * len(items)  # per item: its run's member index, its snapshot
+        for k, (run, member_snapshots) in enumerate(zip(runs.values(), snapshots, strict=True)):
             by_epochs = {snapshot.epochs: snapshot for snapshot in member_snapshots}
             for i in run:
-                kept[i] = (member, by_epochs[items[i][1]["epochs"]])
+                kept[i] = (k, by_epochs[items[i][1]["epochs"]])
         test_data = build_test_set(OmegaConf.to_container(cfg.system, resolve=True), ArrayCache(cfg.cache_dir))
         theta = torch.stack([snapshot.theta for _, snapshot in kept])
-        predictions = predict_derivatives(stack, test_data, [member.scaling for member, _ in kept],
-                                          getattr(torch, cfg.train.dtype), theta)
+        predictions = predict_derivatives(stack, test_data, [members[k].scaling for k, _ in kept],
+                                          getattr(torch, cfg.train.dtype), theta, [k for k, _ in kept])
         return [{**normalized_errors(test_data.dx, predicted), "steps": snapshot.outcome.steps,
                  "final_loss": snapshot.outcome.final_loss, "finite": snapshot.outcome.finite,
                  "train_seconds": train_seconds, "milestone": cfg.train.schedule_epochs is not None}
@@ -112,9 +117,10 @@ class InputState(Study):
         """The task's initialised model and training data, ready for ``train_lockstep``, trained to the largest
         of ``epochs`` and kept after each."""
         system_class = SYSTEMS[task["system"]]
-        torch.manual_seed(self.seed_for("init", task))
+        torch.manual_seed(self.seed_for("init", task, cfg.draws))
         model = build_model(cfg.arch, system_class.state_dim, system_class.input_dim, sizes["width"], sizes["depth"])
         system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
         data = build_training_set(system_cfg, task["seed"], sizes["n_traj"], ArrayCache(cfg.cache_dir))
-        return Member(model, data, Scaling.fit(data), max(epochs), self.seed_for("shuffle", task),
+        return Member(model, data, Scaling.fit(data, cfg.train.rescale_targets), max(epochs),
+                      self.seed_for("shuffle", task, cfg.draws),
                       milestones=tuple(epochs), schedule_epochs=cfg.train.schedule_epochs or 0)
