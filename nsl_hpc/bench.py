@@ -1,17 +1,20 @@
-"""Training-speed benchmark: the study's plain PyTorch loop against ours, side by side in one process.
+"""Training-speed benchmark: plain PyTorch loops against ours, side by side in one process.
 
     python -m nsl_hpc.bench [out=bench.json] [readme=README.md] [steps=300] [pack_size=32]
 
 Prints (and with ``readme=`` writes between the README's bench markers):
-1. per architecture at a small and a large size: samples/s of the reference loop (random mini-batch gather,
-   forward, MSE, backward, Adam step, zero_grad), of ours alone (``nsl_hpc.lockstep`` with K = 1) and per
-   model of ours with K models packed, and the ratios; the same model, data, batch size and step count;
+1. per architecture at a small and a large size: samples/s of two reference loops on the modules, the plain
+   loop (random mini-batch gather, forward, the study's loss, backward, Adam step, zero_grad) and the authors'
+   loop (a shuffling DataLoader, forward, loss, backward, clip_grad_norm_, Adam step, LambdaLR step,
+   zero_grad), of ours alone (``nsl_hpc.lockstep`` with K = 1) and per model of ours with K models packed,
+   and the ratios; the same model, data, batch size and step count;
 2. where the time of one task goes: interpreter + imports, data (cache miss and hit), training, scoring, writing;
 3. the achieved flop rate (about 6 p flops per sample and step) against this core's dense-matmul peak;
-4. the projected core-hours of the whole input-state study, reference (one process per task) against ours
-   (the launcher's lockstep groups of K tasks of one system, architecture, depth and width bucket, by
-   similar step counts), from per-step costs measured per (architecture, width, depth) and the grid's
-   step counts; and ours with epoch milestones (one model per 14 tasks that differ only in epochs);
+4. the projected core-hours of the whole input-state study, each reference loop (one process per task)
+   against ours (the launcher's lockstep groups of K tasks of one system, architecture, depth and width
+   bucket, by similar step counts), from per-step costs measured per (architecture, width, depth) and the
+   grid's step counts; ours with epoch milestones (one model per 14 tasks that differ only in epochs, shared
+   draws); and the planner's own prediction (``cost.*``, for time limits);
 5. the peak memory of the largest input-state task.
 Everything runs on one thread. ``out=`` writes the headline figures as JSON.
 """
@@ -44,7 +47,7 @@ from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
 from nsl_hpc.rows import write_row_atomically
 from nsl_hpc.systems import SYSTEMS
-from nsl_hpc.training import Scaling, batch_count
+from nsl_hpc.training import Scaling, batch_count, warmup_cosine
 
 README_START, README_END = "<!-- bench:start -->", "<!-- bench:end -->"
 
@@ -55,8 +58,14 @@ def timed(function: Callable[[], Any]) -> tuple[Any, float]:
     return result, time.perf_counter() - started
 
 
+def normalised_mse(predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """The study's loss term (the authors' utils.normalized_mse)."""
+    return ((predicted - target) / (target.std() + 1e-6)).square().mean()
+
+
 def reference_loop(model: nn.Module, member: Member, steps: int, train: Mapping[str, Any]) -> None:
-    """The plain loop of the study's script: random mini-batch gather, forward, MSE, backward, Adam, zero_grad."""
+    """The plain loop a user writes: random mini-batch gather, forward, the study's loss, backward, Adam,
+    zero_grad."""
     dtype = getattr(torch, train["dtype"])
     z, v = member.scaling.model_inputs(member.data, dtype)
     dz, y = member.scaling.model_targets(member.data, dtype)
@@ -65,10 +74,37 @@ def reference_loop(model: nn.Module, member: Member, steps: int, train: Mapping[
     for _ in range(steps):
         index = torch.randint(len(z), (train["batch_size"],), generator=generator)
         predicted_dz, predicted_y = model(z[index], v[index])
-        loss = nn.functional.mse_loss(predicted_dz, dz[index]) + nn.functional.mse_loss(predicted_y, y[index])
+        loss = normalised_mse(predicted_dz, dz[index]) + train["output_weight"] * normalised_mse(predicted_y, y[index])
         loss.backward()
         optimizer.step()
         optimizer.zero_grad()
+
+
+def authors_loop(model: nn.Module, member: Member, steps: int, train: Mapping[str, Any]) -> None:
+    """The authors' training loop without Lightning: a shuffling DataLoader over (x, u, dx/dt, y) samples,
+    forward, loss, backward, clip_grad_norm_, Adam, LambdaLR (warm-up + cosine), zero_grad."""
+    dtype = getattr(torch, train["dtype"])
+    z, v = member.scaling.model_inputs(member.data, dtype)
+    dz, y = member.scaling.model_targets(member.data, dtype)
+    loader = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(z, v, dz, y), batch_size=train["batch_size"],
+                                         shuffle=True, generator=torch.Generator().manual_seed(member.shuffle_seed))
+    optimizer = torch.optim.Adam(model.parameters(), lr=train["lr"])
+    factors = warmup_cosine(steps, train["warmup_fraction"], 1.0)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: float(factors[min(step, steps - 1)]))
+    taken = 0
+    while taken < steps:
+        for batch_z, batch_v, batch_dz, batch_y in loader:
+            predicted_dz, predicted_y = model(batch_z, batch_v)
+            loss = (normalised_mse(predicted_dz, batch_dz)
+                    + train["output_weight"] * normalised_mse(predicted_y, batch_y))
+            loss.backward()
+            nn.utils.clip_grad_norm_(model.parameters(), train["grad_clip_norm"])
+            optimizer.step()
+            scheduler.step()
+            optimizer.zero_grad()
+            taken += 1
+            if taken == steps:
+                break
 
 
 class Bench:
@@ -79,7 +115,7 @@ class Bench:
         self.train = OmegaConf.to_container(cfg.train)
         self.system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
         self.data = build_training_set(self.system_cfg, 0, cfg.n_traj, cache)
-        self.scaling = Scaling.fit(self.data)
+        self.scaling = Scaling.fit(self.data, self.train["rescale_targets"])
         self.batches = batch_count(len(self.data), self.train["batch_size"])
         self.arch_cfgs = {arch: OmegaConf.to_container(cli.compose_config([f"arch={arch}"]).arch)
                           for arch in {*cfg.archs, cfg.typical_task.arch}}  # composed once, not per model
@@ -94,15 +130,18 @@ class Bench:
         return [Member(self.model(arch, width, depth, k), self.data, self.scaling, epochs, k) for k in range(count)]
 
     def step_seconds(self, arch: str, width: int, depth: int, steps: int, pack: int) -> dict[str, float]:
-        """Seconds per optimizer step: reference, ours alone, ours for ``pack`` models at once (the pack)."""
+        """Seconds per optimizer step: the plain reference loop, the authors' loop, ours alone, ours for ``pack``
+        models at once (the pack)."""
         member = self.members(arch, width, depth, 1, steps)[0]
-        reference = copy.deepcopy(member.model)
+        reference, authors = copy.deepcopy(member.model), copy.deepcopy(member.model)
         _, reference_s = timed(lambda: reference_loop(reference, member, steps, self.train))
+        _, authors_s = timed(lambda: authors_loop(authors, member, steps, self.train))
         (_, single), single_s = timed(lambda: train_lockstep([member], self.train))
         packed_members = self.members(arch, width, depth, pack, steps)
         (_, packed), packed_s = timed(lambda: train_lockstep(packed_members, self.train))
-        return {"reference": reference_s / steps, "single": single_s / single[0][-1].outcome.steps,
-                "packed": packed_s / packed[0][-1].outcome.steps, "params": parameter_count(member.model)}
+        return {"reference": reference_s / steps, "authors": authors_s / steps,
+                "single": single_s / single[0][-1].outcome.steps, "packed": packed_s / packed[0][-1].outcome.steps,
+                "params": parameter_count(member.model)}
 
 
 def matmul_peak_flops(size: int, repeats: int = 20) -> float:
@@ -124,7 +163,9 @@ def speed_table(bench: Bench, cfg: DictConfig) -> list[dict[str, Any]]:
             seconds = {method: min(run[method] for run in runs) for method in runs[0]}
             rows.append({"arch": arch, "size": size, **shape, **seconds,
                          "single_ratio": seconds["reference"] / seconds["single"],
-                         "packed_ratio": seconds["reference"] * cfg.pack_size / seconds["packed"]})
+                         "packed_ratio": seconds["reference"] * cfg.pack_size / seconds["packed"],
+                         "authors_single_ratio": seconds["authors"] / seconds["single"],
+                         "authors_packed_ratio": seconds["authors"] * cfg.pack_size / seconds["packed"]})
     return rows
 
 
@@ -140,7 +181,7 @@ def task_breakdown(bench: Bench, cfg: DictConfig, root: Path) -> dict[str, float
     (_, test), hit_s = timed(lambda: (build_training_set(bench.system_cfg, 1, task.n_traj, miss_cache),
                                       build_test_set(bench.system_cfg, miss_cache)))
     model = bench.model(task.arch, task.width, task.depth, 0)
-    member = Member(model, data, Scaling.fit(data), task.epochs, 0)
+    member = Member(model, data, Scaling.fit(data, bench.train["rescale_targets"]), task.epochs, 0)
     (stack, _), train_s = timed(lambda: train_lockstep([member], bench.train))
     dtype = getattr(torch, bench.train["dtype"])
     metrics, score_s = timed(lambda: normalized_errors(test.dx, *predict_derivatives(stack, test, [member.scaling],
@@ -159,20 +200,36 @@ def interpolate(table: Mapping[tuple[int, int], float], widths: list[int], depth
     return float(np.interp(d, depths, at_depth))
 
 
-def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, float]) -> dict[str, float]:
-    """Core-hours of the input-state study: reference (each task its own process: interpreter, imports,
-    simulated data, its steps, scoring, writing) and ours (the launcher's lockstep groups of ``pack_size``:
-    a step costs the step time of its widest member for the models still training, between the measured
-    K = 1 and K = ``pack_size``; per task data from the cache, scoring and writing)."""
+def study_manifest(*overrides: str) -> tuple[DictConfig, list[dict[str, Any]]]:
+    """The launch config and manifest rows of the input-state study (``+sweep=input_state`` and ``overrides``)."""
     from nsl_hpc.grid import build_manifest
-    from nsl_hpc.plan import lockstep_groups, lockstep_settings, training_segments
     from nsl_hpc.studies import study_named
     from nsl_hpc.sweep import pair_configs
 
+    arguments = ["+sweep=input_state", *overrides]
+    launch = cli.compose_config(arguments, "launch")
     study = study_named("input_state")
-    launch = cli.compose_config(["+sweep=input_state"], "launch")
-    manifest = build_manifest(launch.sweep.grid, study, pair_configs(launch, ["+sweep=input_state"], study),
-                              launch.sweep_seed).to_pylist()
+    return launch, build_manifest(launch.sweep.grid, study, pair_configs(launch, arguments, study),
+                                  launch.sweep_seed).to_pylist()
+
+
+def planner_core_hours(launch: DictConfig, manifest: list[dict[str, Any]]) -> float:
+    """The core-hours ``launch +sweep=input_state launcher=slurm dry_run=true`` predicts (``cost.*``)."""
+    from nsl_hpc.plan import lockstep_settings, make_packs, packing_for, planned_groups
+
+    groups, seconds = planned_groups(manifest, lockstep_settings(launch), OmegaConf.to_container(launch.cost))
+    return sum(pack.seconds for pack in make_packs(groups, seconds, packing_for(launch.packing, "slurm"))) / 3600
+
+
+def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, float]) -> dict[str, float]:
+    """Core-hours of the input-state study: each reference loop (each task its own process: interpreter,
+    imports, simulated data, its steps, scoring, writing) and ours (the launcher's lockstep groups of
+    ``pack_size``: a step costs the step time of its widest member for the models still training, between the
+    measured K = 1 and K = ``pack_size``; per task data from the cache, scoring and writing); ours with epoch
+    milestones (shared draws); and the planner's prediction."""
+    from nsl_hpc.plan import lockstep_groups, lockstep_settings, training_segments
+
+    launch, manifest = study_manifest()
     grid = cfg.projection
     costs = {}
     for arch in sorted({task["arch"] for task in manifest}):
@@ -185,15 +242,15 @@ def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, 
     step_cost = lambda arch, method, width, depth: interpolate(  # noqa: E731
         costs[arch][method], list(grid.widths), list(grid.depths), width, depth)
     per_task = breakdown["data (hit)"] + breakdown["scoring"] + breakdown["writing"]
-    reference = sum(task["steps"] * step_cost(task["arch"], "reference", task["width"], task["depth"])
-                    for task in manifest)
-    reference += len(manifest) * (breakdown["interpreter"] + breakdown["imports"] + breakdown["data (miss)"]
-                                  - breakdown["data (hit)"] + per_task)
-    lockstep = {**lockstep_settings(launch), "size": cfg.pack_size}
+    process = breakdown["interpreter"] + breakdown["imports"] + breakdown["data (miss)"] - breakdown["data (hit)"]
 
-    def ours(settings: Mapping[str, Any]) -> tuple[float, int]:
-        """Seconds and lockstep groups of the study trained our way with lockstep ``settings``."""
-        seconds, groups = len(manifest) * per_task, lockstep_groups(manifest, settings)
+    def one_process_per_task(method: str) -> float:
+        return len(manifest) * (process + per_task) + sum(
+            task["steps"] * step_cost(task["arch"], method, task["width"], task["depth"]) for task in manifest)
+
+    def ours(tasks: list[dict[str, Any]], settings: Mapping[str, Any]) -> tuple[float, int]:
+        """Seconds and lockstep groups of ``tasks`` trained our way with lockstep ``settings``."""
+        seconds, groups = len(tasks) * per_task, lockstep_groups(tasks, settings)
         for group in groups:
             arch, width, depth = group[0]["arch"], max(t["width"] for t in group), group[0]["depth"]
             single, packed = step_cost(arch, "single", width, depth), step_cost(arch, "packed", width, depth)
@@ -201,9 +258,13 @@ def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, 
                            for steps, models in training_segments(group, settings))
         return seconds, len(groups)
 
-    (faithful, groups), (milestones, _) = ours(lockstep), ours({**lockstep, "run_keys": list(study.draw_keys)})
-    return {"core_hours_reference": reference / 3600, "core_hours_ours": faithful / 3600,
-            "core_hours_milestones": milestones / 3600, "tasks": len(manifest), "groups": groups}
+    faithful, groups = ours(manifest, {**lockstep_settings(launch), "size": cfg.pack_size})
+    shared_launch, shared = study_manifest("draws=shared_across_epochs", "train.schedule_epochs=16384")
+    milestones, _ = ours(shared, {**lockstep_settings(shared_launch), "size": cfg.pack_size})
+    return {"core_hours_reference": one_process_per_task("reference") / 3600,
+            "core_hours_authors": one_process_per_task("authors") / 3600, "core_hours_ours": faithful / 3600,
+            "core_hours_milestones": milestones / 3600, "core_hours_planner": planner_core_hours(launch, manifest),
+            "tasks": len(manifest), "groups": groups}
 
 
 def largest_task_peak_memory(cfg: DictConfig, root: Path) -> float:
@@ -221,27 +282,33 @@ def report(speeds: list[dict], breakdown: Mapping[str, float], peak: float, proj
     lines = [f"Measured by `python -m nsl_hpc.bench` on one core ({torch.get_num_threads()} thread), "
              f"{cfg.steps} steps of batch {cfg.train.batch_size} on {cfg.system.name} (the fastest of {cfg.repeats} "
              f"interleaved runs), K = {cfg.pack_size} packed models.", "",
-             "| arch | n_h | n_d | p | reference samples/s | ours alone | ratio | ours packed, per model | ratio | "
-             "GFLOP/s packed (% of peak) |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| arch | n_h | n_d | p | plain loop samples/s | authors' loop | ours alone | ratio (authors') | "
+             "ours packed, per model | ratio (authors') | GFLOP/s packed (% of peak) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     batch = cfg.train.batch_size
     for row in speeds:
         packed_rate = batch * cfg.pack_size / row["packed"]
         flops = 6 * row["params"] * packed_rate
         share = 100 * flops / peak
         lines.append(f"| {row['arch']} | {row['width']} | {row['depth']} | {row['params']:,} | "
-                     f"{batch / row['reference']:,.0f} | {batch / row['single']:,.0f} | {row['single_ratio']:.2f}x | "
-                     f"{packed_rate:,.0f} | {row['packed_ratio']:.1f}x | {flops / 1e9:.2f} ({share:.1f}%) |")
+                     f"{batch / row['reference']:,.0f} | {batch / row['authors']:,.0f} | "
+                     f"{batch / row['single']:,.0f} | "
+                     f"{row['single_ratio']:.2f}x ({row['authors_single_ratio']:.1f}x) | {packed_rate:,.0f} | "
+                     f"{row['packed_ratio']:.1f}x ({row['authors_packed_ratio']:.0f}x) | "
+                     f"{flops / 1e9:.2f} ({share:.1f}%) |")
     lines += ["", f"Dense float32 matmul peak of this core: {peak / 1e9:.1f} GFLOP/s.", "",
               "| one task (" + ", ".join(f"{k}={v}" for k, v in cfg.typical_task.items()) + ") | seconds |",
               "|---|---:|"]
     lines += [f"| {phase} | {seconds:.3f} |" for phase, seconds in breakdown.items()]
-    lines += ["", f"Projected core-hours of the {projection['tasks']:,}-task input-state study: reference "
-              f"{projection['core_hours_reference']:,.0f}, ours {projection['core_hours_ours']:,.0f} "
-              f"({projection['core_hours_reference'] / projection['core_hours_ours']:.1f}x fewer; "
-              f"{projection['groups']:,} lockstep groups of up to K = {cfg.pack_size}); with epoch milestones "
-              "(train.schedule_epochs = the largest epoch count; rows of another meaning, see Epoch milestones) "
-              f"{projection['core_hours_milestones']:,.0f} "
-              f"({projection['core_hours_reference'] / projection['core_hours_milestones']:.1f}x fewer).",
+    reference, ours = projection["core_hours_reference"], projection["core_hours_ours"]
+    lines += ["", f"Projected core-hours of the {projection['tasks']:,}-task input-state study, one process per task: "
+              f"plain loop {reference:,.0f}, authors' loop {projection['core_hours_authors']:,.0f}; ours "
+              f"{ours:,.0f} ({reference / ours:.1f}x fewer than the plain loop, "
+              f"{projection['core_hours_authors'] / ours:.1f}x fewer than the authors'; {projection['groups']:,} "
+              f"lockstep groups of up to K = {cfg.pack_size}). With epoch milestones (shared draws, "
+              "train.schedule_epochs = the largest epoch count; rows of another meaning, see Epoch milestones) "
+              f"{projection['core_hours_milestones']:,.0f} ({reference / projection['core_hours_milestones']:.1f}x "
+              f"fewer). The planner predicts {projection['core_hours_planner']:,.0f} (`cost.*`, for time limits).",
               f"Peak memory of the largest input-state task: {memory_gib:.2f} GiB."]
     return "\n".join(lines)
 
@@ -271,6 +338,8 @@ def main(cfg: DictConfig) -> int:
     if cfg.out:
         headline = {"single_speedup_min": min(row["single_ratio"] for row in speeds),
                     "packed_speedup": min(row["packed_ratio"] for row in speeds),
+                    "authors_single_speedup_min": min(row["authors_single_ratio"] for row in speeds),
+                    "authors_packed_speedup": min(row["authors_packed_ratio"] for row in speeds),
                     **{k: v for k, v in projection.items() if k.startswith("core_hours")},
                     "largest_task_peak_gib": memory, "matmul_peak_gflops": peak / 1e9, "speeds": speeds,
                     "task_seconds": breakdown}

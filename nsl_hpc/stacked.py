@@ -192,11 +192,7 @@ class StackedModels:
                     x = torch.tanh(a)
                     chain_kept.append((x,))
                     continue
-                centered = a - a.sum(dim=-1, keepdim=True) * inverse  # padded units of a are 0
-                if self.padded[c]:
-                    centered = centered * mask
-                spread = (centered.square().sum(dim=-1, keepdim=True) * inverse + LAYER_NORM_EPS).rsqrt()
-                normalized = centered * spread
+                normalized, spread = self.normalize(a, c, mask, inverse)
                 t = torch.addcmul(norm[1].flatten(0, 1), normalized, norm[0].flatten(0, 1))
                 x = functional.silu(t)
                 chain_kept.append((t, normalized, spread))
@@ -207,6 +203,18 @@ class StackedModels:
                 outputs[h] = head_out[..., :self.heads[h].out_dim]
             kept.append(chain_kept)
         return outputs, kept
+
+    def normalize(self, a: torch.Tensor, c: int, mask: torch.Tensor, inverse: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """LayerNorm without its affine part of a (K M_c, B, width) over each model's own units of chain c, and
+        1 / the spread (K M_c, B, 1) (None when no energy gradient needs it). Chains without padding or energy
+        head use torch's fused layer_norm; padded units of ``a`` are 0 and stay 0."""
+        energy = self.architecture.energy_head in {self.heads[h].name for h in self.chains[c].heads}
+        if not self.padded[c] and not energy:
+            return functional.layer_norm(a, a.shape[-1:], eps=LAYER_NORM_EPS), None
+        centered = (a - a.sum(dim=-1, keepdim=True) * inverse) * mask
+        spread = (centered.square().sum(dim=-1, keepdim=True) * inverse + LAYER_NORM_EPS).rsqrt()
+        return centered * spread, spread
 
     def forward(self, z: torch.Tensor, v: torch.Tensor, theta: torch.Tensor | None = None,
                 models: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -63,11 +63,39 @@ def test_manifest_ids_and_sizes_match_the_single_task_path(demo_manifest):
     for row in draws:
         assert row["data_tier"] / 2 <= row["data_size"] <= row["data_tier"]
         assert row["width_tier"] // 2 <= row["width"] <= row["width_tier"]
-    same_but_epochs = {}
-    for row in draws:  # the epoch count never changes the draws
+
+
+
+def sizes_by_all_but_epochs(rows: list[dict]) -> dict[tuple, list[tuple]]:
+    """The drawn (d, n_h, n_d) of the tasks that differ only in epochs, grouped."""
+    groups: dict[tuple, list[tuple]] = {}
+    for row in rows:
         key = tuple(row[k] for k in INPUT_STATE.axes if k != "epochs")
-        same_but_epochs.setdefault(key, set()).add((row["data_size"], row["width"], row["depth"]))
-    assert all(len(sizes) == 1 for sizes in same_but_epochs.values())
+        groups.setdefault(key, []).append((row["data_size"], row["width"], row["depth"]))
+    return groups
+
+
+def test_every_input_state_task_draws_its_own_sizes():
+    """Algorithm 1 draws d, n_h, n_d in its innermost loop, afresh for every epoch count: of the 63,504 tasks,
+    the 4,536 sets of 14 that differ only in epochs have 14 distinct data sizes each (d is a float), so a
+    (system, arch) has 7,056 distinct draws instead of 504."""
+    cfg = compose_config(["+sweep=input_state"], "launch")
+    rows = build_manifest(cfg.sweep.grid, INPUT_STATE, pair_configs(cfg, ["+sweep=input_state"], INPUT_STATE),
+                          cfg.sweep_seed).to_pylist()
+    groups = sizes_by_all_but_epochs(rows)
+    assert len(groups) == 4_536
+    assert all(len({d for d, _, _ in sizes}) == 14 for sizes in groups.values())
+    pair = [(row["data_size"], row["width"], row["depth"]) for row in rows
+            if (row["system"], row["arch"]) == ("spring", "port_hamiltonian")]
+    assert len(set(pair)) == 7_056
+
+
+def test_shared_draws_keep_the_sizes_of_tasks_that_differ_only_in_epochs():
+    overrides = ["+sweep=demo", "draws=shared_across_epochs"]
+    cfg = compose_config(overrides, "launch")
+    rows = build_manifest(cfg.sweep.grid, INPUT_STATE, pair_configs(cfg, overrides, INPUT_STATE),
+                          cfg.sweep_seed).to_pylist()
+    assert all(len(set(sizes)) == 1 for sizes in sizes_by_all_but_epochs(rows).values())
 
 
 @pytest.mark.parametrize(("grid_update", "message"), [

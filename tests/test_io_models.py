@@ -16,7 +16,7 @@ B, P, T, NX = 7, 50, 13, 4
 @pytest.fixture
 def subnet() -> SUBNET:
     torch.manual_seed(0)
-    return SUBNET(state_dim=NX, past=P, width=8, depth=2).double()
+    return SUBNET(state_dim=NX, past=P, width=8, depth=2, block="layernorm_silu").double()
 
 
 def test_subnet_forward_has_the_documented_shapes(subnet):
@@ -43,19 +43,24 @@ def test_subnet_encoder_sees_only_the_past(subnet):
 
 
 def test_parameter_counts_leave_out_the_encoder_only(subnet):
-    f = mlp_parameter_count(NX + 1, NX, 8, 1)
-    h = mlp_parameter_count(NX, 1, 8, 1)
+    f = mlp_parameter_count(NX + 1, NX, 8, 2, "layernorm_silu")
+    h = mlp_parameter_count(NX, 1, 8, 2, "layernorm_silu")
     assert subnet.counted_parameters() == f + h
-    assert sum(p.numel() for p in subnet.parameters()) == f + h + mlp_parameter_count(2 * P, NX, 8, 1)
-    assert NARX(50, 50, 8, 3).counted_parameters() == mlp_parameter_count(101, 1, 8, 2)
+    assert sum(p.numel() for p in subnet.parameters()) == f + h + mlp_parameter_count(2 * P, NX, 8, 2, "layernorm_silu")
+    assert NARX(50, 50, 8, 3, "tanh").counted_parameters() == mlp_parameter_count(101, 1, 8, 3, "tanh")
 
 
 def test_narx_maps_its_regressors_to_one_output():
-    model = NARX(past_outputs=5, past_inputs=3, width=6, depth=1)
+    model = NARX(past_outputs=5, past_inputs=3, width=6, depth=1, block="layernorm_silu")
     assert model(torch.randn(B, 5), torch.randn(B, 4)).shape == (B,)
 
 
-def test_numpy_free_run_equals_the_torch_models_step_by_step(subnet):
+@pytest.mark.parametrize("block", ["layernorm_silu", "tanh"])
+def test_numpy_free_run_equals_the_torch_models_step_by_step(block):
+    torch.manual_seed(0)
+    subnet = SUBNET(state_dim=NX, past=P, width=8, depth=2, block=block).double()
+    for parameter in subnet.parameters():  # LayerNorm scales and shifts away from 1 and 0 too
+        parameter.data.normal_(0, 0.3)
     rng = np.random.default_rng(2)
     u, y = rng.standard_normal(P + 40), rng.standard_normal(P + 40)
     with torch.no_grad():
@@ -64,7 +69,7 @@ def test_numpy_free_run_equals_the_torch_models_step_by_step(subnet):
     np.testing.assert_array_equal(simulate_subnet(subnet, u, y, P)[:P], y[:P])
 
     torch.manual_seed(3)
-    narx = NARX(past_outputs=6, past_inputs=4, width=5, depth=2).double()
+    narx = NARX(past_outputs=6, past_inputs=4, width=5, depth=2, block=block).double()
     simulated = simulate_narx(narx, u, y, init=P)
     fed_back = y.copy()
     with torch.no_grad():

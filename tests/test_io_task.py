@@ -17,7 +17,7 @@ from nsl_hpc.task import resolve_task, run_task
 from tests.sweeps import nsl
 
 NARX_TASK = ["study=input_output", "system=wiener_hammerstein_sim", "arch=narx", "iter_multiplier=2",
-             "data_tier=625", "width_tier=8", "depth=1", "seed=1"]
+             "data_tier=625", "width_tier=16", "depth=1", "seed=1"]
 SUBNET_TASK = ["study=input_output", "system=silverbox_sim", "arch=subnet", "iter_multiplier=1", "data_tier=500",
                "width_tier=4", "depth=1", "seed=0"]
 
@@ -25,7 +25,7 @@ SUBNET_TASK = ["study=input_output", "system=silverbox_sim", "arch=subnet", "ite
 def test_a_narx_task_writes_one_row_with_the_study_resources(compose):
     row = run_task(compose(*NARX_TASK)).row
     assert row["status"] == "ok" and np.isfinite([row["nmae"], row["nmse"], row["rmse_mv"]]).all()
-    assert 313 <= row["train_points"] <= 625 and 4 <= row["width"] <= 8 and row["depth"] == 1
+    assert 313 <= row["train_points"] <= 625 and 8 <= row["width"] <= 16 and row["depth"] == 1
     assert row["steps"] == 2 * row["train_points"]  # n_i = m n_l
     assert row["flops"] == row["params"] * row["steps"] * 256  # c = p n_i B
     assert row["nmse"] < 0.5  # a fitted model, far better than predicting the mean (nMSE 1)

@@ -131,7 +131,8 @@ def test_epoch_milestone_rows_with_a_constant_learning_rate_are_the_rows_of_sepa
     """6 tasks (3 models x epochs 2 and 4) with train.schedule_epochs=4: each model trains once, to 4 epochs,
     and writes a row after 2 and after 4, marked milestone; with a constant learning rate these rows hold what
     separate runs give."""
-    grid = [*TINY_GRID, "sweep.grid.seed=[0,1,2]", "sweep.grid.epochs=[2,4]", "train.schedule=constant"]
+    grid = [*TINY_GRID, "sweep.grid.seed=[0,1,2]", "sweep.grid.epochs=[2,4]", "train.schedule=constant",
+            "draws=shared_across_epochs"]
     rows = {}
     for name, extra in (("milestones", "train.schedule_epochs=4"), ("separate", ALONE)):
         output, found = rows_of_local_sweep(tmp_path / name, grid, extra, 6)
@@ -147,4 +148,6 @@ def test_epoch_milestone_rows_with_a_constant_learning_rate_are_the_rows_of_sepa
     refused = nsl("launch", *grid, "launcher=local", f"sweep_dir={tmp_path / 'short'}", "train.schedule_epochs=3")
     assert refused.returncode == 2
     assert "sweep.grid.epochs value=4 is more than train.schedule_epochs=3" in refused.stderr
+    per_task = nsl("launch", *grid[:-1], "launcher=local", f"sweep_dir={tmp_path / 'short'}", "train.schedule_epochs=4")
+    assert per_task.returncode == 2 and "add draws=shared_across_epochs (now draws=per_task)" in per_task.stderr
     assert not (tmp_path / "short").exists()

@@ -136,7 +136,7 @@ def test_port_hamiltonian_model_is_passive():
 
 
 def test_width_that_rounds_to_zero_is_refused():
-    with pytest.raises(ConfigError, match=r"width factor of 0\.2"):
+    with pytest.raises(ConfigError, match=r"arch\.width_factor=0\.2 gives"):
         build_model(arch_config("unstructured", "arch.width_factor=0.2"), 4, 2, width=1, depth=1)
 
 

@@ -31,10 +31,10 @@ class StateSpaceArchitecture(ABC):
         self.n, self.m, self.width = state_dim, input_dim, width
 
     def scaled_width(self, factor: float) -> int:
-        """round(factor n_h), refused when it rounds to zero."""
+        """round(factor n_h) (``arch.width_factor``), refused when it rounds to zero."""
         scaled = round(factor * self.width)
         if scaled < 1:
-            raise ConfigError(f"a width factor of {factor} gives round({factor} * {self.width}) = {scaled} units; "
+            raise ConfigError(f"arch.width_factor={factor} gives round({factor} * {self.width}) = {scaled} units; "
                               f"use a factor of at least {0.5 / self.width}")
         return scaled
 

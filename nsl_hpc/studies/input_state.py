@@ -66,7 +66,7 @@ class InputState(Study):
 
     def draw(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
         rng = self.draw_rng(task, base["draws"])
-        data_size = float(rng.uniform(task["data_tier"] / 2, task["data_tier"]))
+        data_size = rng.uniform(task["data_tier"] / 2, task["data_tier"])
         width, depth = draw_tier(rng, task["width_tier"]), draw_tier(rng, task["depth_tier"])
         n_traj = data_size / base["data_per_trajectory"]
         points = training_points(n_traj, points_per_trajectory(base["system"]))
