@@ -2,8 +2,9 @@
 
     python benchmarks/milestones.py [--seeds 4] [--epochs 2,4,...,256]
 
-Runs one small input-state grid twice with the local launcher: every task alone (the study's way), and with
-train.schedule_epochs = the largest epoch count (one run per model, a row after each epoch count). Prints,
+Runs one small input-state grid twice with the local launcher and shared draws (tasks that differ only in
+epochs are the same model): every task alone, and with train.schedule_epochs = the largest epoch count (one
+run per model, a row after each epoch count). Prints,
 per epoch count, the median over tasks of nMAE (milestone row / separate row) and the steps both trained:
 what a milestone row means is "this model after n_e of the largest run's epochs", not "trained for n_e".
 """
@@ -20,7 +21,8 @@ import numpy as np
 from nsl_hpc.rows import read_row
 
 GRID = ["+sweep=demo", "sweep.grid.system=[spring]", "sweep.grid.arch=[port_hamiltonian,input_affine]",
-        "sweep.grid.data_tier=[32]", "sweep.grid.width_tier=[8]", "sweep.grid.depth_tier=[2]", "launcher=local"]
+        "sweep.grid.data_tier=[32]", "sweep.grid.width_tier=[8]", "sweep.grid.depth_tier=[2]", "launcher=local",
+        "draws=shared_across_epochs"]
 
 
 def sweep_rows(sweep_dir: Path, overrides: list[str]) -> dict[tuple, dict]:

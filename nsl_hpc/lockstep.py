@@ -196,13 +196,14 @@ class Lockstep:
         inputs, targets = batches[..., :n + m], batches[..., n + m:]
         weights = loss_weights(targets, (rows != self.pad).transpose(0, 1).unsqueeze(-1).to(dtype), m, cfg["loss"],
                                cfg["output_weight"], cfg["loss_std_eps"])
+        weighted_targets = -targets * weights
         steps = np.arange(start, start + size)[:, None]
         rates = learning_rate_at(steps, self.schedules, cfg["schedule"], cfg["warmup_fraction"], cfg["lr"])
         rates = torch.as_tensor(rates * (steps < self.totals), dtype=dtype).unsqueeze(-1)  # (L, K, 1)
         losses = torch.empty(size, len(self.plans), dtype=dtype)
         for i in range(size):
-            predicted_dz, predicted_y = self.stack.forward(inputs[i, :, :, :n], inputs[i, :, :, n:])
-            residual = (torch.cat([predicted_dz, predicted_y], dim=-1) - targets[i]) * weights[i]
+            predicted_dz, predicted_y = self.stack.forward(inputs[i])
+            residual = torch.addcmul(weighted_targets[i], torch.cat([predicted_dz, predicted_y], dim=-1), weights[i])
             step_losses = residual.square().sum(dim=(1, 2))
             self.optimizer.step(self.stack.parameter_gradient(step_losses.sum()), rates[i])
             losses[i] = step_losses.detach()
@@ -287,11 +288,9 @@ def predict_derivatives(stack: StackedModels, data: Dataset, scalings: Sequence[
     """dx/dt (N, n) on the same ``data``, in physical units, without a graph, of every model of ``stack`` or,
     given ``theta`` (R, P), of the ``models`` (R indices of the stack's members) with those parameters; a
     scaling per row."""
-    inputs = [scaling.model_inputs(data, dtype) for scaling in scalings]
-    z, v = torch.stack([pair[0] for pair in inputs]), torch.stack([pair[1] for pair in inputs])
+    zv = torch.stack([torch.cat(scaling.model_inputs(data, dtype), dim=1) for scaling in scalings])  # (R, N, n + m)
     rows = None if models is None else torch.as_tensor(models, dtype=torch.long)
     with torch.no_grad():
-        parts = [stack.forward(z[:, i:i + chunk], v[:, i:i + chunk], theta, rows)[0]
-                 for i in range(0, len(data), chunk)]
+        parts = [stack.forward(zv[:, i:i + chunk], theta, rows)[0] for i in range(0, len(data), chunk)]
     predicted = torch.cat(parts, dim=1).double().numpy()
     return [predicted[k] * scaling.derivative_unit for k, scaling in enumerate(scalings)]

@@ -22,9 +22,10 @@ from nsl_hpc.atomic import write_text
 from nsl_hpc.figures import draw_figures, figure_stem
 from nsl_hpc.fit import FITS_TEXT_FILE, fit_sweep, fits_path, nsl_key, read_results, write_fits
 from nsl_hpc.grid import sub_grids
-from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, require_sweep
+from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, base_config_path, require_sweep
 from nsl_hpc.merge import MergeSummary, merge_sweep, results_path
-from nsl_hpc.tracking import log_to_mlflow, tracking_uri
+from nsl_hpc.studies import study_named, without_paths
+from nsl_hpc.tracking import flatten, log_to_mlflow, tracking_uri
 
 REPORT_FILE = "report.html"
 STYLE = """body{font-family:system-ui,sans-serif;margin:2em auto;max-width:1200px;color:#222}
@@ -52,6 +53,42 @@ def nsl_table(rows: Sequence[Mapping[str, Any]]) -> str:
     return f"<table>{head}{''.join(cells)}</table>"
 
 
+def science_settings(sweep_dir: Path, launch: Mapping[str, Any]) -> dict[tuple[str, str], dict[str, tuple[str, str]]]:
+    """Per (system, arch) of the sweep, its outcome-changing settings (the study's shared keys, flattened) as
+    (value, the study's default value): what the sweep trained against the Fidelity section's defaults."""
+    study = study_named(launch["study"]["name"])
+    settings = {}
+    for part in sub_grids(launch["sweep"]["grid"]):
+        for system in part["system"]:
+            for arch in part["arch"]:
+                used = OmegaConf.to_container(OmegaConf.load(base_config_path(sweep_dir, system, arch)), resolve=True)
+                default = OmegaConf.to_container(cli.compose_config(
+                    [f"study={study.name}", f"system={system}", f"arch={arch}"]), resolve=True)
+                flat_used = flatten(without_paths({key: used[key] for key in study.shared_keys}))
+                flat_default = flatten(without_paths({key: default[key] for key in study.shared_keys}))
+                settings[system, arch] = {key: (value, flat_default.get(key, "(none)"))
+                                          for key, value in flat_used.items()}
+    return settings
+
+
+def configuration_html(settings: Mapping[tuple[str, str], Mapping[str, tuple[str, str]]]) -> str:
+    """The settings a sweep trained with: its draws, MLP block, architecture options, loss and training, and
+    every value that differs from the study's configuration (README, Fidelity)."""
+    first = next(iter(settings.values()))
+    shown = [key for key in first if key.split(".")[0] in ("draws", "train") or key == "system.test_set.trajectories"]
+    rows = "".join(f"<tr><th>{html.escape(key)}</th><td>{html.escape(first[key][0])}</td></tr>" for key in shown)
+    rows += "".join(f"<tr><th>{html.escape(arch)}</th><td>" + html.escape(", ".join(
+        f"{key.removeprefix('arch.')}={value}" for key, (value, _) in pair.items()
+        if key.startswith("arch.") and key not in ("arch.name", "arch.study"))) + "</td></tr>"
+        for arch, pair in {arch: pair for (_, arch), pair in settings.items()}.items())
+    changed = sorted({f"{key}={value} (the study's: {default})" for pair in settings.values()
+                      for key, (value, default) in pair.items() if value != default})
+    verdict = ("<p>These are the study's settings (README, Fidelity).</p>" if not changed else
+               "<p>Settings that differ from the study's (README, Fidelity):</p><ul>"
+               + "".join(f"<li><code>{html.escape(line)}</code></li>" for line in changed) + "</ul>")
+    return f"<table>{rows}</table>{verdict}"
+
+
 def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummary,
                 rows: Sequence[Mapping[str, Any]], figures: Mapping[str, list[Path]]) -> str:
     grid = launch["sweep"]["grid"]
@@ -71,6 +108,7 @@ def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummar
 <p>Sweep directory <code>{html.escape(str(Path(sweep_dir).resolve()))}</code>, sweep seed {launch['sweep_seed']},
 {summary.tasks:,} tasks.</p>
 <h2>Grid</h2><table>{axes}</table>
+<h2>Configuration</h2>{configuration_html(science_settings(sweep_dir, launch))}
 <h2>Tasks</h2><p>{summary.merged:,} tasks merged.</p><pre>{html.escape(summary.describe())}</pre>
 <h2>Neural scaling laws ({sum(r['error'] is None for r in rows)} of {len(rows)} fitted)</h2>
 <p>L(r) = &alpha; + &beta; r<sup>&delta;0</sup> &prod;<sub>i</sub>

@@ -86,8 +86,12 @@ class StackedModels:
         for k, model in enumerate(models):
             self.load(k, model, mask)
         self.gradient_mask = mask  # (K, P): 0 on padding
+        self.masked = bool((mask == 0).any())  # some entry is padding
         self.model_units = [Units.of(chain, model_heads, dtype) for chain in self.chains]  # of every model given
         self.padded = [bool((units.mask == 0).any()) for units in self.model_units]
+        energy = [self.architecture.energy_head in {self.heads[h].name for h in chain.heads} for chain in self.chains]
+        self.fused_norm = [not padded and not has_energy  # torch's layer_norm serves
+                           for padded, has_energy in zip(self.padded, energy, strict=True)]
         self.models = torch.arange(len(models))  # the models of the rows of theta
         self.units = self.model_units
 
@@ -123,13 +127,15 @@ class StackedModels:
         """Keep only the models of ``rows`` (K',): ``theta`` becomes a new (K', P) tensor."""
         self.use_theta(self.theta.detach()[rows])
         self.gradient_mask = self.gradient_mask[rows]
+        self.masked = bool((self.gradient_mask == 0).any())
         self.models = self.models[rows]
         self.units = [units.rows(self.models) for units in self.model_units]
 
     def parameter_gradient(self, loss: torch.Tensor) -> torch.Tensor:
         """d loss / d parameters (K, P), exactly 0 on padding entries."""
         grads = torch.autograd.grad(loss, self.parameters, materialize_grads=True)
-        return torch.cat([grad.reshape(self.count, -1) for grad in grads], dim=1).mul_(self.gradient_mask)
+        grad = torch.cat([grad.reshape(self.count, -1) for grad in grads], dim=1)
+        return grad.mul_(self.gradient_mask) if self.masked else grad
 
     @property
     def count(self) -> int:
@@ -171,15 +177,15 @@ class StackedModels:
                             tensor[k, position, :value.shape[0], :value.shape[1]] = value
                             tensor_mask[k, position, :value.shape[0], :value.shape[1]] = 1.0
 
-    def heads_forward(self, z: torch.Tensor, v: torch.Tensor, theta: torch.Tensor | None, units: list[Units]
+    def heads_forward(self, zv: torch.Tensor, theta: torch.Tensor | None, units: list[Units]
                       ) -> tuple[list[torch.Tensor], list[list[tuple[torch.Tensor, ...]]]]:
-        """Output (K, B, out) of every head for z (K, B, n), v (K, B, m), with the trained parameters or the
+        """Output (K, B, out) of every head for zv = (z, v) (K, B, n + m), with the trained parameters or the
         rows of ``theta`` (K, P) (models with hidden ``units``); and per chain, what each hidden layer keeps for
         ``energy_gradient``: its activation's input t (K M_c, B, width) and, with LayerNorm, the normalised
         units and 1 / their spread (K M_c, B, 1)."""
         outputs: list[torch.Tensor | None] = [None] * len(self.heads)
         kept = []
-        zv = torch.cat([z, v], dim=-1) if any(chain.in_dim > self.n for chain in self.chains) else z
+        z = zv[..., :self.n]
         chains = self.chain_parameters() if theta is None else self.layers(theta)
         for c, (chain, layers) in enumerate(zip(self.chains, chains, strict=True)):
             x = zv if chain.in_dim > self.n else z
@@ -192,13 +198,17 @@ class StackedModels:
                     x = torch.tanh(a)
                     chain_kept.append((x,))
                     continue
-                normalized, spread = self.normalize(a, c, mask, inverse)
-                t = torch.addcmul(norm[1].flatten(0, 1), normalized, norm[0].flatten(0, 1))
+                if a.shape[0] == 1 and self.fused_norm[c]:  # one model, one head: torch's LayerNorm as it is
+                    t = functional.layer_norm(a, a.shape[-1:], norm[0].view(-1), norm[1].view(-1), LAYER_NORM_EPS)
+                    normalized = spread = None
+                else:
+                    normalized, spread = self.normalize(a, c, mask, inverse)
+                    t = torch.addcmul(norm[1].flatten(0, 1), normalized, norm[0].flatten(0, 1))
                 x = functional.silu(t)
                 chain_kept.append((t, normalized, spread))
             weight, bias = layers[-1]
-            out = torch.baddbmm(bias.flatten(0, 1), x, weight.flatten(0, 1)).view(z.shape[0], len(chain.heads),
-                                                                                   z.shape[1], -1)
+            out = torch.baddbmm(bias.flatten(0, 1), x, weight.flatten(0, 1)).view(zv.shape[0], len(chain.heads),
+                                                                                   zv.shape[1], -1)
             for h, head_out in zip(chain.heads, out.unbind(1), strict=True):
                 outputs[h] = head_out[..., :self.heads[h].out_dim]
             kept.append(chain_kept)
@@ -209,20 +219,22 @@ class StackedModels:
         """LayerNorm without its affine part of a (K M_c, B, width) over each model's own units of chain c, and
         1 / the spread (K M_c, B, 1) (None when no energy gradient needs it). Chains without padding or energy
         head use torch's fused layer_norm; padded units of ``a`` are 0 and stay 0."""
-        energy = self.architecture.energy_head in {self.heads[h].name for h in self.chains[c].heads}
-        if not self.padded[c] and not energy:
+        if self.fused_norm[c]:
             return functional.layer_norm(a, a.shape[-1:], eps=LAYER_NORM_EPS), None
-        centered = (a - a.sum(dim=-1, keepdim=True) * inverse) * mask
+        centered = a - a.sum(dim=-1, keepdim=True) * inverse
+        if self.padded[c]:
+            centered = centered * mask
         spread = (centered.square().sum(dim=-1, keepdim=True) * inverse + LAYER_NORM_EPS).rsqrt()
         return centered * spread, spread
 
-    def forward(self, z: torch.Tensor, v: torch.Tensor, theta: torch.Tensor | None = None,
+    def forward(self, zv: torch.Tensor, theta: torch.Tensor | None = None,
                 models: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """dz/dt (K, B, n) and y (K, B, m) for z (K, B, n), v (K, B, m) of every model training, or of
+        """dz/dt (K, B, n) and y (K, B, m) for zv = (z, v) (K, B, n + m) of every model training, or of
         parameters ``theta`` (K, P) of the given ``models`` (indices of the models the stack was built from;
         default: those training)."""
         units = self.units if models is None else [model_units.rows(models) for model_units in self.model_units]
-        outputs, kept = self.heads_forward(z, v, theta, units)
+        outputs, kept = self.heads_forward(zv, theta, units)
+        v = zv[..., self.n:]
         named = {head.name: out for head, out in zip(self.heads, outputs, strict=True)}
         grad = None
         if self.architecture.energy_head is not None:

@@ -149,7 +149,7 @@ def test_unknown_options_are_refused(override, message):
 
 @pytest.mark.parametrize("arch", ARCH_NAMES)
 @pytest.mark.parametrize("variant", range(3))
-@pytest.mark.parametrize(("state_dim", "input_dim", "count"), [(4, 2, 3), (3, 1, 24)])  # 24 x 12: two chains
+@pytest.mark.parametrize(("state_dim", "input_dim", "count"), [(4, 2, 1), (4, 2, 3), (3, 1, 24)])  # 24 x 12: 2 chains
 def test_stacked_models_compute_what_each_model_computes(arch, variant, state_dim, input_dim, count):
     """The fast path (the heads of K models, of widths 4-6 zero-padded, as batched MLPs, grad H written out)
     equals the modules, outputs and parameter gradients, in float64."""
@@ -159,7 +159,7 @@ def test_stacked_models_compute_what_each_model_computes(arch, variant, state_di
     stack = StackedModels(models, torch.float64)
     z = torch.randn(count, 7, state_dim, dtype=torch.float64)
     v = torch.randn(count, 7, input_dim, dtype=torch.float64)
-    dz, y = stack.forward(z, v)
+    dz, y = stack.forward(torch.cat([z, v], dim=-1))
     grad = stack.parameter_gradient(dz.square().sum() + y.square().sum())
     for k, model in enumerate(models):
         expected_dz, expected_y = model(z[k], v[k])
