@@ -20,7 +20,8 @@ from nsl_hpc import cli
 from nsl_hpc.failures import record_failure
 from nsl_hpc.launcher import dispatch
 from nsl_hpc.plan import Pack, lockstep_settings, make_packs, packing_for, planned_groups, run_key
-from nsl_hpc.sweep import PreparedSweep, prepare_sweep
+from nsl_hpc.studies import study_named
+from nsl_hpc.sweep import PreparedSweep, prepare_shared_data, prepare_sweep
 
 
 def describe_lockstep(tasks: Sequence[Mapping[str, Any]], groups: Sequence[Sequence[str]],
@@ -67,6 +68,7 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
     if cfg.dry_run or not packs:
         print("dry run: nothing submitted" if cfg.dry_run else "nothing to run: every task has a row")
         return 0
+    prepare_shared_data(tasks, prepared.configs, study_named(cfg.study.name))
     return dispatch(prepared.sweep_dir, packs, cfg.launcher, cfg.sweep.name)
 
 if __name__ == "__main__":

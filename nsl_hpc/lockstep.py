@@ -284,13 +284,16 @@ def settle(plan: BatchPlan, losses: torch.Tensor, start: int) -> TrainingOutcome
 
 def predict_derivatives(stack: StackedModels, data: Dataset, scalings: Sequence[Scaling], dtype: torch.dtype,
                         theta: torch.Tensor | None = None, models: Sequence[int] | None = None,
-                        chunk: int = 4096) -> list[np.ndarray]:
+                        on_progress: Callable[[], None] = lambda: None, chunk: int = 4096) -> list[np.ndarray]:
     """dx/dt (N, n) on the same ``data``, in physical units, without a graph, of every model of ``stack`` or,
     given ``theta`` (R, P), of the ``models`` (R indices of the stack's members) with those parameters; a
-    scaling per row."""
+    scaling per row. ``on_progress`` is called after each chunk of samples (a heartbeat)."""
     zv = torch.stack([torch.cat(scaling.model_inputs(data, dtype), dim=1) for scaling in scalings])  # (R, N, n + m)
     rows = None if models is None else torch.as_tensor(models, dtype=torch.long)
+    parts = []
     with torch.no_grad():
-        parts = [stack.forward(zv[:, i:i + chunk], theta, rows)[0] for i in range(0, len(data), chunk)]
+        for i in range(0, len(data), chunk):
+            parts.append(stack.forward(zv[:, i:i + chunk], theta, rows)[0])
+            on_progress()
     predicted = torch.cat(parts, dim=1).double().numpy()
     return [predicted[k] * scaling.derivative_unit for k, scaling in enumerate(scalings)]

@@ -15,8 +15,10 @@ from omegaconf import DictConfig, OmegaConf
 from nsl_hpc import cli
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.launcher import dispatch
-from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, require_sweep
+from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, base_config_path, require_sweep
 from nsl_hpc.plan import lockstep_settings, make_packs, packing_for, planned_groups
+from nsl_hpc.studies import study_named
+from nsl_hpc.sweep import prepare_shared_data
 from nsl_hpc.sweep_state import read_sweep_state
 
 RESUBMITTABLE = ("failed", "frozen", "timeout", "missing")
@@ -39,6 +41,9 @@ def main(cfg: DictConfig) -> int:
     groups, seconds = planned_groups(tasks, lockstep_settings(launch), OmegaConf.to_container(launch.cost))
     packs = make_packs(groups, seconds, packing)
     print(f"resubmitting {len(tasks):,} tasks ({', '.join(cfg.states)}) in {len(packs):,} jobs")
+    configs = {pair: OmegaConf.to_container(OmegaConf.load(base_config_path(sweep_dir, *pair)), resolve=True)
+               for pair in {(task["system"], task["arch"]) for task in tasks}}
+    prepare_shared_data(tasks, configs, study_named(launch.study.name))
     return dispatch(sweep_dir, packs, launch.launcher, launch.sweep.name)
 
 if __name__ == "__main__":

@@ -68,8 +68,8 @@ class PreparedSweep:
     sweep_dir: Path
     manifest: pa.Table
     todo: pa.Table  # manifest rows of runnable tasks without a row
-    reused: bool  # the sweep directory already held this grid
     infeasible: dict[str, str]  # task id -> why it cannot run as configured (e.g. a window longer than its data)
+    configs: dict[tuple[str, str], dict]  # the plain config of each (system, arch)
 
 
 def prepare_sweep(cfg: DictConfig, overrides: Sequence[str]) -> PreparedSweep:
@@ -80,8 +80,7 @@ def prepare_sweep(cfg: DictConfig, overrides: Sequence[str]) -> PreparedSweep:
     configs = pair_configs(cfg, overrides, study)
     validate_grid_values(grid, study, configs)
     manifest = build_manifest(grid, study, configs, cfg.sweep_seed)
-    reused = manifest_path(sweep_dir).exists()
-    if reused:
+    if manifest_path(sweep_dir).exists():
         existing = read_manifest(sweep_dir, columns=["task_id"])["task_id"]
         if existing.to_pylist() != manifest["task_id"].to_pylist():
             raise ConfigError(f"sweep_dir={str(sweep_dir)!r} holds a different grid ({len(existing):,} tasks, "
@@ -93,7 +92,23 @@ def prepare_sweep(cfg: DictConfig, overrides: Sequence[str]) -> PreparedSweep:
     todo = pending_tasks(sweep_dir, manifest)
     infeasible = infeasible_tasks(todo, study, configs)
     runnable = pc.invert(pc.is_in(todo["task_id"], value_set=pa.array(list(infeasible), type=pa.string())))
-    return PreparedSweep(sweep_dir, manifest, todo.filter(runnable), reused, infeasible)
+    return PreparedSweep(sweep_dir, manifest, todo.filter(runnable), infeasible, configs)
+
+
+def prepare_shared_data(tasks: Sequence[Mapping[str, Any]], configs: Mapping[tuple[str, str], Mapping[str, Any]],
+                        study: Study) -> None:
+    """Simulate (or read) into the cache the data the (system, arch) pairs of ``tasks`` share (the test sets),
+    before any job starts: jobs then read it instead of all simulating it at once."""
+    pairs = sorted({(task["system"], task["arch"]) for task in tasks})
+    systems = sorted({system for system, _ in pairs})
+    if not systems:
+        return
+    print(f"preparing the shared data of {', '.join(systems)} in {configs[pairs[0]]['cache_dir']}", flush=True)
+    done = set()
+    for pair in pairs:
+        if pair[0] not in done:
+            study.prepare_data(configs[pair])
+            done.add(pair[0])
 
 
 def infeasible_tasks(tasks: pa.Table, study: Study,

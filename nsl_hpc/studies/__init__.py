@@ -96,6 +96,10 @@ class Study:
     def check_task(self, task: Mapping[str, Any], sizes: Mapping[str, Any], base: Mapping[str, Any]) -> None:
         """Raise ConfigError when a task's drawn sizes cannot run (checked before any work)."""
 
+    def prepare_data(self, base: Mapping[str, Any]) -> None:
+        """Simulate (or read) into ``cache_dir`` the data every task of a (system, arch) shares, so a sweep's
+        first jobs do not all simulate it at once (launch calls it before dispatching)."""
+
     def sizes(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
         """The sizes a task draws and what follows: at least train_points, params, steps and flops."""
         drawn = self.draw(task, base)

@@ -89,6 +89,9 @@ class InputOutput(Study):
                               f"{task['data_tier']}) is shorter than one {arch['name']} window of {window} samples "
                               f"({past} past + T={steps}); use a larger data_tier or a shorter horizon")
 
+    def prepare_data(self, base: Mapping[str, Any]) -> None:
+        load_benchmark(base["system"], ArrayCache(base["cache_dir"]))
+
     def draw(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
         rng = self.draw_rng(task, base["draws"])
         points, width = draw_tier(rng, task["data_tier"]), draw_tier(rng, task["width_tier"])
@@ -115,6 +118,7 @@ class InputOutput(Study):
         outcome = train_io_model(model, record, scaling, cfg.train, sizes["steps"], horizon(base),
                                  self.seed_for("shuffle", task, cfg.draws), on_progress)
         train_seconds = time.perf_counter() - started
+        on_progress()
         init = system_cfg["init_samples"]
         measured, simulated = benchmark.test.y[init:], simulate(model, benchmark.test, scaling, init)[init:]
         rmse = float(np.sqrt(np.mean(np.square(simulated - measured))))

@@ -64,6 +64,9 @@ class InputState(Study):
                                       f"{train['schedule_epochs']}, the epochs of the milestone runs; raise it "
                                       "to the largest epoch count or set it to null")
 
+    def prepare_data(self, base: Mapping[str, Any]) -> None:
+        build_test_set(base["system"], ArrayCache(base["cache_dir"]))
+
     def draw(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
         rng = self.draw_rng(task, base["draws"])
         data_size = rng.uniform(task["data_tier"] / 2, task["data_tier"])
@@ -104,9 +107,10 @@ class InputState(Study):
             for i in run:
                 kept[i] = (k, by_epochs[items[i][1]["epochs"]])
         test_data = build_test_set(OmegaConf.to_container(cfg.system, resolve=True), ArrayCache(cfg.cache_dir))
+        on_progress()
         theta = torch.stack([snapshot.theta for _, snapshot in kept])
         predictions = predict_derivatives(stack, test_data, [members[k].scaling for k, _ in kept],
-                                          getattr(torch, cfg.train.dtype), theta, [k for k, _ in kept])
+                                          getattr(torch, cfg.train.dtype), theta, [k for k, _ in kept], on_progress)
         return [{**normalized_errors(test_data.dx, predicted), "steps": snapshot.outcome.steps,
                  "final_loss": snapshot.outcome.final_loss, "finite": snapshot.outcome.finite,
                  "train_seconds": train_seconds, "milestone": cfg.train.schedule_epochs is not None}

@@ -1,10 +1,12 @@
 """Sweeps on the real cluster: job arrays, array splitting under a lowered MaxArraySize, faults
 (a hanging task, a raising task, scancel of part of an array) and resubmit."""
 
+import json
 import subprocess
 import time
 from pathlib import Path
 
+import pyarrow.parquet as pq
 import pytest
 
 from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
@@ -63,8 +65,13 @@ def test_faults_on_slurm_then_resubmit_completes_every_task_once(slurm_cluster, 
                    f"sweep_dir={sweep_dir}", "fault.kind=hang", "fault.seed=1", "watchdog.heartbeat_timeout_s=10")
     assert launched.returncode == 0, launched.stderr
     (array,) = submitted_arrays(launched.stdout)
+    seeds = dict(zip(*pq.read_table(sweep_dir / "manifest.parquet", columns=["task_id", "seed"]).to_pydict().values(),
+                     strict=True))
+    record = json.loads((sweep_dir / "submissions" / f"{array}.json").read_text())
+    others = [element for element, (task_id,) in zip(record["element_ids"], record["elements"], strict=True)
+              if seeds[task_id] != 1]
     time.sleep(1)
-    subprocess.run(["scancel", f"{array}_9", f"{array}_10", f"{array}_11"], check=True)  # part of the array
+    subprocess.run(["scancel", *others[-3:]], check=True)  # part of the array, none of the hanging tasks
     status = wait_for_sweep(sweep_dir)
     assert "frozen 2 |" in status  # seed 1 at both epoch counts
     assert "missing 3" in status  # the cancelled elements
