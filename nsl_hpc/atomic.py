@@ -13,27 +13,42 @@ from pathlib import Path
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-UMASK = os.umask(0o022)
-os.umask(UMASK)  # read once: the final files get the usual permissions, not mkstemp's 0600
-
 
 @contextmanager
-def replacing(path: Path) -> Iterator[Path]:
-    """Yield a temporary path to write; on success it replaces ``path``, on error it is removed."""
+def replacing(path: Path, exclusive: bool = False) -> Iterator[Path]:
+    """Yield a temporary path to write; on success it replaces ``path`` (``exclusive``: it becomes ``path`` only
+    if there is none, else FileExistsError), on error it is removed. The file gets the permissions of the
+    process's umask at that moment."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
     try:
         yield Path(temporary)
-        os.chmod(temporary, 0o666 & ~UMASK)
-        os.replace(temporary, path)
+        os.chmod(temporary, 0o666 & ~current_umask())
+        if exclusive:
+            os.link(temporary, path)  # atomic, and fails when path exists
+            os.unlink(temporary)
+        else:
+            os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise
 
 
+def current_umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def write_parquet(table: pa.Table, path: Path) -> None:
     with replacing(path) as temporary:
+        pq.write_table(table, temporary)
+
+
+def create_parquet(table: pa.Table, path: Path) -> None:
+    """Write ``table`` to ``path`` atomically, only if ``path`` does not exist yet (FileExistsError)."""
+    with replacing(path, exclusive=True) as temporary:
         pq.write_table(table, temporary)
 
 

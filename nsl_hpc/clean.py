@@ -1,24 +1,32 @@
 """Remove from a sweep directory what finished tasks no longer need: submitit's pickles and logs of jobs
 whose tasks all have a row, and stale failure records and logs of tasks that succeeded since. Rows, the
 manifest, the sweep's configs and the failure records and logs of tasks without a row are kept, as are
-the files of jobs still pending or running. The simulated-data cache goes once every task has a row.
+the files of jobs still pending or running, whatever the paths are set to. The simulated-data cache's
+entries go once every task has a row.
 
     python -m nsl_hpc.clean sweep_dir=runs/input_state [dry_run=true]
+
+The dry run lists every path the real run removes (a folder with a trailing /: it goes with its content).
 """
 
-import os
+import re
 import shutil
-import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.failures import failure_path, task_log_path
-from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, require_sweep
+from nsl_hpc.manifest import read_launch_config, require_sweep
 from nsl_hpc.submissions import read_submissions
+from nsl_hpc.sweep_dir import process_alive, sweep_lock
 from nsl_hpc.sweep_state import ACTIVE_JOB_STATES, read_sweep_state
+
+ENTRY = re.compile(r"[0-9a-f]{32}\.npz")  # an ArrayCache entry's name
+KEPT = ("manifest.parquet", "launch.yaml", "run.yaml", "configs", "rows", "corrupt", "results.parquet",
+        "nsl_fits.parquet", "nsl_fits.txt", "report.html", "figures", "mlflow.db", "mlartifacts", "submissions",
+        ".lock")
 
 
 def finished_slurm_job_files(sweep_dir: Path, done: set[str], element_states: dict[str, str]) -> Iterator[Path]:
@@ -42,21 +50,40 @@ def finished_local_job_files(sweep_dir: Path) -> Iterator[Path]:
             yield folder
 
 
-def process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def stale_failure_files(sweep_dir: Path, done: set[str], failed: set[str]) -> Iterator[Path]:
     """Failure records and logs of tasks that have a row now."""
     for task_id in failed & done:
         yield failure_path(sweep_dir, task_id)
         yield task_log_path(sweep_dir, task_id)
+
+
+def cache_entries(cache_dir: Path) -> Iterator[Path]:
+    """The entries of an ``ArrayCache`` (``<root>/<2 hex>/<32 hex>.npz``), their folders once emptied and the
+    root once nothing else is in it: only what the cache itself wrote, whatever else shares its root."""
+    emptied = set()
+    for folder in sorted(cache_dir.glob("[0-9a-f][0-9a-f]")):
+        entries = [path for path in folder.glob("*.npz") if ENTRY.fullmatch(path.name)]
+        yield from entries
+        if folder.is_dir() and set(folder.iterdir()) == set(entries):
+            emptied.add(folder)
+            yield folder
+    if cache_dir.is_dir() and set(cache_dir.iterdir()) == emptied:
+        yield cache_dir
+
+
+def protected(sweep_dir: Path, done: set[str]) -> Callable[[Path], bool]:
+    """Whether removing a path would touch what clean must keep: rows, the manifest, configs, launch and run
+    settings, results, reports, set-aside rows, and the failure records and logs of tasks without a row."""
+    kept = [sweep_dir / name for name in KEPT]
+
+    def check(path: Path) -> bool:
+        if any(path == keep or keep.is_relative_to(path) or path.is_relative_to(keep) for keep in kept):
+            return True
+        if path.parent.parent.name in ("failures", "logs") and path.parents[2] == sweep_dir:
+            return path.stem not in done
+        return False
+
+    return check
 
 
 def size_bytes(path: Path) -> int:
@@ -72,27 +99,34 @@ def remove(path: Path) -> None:
         path.unlink(missing_ok=True)
 
 
-def main(cfg: DictConfig) -> int:
-    sweep_dir = require_sweep(cfg.sweep_dir)
+def doomed_paths(sweep_dir: Path) -> tuple[list[Path], int, int]:
+    """What clean removes, and how many tasks have a row and how many do not."""
     state = read_sweep_state(sweep_dir)
     done = {task_id for task_id, status in state.states.items() if status == "done"}
     doomed = [*finished_slurm_job_files(sweep_dir, done, state.element_states),
               *finished_local_job_files(sweep_dir), *stale_failure_files(sweep_dir, done, set(state.failures))]
-    cache_dir = Path(OmegaConf.load(sweep_dir / LAUNCH_CONFIG_FILE).cache_dir)
-    if len(done) == len(state.states) and cache_dir.resolve().is_relative_to(sweep_dir.resolve()):
-        doomed.append(cache_dir)  # a cache outside the sweep directory may serve other sweeps
-    doomed = [path for path in doomed if path.exists()]
-    freed = sum(size_bytes(path) for path in doomed)
-    if not cfg.dry_run:
-        for path in doomed:
-            remove(path)
+    if len(done) == len(state.states):
+        doomed += cache_entries(Path(read_launch_config(sweep_dir).cache_dir))
+    keep = protected(sweep_dir, done)
+    return [path for path in doomed if path.exists() and not keep(path)], len(done), len(state.states) - len(done)
+
+
+def main(cfg: DictConfig) -> int:
+    sweep_dir = require_sweep(cfg.sweep_dir).resolve()
+    with sweep_lock(sweep_dir, "clean"):
+        doomed, done, kept = doomed_paths(sweep_dir)
+        freed = sum(size_bytes(path) for path in doomed)
+        if cfg.dry_run:
+            for path in doomed:
+                print(f"{path}{'/' if path.is_dir() else ''}")
+        else:
+            for path in doomed:
+                remove(path)
     verb = "would remove" if cfg.dry_run else "removed"
-    kept = len(state.states) - len(done)
-    print(f"{verb} {len(doomed):,} files and folders ({freed / 2**20:.1f} MiB); {len(done):,} rows kept, "
+    print(f"{verb} {len(doomed):,} files and folders ({freed / 2**20:.1f} MiB); {done:,} rows kept, "
           f"{kept:,} tasks without a row keep their records and logs")
     return 0
 
 
 if __name__ == "__main__":
     cli.run(main, __doc__, config_name="clean")
-    sys.exit(0)

@@ -3,6 +3,7 @@
 line on stderr with exit status 2.
 """
 
+import errno
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -12,7 +13,7 @@ from hydra.errors import HydraException, MissingConfigException
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.errors import ConfigError, RunError
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 
@@ -99,3 +100,12 @@ def run(main: Callable[..., int | None], doc: str, argv: Sequence[str] | None = 
     except ConfigError as error:
         print(f"error: {error}", file=sys.stderr)
         sys.exit(2)
+    except RunError as error:
+        print(f"error: {error}", file=sys.stderr)
+        sys.exit(1)
+    except OSError as error:
+        if error.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
+            raise
+        print(f"error: {error.strerror} while writing {error.filename or 'a file'}; what was finished is kept: free "
+              "space (or point the command at a writable place) and run it again", file=sys.stderr)
+        sys.exit(1)

@@ -1,5 +1,10 @@
-"""The one exception type for mistakes a user can fix (bad config, bad paths)."""
+"""The exceptions a command turns into one line on stderr: a user's mistake, or the machine's."""
 
 
 class ConfigError(ValueError):
     """A user-fixable mistake; its message is one line that names the bad value and what is allowed."""
+
+
+class RunError(RuntimeError):
+    """The machine or the cluster failed a command (a full disk, a SLURM command that failed); its message is
+    one line that says what happened to the work and what to do."""

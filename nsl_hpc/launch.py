@@ -12,6 +12,7 @@ submitted; watch them with `python -m nsl_hpc.status sweep_dir=<dir>`.
 
 import sys
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
@@ -19,9 +20,10 @@ from omegaconf import DictConfig, OmegaConf
 from nsl_hpc import cli
 from nsl_hpc.failures import record_failure
 from nsl_hpc.launcher import dispatch
+from nsl_hpc.manifest import write_run_settings
 from nsl_hpc.plan import Pack, lockstep_settings, make_packs, packing_for, planned_groups, run_key
-from nsl_hpc.studies import study_named
-from nsl_hpc.sweep import PreparedSweep, prepare_shared_data, prepare_sweep
+from nsl_hpc.sweep import BuiltSweep, PreparedSweep, build_sweep, prepare_shared_data, prepare_sweep
+from nsl_hpc.sweep_dir import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 
 
 def describe_lockstep(tasks: Sequence[Mapping[str, Any]], groups: Sequence[Sequence[str]],
@@ -43,15 +45,27 @@ def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str)
     classes = ", ".join(f"{n:,} x {limit} min" for limit, n in sorted(by_limit.items()))
     core_hours = sum(pack.seconds for pack in packs) / 3600
     predicted = f"{core_hours:,.1f} core-hours" if core_hours >= 1 else f"{core_hours * 60:.1f} core-minutes"
-    return (f"sweep {prepared.sweep_dir}: {total:,} tasks, {done:,} done, {todo:,} to run\n"
+    notes = "".join([f", {prepared.queued:,} queued in SLURM (not submitted again)" if prepared.queued else "",
+                     f", {prepared.set_aside:,} corrupt rows moved to corrupt/" if prepared.set_aside else ""])
+    done -= prepared.queued
+    return (f"sweep {prepared.sweep_dir}: {total:,} tasks, {done:,} done, {todo:,} to run{notes}\n"
             f"  jobs: {len(packs):,} ({launcher}; time limits: {classes or 'none'})\n"
             f"  predicted: {predicted}")
 
 
 def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
-    prepared = prepare_sweep(cfg, overrides)
-    todo = prepared.todo
-    lockstep, tasks = lockstep_settings(cfg), todo.to_pylist()
+    built = build_sweep(cfg, overrides)  # every check first: nothing is written for a refused launch
+    with private_umask():
+        sweep_dir = usable_sweep_dir(cfg.sweep_dir)
+        with sweep_lock(sweep_dir, "launch"):
+            check_control_files(sweep_dir, cfg.allow_shared_sweep_dir)
+            return launch(cfg, built, sweep_dir)
+
+
+def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> int:
+    """Prepare the sweep directory, print the plan, and (unless a dry run) run or submit the tasks to run."""
+    prepared = prepare_sweep(cfg, built, sweep_dir)
+    lockstep, tasks = lockstep_settings(cfg), prepared.todo.to_pylist()
     groups, seconds = planned_groups(tasks, lockstep, OmegaConf.to_container(cfg.cost))
     packs = make_packs(groups, seconds, packing_for(cfg.packing, cfg.launcher.name))
     print(describe_plan(prepared, packs, cfg.launcher.name))
@@ -66,10 +80,13 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
             for task_id, reason in prepared.infeasible.items():
                 record_failure(prepared.sweep_dir, task_id, "failed", f"cannot run as configured: {reason}")
     if cfg.dry_run or not packs:
-        print("dry run: nothing submitted" if cfg.dry_run else "nothing to run: every task has a row")
+        print("dry run: nothing submitted" if cfg.dry_run else "nothing to run: every task has a row"
+              + (" or is queued" if prepared.queued else ""))
         return 0
-    prepare_shared_data(tasks, prepared.configs, study_named(cfg.study.name))
+    prepare_shared_data(tasks, prepared.configs, built.study)
+    write_run_settings(sweep_dir, cfg)
     return dispatch(prepared.sweep_dir, packs, cfg.launcher, cfg.sweep.name)
+
 
 if __name__ == "__main__":
     cli.run(main, __doc__, config_name="launch", pass_overrides=True)

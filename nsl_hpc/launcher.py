@@ -1,8 +1,10 @@
 """Running packs with submitit: SLURM job arrays split within the cluster's limits (returns once
 submitted), or local / in-process executors in the foreground with a progress bar."""
 
+import contextlib
 import itertools
 import os
+import shutil
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -12,9 +14,10 @@ from typing import Any
 import submitit
 from tqdm import tqdm
 
+from nsl_hpc.errors import RunError
 from nsl_hpc.packs import PackRunner
 from nsl_hpc.plan import Pack
-from nsl_hpc.rows import row_path
+from nsl_hpc.rows import row_path, row_state
 from nsl_hpc.slurm import queued_jobs, read_limits
 from nsl_hpc.submissions import record_submission
 
@@ -95,30 +98,49 @@ def run_locally(sweep_dir: Path, packs: Sequence[Pack], launcher: Mapping[str, A
     else:
         executor = submitit.LocalExecutor(folder=folder)
         executor.update_parameters(timeout_min=int(sum(p.seconds for p in packs) * 10 / 60) + 60)
-    jobs = executor.map_array(PackRunner(), [str(sweep_dir)] * len(groups), groups)
+    runner = PackRunner(None if launcher["name"] == "debug" else os.getpid())  # workers die with this process
+    jobs = executor.map_array(runner, [str(sweep_dir)] * len(groups), groups)
     counts: dict[str, int] = {}
-    with tqdm(total=len(task_ids), desc="tasks", unit="task", disable=None) as bar:
-        pending = list(jobs)
-        while pending:
-            if launcher["name"] == "debug":
-                job = pending.pop(0)
-                finished = [job]
-                job.result()
-            else:
-                time.sleep(1.0)
-                finished = [job for job in pending if job.done()]
-                pending = [job for job in pending if not job.done()]
-            for job in finished:
-                for outcome, n in job.result().items():
-                    counts[outcome] = counts.get(outcome, 0) + n
-            bar.n = sum(row_path(sweep_dir, task_id).exists() for task_id in task_ids)
-            bar.refresh()
+    try:
+        with tqdm(total=len(task_ids), desc="tasks", unit="task", disable=None) as bar:
+            pending = list(jobs)
+            while pending:
+                if launcher["name"] == "debug":
+                    finished = [pending.pop(0)]
+                else:
+                    time.sleep(1.0)
+                    finished = [job for job in pending if job.done()]
+                    pending = [job for job in pending if not job.done()]
+                for job in finished:
+                    for outcome, n in job_result(job).items():
+                        counts[outcome] = counts.get(outcome, 0) + n
+                bar.n = sum(row_state(row_path(sweep_dir, task_id)) == "done" for task_id in task_ids)
+                bar.refresh()
+    except KeyboardInterrupt:
+        for job in jobs:
+            with contextlib.suppress(Exception):
+                job.cancel()
+        raise RunError("interrupted: the running tasks were stopped, finished rows are kept; launch again to run "
+                       "the rest") from None
     return counts
+
+
+def job_result(job: submitit.Job) -> dict[str, int]:
+    """A local job's counts by outcome; a job that ended without a result (its process killed, a full disk) is a
+    one-line RunError."""
+    try:
+        return job.result()
+    except submitit.core.utils.UncompletedJobError as error:
+        disk = shutil.disk_usage(job.paths.folder)
+        raise RunError(f"a local job ended without its result ({' '.join(str(error).split())[:160]}); "
+                       f"{disk.free / 2**20:.0f} MiB free where it writes: free space if that is the cause, then "
+                       "launch again (finished rows are kept)") from None
 
 
 def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Mapping[str, Any], name: str) -> int:
     """Submit ``packs`` (launcher slurm) or run them here, print what happened; returns the exit status:
     1 when a task ran here and did not finish."""
+    sweep_dir = Path(sweep_dir).resolve()  # jobs find it from anywhere
     if launcher["name"] == "slurm":
         submission = submit_to_slurm(sweep_dir, packs, launcher, name)
         elements = sum(submission.arrays.values())

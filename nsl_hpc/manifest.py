@@ -1,24 +1,34 @@
-"""The manifest of a sweep: one row per task with its id, grid coordinates and drawn sizes.
+"""A sweep directory's own files, each with its one writer and its one reader.
 
-``<sweep_dir>/manifest.parquet`` has the columns ``task_id``, the grid axes under their ``nsl_hpc.train``
-names (system, arch, seed, epochs, data_tier, width_tier, depth_tier), ``sweep_seed``, the drawn sizes
-(data_size, n_traj, width, depth) and what they imply (train_points, params, steps, flops).
-``<sweep_dir>/configs/<system>__<arch>.yaml`` holds the resolved task config shared by those tasks; a task's
-own config is that with its manifest row's values set.
+- ``manifest.parquet``: one row per task with its id, the grid coordinates under their ``nsl_hpc.train`` names
+  (system, arch, seed, epochs, data_tier, width_tier, depth_tier), ``sweep_seed``, the drawn sizes (data_size,
+  n_traj, width, depth) and what they imply (train_points, params, steps, flops); created once, exclusively.
+- ``configs/<system>__<arch>.yaml``: the resolved task config shared by those tasks; a task's own config is that
+  with its manifest row's values set.
+- ``launch.yaml``: the launch's whole config (grid, sweep seed, study, ...), written by the first launch.
+- ``run.yaml``: the settings jobs run by (launcher, packing, cost, watchdog, lockstep), written at every launch or
+  resubmit that dispatches work: resubmit starts from the last ones.
+Paths inside the sweep directory are stored relative to it (``nsl_hpc.sweep_dir.portable_paths``), so a sweep can
+be moved and its commands run from anywhere; a damaged file is a one-line error naming it.
 """
 
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import pyarrow as pa
 import pyarrow.parquet as pq
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
-from nsl_hpc.atomic import write_parquet, write_text
+from nsl_hpc.atomic import create_parquet, write_text
 from nsl_hpc.errors import ConfigError
+from nsl_hpc.sweep_dir import portable_paths
 
 MANIFEST_FILE = "manifest.parquet"
-LAUNCH_CONFIG_FILE = "launch.yaml"  # the launch's whole config: launcher, packing and cost settings
+LAUNCH_CONFIG_FILE = "launch.yaml"
+RUN_SETTINGS_FILE = "run.yaml"
+RUN_SETTINGS = ("launcher", "packing", "cost", "watchdog", "lockstep")  # what a resubmit may change
 
 
 def manifest_path(sweep_dir: Path) -> Path:
@@ -32,16 +42,73 @@ def require_sweep(sweep_dir: str | Path) -> Path:
     return Path(sweep_dir)
 
 
+def damaged(path: Path, error: Exception) -> ConfigError:
+    return ConfigError(f"{path} cannot be read ({type(error).__name__}: {' '.join(str(error).split())[:120]}); the "
+                       "sweep directory is damaged: restore that file, or launch the sweep into a new sweep_dir")
+
+
 def base_config_path(sweep_dir: Path, system: str, arch: str) -> Path:
     return Path(sweep_dir) / "configs" / f"{system}__{arch}.yaml"
 
 
-def write_sweep(sweep_dir: Path, manifest: pa.Table, base_configs: Mapping[tuple[str, str], Mapping]) -> None:
-    """Write the manifest and the shared task configs (atomically, configs first)."""
+def write_yaml(values: Mapping[str, Any], path: Path, sweep_dir: Path) -> None:
+    write_text(OmegaConf.to_yaml(OmegaConf.create(portable_paths(values, sweep_dir))), path)
+
+
+def read_yaml(path: Path, sweep_dir: Path) -> DictConfig:
+    """A config written by ``write_yaml``, resolved against where the sweep directory is now."""
+    try:
+        cfg = OmegaConf.load(path)
+        cfg.sweep_dir = str(Path(sweep_dir).resolve())
+        OmegaConf.resolve(cfg)
+    except FileNotFoundError:
+        raise ConfigError(f"{path} is missing; the sweep directory is damaged: restore it, or launch the sweep "
+                          "into a new sweep_dir") from None
+    except (OmegaConfBaseException, ValueError, TypeError) as error:
+        raise damaged(path, error) from None
+    if not isinstance(cfg, DictConfig):
+        raise damaged(path, TypeError("not a mapping"))
+    return cfg
+
+
+def write_sweep(sweep_dir: Path, manifest: pa.Table, base_configs: Mapping[tuple[str, str], Mapping],
+                launch: Mapping[str, Any]) -> None:
+    """Write the shared task configs and the launch config (atomically), then create the manifest (exclusively:
+    a concurrent launch that got there first makes this one fail)."""
     for (system, arch), values in base_configs.items():
-        write_text(OmegaConf.to_yaml(OmegaConf.create(dict(values))), base_config_path(sweep_dir, system, arch))
-    write_parquet(manifest, manifest_path(sweep_dir))
+        write_yaml(values, base_config_path(sweep_dir, system, arch), sweep_dir)
+    write_yaml(launch, Path(sweep_dir) / LAUNCH_CONFIG_FILE, sweep_dir)
+    try:
+        create_parquet(manifest, manifest_path(sweep_dir))
+    except FileExistsError:
+        raise ConfigError(f"sweep_dir={str(sweep_dir)!r} got a manifest from another launch meanwhile; launch "
+                          "again to compare grids") from None
 
 
 def read_manifest(sweep_dir: Path, columns: list[str] | None = None) -> pa.Table:
-    return pq.read_table(manifest_path(sweep_dir), columns=columns)
+    try:
+        return pq.read_table(manifest_path(sweep_dir), columns=columns)
+    except (OSError, pa.ArrowException) as error:
+        raise damaged(manifest_path(sweep_dir), error) from None
+
+
+def read_base_config(sweep_dir: Path, system: str, arch: str) -> DictConfig:
+    """The task config shared by the tasks of (system, arch)."""
+    return read_yaml(base_config_path(sweep_dir, system, arch), sweep_dir)
+
+
+def read_launch_config(sweep_dir: Path) -> DictConfig:
+    """The launch's config with the run settings in force (``run.yaml``, when work was dispatched) over it."""
+    launch = read_yaml(Path(sweep_dir) / LAUNCH_CONFIG_FILE, sweep_dir)
+    run_file = Path(sweep_dir) / RUN_SETTINGS_FILE
+    if run_file.exists():
+        run = read_yaml(run_file, sweep_dir)
+        for key in RUN_SETTINGS:  # each group replaced whole: a slurm launcher is no local one plus keys
+            launch[key] = run[key]
+    return launch
+
+
+def write_run_settings(sweep_dir: Path, cfg: Mapping[str, Any]) -> None:
+    """Record the run settings of ``cfg`` (a launch config) as the ones jobs and the next resubmit use."""
+    values = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+    write_yaml({key: values[key] for key in RUN_SETTINGS}, Path(sweep_dir) / RUN_SETTINGS_FILE, sweep_dir)

@@ -9,6 +9,7 @@ the job is requeued with the tasks it has not started.
 """
 
 import contextlib
+import ctypes
 import multiprocessing
 import os
 import shutil
@@ -27,13 +28,15 @@ import submitit
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.failures import failure_path, record_failure, task_log_path
-from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, base_config_path, read_manifest
+from nsl_hpc.manifest import read_base_config, read_launch_config, read_manifest
 from nsl_hpc.plan import group_seconds, lockstep_groups, lockstep_settings
-from nsl_hpc.rows import row_path
+from nsl_hpc.rows import row_path, row_state, set_aside
 from nsl_hpc.studies import study_named
+from nsl_hpc.sweep_dir import process_alive
 from nsl_hpc.task import describe, run_tasks
 
 POLL_SECONDS = 0.2
+PR_SET_PDEATHSIG = 1  # prctl(2)
 
 
 def manifest_rows(sweep_dir: Path, task_ids: Sequence[str]) -> list[dict[str, Any]]:
@@ -47,14 +50,25 @@ def manifest_rows(sweep_dir: Path, task_ids: Sequence[str]) -> list[dict[str, An
 
 def task_config(sweep_dir: Path, task: Mapping[str, Any]) -> DictConfig:
     """The full config of one manifest row ``task`` (a dict with the manifest's columns)."""
-    cfg = OmegaConf.load(base_config_path(sweep_dir, task["system"], task["arch"]))
+    cfg = read_base_config(sweep_dir, task["system"], task["arch"])
     for key in (*study_named(cfg.study.name).task_keys, "task_id"):  # system and arch: the base config's groups
         cfg[key] = task[key]
     return cfg
 
 
+def die_with_parent() -> None:
+    """Have the kernel kill this process when its parent ends (Linux), so no worker outlives a killed
+    launcher and no task outlives its job runner; exit now if the parent is already gone."""
+    parent = os.getppid()
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent:
+        os._exit(1)
+
+
 def run_child(sweep_dir: Path, cfgs: Sequence[DictConfig], heartbeat) -> None:
     """Child process body: output to the first task's log, train the group; exit status 1 on an exception."""
+    die_with_parent()
     log = task_log_path(sweep_dir, cfgs[0].task_id)
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "w") as handle:
@@ -74,39 +88,54 @@ def run_child(sweep_dir: Path, cfgs: Sequence[DictConfig], heartbeat) -> None:
 
 
 class PackRunner:
-    """The callable submitit pickles into every job: ``PackRunner()(sweep_dir, task_ids)``. The pack's tasks
-    run in lockstep groups (``nsl_hpc.plan.lockstep_groups``, K from the sweep's launch config)."""
+    """The callable submitit pickles into every job: ``PackRunner(launcher_pid)(sweep_dir, task_ids)``. The
+    pack's tasks run in lockstep groups (``nsl_hpc.plan.lockstep_groups``, K from the sweep's run settings).
+    Given the pid of a local launcher, the runner stops its task and exits as soon as that process is gone
+    (the local executor's processes would otherwise finish the sweep as orphans)."""
 
-    def __init__(self) -> None:
+    def __init__(self, launcher_pid: int | None = None) -> None:
+        self.launcher_pid = launcher_pid
         self.running: tuple[Path, list[str], multiprocessing.Process] | None = None
         self.started: set[str] = set()
 
+    def launcher_gone(self) -> bool:
+        return self.launcher_pid is not None and not process_alive(self.launcher_pid)
+
     def __call__(self, sweep_dir: str, task_ids: Sequence[str]) -> dict[str, int]:
-        """Run every task of the pack that has no row yet; returns counts by outcome (per task)."""
+        """Run every task of the pack that has no valid row yet (a corrupt one is moved aside first); returns
+        counts by outcome (per task)."""
         sweep = Path(sweep_dir)
         counts: Counter[str] = Counter()
         todo = []
         for task in manifest_rows(sweep, task_ids):
-            if row_path(sweep, task["task_id"]).exists():
+            path = row_path(sweep, task["task_id"])
+            state = row_state(path)
+            if state == "done":
                 self.started.add(task["task_id"])
                 counts["skipped"] += 1
-            else:
-                todo.append(task)
-        lockstep = lockstep_settings(OmegaConf.load(sweep / LAUNCH_CONFIG_FILE))
+                continue
+            if state == "corrupt":
+                set_aside(path)
+            todo.append(task)
+        launch = read_launch_config(sweep)
+        lockstep = lockstep_settings(launch)
         for group in lockstep_groups(todo, lockstep):
+            if self.launcher_gone():
+                os._exit(1)
             self.started.update(task["task_id"] for task in group)
-            counts[self.run_watched(sweep, group, lockstep)] += len(group)
+            counts[self.run_watched(sweep, group, lockstep, launch)] += len(group)
         return dict(counts)
 
-    def run_watched(self, sweep: Path, group: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any]) -> str:
-        """Run one lockstep group in a child process under the watchdog; returns ok, failed or frozen (the
-        outcome of each of its tasks)."""
+    def run_watched(self, sweep: Path, group: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any],
+                    launch: DictConfig) -> str:
+        """Run one lockstep group in a child process under the watchdog (``launch.watchdog``); returns ok,
+        failed or frozen (the outcome of each of its tasks)."""
         cfgs = [task_config(sweep, task) for task in group]
         for cfg in cfgs:
             if cfg.fault.once and failure_path(sweep, cfg.task_id).exists():
                 cfg.fault.kind = None  # test-only faults strike a task's first attempt only
-        watchdog = cfgs[0].watchdog
-        predicted = group_seconds(group, OmegaConf.to_container(cfgs[0].cost), lockstep)
+        watchdog = launch.watchdog
+        predicted = group_seconds(group, OmegaConf.to_container(launch.cost), lockstep)
         ids = [task["task_id"] for task in group]
         context = multiprocessing.get_context("fork")
         heartbeat = context.Value("d", time.time(), lock=False)
@@ -117,6 +146,8 @@ class PackRunner:
         try:
             while child.is_alive():
                 child.join(POLL_SECONDS)
+                if self.launcher_gone():  # its task dies with it (die_with_parent)
+                    os._exit(1)
                 silent, elapsed = time.time() - heartbeat.value, time.time() - started
                 if child.is_alive() and silent > watchdog.heartbeat_timeout_s:
                     return self.stop_frozen(child, sweep, ids, f"no heartbeat for {silent:.0f} s")
@@ -125,7 +156,7 @@ class PackRunner:
                                             f"{watchdog.overrun_factor}x its predicted {predicted:.0f} s")
         finally:
             self.running = None
-        if child.exitcode == 0 and all(row_path(sweep, task_id).exists() for task_id in ids):
+        if child.exitcode == 0 and all(row_state(row_path(sweep, task_id)) == "done" for task_id in ids):
             log = task_log_path(sweep, ids[0])
             log.unlink(missing_ok=True)
             with contextlib.suppress(OSError):  # the bucket directory, once empty
@@ -152,14 +183,16 @@ class PackRunner:
                 child.kill()
             record_group_failure(sweep, ids, "timeout", "the job reached its time limit while this task ran")
         remaining = [task_id for task_id in task_ids if task_id not in self.started]
-        return submitit.helpers.DelayedSubmission(PackRunner(), sweep_dir, remaining) if remaining else None
+        if not remaining:
+            return None
+        return submitit.helpers.DelayedSubmission(PackRunner(self.launcher_pid), sweep_dir, remaining)
 
 
 def record_group_failure(sweep: Path, ids: Sequence[str], status: str, reason: str) -> None:
     """A failure record for each task of a lockstep group without a row; they share the first one's log."""
     first_log = task_log_path(sweep, ids[0])
     for task_id in ids:
-        if row_path(sweep, task_id).exists():
+        if row_state(row_path(sweep, task_id)) == "done":
             continue
         log = task_log_path(sweep, task_id)
         if task_id != ids[0] and first_log.exists():

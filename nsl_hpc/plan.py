@@ -120,6 +120,32 @@ def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
             "run_keys": list(study.draw_keys(launch["draws"])) if milestones else []}
 
 
+def check_run_settings(launch: Mapping[str, Any]) -> None:
+    """Raise ConfigError for run settings (launcher, packing, cost, watchdog, lockstep) no job can run with."""
+    from nsl_hpc.studies import require_positive_int
+
+    def positive(key: str, value: Any) -> None:
+        if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
+            raise ConfigError(f"{key}={value!r} must be a positive number")
+
+    lockstep_settings(launch)
+    workers = launch["launcher"].get("workers")
+    if workers is not None:
+        require_positive_int("launcher.workers", workers)
+    watchdog = launch["watchdog"]
+    positive("watchdog.heartbeat_timeout_s", watchdog["heartbeat_timeout_s"])
+    if isinstance(watchdog["overrun_factor"], bool) or not isinstance(watchdog["overrun_factor"], int | float) \
+            or watchdog["overrun_factor"] < 1:
+        raise ConfigError(f"watchdog.overrun_factor={watchdog['overrun_factor']!r} must be a number of at least 1")
+    for key in ("short_task_minutes", "pack_minutes", "time_safety"):
+        positive(f"packing.{key}", launch["packing"][key])
+    for limit in launch["packing"]["time_classes_minutes"]:
+        positive("packing.time_classes_minutes value", limit)
+    for arch, seconds in launch["cost"]["step_seconds"].items():
+        positive(f"cost.step_seconds.{arch}", seconds)
+    positive("cost.params_per_overhead", launch["cost"]["params_per_overhead"])
+
+
 def packing_for(packing: Mapping[str, Any], launcher_name: str, time_factor: float = 1.0) -> dict[str, Any]:
     """The packing settings a launcher uses: packing is for the scheduler (local workers balance single
     tasks), and ``time_factor`` stretches the time limits (resubmission after timeouts)."""

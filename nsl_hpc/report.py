@@ -22,7 +22,7 @@ from nsl_hpc.atomic import write_text
 from nsl_hpc.figures import draw_figures, figure_stem
 from nsl_hpc.fit import FITS_TEXT_FILE, fit_sweep, fits_path, nsl_key, read_results, write_fits
 from nsl_hpc.grid import sub_grids
-from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, base_config_path, require_sweep
+from nsl_hpc.manifest import read_base_config, read_launch_config, require_sweep
 from nsl_hpc.merge import MergeSummary, merge_sweep, results_path
 from nsl_hpc.studies import study_named, without_paths
 from nsl_hpc.tracking import flatten, log_to_mlflow, tracking_uri
@@ -61,7 +61,7 @@ def science_settings(sweep_dir: Path, launch: Mapping[str, Any]) -> dict[tuple[s
     for part in sub_grids(launch["sweep"]["grid"]):
         for system in part["system"]:
             for arch in part["arch"]:
-                used = OmegaConf.to_container(OmegaConf.load(base_config_path(sweep_dir, system, arch)), resolve=True)
+                used = OmegaConf.to_container(read_base_config(sweep_dir, system, arch), resolve=True)
                 default = OmegaConf.to_container(cli.compose_config(
                     [f"study={study.name}", f"system={system}", f"arch={arch}"]), resolve=True)
                 flat_used = flatten(without_paths({key: used[key] for key in study.shared_keys}))
@@ -125,7 +125,7 @@ log resource range, scored above it.</p>
 
 def main(cfg: DictConfig) -> int:
     sweep_dir = require_sweep(cfg.sweep_dir)
-    launch = OmegaConf.to_container(OmegaConf.load(sweep_dir / LAUNCH_CONFIG_FILE), resolve=True)
+    launch = OmegaConf.to_container(read_launch_config(sweep_dir), resolve=True)
     summary = merge_sweep(sweep_dir)
     print(f"merged {summary.merged:,} tasks into {results_path(sweep_dir)}\n{summary.describe()}")
     results = read_results(sweep_dir)

@@ -1,51 +1,77 @@
-"""Run again the tasks of a sweep that have no row: failed, frozen, timed out or missing (cancelled,
-lost, never submitted). Finished tasks are never re-run and rows never duplicated; running and pending
-tasks are left alone.
+"""Run again the tasks of a sweep that have no valid row: failed, frozen, timed out, missing (cancelled, lost,
+never submitted) or corrupt (the bad row is moved to corrupt/). Finished tasks are never re-run and rows never
+duplicated; running and pending tasks are left alone.
 
     python -m nsl_hpc.resubmit sweep_dir=runs/input_state
     python -m nsl_hpc.resubmit sweep_dir=runs/input_state 'states=[timeout]' time_factor=4
+    python -m nsl_hpc.resubmit sweep_dir=runs/input_state launcher=slurm launcher.partition=long
+    python -m nsl_hpc.resubmit sweep_dir=runs/input_state 'states=[frozen]' watchdog.overrun_factor=100
 
-It uses the launcher, packing and cost settings the sweep was launched with (<sweep_dir>/launch.yaml).
+It runs with the sweep's last run settings (launcher, packing, cost, watchdog, lockstep: <sweep_dir>/run.yaml,
+written by every launch or resubmit that ran something), with those named on the command line instead.
 """
 
-import sys
+from collections.abc import Sequence
 
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.launcher import dispatch
-from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, base_config_path, require_sweep
-from nsl_hpc.plan import lockstep_settings, make_packs, packing_for, planned_groups
+from nsl_hpc.manifest import RUN_SETTINGS, read_base_config, read_launch_config, require_sweep, write_run_settings
+from nsl_hpc.plan import check_run_settings, lockstep_settings, make_packs, packing_for, planned_groups
+from nsl_hpc.rows import row_path, set_aside
 from nsl_hpc.studies import study_named
-from nsl_hpc.sweep import prepare_shared_data
+from nsl_hpc.sweep import override_key, prepare_shared_data
+from nsl_hpc.sweep_dir import check_control_files, private_umask, sweep_lock
 from nsl_hpc.sweep_state import read_sweep_state
 
-RESUBMITTABLE = ("failed", "frozen", "timeout", "missing")
+RESUBMITTABLE = ("failed", "frozen", "timeout", "missing", "corrupt")
 
 
-def main(cfg: DictConfig) -> int:
+def with_named_settings(launch: DictConfig, cfg: DictConfig, overrides: Sequence[str]) -> DictConfig:
+    """``launch`` (the sweep's config and last run settings) with the run settings the command line names:
+    ``launcher=<name>`` replaces the launcher group, ``group.key=value`` one value."""
+    keys = [override_key(override) for override in overrides]
+    if "launcher" in keys:
+        launch.launcher = cfg.launcher
+    for key in keys:
+        group = key.split(".")[0]
+        if "." in key and group in RUN_SETTINGS and not (group == "launcher" and "launcher" in keys):
+            OmegaConf.update(launch, key, OmegaConf.select(cfg, key), force_add=True)
+    return launch
+
+
+def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
     sweep_dir = require_sweep(cfg.sweep_dir)
     bad = sorted(set(cfg.states) - set(RESUBMITTABLE))
     if bad:
         raise ConfigError(f"states={list(cfg.states)} has {bad[0]!r}; choose from {', '.join(RESUBMITTABLE)}")
     if not cfg.time_factor >= 1:
         raise ConfigError(f"time_factor={cfg.time_factor} must be at least 1")
-    launch = OmegaConf.load(f"{sweep_dir}/{LAUNCH_CONFIG_FILE}")
-    state = read_sweep_state(sweep_dir)
-    tasks = [task for task in state.manifest if state.states[task["task_id"]] in cfg.states]
-    if not tasks:
-        print(f"nothing to resubmit: no task is {' / '.join(cfg.states)}")
-        return 0
-    packing = packing_for(launch.packing, launch.launcher.name, cfg.time_factor)
-    groups, seconds = planned_groups(tasks, lockstep_settings(launch), OmegaConf.to_container(launch.cost))
-    packs = make_packs(groups, seconds, packing)
-    print(f"resubmitting {len(tasks):,} tasks ({', '.join(cfg.states)}) in {len(packs):,} jobs")
-    configs = {pair: OmegaConf.to_container(OmegaConf.load(base_config_path(sweep_dir, *pair)), resolve=True)
-               for pair in {(task["system"], task["arch"]) for task in tasks}}
-    prepare_shared_data(tasks, configs, study_named(launch.study.name))
-    return dispatch(sweep_dir, packs, launch.launcher, launch.sweep.name)
+    with private_umask(), sweep_lock(sweep_dir, "resubmit"):
+        check_control_files(sweep_dir, cfg.allow_shared_sweep_dir)
+        launch = with_named_settings(read_launch_config(sweep_dir), cfg, overrides)
+        check_run_settings(launch)
+        state = read_sweep_state(sweep_dir)
+        tasks = [task for task in state.manifest if state.states[task["task_id"]] in cfg.states]
+        if not tasks:
+            print(f"nothing to resubmit: no task is {' / '.join(cfg.states)}")
+            return 0
+        for task in tasks:
+            if state.states[task["task_id"]] == "corrupt":
+                set_aside(row_path(sweep_dir, task["task_id"]))
+        packing = packing_for(launch.packing, launch.launcher.name, cfg.time_factor)
+        groups, seconds = planned_groups(tasks, lockstep_settings(launch), OmegaConf.to_container(launch.cost))
+        packs = make_packs(groups, seconds, packing)
+        print(f"resubmitting {len(tasks):,} tasks ({', '.join(cfg.states)}) in {len(packs):,} jobs "
+              f"({launch.launcher.name})")
+        configs = {pair: OmegaConf.to_container(read_base_config(sweep_dir, *pair), resolve=True)
+                   for pair in {(task["system"], task["arch"]) for task in tasks}}
+        prepare_shared_data(tasks, configs, study_named(launch.study.name))
+        write_run_settings(sweep_dir, launch)
+        return dispatch(sweep_dir, packs, launch.launcher, launch.sweep.name)
+
 
 if __name__ == "__main__":
-    cli.run(main, __doc__, config_name="resubmit")
-    sys.exit(0)
+    cli.run(main, __doc__, config_name="resubmit", pass_overrides=True)

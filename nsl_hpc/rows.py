@@ -1,6 +1,11 @@
-"""Task outcome rows: one single-row Parquet file per task, written atomically."""
+"""Task outcome rows: one single-row Parquet file per task, written atomically.
+
+A file that does not look like a whole Parquet file (a truncated or overwritten row) is not a row: the task
+counts as ``corrupt`` (``row_state``), runs again, and the bad file is moved aside (``set_aside``), never deleted.
+"""
 
 import os
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -9,6 +14,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from nsl_hpc.atomic import write_parquet
+
+PARQUET_MAGIC = b"PAR1"  # the first and last four bytes of every Parquet file
+CORRUPT_DIR = "corrupt"
 
 
 def row_path(out_dir: str | os.PathLike, task_id: str) -> Path:
@@ -24,3 +32,27 @@ def write_row_atomically(row: Mapping[str, Any], path: Path) -> None:
 def read_row(path: Path) -> dict[str, Any]:
     """The row stored at ``path``."""
     return pq.read_table(path).to_pylist()[0]
+
+
+def row_state(path: Path) -> str:
+    """``done`` (a whole Parquet file: its magic bytes at both ends), ``missing`` or ``corrupt``; two small
+    reads, so a sweep's 63k rows are checked in about a second (a damaged file with intact ends is caught
+    by merge, which reads every row)."""
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(4)
+            handle.seek(0, os.SEEK_END)
+            if handle.tell() < 12:
+                return "corrupt"
+            handle.seek(-4, os.SEEK_END)
+            return "done" if head == handle.read(4) == PARQUET_MAGIC else "corrupt"
+    except FileNotFoundError:
+        return "missing"
+
+
+def set_aside(path: Path) -> Path:
+    """Move a bad row from ``<out_dir>/rows/xx/`` to ``<out_dir>/corrupt/`` (with a time stamp); returns where."""
+    target = path.parents[2] / CORRUPT_DIR / f"{path.name}.{time.strftime('%Y%m%dT%H%M%S')}.{time.time_ns() % 10**9}"
+    target.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(path, target)
+    return target

@@ -4,7 +4,8 @@ bar with an ETA, and the failed tasks with the last lines of their logs.
     python -m nsl_hpc.status sweep_dir=runs/demo
     python -m nsl_hpc.status sweep_dir=runs/input_state wait=true     # until nothing runs or waits
 
-`missing` tasks have no row, no failure record and no active job (cancelled, lost, never submitted):
+`missing` tasks have no row, no failure record and no active job (cancelled, lost, never submitted);
+`corrupt` ones a file where their row belongs that is no valid row (truncated, overwritten):
 `python -m nsl_hpc.resubmit sweep_dir=<dir>` runs them again, with the failed ones.
 """
 
@@ -14,7 +15,7 @@ import time
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
-from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, require_sweep
+from nsl_hpc.manifest import read_launch_config, require_sweep
 from nsl_hpc.plan import predicted_seconds
 from nsl_hpc.sweep_state import STATES, SweepState, read_sweep_state
 
@@ -55,7 +56,7 @@ def failure_report(state: SweepState, limit: int) -> str:
 
 def main(cfg: DictConfig) -> int:
     require_sweep(cfg.sweep_dir)
-    cost = OmegaConf.to_container(OmegaConf.load(f"{cfg.sweep_dir}/{LAUNCH_CONFIG_FILE}").cost)
+    cost = OmegaConf.to_container(read_launch_config(cfg.sweep_dir).cost)
     interval, confirming = cfg.interval_s, False
     while True:
         state = read_sweep_state(cfg.sweep_dir)

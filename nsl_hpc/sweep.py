@@ -1,5 +1,6 @@
-"""Preparing a sweep directory: compose each (system, arch) config, expand the grid, write the manifest,
-and find which tasks still need to run. Nothing is submitted here."""
+"""Preparing a sweep directory: compose each (system, arch) config, validate and expand the grid (``build_sweep``,
+writing nothing), then write the manifest and find which tasks still need to run (``prepare_sweep``, under the
+sweep's lock). Nothing is submitted here."""
 
 import itertools
 from collections.abc import Mapping, Sequence
@@ -11,14 +12,15 @@ import pyarrow as pa
 import pyarrow.compute as pc
 from omegaconf import DictConfig, OmegaConf
 
-from nsl_hpc.atomic import write_text
 from nsl_hpc.cli import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.grid import Grid, build_manifest, sub_grids, validate_grid
-from nsl_hpc.manifest import LAUNCH_CONFIG_FILE, manifest_path, read_manifest, write_sweep
-from nsl_hpc.plan import lockstep_settings
-from nsl_hpc.rows import row_path
+from nsl_hpc.manifest import base_config_path, manifest_path, read_manifest, write_sweep, write_yaml
+from nsl_hpc.plan import check_run_settings, lockstep_settings
+from nsl_hpc.rows import row_path, row_state, set_aside
 from nsl_hpc.studies import Study, require_non_negative_int, study_named, study_of
+from nsl_hpc.sweep_state import read_sweep_state
+from nsl_hpc.task import check_settings
 
 
 def override_key(override: str) -> str:
@@ -64,35 +66,66 @@ def pair_configs(cfg: DictConfig, overrides: Sequence[str], study: Study) -> dic
 
 
 @dataclass(frozen=True)
+class BuiltSweep:
+    """A launch's grid, validated and expanded, before anything is written."""
+
+    manifest: pa.Table
+    configs: dict[tuple[str, str], dict]  # the plain config of each (system, arch)
+    study: Study
+
+
+@dataclass(frozen=True)
 class PreparedSweep:
     sweep_dir: Path
     manifest: pa.Table
-    todo: pa.Table  # manifest rows of runnable tasks without a row
+    todo: pa.Table  # manifest rows of runnable tasks without a row, none of them queued in SLURM
     infeasible: dict[str, str]  # task id -> why it cannot run as configured (e.g. a window longer than its data)
     configs: dict[tuple[str, str], dict]  # the plain config of each (system, arch)
+    queued: int  # tasks without a row that are pending or running in SLURM (left alone)
+    set_aside: int  # corrupt rows moved to corrupt/ (their tasks run again)
 
 
-def prepare_sweep(cfg: DictConfig, overrides: Sequence[str]) -> PreparedSweep:
-    """Validate, expand and (first time) write the manifest; refuse a directory holding another grid."""
+def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
+    """Validate everything a launch depends on and expand its grid; writes nothing."""
     study = validate_launch(cfg, overrides)
-    sweep_dir = Path(cfg.sweep_dir)
     grid = OmegaConf.to_container(cfg.sweep.grid)
     configs = pair_configs(cfg, overrides, study)
     validate_grid_values(grid, study, configs)
-    manifest = build_manifest(grid, study, configs, cfg.sweep_seed)
+    for values in configs.values():
+        check_settings(values)
+    check_run_settings(cfg)
+    return BuiltSweep(build_manifest(grid, study, configs, cfg.sweep_seed), configs, study)
+
+
+def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> PreparedSweep:
+    """Write the sweep's files the first time (refusing a directory that holds another grid) and find the tasks
+    to run: without a valid row (corrupt rows are set aside), not queued in SLURM. Call it holding the lock."""
+    manifest = built.manifest
     if manifest_path(sweep_dir).exists():
         existing = read_manifest(sweep_dir, columns=["task_id"])["task_id"]
         if existing.to_pylist() != manifest["task_id"].to_pylist():
             raise ConfigError(f"sweep_dir={str(sweep_dir)!r} holds a different grid ({len(existing):,} tasks, "
                               f"this one has {len(manifest):,} or other settings); choose another "
                               "sweep_dir or launch with the same sweep and overrides")
+        for (system, arch), values in built.configs.items():  # a deleted one is restored: it is the same
+            if not base_config_path(sweep_dir, system, arch).exists():
+                write_yaml(values, base_config_path(sweep_dir, system, arch), sweep_dir)
     else:
-        write_sweep(sweep_dir, manifest, configs)
-        write_text(OmegaConf.to_yaml(cfg), sweep_dir / LAUNCH_CONFIG_FILE)
-    todo = pending_tasks(sweep_dir, manifest)
-    infeasible = infeasible_tasks(todo, study, configs)
+        write_sweep(sweep_dir, manifest, built.configs, OmegaConf.to_container(cfg, resolve=True))
+    todo, aside = tasks_without_row(sweep_dir, manifest)
+    queued = queued_tasks(sweep_dir)
+    todo = todo.filter(pc.invert(pc.is_in(todo["task_id"], value_set=pa.array(sorted(queued), type=pa.string()))))
+    infeasible = infeasible_tasks(todo, built.study, built.configs)
     runnable = pc.invert(pc.is_in(todo["task_id"], value_set=pa.array(list(infeasible), type=pa.string())))
-    return PreparedSweep(sweep_dir, manifest, todo.filter(runnable), infeasible, configs)
+    return PreparedSweep(sweep_dir, manifest, todo.filter(runnable), infeasible, built.configs, len(queued), aside)
+
+
+def queued_tasks(sweep_dir: Path) -> set[str]:
+    """Tasks without a row whose latest SLURM job is pending or running (one sacct call; none without
+    submissions)."""
+    if not any((Path(sweep_dir) / "submissions").glob("*.json")):
+        return set()
+    return {task_id for task_id, state in read_sweep_state(sweep_dir).states.items() if state in ("pending", "running")}
 
 
 def prepare_shared_data(tasks: Sequence[Mapping[str, Any]], configs: Mapping[tuple[str, str], Mapping[str, Any]],
@@ -123,7 +156,14 @@ def infeasible_tasks(tasks: pa.Table, study: Study,
     return reasons
 
 
-def pending_tasks(sweep_dir: Path, manifest: pa.Table) -> pa.Table:
-    """Manifest rows of the tasks that have no row on disk."""
-    done = [row_path(sweep_dir, task_id).exists() for task_id in manifest["task_id"].to_pylist()]
-    return manifest.filter(pc.invert(pa.array(done, type=pa.bool_())))
+def tasks_without_row(sweep_dir: Path, manifest: pa.Table) -> tuple[pa.Table, int]:
+    """Manifest rows of the tasks without a valid row on disk; corrupt rows are moved aside first (counted)."""
+    aside, keep = 0, []
+    for task_id in manifest["task_id"].to_pylist():
+        path = row_path(sweep_dir, task_id)
+        state = row_state(path)
+        if state == "corrupt":
+            set_aside(path)
+            aside += 1
+        keep.append(state != "done")
+    return manifest.filter(pa.array(keep, type=pa.bool_())), aside

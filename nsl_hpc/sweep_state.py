@@ -9,12 +9,12 @@ from typing import Any
 
 from nsl_hpc.failures import read_failures
 from nsl_hpc.manifest import read_manifest
-from nsl_hpc.rows import row_path
+from nsl_hpc.rows import row_path, row_state
 from nsl_hpc.slurm import job_states
 from nsl_hpc.submissions import read_submissions
 
 ACCOUNTING_LAG_S = 30  # a just-submitted job may take a while to appear in sacct (slurmdbd restarts, load)
-STATES = ("done", "running", "pending", "failed", "frozen", "timeout", "missing")
+STATES = ("done", "running", "pending", "failed", "frozen", "timeout", "missing", "corrupt")
 ACTIVE_JOB_STATES = {"RUNNING": "running", "COMPLETING": "running", "PENDING": "pending", "REQUEUED": "pending",
                      "CONFIGURING": "running", "RESIZING": "running", "SUSPENDED": "pending"}
 
@@ -34,8 +34,9 @@ class SweepState:
 
 
 def read_sweep_state(sweep_dir: Path) -> SweepState:
-    """Classify every task: a row means done; else its latest array element's state while that is active;
-    else its failure record written since that submission (failed, frozen, timeout); else missing."""
+    """Classify every task: a valid row means done; else its latest array element's state while that is active;
+    else its failure record written since that submission (failed, frozen, timeout); else missing. A file
+    where its row belongs that is no valid row makes it corrupt."""
     sweep_dir = Path(sweep_dir)
     manifest = read_manifest(sweep_dir, columns=["task_id", "system", "arch", "seed", "width", "depth", "steps",
                                                  "params"])
@@ -49,8 +50,9 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
     element_states = job_states(record["array_id"] for record in submissions) if submissions else {}
     states = {}
     for task_id in manifest["task_id"].to_pylist():
-        if row_path(sweep_dir, task_id).exists():
-            states[task_id] = "done"
+        row = row_state(row_path(sweep_dir, task_id))
+        if row != "missing":
+            states[task_id] = row  # done, or corrupt: the task ran to the end and its row was damaged since
             continue
         element, submitted = latest.get(task_id, (None, 0.0))
         failure = failures.get(task_id)

@@ -40,14 +40,26 @@ def resolve_task(cfg: DictConfig) -> ResolvedTask:
         require_non_negative_int(key, values[key])
     for key in study.size_axes:
         study.check_coordinate(key, key, values[key], values)
-    require_positive_int("train.batch_size", values["train"]["batch_size"])
-    if not values["train"]["lr"] > 0:
-        raise ConfigError(f"train.lr={values['train']['lr']!r} must be positive")
+    check_settings(values)
     coordinates = {"system": values["system"]["name"], "arch": values["arch"]["name"],
                    **{key: values[key] for key in study.task_keys}}
     sizes = study.sizes(coordinates, values)
     study.check_task(coordinates, sizes, values)
     return ResolvedTask(study, coordinates, sizes)
+
+
+def check_settings(values: Mapping[str, Any]) -> None:
+    """Raise ConfigError for a training setting no task can run with (a plain task config)."""
+    train = values["train"]
+    require_positive_int("train.batch_size", train["batch_size"])
+    require_positive_int("threads", values["threads"])
+    for key in ("lr", "grad_clip_norm"):
+        if not (isinstance(train[key], int | float) and train[key] > 0):
+            raise ConfigError(f"train.{key}={train[key]!r} must be a positive number")
+    if not (isinstance(train["warmup_fraction"], int | float) and 0 <= train["warmup_fraction"] < 1):
+        raise ConfigError(f"train.warmup_fraction={train['warmup_fraction']!r} must be in [0, 1)")
+    if train["dtype"] not in ("float32", "float64"):
+        raise ConfigError(f"train.dtype={train['dtype']!r} is unknown; choose one of: float32, float64")
 
 
 def task_id_from(study: Study, shared: str, values: Mapping[str, Any]) -> str:

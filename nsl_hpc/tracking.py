@@ -19,9 +19,11 @@ from mlflow.tracking import MlflowClient
 
 from nsl_hpc.fit import nsl_key
 from nsl_hpc.merge import MergeSummary
+from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_named
 
-SWEEP_TAG = "nsl_hpc.sweep_dir"
+SWEEP_TAG = "nsl_hpc.sweep_dir"  # the sweep directory, for people
+SWEEP_ID_TAG = "nsl_hpc.sweep_id"  # a hash of it, for searches (a path may hold quotes; a hash holds none)
 NSL_TAG = "nsl_hpc.nsl"
 PARENT_TAG = "mlflow.parentRunId"
 LAW_COLUMNS = ("b", "alpha", "beta", "delta0")
@@ -69,11 +71,12 @@ def find_runs(client: MlflowClient, experiment: str, filter_string: str) -> list
 
 def sweep_run(client: MlflowClient, experiment: str, sweep_dir: Path, name: str, params: dict[str, str]) -> str:
     """The sweep's parent run (created with its params the first time)."""
-    key = str(Path(sweep_dir).resolve())
-    runs = find_runs(client, experiment, f"tags.`{SWEEP_TAG}` = '{key}' and tags.`{NSL_TAG}` = 'sweep'")
+    path = str(Path(sweep_dir).resolve())
+    key = stable_hash(path)
+    runs = find_runs(client, experiment, f"tags.`{SWEEP_ID_TAG}` = '{key}' and tags.`{NSL_TAG}` = 'sweep'")
     if runs:
         return runs[0].info.run_id
-    run = client.create_run(experiment, run_name=name, tags={SWEEP_TAG: key, NSL_TAG: "sweep"})
+    run = client.create_run(experiment, run_name=name, tags={SWEEP_TAG: path, SWEEP_ID_TAG: key, NSL_TAG: "sweep"})
     items = sorted(params.items())
     for start in range(0, len(items), 100):  # log_batch takes at most 100 params
         client.log_batch(run.info.run_id, params=[Param(k, v[:6000]) for k, v in items[start:start + 100]])

@@ -1,0 +1,146 @@
+"""The sweep directory as a unit that cannot be hijacked, run twice or moved out from under its jobs.
+
+- One command that changes a sweep (launch, resubmit, clean) at a time: ``sweep_lock`` holds an exclusive
+  lock on ``<sweep_dir>/.lock``, which names its holder, for as long as the command runs (a local sweep: until
+  its tasks end). The lock is the kernel's (flock): it goes with the process, however it ends.
+- Nobody but the owner can change what a sweep's jobs run: its control files (the submitit folder with the
+  pickled job runners, ``launch.yaml``, ``run.yaml``, ``configs/``, the manifest) must not be writable by group
+  or others, nor owned by another user (``check_control_files``, as ssh's StrictModes checks ~/.ssh). Commands
+  create them so (``private_umask``).
+- Paths inside the sweep directory are stored relative to it (``portable_paths``): a sweep can be moved or
+  copied, and a command run from any directory, and its jobs still write into it.
+"""
+
+import contextlib
+import copy
+import fcntl
+import os
+import socket
+import stat
+import time
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+from nsl_hpc.errors import ConfigError
+
+LOCK_FILE = ".lock"
+CONTROL_PATHS = ("submitit", "launch.yaml", "run.yaml", "configs", "manifest.parquet")
+PATH_KEYS = (("out_dir",), ("cache_dir",), ("data_dir",), ("system", "source", "data_dir"))  # of a launch config
+SWEEP_DIR_REFERENCE = "${sweep_dir}"
+
+
+def usable_sweep_dir(sweep_dir: str | os.PathLike) -> Path:
+    """``sweep_dir`` created if needed, refused with one line when it cannot hold a sweep (a file, not
+    writable, a read-only or pseudo file system)."""
+    path = Path(sweep_dir)
+    probe = path / f".write-test-{socket.gethostname()}-{os.getpid()}"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe.touch()
+        probe.unlink()
+    except OSError as error:
+        reason = "it is a file" if path.is_file() else error.strerror
+        raise ConfigError(f"sweep_dir={str(path)!r} cannot hold a sweep ({reason}); choose a directory you can "
+                          "write to") from None
+    return path
+
+
+@contextlib.contextmanager
+def sweep_lock(sweep_dir: Path, command: str) -> Iterator[None]:
+    """Hold the sweep's lock while ``command`` changes it; refuse with one line naming the holder when another
+    command holds it."""
+    path = Path(sweep_dir) / LOCK_FILE
+    descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(descriptor, 1000, 0).decode(errors="replace").strip() or "another command"
+            raise ConfigError(f"sweep_dir={str(sweep_dir)!r} is in use by {holder}; wait for it to end (or stop "
+                              "it) and run again") from None
+        os.ftruncate(descriptor, 0)
+        os.pwrite(descriptor, (f"{command} (pid {os.getpid()} on {socket.gethostname()}, since "
+                               f"{time.strftime('%Y-%m-%d %H:%M:%S')})\n").encode(), 0)
+        try:
+            yield
+        finally:
+            os.ftruncate(descriptor, 0)
+    finally:
+        os.close(descriptor)  # releases the lock
+
+
+def process_alive(pid: int) -> bool:
+    """Whether a process of this id exists (on this machine)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def check_control_files(sweep_dir: Path, allow_shared: bool) -> None:
+    """Refuse (one line) a sweep directory whose control files another user could change: anyone who can
+    write a job runner pickle, ``launch.yaml`` (its ``launcher.setup`` lines run in every job) or a task config
+    can run code as you when a job starts. ``allow_shared`` (``allow_shared_sweep_dir=true``) skips the check."""
+    if allow_shared:
+        return
+    me = os.getuid()
+    for path in control_paths(Path(sweep_dir)):
+        try:
+            info = path.lstat()
+        except FileNotFoundError:
+            continue
+        if info.st_uid != me or info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+            who = "another user owns" if info.st_uid != me else (
+                "group and others can write" if info.st_mode & stat.S_IWOTH and info.st_mode & stat.S_IWGRP
+                else "others can write" if info.st_mode & stat.S_IWOTH else "the group can write")
+            raise ConfigError(
+                f"{path} is not safe: {who} it (mode {stat.filemode(info.st_mode)}), and whoever can change a "
+                f"sweep's control files can run code as you in its jobs; run `chmod -R go-w {sweep_dir}` (as its "
+                "owner), or pass allow_shared_sweep_dir=true if you trust everyone who can write there")
+
+
+def control_paths(sweep_dir: Path) -> Iterator[Path]:
+    """The sweep directory, its control files and folders, and everything in those folders."""
+    yield sweep_dir
+    for name in CONTROL_PATHS:
+        path = sweep_dir / name
+        yield path
+        if path.is_dir() and not path.is_symlink():
+            yield from path.rglob("*")
+
+
+@contextlib.contextmanager
+def private_umask() -> Iterator[None]:
+    """Files and folders created meanwhile (by this process and the processes it starts, SLURM jobs included:
+    sbatch passes the umask on) are not writable by group or others."""
+    previous = os.umask(0)
+    os.umask(previous | 0o022)
+    try:
+        yield
+    finally:
+        os.umask(previous)
+
+
+def portable_paths(values: Mapping[str, Any], sweep_dir: Path) -> dict[str, Any]:
+    """A resolved plain launch or task config with its paths made portable: inside ``sweep_dir`` as
+    ``${sweep_dir}/...``, elsewhere absolute; ``sweep_dir`` itself is left to the reader (``???``)."""
+    root = Path(sweep_dir).resolve()
+    portable = copy.deepcopy(dict(values))
+    portable["sweep_dir"] = "???"
+    for keys in PATH_KEYS:
+        parent = portable
+        for key in keys[:-1]:
+            parent = parent.get(key) if isinstance(parent, Mapping) else None
+        if not isinstance(parent, dict) or parent.get(keys[-1]) is None:
+            continue
+        path = Path(parent[keys[-1]]).resolve()
+        if path == root or path.is_relative_to(root):
+            relative = path.relative_to(root).as_posix()
+            parent[keys[-1]] = SWEEP_DIR_REFERENCE + ("" if relative == "." else f"/{relative}")
+        else:
+            parent[keys[-1]] = str(path)
+    return portable
