@@ -4,10 +4,11 @@
     python -m nsl_hpc.launch +sweep=input_state launcher=slurm launcher.partition=cpu
     python -m nsl_hpc.launch +sweep=input_state dry_run=true      # manifest and plan only
 
-Everything lands in sweep_dir (default runs/<sweep name>): manifest.parquet, configs/, rows/, logs/,
-failures/, submissions/. Launching again on the same sweep_dir runs only the tasks without a row;
-a sweep_dir holding a different grid is refused. launcher=slurm returns as soon as the job arrays are
-submitted; watch them with `python -m nsl_hpc.status sweep_dir=<dir>`.
+Everything lands in sweep_dir (default runs/<sweep name>): manifest.parquet, configs/, launch.yaml, run.yaml,
+rows/, logs/, failures/, submissions/. Launching again on the same sweep_dir runs only the tasks without a valid
+row and not queued in SLURM; a sweep_dir holding a different grid, or in use by another launch, resubmit or
+clean, is refused. launcher=slurm returns as soon as the job arrays are submitted; watch them with
+`python -m nsl_hpc.status sweep_dir=<dir>`.
 """
 
 import sys

@@ -130,7 +130,7 @@ def job_result(job: submitit.Job) -> dict[str, int]:
     one-line RunError."""
     try:
         return job.result()
-    except submitit.core.utils.UncompletedJobError as error:
+    except (submitit.core.utils.UncompletedJobError, submitit.core.utils.FailedJobError) as error:
         disk = shutil.disk_usage(job.paths.folder)
         raise RunError(f"a local job ended without its result ({' '.join(str(error).split())[:160]}); "
                        f"{disk.free / 2**20:.0f} MiB free where it writes: free space if that is the cause, then "

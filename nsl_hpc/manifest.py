@@ -18,11 +18,12 @@ from typing import Any
 
 import pyarrow as pa
 import pyarrow.parquet as pq
+import yaml
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from nsl_hpc.atomic import create_parquet, write_text
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.errors import ConfigError, damaged_file
 from nsl_hpc.sweep_dir import portable_paths
 
 MANIFEST_FILE = "manifest.parquet"
@@ -42,11 +43,6 @@ def require_sweep(sweep_dir: str | Path) -> Path:
     return Path(sweep_dir)
 
 
-def damaged(path: Path, error: Exception) -> ConfigError:
-    return ConfigError(f"{path} cannot be read ({type(error).__name__}: {' '.join(str(error).split())[:120]}); the "
-                       "sweep directory is damaged: restore that file, or launch the sweep into a new sweep_dir")
-
-
 def base_config_path(sweep_dir: Path, system: str, arch: str) -> Path:
     return Path(sweep_dir) / "configs" / f"{system}__{arch}.yaml"
 
@@ -64,10 +60,10 @@ def read_yaml(path: Path, sweep_dir: Path) -> DictConfig:
     except FileNotFoundError:
         raise ConfigError(f"{path} is missing; the sweep directory is damaged: restore it, or launch the sweep "
                           "into a new sweep_dir") from None
-    except (OmegaConfBaseException, ValueError, TypeError) as error:
-        raise damaged(path, error) from None
+    except (OmegaConfBaseException, yaml.YAMLError, ValueError, TypeError) as error:
+        raise damaged_file(path, error) from None
     if not isinstance(cfg, DictConfig):
-        raise damaged(path, TypeError("not a mapping"))
+        raise damaged_file(path, TypeError("not a mapping"))
     return cfg
 
 
@@ -89,7 +85,7 @@ def read_manifest(sweep_dir: Path, columns: list[str] | None = None) -> pa.Table
     try:
         return pq.read_table(manifest_path(sweep_dir), columns=columns)
     except (OSError, pa.ArrowException) as error:
-        raise damaged(manifest_path(sweep_dir), error) from None
+        raise damaged_file(manifest_path(sweep_dir), error) from None
 
 
 def read_base_config(sweep_dir: Path, system: str, arch: str) -> DictConfig:

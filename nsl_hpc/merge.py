@@ -9,9 +9,9 @@ written to ``<sweep_dir>/merge_summary.json``. Shards read once are kept in ``<s
 with their size and modification time, so merging a running sweep again reads only new or rewritten shards.
 """
 
+import contextlib
 import json
 import os
-import sys
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
@@ -28,6 +28,7 @@ from nsl_hpc import cli
 from nsl_hpc.atomic import write_parquet, write_text
 from nsl_hpc.failures import FAILURE_STATES, read_failures
 from nsl_hpc.manifest import read_manifest, require_sweep
+from nsl_hpc.rows import set_aside
 
 RESULTS_FILE = "results.parquet"
 SUMMARY_FILE = "merge_summary.json"
@@ -62,7 +63,8 @@ class MergeSummary:
         if self.diverged:
             lines.append(f"{self.diverged:,} merged tasks diverged (non-finite errors): kept, not fitted")
         if self.corrupt_shards:
-            lines.append(f"{len(self.corrupt_shards):,} corrupt shards skipped (their tasks count as missing): "
+            lines.append(f"{len(self.corrupt_shards):,} corrupt shards moved to corrupt/ (their tasks count as "
+                         "missing; resubmit runs them again): "
                          + ", ".join(self.corrupt_shards[:5]) + (" ..." if len(self.corrupt_shards) > 5 else ""))
         if self.duplicate_rows:
             lines.append(f"{self.duplicate_rows:,} duplicate rows of already merged tasks ignored")
@@ -176,6 +178,9 @@ def merge_sweep(sweep_dir: Path) -> MergeSummary:
     sweep_dir = Path(sweep_dir)
     manifest = read_manifest(sweep_dir)
     rows, corrupt = read_rows(sweep_dir, manifest.column_names)
+    for shard in corrupt:  # no row: moved aside, so status, launch and resubmit see the task as to run
+        with contextlib.suppress(FileNotFoundError):
+            set_aside(sweep_dir / shard)
     rows, unknown, duplicates = one_row_per_manifest_task(rows.drop_columns(list(SHARD_KEY)), manifest["task_id"])
     ordered = manifest.append_column("manifest_index", pa.array(np.arange(manifest.num_rows)))
     results = ordered.join(rows, "task_id", join_type="inner")
@@ -201,4 +206,3 @@ def main(cfg: DictConfig) -> int:
 
 if __name__ == "__main__":
     cli.run(main, __doc__, config_name="merge")
-    sys.exit(0)

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from nsl_hpc.atomic import write_text
+from nsl_hpc.errors import damaged_file
 
 SUBMISSIONS_DIR = "submissions"
 
@@ -23,5 +24,11 @@ def record_submission(sweep_dir: Path, array_id: str, time_limit_min: int, eleme
 
 def read_submissions(sweep_dir: Path) -> list[dict[str, Any]]:
     """Every array submitted for the sweep, oldest first."""
-    records = [json.loads(p.read_text()) for p in (Path(sweep_dir) / SUBMISSIONS_DIR).glob("*.json")]
-    return sorted(records, key=lambda record: record["submitted"])
+    records = []
+    for path in (Path(sweep_dir) / SUBMISSIONS_DIR).glob("*.json"):
+        try:
+            record = json.loads(path.read_text())
+            records.append((record["submitted"], record))
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            raise damaged_file(path, error) from None
+    return [record for _, record in sorted(records, key=lambda pair: pair[0])]

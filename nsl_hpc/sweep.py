@@ -15,7 +15,14 @@ from omegaconf import DictConfig, OmegaConf
 from nsl_hpc.cli import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.grid import Grid, build_manifest, sub_grids, validate_grid
-from nsl_hpc.manifest import base_config_path, manifest_path, read_manifest, write_sweep, write_yaml
+from nsl_hpc.manifest import (
+    base_config_path,
+    manifest_path,
+    read_launch_config,
+    read_manifest,
+    write_sweep,
+    write_yaml,
+)
 from nsl_hpc.plan import check_run_settings, lockstep_settings
 from nsl_hpc.rows import row_path, row_state, set_aside
 from nsl_hpc.studies import Study, require_non_negative_int, study_named, study_of
@@ -110,6 +117,7 @@ def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Prepar
         for (system, arch), values in built.configs.items():  # a deleted one is restored: it is the same
             if not base_config_path(sweep_dir, system, arch).exists():
                 write_yaml(values, base_config_path(sweep_dir, system, arch), sweep_dir)
+        read_launch_config(sweep_dir)  # a damaged one is refused here, before any work
     else:
         write_sweep(sweep_dir, manifest, built.configs, OmegaConf.to_container(cfg, resolve=True))
     todo, aside = tasks_without_row(sweep_dir, manifest)

@@ -93,7 +93,8 @@ def check_control_files(sweep_dir: Path, allow_shared: bool) -> None:
             info = path.lstat()
         except FileNotFoundError:
             continue
-        if info.st_uid != me or info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        writable = not stat.S_ISLNK(info.st_mode) and info.st_mode & (stat.S_IWGRP | stat.S_IWOTH)  # links: owner
+        if info.st_uid != me or writable:
             who = "another user owns" if info.st_uid != me else (
                 "group and others can write" if info.st_mode & stat.S_IWOTH and info.st_mode & stat.S_IWGRP
                 else "others can write" if info.st_mode & stat.S_IWOTH else "the group can write")

@@ -1,5 +1,6 @@
 """Running the sweep commands as a user would, on tiny grids."""
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -15,10 +16,11 @@ TINY_GRID = ["+sweep=demo", "sweep.grid.system=[spring]", "sweep.grid.arch=[inpu
 ALONE = "lockstep.enabled=false"
 
 
-def nsl(verb: str, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    """``python -m nsl_hpc.<verb> args...``."""
+def nsl(verb: str, *args: str, timeout: float = 600, cwd: Path | None = None,
+        umask: int | None = None) -> subprocess.CompletedProcess:
+    """``python -m nsl_hpc.<verb> args...`` (in ``cwd``, with ``umask``)."""
     return subprocess.run([sys.executable, "-m", f"nsl_hpc.{verb}", *args], capture_output=True, text=True,
-                          timeout=timeout)
+                          timeout=timeout, cwd=cwd, preexec_fn=None if umask is None else lambda: os.umask(umask))
 
 
 def row_files(sweep_dir: Path) -> list[Path]:

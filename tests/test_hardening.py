@@ -1,0 +1,304 @@
+"""A sweep directory that cannot be destroyed, hijacked, run twice or silently lose a task: one test per way a
+hostile but fair user lost a sweep before (the SLURM case is in tests/cluster/test_hardening_slurm.py)."""
+
+import os
+import shutil
+import signal
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
+
+LOCAL = [*TINY_GRID, "launcher=local"]
+
+
+def tree(root: Path) -> set[Path]:
+    return {path for path in root.rglob("*")}
+
+
+def launched(sweep_dir: Path, *extra: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    result = nsl("launch", *LOCAL, f'sweep_dir="{sweep_dir}"', *extra, cwd=cwd)
+    assert result.returncode == 0, result.stderr
+    return result
+
+
+# 1. clean never removes rows, the manifest, configs or failure records, whatever the paths.
+@pytest.mark.parametrize("cache", ["sweep_dir", "rows"])
+def test_clean_keeps_everything_computed_whatever_cache_dir_is_and_its_dry_run_lists_what_goes(cache, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    cache_dir = sweep_dir if cache == "sweep_dir" else sweep_dir / "rows"
+    launched(sweep_dir, f"cache_dir={cache_dir}")
+    before = tree(sweep_dir)
+    dry = nsl("clean", f"sweep_dir={sweep_dir}", "dry_run=true")
+    assert dry.returncode == 0, dry.stderr
+    listed = [Path(line.rstrip("/")) for line in dry.stdout.splitlines() if line.startswith("/")]
+    assert tree(sweep_dir) == before  # a dry run changes nothing
+    assert nsl("clean", f"sweep_dir={sweep_dir}").returncode == 0
+    removed = before - tree(sweep_dir)
+    assert removed == {path for path in before if any(path == top or path.is_relative_to(top) for top in listed)}
+    assert len(row_files(sweep_dir)) == 4 and sorted(p.stem for p in row_files(sweep_dir)) == sorted(
+        manifest_ids(sweep_dir))
+    for kept in ("manifest.parquet", "launch.yaml", "run.yaml", "configs"):
+        assert (sweep_dir / kept).exists(), kept
+    assert not [path for path in removed if path.suffix == ".parquet"]
+
+
+# 2. A corrupt or truncated row is no row: status says so, launch and resubmit run it again, the file is kept aside.
+def test_a_truncated_row_is_reported_rerun_and_kept_aside(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    launched(sweep_dir)
+    first, second = row_files(sweep_dir)[:2]
+    damaged = first.read_bytes()[:100]
+    first.write_bytes(damaged)
+    status = nsl("status", f"sweep_dir={sweep_dir}")
+    assert "done 3 |" in status.stdout and "corrupt 1" in status.stdout
+    again = launched(sweep_dir)
+    assert "1 to run" in again.stdout and "1 corrupt rows moved to corrupt/" in again.stdout
+    assert "done 4 |" in nsl("status", f"sweep_dir={sweep_dir}").stdout
+    (aside,) = (sweep_dir / "corrupt").iterdir()
+    assert aside.read_bytes() == damaged and aside.name.startswith(first.name)
+
+    second.write_bytes(b"not parquet at all")
+    resubmitted = nsl("resubmit", f"sweep_dir={sweep_dir}")
+    assert resubmitted.returncode == 0 and "resubmitting 1 tasks" in resubmitted.stdout, resubmitted.stderr
+    assert "done 4 |" in nsl("status", f"sweep_dir={sweep_dir}").stdout
+    assert len(list((sweep_dir / "corrupt").iterdir())) == 2
+
+
+# 3. A sweep directory is self-contained and relocatable.
+def test_a_moved_sweep_is_resubmitted_from_elsewhere_into_its_new_place(tmp_path):
+    first_home, elsewhere = tmp_path / "first", tmp_path / "elsewhere"
+    first_home.mkdir()
+    elsewhere.mkdir()
+    launched(Path("runs/tiny"), cwd=first_home)  # a relative sweep_dir, as users type it
+    moved = tmp_path / "moved" / "tiny"
+    moved.parent.mkdir()
+    shutil.move(first_home / "runs" / "tiny", moved)
+    lost = row_files(moved)[0]
+    lost.unlink()
+    resubmitted = nsl("resubmit", f"sweep_dir={moved}", cwd=elsewhere)
+    assert resubmitted.returncode == 0 and "resubmitting 1 tasks" in resubmitted.stdout, resubmitted.stderr
+    assert lost.exists() and "done 4 |" in nsl("status", f"sweep_dir={moved}", cwd=elsewhere).stdout
+    assert not list(elsewhere.rglob("*.parquet")) and not (first_home / "runs" / "tiny").exists()
+    assert "failed 0" in nsl("status", f"sweep_dir={moved}").stdout
+
+
+# 4. One launch, resubmit or clean at a time per sweep; the manifest is created once.
+def test_concurrent_launches_of_different_grids_into_one_new_directory_accept_one(tmp_path):
+    for trial in range(3):
+        sweep_dir = tmp_path / f"race{trial}"
+        commands = [[sys.executable, "-m", "nsl_hpc.launch", *LOCAL, f"sweep_dir={sweep_dir}", "dry_run=true", seeds]
+                    for seeds in ("sweep.grid.seed=[0,1]", "sweep.grid.seed=[5,6,7]")]
+        runs = [subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                for command in commands]
+        results = [(run.wait(timeout=120), run.stderr.read()) for run in runs]
+        assert sorted(code for code, _ in results) == [0, 2], results
+        refusal = next(err for code, err in results if code == 2)
+        assert "is in use by" in refusal or "holds a different grid" in refusal, refusal
+
+
+def test_a_second_command_is_refused_naming_the_running_one(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    first = subprocess.Popen([sys.executable, "-m", "nsl_hpc.launch", *LOCAL, f"sweep_dir={sweep_dir}",
+                              "sweep.grid.epochs=[3000]"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        while not (sweep_dir / "logs").exists():  # its tasks run: it holds the lock
+            assert first.poll() is None, first.stderr.read()
+            time.sleep(0.2)
+        for verb, args in (("launch", [*LOCAL, "sweep.grid.epochs=[3000]"]), ("resubmit", []), ("clean", [])):
+            refused = nsl(verb, *args, f"sweep_dir={sweep_dir}")
+            assert refused.returncode == 2, (verb, refused.stdout)
+            assert f"is in use by launch (pid {first.pid} on" in refused.stderr, refused.stderr
+        assert nsl("status", f"sweep_dir={sweep_dir}").returncode == 0  # reading is fine
+    finally:
+        first.kill()
+        first.wait()
+
+
+# 6. Workers die with their launcher.
+def sweep_processes(sweep_dir: Path) -> list[int]:
+    """Processes (other than this one) whose command line or whose submitit folder names the sweep."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit() and int(entry.name) != os.getpid():
+            try:
+                if str(sweep_dir) in (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace"):
+                    found.append(int(entry.name))
+            except OSError:
+                continue
+    return found
+
+
+def test_killing_the_local_launcher_stops_its_workers_and_a_relaunch_runs_the_rest(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    launcher = subprocess.Popen([sys.executable, "-m", "nsl_hpc.launch", *LOCAL, f"sweep_dir={sweep_dir}",
+                                 "sweep.grid.epochs=[4000]", "launcher.workers=2", "lockstep.enabled=false"],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    while not any((sweep_dir / "logs").rglob("*.log")):  # a task is training
+        assert launcher.poll() is None
+        time.sleep(0.2)
+    assert len(sweep_processes(sweep_dir)) >= 2  # the launcher's workers
+    os.kill(launcher.pid, signal.SIGKILL)
+    launcher.wait()
+    deadline = time.time() + 20
+    while sweep_processes(sweep_dir) and time.time() < deadline:
+        time.sleep(0.5)
+    assert not sweep_processes(sweep_dir)
+    finished = len(row_files(sweep_dir))
+    assert finished < 4
+    again = launched(sweep_dir, "sweep.grid.epochs=[4000]", "lockstep.enabled=false")
+    assert f"{4 - finished} to run" in again.stdout and len(row_files(sweep_dir)) == 4
+
+
+# 7. resubmit uses the launcher the user names (default: the last one used) and new watchdog and time settings.
+def test_resubmit_runs_on_the_last_launcher_with_the_settings_it_is_given(tmp_path):
+    sweep_dir, longer = tmp_path / "sweep", "sweep.grid.epochs=[400]"  # tasks of ~1 s: longer than a watchdog poll
+    assert nsl("launch", *LOCAL, longer, f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0  # ran nothing
+    too_tight = ["launcher=debug", "watchdog.overrun_factor=1", "cost.startup_s=0.001", "lockstep.enabled=false",
+                 "cost.step_seconds.input_affine=1e-9"]
+    frozen = nsl("launch", *TINY_GRID, longer, f"sweep_dir={sweep_dir}", *too_tight)
+    assert frozen.returncode == 1 and "4 frozen" in frozen.stdout, frozen.stderr
+    again = nsl("resubmit", f"sweep_dir={sweep_dir}")  # the debug launcher and the same tight watchdog
+    assert again.returncode == 1 and "(debug)" in again.stdout and "4 frozen" in again.stdout
+    recovered = nsl("resubmit", f"sweep_dir={sweep_dir}", "launcher=local", "cost.startup_s=600")
+    assert recovered.returncode == 0 and "(local)" in recovered.stdout, recovered.stderr
+    assert "done 4 |" in nsl("status", f"sweep_dir={sweep_dir}").stdout
+    assert "name: local" in (sweep_dir / "run.yaml").read_text()
+
+
+# 8. Nobody else can change what a sweep's jobs run.
+def test_control_files_others_can_write_are_refused_and_written_private(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    result = nsl("launch", *LOCAL, f"sweep_dir={sweep_dir}", umask=0o002)  # a group project's umask
+    assert result.returncode == 0, result.stderr
+    for path in [sweep_dir, *(sweep_dir / "submitit").rglob("*"), *(sweep_dir / "configs").rglob("*"),
+                 sweep_dir / "launch.yaml", sweep_dir / "run.yaml", sweep_dir / "manifest.parquet"]:
+        assert not path.stat().st_mode & (stat.S_IWGRP | stat.S_IWOTH), path
+    (sweep_dir / "launch.yaml").chmod(0o664)
+    for verb, args in (("launch", LOCAL), ("resubmit", [])):
+        refused = nsl(verb, *args, f"sweep_dir={sweep_dir}")
+        assert refused.returncode == 2 and "launch.yaml is not safe: the group can write it" in refused.stderr
+        assert "chmod -R go-w" in refused.stderr and len(refused.stderr.splitlines()) == 1
+    accepted = nsl("launch", *LOCAL, f"sweep_dir={sweep_dir}", "allow_shared_sweep_dir=true")
+    assert accepted.returncode == 0 and "nothing to run" in accepted.stdout
+
+
+# 9. Bad input: one line, a non-zero exit, before any work, nothing computed touched.
+@pytest.mark.parametrize(("override", "message"), [
+    ("sweep.grid.epochs=4", "sweep.grid.epochs=4 must be a list of values"),
+    ("sweep.grid.epochs=null", "sweep.grid.epochs=None must be a list of values"),
+    ("sweep.grid=[]", "Error merging override sweep.grid=[]"),
+    ("launcher.workers=-1", "launcher.workers=-1 must be a positive integer"),
+    ("launcher.workers=abc", "launcher.workers='abc' must be a positive integer"),
+    ("train.lr=-1", "train.lr=-1 must be a positive number"),
+    ("watchdog.heartbeat_timeout_s=-1", "watchdog.heartbeat_timeout_s=-1 must be a positive number"),
+    ("watchdog.overrun_factor=0.5", "watchdog.overrun_factor=0.5 must be a number of at least 1"),
+])
+def test_bad_launch_settings_are_one_line_before_anything_is_written(override, message, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    result = nsl("launch", *LOCAL, f"sweep_dir={sweep_dir}", override)
+    assert result.returncode == 2 and result.stderr.splitlines() == [f"error: {result.stderr[7:].strip()}"]
+    assert message in result.stderr
+    assert not sweep_dir.exists()
+
+
+@pytest.fixture
+def tmpfs(tmp_path):
+    """tmpfs(options) -> a fresh tmpfs mounted with ``options`` (needs root: skipped without), unmounted after."""
+    mounts = []
+
+    def mount(options: str) -> Path:
+        point = tmp_path / f"mount{len(mounts)}"
+        point.mkdir()
+        if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(point)],
+                                               capture_output=True).returncode:
+            pytest.skip("mounting a file system needs root")
+        mounts.append(point)
+        return point
+
+    yield mount
+    for point in mounts:
+        subprocess.run(["umount", "-l", str(point)], capture_output=True)
+
+
+@pytest.mark.parametrize("where", ["a file", "/proc", "read-only"])
+def test_a_sweep_dir_that_cannot_hold_a_sweep_is_one_line(where, tmp_path, tmpfs):
+    if where == "a file":
+        target = tmp_path / "file"
+        target.write_text("x")
+    elif where == "/proc":
+        target = Path("/proc/nsl_hpc_sweep")
+    else:
+        target = tmpfs("ro,size=1m") / "sweep"
+    result = nsl("launch", *LOCAL, f"sweep_dir={target}")
+    assert result.returncode == 2 and "cannot hold a sweep" in result.stderr and len(result.stderr.splitlines()) == 1
+
+
+@pytest.fixture
+def finished_sweep(tmp_path) -> Path:
+    sweep_dir = tmp_path / "sweep"
+    launched(sweep_dir)
+    return sweep_dir
+
+
+@pytest.mark.parametrize("damage", ["truncated manifest", "truncated launch.yaml", "deleted configs",
+                                    "truncated submission"])
+def test_a_damaged_sweep_directory_is_one_line_for_every_command(damage, finished_sweep):
+    sweep_dir = finished_sweep
+    if damage == "truncated manifest":
+        path = sweep_dir / "manifest.parquet"
+        path.write_bytes(path.read_bytes()[:200])
+    elif damage == "truncated launch.yaml":
+        (sweep_dir / "launch.yaml").write_text("sweep:\n  grid: {system: [spring\n")
+    elif damage == "deleted configs":
+        shutil.rmtree(sweep_dir / "configs")
+        (row_files(sweep_dir)[0]).unlink()  # so that resubmit needs a task config
+    else:
+        (sweep_dir / "submissions").mkdir()
+        (sweep_dir / "submissions" / "123.json").write_text('{"array_id": "123", "subm')
+    rows = {path: path.read_bytes() for path in row_files(sweep_dir)}
+    refusing = {"truncated manifest": {"status", "resubmit", "clean", "merge", "launch"},
+                "truncated launch.yaml": {"status", "resubmit", "clean", "launch"},
+                "deleted configs": {"resubmit"},  # a launch restores them: they follow from its own config
+                "truncated submission": {"status", "resubmit", "clean", "launch"}}[damage]
+    for verb, args in (("status", []), ("resubmit", []), ("clean", ["dry_run=true"]), ("merge", []),
+                       ("launch", LOCAL)):
+        result = nsl(verb, *args, f"sweep_dir={sweep_dir}")
+        if verb not in refusing:
+            assert result.returncode == 0, (verb, result.stderr)  # it does not need that file
+            continue
+        assert result.returncode == 2, (damage, verb, result.stdout, result.stderr)
+        assert len(result.stderr.splitlines()) == 1 and "Traceback" not in result.stderr, result.stderr
+        assert "damaged" in result.stderr or "missing" in result.stderr
+    assert {path: path.read_bytes() for path in row_files(sweep_dir) if path in rows} == rows
+
+
+def test_a_quote_in_the_sweep_path_does_not_break_the_report(tmp_path):
+    sweep_dir = tmp_path / "it's a sweep"
+    launched(sweep_dir)
+    for _ in range(2):  # the second time finds the MLflow runs of the first
+        report = nsl("report", f'sweep_dir="{sweep_dir}"')
+        assert report.returncode == 0, report.stderr
+
+
+def test_a_full_disk_during_a_sweep_and_during_merge_is_one_line_and_keeps_the_rows(tmp_path, tmpfs):
+    mount = tmpfs("size=2m")
+    sweep_dir = mount / "sweep"
+    cache = [f"cache_dir={tmp_path / 'cache'}"]
+    launched(sweep_dir, *cache)
+    for path in row_files(sweep_dir)[:2]:
+        path.unlink()  # two tasks to run again
+    rows = {path: path.read_bytes() for path in row_files(sweep_dir)}
+    (mount / "filler").write_bytes(bytes(shutil.disk_usage(mount).free - 16 * 1024))  # room to start, not to end
+    result = nsl("launch", *LOCAL, f"sweep_dir={sweep_dir}", *cache)  # two more tasks
+    assert result.returncode == 1 and len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert "a local job ended without its result" in result.stderr and "MiB free where it writes" in result.stderr
+    merged = nsl("merge", f"sweep_dir={sweep_dir}")
+    assert merged.returncode == 1 and "No space left on device" in merged.stderr, merged.stderr
+    assert len(merged.stderr.strip().splitlines()) == 1
+    assert {path: path.read_bytes() for path in row_files(sweep_dir) if path in rows} == rows
