@@ -26,7 +26,7 @@ def sub_grids(grid: Grid) -> list[Mapping[str, Sequence[Any]]]:
 def validate_grid(grid: Grid, study: Study) -> None:
     """Raise ConfigError unless every sub-grid names exactly the study's axes, each with distinct values."""
     axes = ", ".join(study.axes)
-    if not isinstance(grid, Mapping | list | tuple):
+    if not isinstance(grid, Mapping | Sequence) or isinstance(grid, str):
         raise ConfigError(f"sweep.grid={grid!r} must map each axis to its values (or be a list of such mappings)")
     parts = sub_grids(grid)
     if not parts:
@@ -42,7 +42,7 @@ def validate_grid(grid: Grid, study: Study) -> None:
         if missing:
             raise ConfigError(f"{where} lacks the axis {sorted(missing)[0]!r}; axes of the {study.name} study: {axes}")
         for axis in study.axes:
-            if not isinstance(part[axis], list | tuple):
+            if not isinstance(part[axis], Sequence) or isinstance(part[axis], str):
                 raise ConfigError(f"{where}.{axis}={part[axis]!r} must be a list of values, e.g. "
                                   f"{where}.{axis}=[{part[axis] if part[axis] is not None else '...'}]")
             values = list(part[axis])
