@@ -43,7 +43,8 @@ def test_merge_reports_corrupt_duplicate_and_missing_shards_and_is_idempotent(sw
     result = nsl("merge", f"sweep_dir={sweep_copy}")
     assert result.returncode == 0, result.stderr
     assert "3 of 24 tasks (12.5%) dropped: 1 frozen, 0 failed, 2 missing" in result.stdout
-    assert "1 corrupt shards skipped" in result.stdout and corrupt.name in result.stdout
+    assert "1 corrupt shards moved to corrupt/" in result.stdout and corrupt.name in result.stdout
+    assert not corrupt.exists() and len(list((sweep_copy / "corrupt").iterdir())) == 1  # kept aside
     assert "1 duplicate rows" in result.stdout
     results = pq.read_table(sweep_copy / "results.parquet")
     assert results.num_rows == 21 and len(set(results["task_id"].to_pylist())) == 21
