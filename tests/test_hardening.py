@@ -11,7 +11,9 @@ import time
 from pathlib import Path
 
 import pytest
+from mlflow.tracking import MlflowClient
 
+from nsl_hpc.tracking import sweep_run, tracking_uri
 from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
 
 LOCAL = [*TINY_GRID, "launcher=local"]
@@ -25,6 +27,20 @@ def launched(sweep_dir: Path, *extra: str, cwd: Path | None = None) -> subproces
     result = nsl("launch", *LOCAL, f'sweep_dir="{sweep_dir}"', *extra, cwd=cwd)
     assert result.returncode == 0, result.stderr
     return result
+
+
+@pytest.fixture(scope="module")
+def tiny_sweep(tmp_path_factory) -> Path:
+    """A finished local sweep of TINY_GRID, launched once for the tests that copy it (a copy is a sweep too:
+    its paths are relative to it)."""
+    sweep_dir = tmp_path_factory.mktemp("tiny") / "sweep"
+    launched(sweep_dir)
+    return sweep_dir
+
+
+def copy_of(sweep_dir: Path, target: Path) -> Path:
+    shutil.copytree(sweep_dir, target, symlinks=True)
+    return target
 
 
 # 1. clean never removes rows, the manifest, configs or failure records, whatever the paths.
@@ -49,9 +65,8 @@ def test_clean_keeps_everything_computed_whatever_cache_dir_is_and_its_dry_run_l
 
 
 # 2. A corrupt or truncated row is no row: status says so, launch and resubmit run it again, the file is kept aside.
-def test_a_truncated_row_is_reported_rerun_and_kept_aside(tmp_path):
-    sweep_dir = tmp_path / "sweep"
-    launched(sweep_dir)
+def test_a_truncated_row_is_reported_rerun_and_kept_aside(tiny_sweep, tmp_path):
+    sweep_dir = copy_of(tiny_sweep, tmp_path / "sweep")
     first, second = row_files(sweep_dir)[:2]
     damaged = first.read_bytes()[:100]
     first.write_bytes(damaged)
@@ -90,7 +105,7 @@ def test_a_moved_sweep_is_resubmitted_from_elsewhere_into_its_new_place(tmp_path
 
 # 4. One launch, resubmit or clean at a time per sweep; the manifest is created once.
 def test_concurrent_launches_of_different_grids_into_one_new_directory_accept_one(tmp_path):
-    for trial in range(3):
+    for trial in range(2):
         sweep_dir = tmp_path / f"race{trial}"
         commands = [[sys.executable, "-m", "nsl_hpc.launch", *LOCAL, f"sweep_dir={sweep_dir}", "dry_run=true", seeds]
                     for seeds in ("sweep.grid.seed=[0,1]", "sweep.grid.seed=[5,6,7]")]
@@ -240,10 +255,8 @@ def test_a_sweep_dir_that_cannot_hold_a_sweep_is_one_line(where, tmp_path, tmpfs
 
 
 @pytest.fixture
-def finished_sweep(tmp_path) -> Path:
-    sweep_dir = tmp_path / "sweep"
-    launched(sweep_dir)
-    return sweep_dir
+def finished_sweep(tiny_sweep, tmp_path) -> Path:
+    return copy_of(tiny_sweep, tmp_path / "sweep")
 
 
 @pytest.mark.parametrize("damage", ["truncated manifest", "truncated launch.yaml", "deleted configs",
@@ -278,12 +291,16 @@ def test_a_damaged_sweep_directory_is_one_line_for_every_command(damage, finishe
     assert {path: path.read_bytes() for path in row_files(sweep_dir) if path in rows} == rows
 
 
-def test_a_quote_in_the_sweep_path_does_not_break_the_report(tmp_path):
+def test_a_quote_in_the_sweep_path_does_not_break_the_mlflow_search(tmp_path):
+    """The parent run of a sweep in a directory named with a quote is found again, not duplicated (a real
+    MLflow store)."""
     sweep_dir = tmp_path / "it's a sweep"
-    launched(sweep_dir)
-    for _ in range(2):  # the second time finds the MLflow runs of the first
-        report = nsl("report", f'sweep_dir="{sweep_dir}"')
-        assert report.returncode == 0, report.stderr
+    sweep_dir.mkdir()
+    client = MlflowClient(tracking_uri(sweep_dir, None))
+    experiment = client.create_experiment("quotes")
+    first = sweep_run(client, experiment, sweep_dir, "tiny", {"sweep_seed": "0"})
+    assert sweep_run(client, experiment, sweep_dir, "tiny", {"sweep_seed": "0"}) == first
+    assert client.get_run(first).data.tags["nsl_hpc.sweep_dir"] == str(sweep_dir.resolve())
 
 
 def test_a_full_disk_during_a_sweep_and_during_merge_is_one_line_and_keeps_the_rows(tmp_path, tmpfs):

@@ -87,7 +87,7 @@ def test_an_input_output_sweep_runs_merges_and_fits(tmp_path):
             "sweep.grid.0.data_tier=[250,500,1000]", "sweep.grid.0.width_tier=[2,4]",
             "sweep.grid.1.seed=[0]", "sweep.grid.1.iter_multiplier=[1]", "sweep.grid.1.data_tier=[312]",
             "sweep.grid.1.width_tier=[4]", "sweep.grid.2.seed=[0,1]", "sweep.grid.2.data_tier=[312]",
-            "sweep.grid.2.width_tier=[2]", "train.batch_size=32"]
+            "sweep.grid.2.width_tier=[2]", "train.batch_size=32", "system.subnet.horizon=20"]
     launched = nsl("launch", *grid, "launcher=local", f"sweep_dir={sweep_dir}")
     assert launched.returncode in (0, 1), launched.stderr
     manifest = pq.read_table(sweep_dir / "manifest.parquet")
