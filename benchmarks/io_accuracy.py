@@ -2,7 +2,7 @@
 
     python benchmarks/io_accuracy.py [--data-dir data] [--workers 2]
 
-Each line is one real task (`nsl_hpc.task.run_task`, default train config but SUBNET's lr) on the
+Each line is one real task (`nsl_hpc.sweep.task.run_task`, default train config but SUBNET's lr) on the
 simulated stand-ins and, where `--data-dir` holds the measured files (python -m nsl_hpc.place_data), on
 Silverbox and Wiener-Hammerstein: drawn sizes, training time on one core, free-run test nMSE and RMSE in mV.
 """
@@ -12,9 +12,9 @@ import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from nsl_hpc.cli import compose_config
+from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.task import run_task
+from nsl_hpc.sweep.task import run_task
 
 # (system, arch, overrides): sizes chosen to train in a few minutes on one core; SUBNET with a 3x larger
 # learning rate than the default, which at these short budgets leaves it ~10x worse on Silverbox.

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nsl_hpc.rows import read_row
+from nsl_hpc.sweep.rows import read_row
 
 GRID = ["+sweep=demo", "sweep.grid.system=[spring]", "sweep.grid.arch=[port_hamiltonian,input_affine]",
         "sweep.grid.data_tier=[32]", "sweep.grid.width_tier=[8]", "sweep.grid.depth_tier=[2]", "launcher=local",

@@ -18,9 +18,9 @@ from omegaconf import OmegaConf
 from synthetic import corrupt_rows, fill_sweep, synthetic_input_state_sweep
 from timing import timed
 
-from nsl_hpc.cli import compose_config
-from nsl_hpc.fit import fit_sweep
-from nsl_hpc.merge import merge_sweep, results_path
+from nsl_hpc.analysis.fitting import fit_sweep
+from nsl_hpc.analysis.merge import merge_sweep, results_path
+from nsl_hpc.config import compose_config
 
 
 def main() -> None:

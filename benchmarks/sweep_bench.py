@@ -21,12 +21,12 @@ from omegaconf import OmegaConf
 from synthetic import fill_sweep
 from timing import timed
 
-from nsl_hpc.cli import compose_config
+from nsl_hpc.config import compose_config
 from nsl_hpc.launch import main as launch
 from nsl_hpc.status import summary
-from nsl_hpc.submissions import read_submissions
-from nsl_hpc.sweep import prepare_sweep
-from nsl_hpc.sweep_state import read_sweep_state
+from nsl_hpc.sweep.prepare import prepare_sweep
+from nsl_hpc.sweep.submissions import read_submissions
+from nsl_hpc.sweep.task_states import read_sweep_state
 
 INPUT_STATE = ["+sweep=input_state"]
 # 9 (system, arch) x 8 seeds x 9 data tiers x 4 width tiers x 2 depth tiers at 2 epochs = 5,184 tasks.

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from nsl_hpc.failures import record_failure
-from nsl_hpc.manifest import read_manifest
-from nsl_hpc.rows import row_path, write_row_atomically
+from nsl_hpc.sweep.failures import record_failure
+from nsl_hpc.sweep.manifest import read_manifest
+from nsl_hpc.sweep.rows import row_path, write_row_atomically
 
 
 def synthetic_row(task: dict, rng: np.random.Generator) -> dict:
@@ -52,8 +52,8 @@ def corrupt_rows(sweep_dir: Path, count: int) -> list[Path]:
 
 def synthetic_input_state_sweep(sweep_dir: Path) -> Path:
     """The input-state grid's manifest (a dry-run launch) in ``sweep_dir``, not yet filled."""
-    from nsl_hpc.cli import compose_config
-    from nsl_hpc.sweep import prepare_sweep
+    from nsl_hpc.config import compose_config
+    from nsl_hpc.sweep.prepare import prepare_sweep
 
     overrides = ["+sweep=input_state", f"sweep_dir={sweep_dir}", "dry_run=true"]
     return prepare_sweep(compose_config(overrides, "launch"), overrides).sweep_dir

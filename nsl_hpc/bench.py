@@ -6,7 +6,7 @@ Prints (and with ``readme=`` writes between the README's bench markers):
 1. per architecture at a small and a large size: samples/s of two reference loops on the modules, the plain
    loop (random mini-batch gather, forward, the study's loss, backward, Adam step, zero_grad) and the authors'
    loop (a shuffling DataLoader, forward, loss, backward, clip_grad_norm_, Adam step, LambdaLR step,
-   zero_grad), of ours alone (``nsl_hpc.lockstep`` with K = 1) and per model of ours with K models packed,
+   zero_grad), of ours alone (the lockstep loop with K = 1) and per model of ours with K models packed,
    and the ratios; the same model, data, batch size and step count;
 2. where the time of one task goes: interpreter + imports, data (cache miss and hit), training, scoring, writing;
 3. the achieved flop rate (about 6 p flops per sample and step) against this core's dense-matmul peak;
@@ -40,14 +40,15 @@ from torch import nn
 from nsl_hpc import cli
 from nsl_hpc.atomic import write_text
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.datasets import build_test_set, build_training_set
-from nsl_hpc.lockstep import Member, predict_derivatives, train_lockstep
-from nsl_hpc.metrics import normalized_errors
+from nsl_hpc.config import compose_config
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
-from nsl_hpc.rows import write_row_atomically
+from nsl_hpc.studies.input_state.data import build_test_set, build_training_set
+from nsl_hpc.studies.input_state.lockstep import Member, predict_derivatives, train_lockstep
+from nsl_hpc.studies.metrics import normalized_errors
+from nsl_hpc.studies.training import Scaling, batch_count, warmup_cosine
+from nsl_hpc.sweep.rows import write_row_atomically
 from nsl_hpc.systems import SYSTEMS
-from nsl_hpc.training import Scaling, batch_count, warmup_cosine
 
 README_START, README_END = "<!-- bench:start -->", "<!-- bench:end -->"
 
@@ -117,7 +118,7 @@ class Bench:
         self.data = build_training_set(self.system_cfg, 0, cfg.n_traj, cache)
         self.scaling = Scaling.fit(self.data, self.train["rescale_targets"])
         self.batches = batch_count(len(self.data), self.train["batch_size"])
-        self.arch_cfgs = {arch: OmegaConf.to_container(cli.compose_config([f"arch={arch}"]).arch)
+        self.arch_cfgs = {arch: OmegaConf.to_container(compose_config([f"arch={arch}"]).arch)
                           for arch in {*cfg.archs, cfg.typical_task.arch}}  # composed once, not per model
 
     def model(self, arch: str, width: int, depth: int, seed: int) -> nn.Module:
@@ -174,7 +175,7 @@ def task_breakdown(bench: Bench, cfg: DictConfig, root: Path) -> dict[str, float
     task = cfg.typical_task
     python = [sys.executable, "-c"]
     _, interpreter_s = timed(lambda: subprocess.run([*python, "pass"], check=True))
-    _, imports_s = timed(lambda: subprocess.run([*python, "import nsl_hpc.task"], check=True))
+    _, imports_s = timed(lambda: subprocess.run([*python, "import nsl_hpc.sweep.task"], check=True))
     miss_cache = ArrayCache(root / "miss")
     (data, _), miss_s = timed(lambda: (build_training_set(bench.system_cfg, 1, task.n_traj, miss_cache),
                                        build_test_set(bench.system_cfg, miss_cache)))
@@ -202,12 +203,12 @@ def interpolate(table: Mapping[tuple[int, int], float], widths: list[int], depth
 
 def study_manifest(*overrides: str) -> tuple[DictConfig, list[dict[str, Any]]]:
     """The launch config and manifest rows of the input-state study (``+sweep=input_state`` and ``overrides``)."""
-    from nsl_hpc.grid import build_manifest
     from nsl_hpc.studies import study_named
-    from nsl_hpc.sweep import pair_configs
+    from nsl_hpc.sweep.grid import build_manifest
+    from nsl_hpc.sweep.prepare import pair_configs
 
     arguments = ["+sweep=input_state", *overrides]
-    launch = cli.compose_config(arguments, "launch")
+    launch = compose_config(arguments, "launch")
     study = study_named("input_state")
     return launch, build_manifest(launch.sweep.grid, study, pair_configs(launch, arguments, study),
                                   launch.sweep_seed).to_pylist()
@@ -215,10 +216,10 @@ def study_manifest(*overrides: str) -> tuple[DictConfig, list[dict[str, Any]]]:
 
 def planner_core_hours(launch: DictConfig, manifest: list[dict[str, Any]]) -> float:
     """The core-hours ``launch +sweep=input_state launcher=slurm dry_run=true`` predicts (``cost.*``)."""
-    from nsl_hpc.plan import lockstep_settings, make_packs, packing_for, planned_groups
+    from nsl_hpc.sweep.plan import lockstep_settings, make_packs, packing_for, planned_groups
 
-    groups, seconds = planned_groups(manifest, lockstep_settings(launch), OmegaConf.to_container(launch.cost))
-    return sum(pack.seconds for pack in make_packs(groups, seconds, packing_for(launch.packing, "slurm"))) / 3600
+    groups = planned_groups(manifest, lockstep_settings(launch), OmegaConf.to_container(launch.cost))
+    return sum(pack.seconds for pack in make_packs(groups, packing_for(launch.packing, {"name": "slurm"}))) / 3600
 
 
 def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, float]) -> dict[str, float]:
@@ -227,7 +228,7 @@ def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, 
     ``pack_size``: a step costs the step time of its widest member for the models still training, between the
     measured K = 1 and K = ``pack_size``; per task data from the cache, scoring and writing); ours with epoch
     milestones (shared draws); and the planner's prediction."""
-    from nsl_hpc.plan import lockstep_groups, lockstep_settings, training_segments
+    from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments
 
     launch, manifest = study_manifest()
     grid = cfg.projection
@@ -349,4 +350,3 @@ def main(cfg: DictConfig) -> int:
 
 if __name__ == "__main__":
     cli.run(main, __doc__, config_name="bench")
-    sys.exit(0)

@@ -17,11 +17,11 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.failures import failure_path, task_log_path
-from nsl_hpc.manifest import read_launch_config, require_sweep
-from nsl_hpc.submissions import read_submissions
-from nsl_hpc.sweep_dir import process_alive, sweep_lock
-from nsl_hpc.sweep_state import ACTIVE_JOB_STATES, read_sweep_state
+from nsl_hpc.sweep.directory import process_alive, sweep_lock
+from nsl_hpc.sweep.failures import failure_path, task_log_path
+from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
+from nsl_hpc.sweep.submissions import read_submissions
+from nsl_hpc.sweep.task_states import ACTIVE_JOB_STATES, read_sweep_state
 
 ENTRY = re.compile(r"[0-9a-f]{32}\.npz")  # an ArrayCache entry's name
 KEPT = ("manifest.parquet", "launch.yaml", "run.yaml", "configs", "rows", "corrupt", "results.parquet",

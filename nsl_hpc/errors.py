@@ -1,4 +1,7 @@
-"""The exceptions a command turns into one line on stderr: a user's mistake, or the machine's."""
+"""The exceptions a command turns into one line on stderr (a user's mistake, or the machine's), and the checks
+of single values that raise them."""
+
+from typing import Any
 
 
 class ConfigError(ValueError):
@@ -10,7 +13,26 @@ class RunError(RuntimeError):
     one line that says what happened to the work and what to do."""
 
 
+class SlurmError(RunError):
+    """A SLURM command failed (after its retries): the cluster's trouble, not a mistake in the config."""
+
+
 def damaged_file(path: object, error: Exception) -> ConfigError:
     """The one-line error for a sweep file that cannot be read."""
     return ConfigError(f"{path} cannot be read ({type(error).__name__}: {' '.join(str(error).split())[:120]}); the "
                        "sweep directory is damaged: restore that file, or launch the sweep into a new sweep_dir")
+
+
+def require_member(key: str, value: Any, allowed: list) -> None:
+    if value not in allowed:
+        raise ConfigError(f"{key}={value!r} is outside the grid; allowed: {', '.join(map(str, allowed))}")
+
+
+def require_positive_int(key: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+        raise ConfigError(f"{key}={value!r} must be a positive integer")
+
+
+def require_non_negative_int(key: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ConfigError(f"{key}={value!r} must be a non-negative integer")

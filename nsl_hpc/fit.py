@@ -8,141 +8,13 @@ formula, extrapolation backtest) and ``<sweep_dir>/nsl_fits.txt``. Only tasks wi
 positive errors are fitted; an NSL that cannot be fitted gets its reason in the ``error`` column.
 """
 
-import json
-import os
-import sys
-from collections.abc import Mapping
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any
 
-import numpy as np
-import pyarrow as pa
-import pyarrow.compute as pc
-import pyarrow.parquet as pq
-from omegaconf import DictConfig, OmegaConf
-from tqdm import tqdm
+from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.atomic import write_parquet, write_text
-from nsl_hpc.errors import ConfigError
-from nsl_hpc.manifest import require_sweep
-from nsl_hpc.merge import results_path
-from nsl_hpc.nsl import FitSettings, NSLFit, NSLFitError, backtest_nsl, fit_nsl
-
-FITS_FILE = "nsl_fits.parquet"
-FITS_TEXT_FILE = "nsl_fits.txt"
-KEY_COLUMNS = ("system", "arch", "resource", "metric")
-
-
-def nsl_key(row: Mapping[str, Any]) -> str:
-    """'system/arch/resource/metric': names one NSL (MLflow tags, figure lookup)."""
-    return "/".join(row[k] for k in KEY_COLUMNS)
-
-
-def fits_path(sweep_dir: Path) -> Path:
-    return Path(sweep_dir) / FITS_FILE
-
-
-def read_results(sweep_dir: Path) -> pa.Table:
-    """The merged outcomes, refused with a one-line error when there are none."""
-    path = results_path(sweep_dir)
-    if not path.exists():
-        raise ConfigError(f"{path} does not exist; run python -m nsl_hpc.merge sweep_dir={sweep_dir} first")
-    results = pq.read_table(path)
-    if results.num_rows == 0:
-        raise ConfigError(f"{path} holds no outcomes: no task of the sweep has finished")
-    return results
-
-
-def fittable(results: pa.Table, column: str, metric: str) -> np.ndarray:
-    """Mask of the tasks that enter a fit: status ok, finite and positive resource and error."""
-    ok = np.asarray(results["status"].to_pylist()) == "ok"
-    r = results[column].to_numpy().astype(float)
-    e = results[metric].to_numpy().astype(float)
-    return ok & np.isfinite(r) & np.isfinite(e) & (r > 0) & (e > 0)
-
-
-def pair_outcomes(results: pa.Table, system: str, arch: str) -> pa.Table:
-    """The results of one (system, arch)."""
-    return results.filter(pc.and_(pc.equal(results["system"], system), pc.equal(results["arch"], arch)))
-
-
-def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, nsl: dict[str, Any], symbol: str
-            ) -> dict[str, Any]:
-    """One NSL's row (KEY_COLUMNS, outcomes, excluded, b, parameters, margin, formula, backtest; error on
-    failure). ``excluded``: merged tasks left out (not ok, or non-finite / non-positive values)."""
-    settings = FitSettings.from_mapping(nsl)
-    options = {"breaks": nsl["breaks"], "max_breaks": nsl["max_breaks"], "K": nsl["K"], "settings": settings}
-    row: dict[str, Any] = {**key, "outcomes": len(r), "excluded": excluded, "error": None}
-    try:
-        fit = fit_nsl(r, e, **options)
-    except NSLFitError as error:
-        return {**row, "error": str(error)}
-    slots = nsl["breaks"] if nsl["breaks"] is not None else nsl["max_breaks"]
-    padded = fit.breaks + [(None, None, None)] * (slots - fit.b)
-    row.update(b=fit.b, alpha=fit.alpha, beta=fit.beta, delta0=fit.delta0, margin=fit.margin,
-               formula=fit.formula(symbol), margins_by_b=json.dumps(fit.margins), objective=fit.objective)
-    for i, (sigma, phi, delta) in enumerate(padded, start=1):
-        row.update({f"sigma_{i}": sigma, f"phi_{i}": phi, f"delta_{i}": delta})
-    log_r = np.log(r)
-    cut = float(np.exp(log_r.min() + nsl["backtest_cut"] * (log_r.max() - log_r.min())))
-    try:
-        backtest = backtest_nsl(r, e, cut, **options)
-        row.update(backtest_cut=cut, backtest_margin=backtest.margin, backtest_final_ratio=backtest.final_ratio)
-    except NSLFitError:
-        row.update(backtest_cut=cut, backtest_margin=None, backtest_final_ratio=None)
-    return row
-
-
-def fit_from_row(row: dict[str, Any]) -> NSLFit:
-    """The law of an nsl_fits row (envelope not included: recompute it with lower_envelope)."""
-    breaks = [(row[f"sigma_{i}"], row[f"phi_{i}"], row[f"delta_{i}"]) for i in range(1, row["b"] + 1)]
-    return NSLFit(row["alpha"], row["beta"], row["delta0"], breaks, row["margin"], np.empty(0), np.empty(0),
-                  {int(b): m for b, m in json.loads(row["margins_by_b"]).items()}, row["objective"])
-
-
-def fit_sweep(results: pa.Table, nsl: DictConfig, workers: int | None) -> list[dict[str, Any]]:
-    """Every NSL of the sweep, fitted in parallel processes, in (system, arch, resource, metric) order."""
-    plain = OmegaConf.to_container(nsl, resolve=True)
-    jobs = []
-    present = set(zip(results["system"].to_pylist(), results["arch"].to_pylist(), strict=True))
-    for system in dict.fromkeys(results["system"].to_pylist()):
-        for arch in dict.fromkeys(results["arch"].to_pylist()):
-            if (system, arch) not in present:  # a grid of sub-grids need not hold every pair
-                continue
-            subset = pair_outcomes(results, system, arch)
-            for resource, spec in plain["resources"].items():
-                for metric in plain["metrics"]:
-                    keep = fittable(subset, spec["column"], metric)
-                    r = subset[spec["column"]].to_numpy().astype(float)[keep]
-                    e = subset[metric].to_numpy().astype(float)[keep]
-                    key = {"system": system, "arch": arch, "resource": resource, "metric": metric}
-                    jobs.append((key, r, e, int((~keep).sum()), plain, spec["symbol"]))
-    with ProcessPoolExecutor(workers or os.cpu_count()) as pool:
-        futures = [pool.submit(fit_one, *job) for job in jobs]
-        return [future.result() for future in tqdm(futures, desc="NSL fits", unit="fit", disable=None)]
-
-
-def describe_fit(row: dict[str, Any]) -> str:
-    key = nsl_key(row).replace("/", " / ")
-    if row["error"]:
-        return f"{key}: not fitted ({row['error']})"
-    backtest = ("" if row["backtest_margin"] is None else
-                f", backtest M={row['backtest_margin']:.2g} (L/E at the largest resource "
-                f"{row['backtest_final_ratio']:.2f})")
-    excluded = f" ({row['excluded']:,} excluded: not ok or non-positive)" if row["excluded"] else ""
-    return (f"{key}: b={row['b']} M={row['margin']:.2g} from {row['outcomes']:,} outcomes{excluded}{backtest}\n"
-            f"    {row['formula']}")
-
-
-def write_fits(sweep_dir: Path, rows: list[dict[str, Any]]) -> None:
-    write_parquet(pa.Table.from_pylist(rows), fits_path(sweep_dir))
-    write_text("\n".join(describe_fit(row) for row in rows) + "\n", Path(sweep_dir) / FITS_TEXT_FILE)
-
-
-def read_fits(sweep_dir: Path) -> list[dict[str, Any]]:
-    return pq.read_table(fits_path(sweep_dir)).to_pylist()
+from nsl_hpc.analysis.fitting import FITS_TEXT_FILE, fit_sweep, fits_path, read_results, write_fits
+from nsl_hpc.sweep.manifest import require_sweep
 
 
 def main(cfg: DictConfig) -> int:
@@ -157,4 +29,3 @@ def main(cfg: DictConfig) -> int:
 
 if __name__ == "__main__":
     cli.run(main, __doc__, config_name="fit")
-    sys.exit(0)

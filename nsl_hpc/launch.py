@@ -11,27 +11,26 @@ clean, is refused. launcher=slurm returns as soon as the job arrays are submitte
 `python -m nsl_hpc.status sweep_dir=<dir>`.
 """
 
-import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.failures import record_failure
-from nsl_hpc.launcher import dispatch
-from nsl_hpc.manifest import write_run_settings
-from nsl_hpc.plan import Pack, lockstep_settings, make_packs, packing_for, planned_groups, run_key
-from nsl_hpc.sweep import BuiltSweep, PreparedSweep, build_sweep, prepare_shared_data, prepare_sweep
-from nsl_hpc.sweep_dir import check_control_files, private_umask, sweep_lock, usable_sweep_dir
+from nsl_hpc.studies.base import model_of
+from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
+from nsl_hpc.sweep.executors import run_jobs
+from nsl_hpc.sweep.failures import record_failure
+from nsl_hpc.sweep.plan import Pack, lockstep_settings, plan_jobs
+from nsl_hpc.sweep.prepare import BuiltSweep, PreparedSweep, build_sweep, prepare_sweep
 
 
-def describe_lockstep(tasks: Sequence[Mapping[str, Any]], groups: Sequence[Sequence[str]],
-                      lockstep: Mapping[str, Any]) -> str:
+def describe_lockstep(tasks: Sequence[Mapping[str, Any]], packs: Sequence[Pack], lockstep: Mapping[str, Any]) -> str:
     """How the tasks to run train: as how many models, in how many lockstep groups."""
-    models = len({run_key(task, lockstep) for task in tasks})
-    return (f"  lockstep: {len(tasks):,} tasks as {models:,} models in {len(groups):,} groups of up to "
+    models = len({model_of(task, lockstep["run_keys"]) for task in tasks})
+    groups = sum(len(pack.groups) for pack in packs)
+    return (f"  lockstep: {len(tasks):,} tasks as {models:,} models in {groups:,} groups of up to "
             f"{lockstep['size']} models" + (" (epoch milestones: a row per task after its epochs)"
                                             if lockstep["run_keys"] else ""))
 
@@ -67,11 +66,10 @@ def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> int:
     """Prepare the sweep directory, print the plan, and (unless a dry run) run or submit the tasks to run."""
     prepared = prepare_sweep(cfg, built, sweep_dir)
     lockstep, tasks = lockstep_settings(cfg), prepared.todo.to_pylist()
-    groups, seconds = planned_groups(tasks, lockstep, OmegaConf.to_container(cfg.cost))
-    packs = make_packs(groups, seconds, packing_for(cfg.packing, cfg.launcher.name))
+    packs = plan_jobs(tasks, cfg)
     print(describe_plan(prepared, packs, cfg.launcher.name))
     if tasks and (lockstep["size"] > 1 or lockstep["run_keys"]):
-        print(describe_lockstep(tasks, groups, lockstep))
+        print(describe_lockstep(tasks, packs, lockstep))
     if prepared.infeasible:
         count = len(prepared.infeasible)
         print(f"  {count:,} task{'s' if count > 1 else ''} cannot run as configured"
@@ -84,11 +82,8 @@ def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> int:
         print("dry run: nothing submitted" if cfg.dry_run else "nothing to run: every task has a row"
               + (" or is queued" if prepared.queued else ""))
         return 0
-    prepare_shared_data(tasks, prepared.configs, built.study)
-    write_run_settings(sweep_dir, cfg)
-    return dispatch(prepared.sweep_dir, packs, cfg.launcher, cfg.sweep.name)
+    return run_jobs(prepared.sweep_dir, cfg, packs, tasks, prepared.configs)
 
 
 if __name__ == "__main__":
     cli.run(main, __doc__, config_name="launch", pass_overrides=True)
-    sys.exit(0)

@@ -9,7 +9,6 @@ left alone. Nothing is downloaded.
 """
 
 import shutil
-import sys
 import zipfile
 from pathlib import Path
 
@@ -17,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.atomic import replacing
+from nsl_hpc.config import config_dir
 from nsl_hpc.errors import ConfigError
 
 
@@ -46,7 +46,7 @@ def main(cfg: DictConfig) -> int:
     source, data_dir = Path(cfg.source), Path(cfg.data_dir)
     if not source.is_dir():
         raise ConfigError(f"source={cfg.source!r} is not a directory")
-    plans = [(name, OmegaConf.load(cli.config_dir() / "system" / f"{name}.yaml").source.files)
+    plans = [(name, OmegaConf.load(config_dir() / "system" / f"{name}.yaml").source.files)
              for name in cfg.systems]
     for _, files in plans:  # every file found before anything is written
         for relative in files:
@@ -60,4 +60,3 @@ def main(cfg: DictConfig) -> int:
 
 if __name__ == "__main__":
     cli.run(main, __doc__, config_name="place_data")
-    sys.exit(0)

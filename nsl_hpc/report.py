@@ -8,119 +8,16 @@ Safe to re-run while a sweep is still going: every output is replaced atomically
 updated, not duplicated. The steps also run alone: ``python -m nsl_hpc.merge``, ``python -m nsl_hpc.fit``.
 """
 
-import base64
-import html
-import sys
-from collections.abc import Mapping, Sequence
-from pathlib import Path
-from typing import Any
-
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
+from nsl_hpc.analysis.figures import draw_figures, figure_stem
+from nsl_hpc.analysis.fitting import FITS_TEXT_FILE, fit_sweep, fits_path, nsl_key, read_results, write_fits
+from nsl_hpc.analysis.merge import merge_sweep, results_path
+from nsl_hpc.analysis.mlflow_runs import log_to_mlflow, tracking_uri
+from nsl_hpc.analysis.report import REPORT_FILE, report_html
 from nsl_hpc.atomic import write_text
-from nsl_hpc.figures import draw_figures, figure_stem
-from nsl_hpc.fit import FITS_TEXT_FILE, fit_sweep, fits_path, nsl_key, read_results, write_fits
-from nsl_hpc.grid import sub_grids
-from nsl_hpc.manifest import read_base_config, read_launch_config, require_sweep
-from nsl_hpc.merge import MergeSummary, merge_sweep, results_path
-from nsl_hpc.studies import study_named, without_paths
-from nsl_hpc.tracking import flatten, log_to_mlflow, tracking_uri
-
-REPORT_FILE = "report.html"
-STYLE = """body{font-family:system-ui,sans-serif;margin:2em auto;max-width:1200px;color:#222}
-table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 6px;text-align:left}
-th{background:#f2f2f2}code{font-size:12px}img{max-width:100%}pre{background:#f7f7f7;padding:.6em}"""
-
-
-def embedded_png(path: Path, alt: str) -> str:
-    data = base64.b64encode(path.read_bytes()).decode()
-    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
-
-
-def nsl_table(rows: Sequence[Mapping[str, Any]]) -> str:
-    head = ("<tr><th>system</th><th>arch</th><th>resource</th><th>metric</th><th>outcomes</th><th>b</th>"
-            "<th>M</th><th>backtest M</th><th>law</th></tr>")
-    cells = []
-    for row in rows:
-        fitted = row["error"] is None
-        backtest = row.get("backtest_margin")
-        cells.append("<tr>" + "".join(f"<td>{html.escape(str(v))}</td>" for v in (
-            row["system"], row["arch"], row["resource"], row["metric"], f"{row['outcomes']:,}",
-            row["b"] if fitted else "", f"{row['margin']:.2g}" if fitted else "",
-            f"{backtest:.2g}" if fitted and backtest is not None else "")) +
-            f"<td><code>{html.escape(row['formula'] if fitted else 'not fitted: ' + row['error'])}</code></td></tr>")
-    return f"<table>{head}{''.join(cells)}</table>"
-
-
-def science_settings(sweep_dir: Path, launch: Mapping[str, Any]) -> dict[tuple[str, str], dict[str, tuple[str, str]]]:
-    """Per (system, arch) of the sweep, its outcome-changing settings (the study's shared keys, flattened) as
-    (value, the study's default value): what the sweep trained against the Fidelity section's defaults."""
-    study = study_named(launch["study"]["name"])
-    settings = {}
-    for part in sub_grids(launch["sweep"]["grid"]):
-        for system in part["system"]:
-            for arch in part["arch"]:
-                used = OmegaConf.to_container(read_base_config(sweep_dir, system, arch), resolve=True)
-                default = OmegaConf.to_container(cli.compose_config(
-                    [f"study={study.name}", f"system={system}", f"arch={arch}"]), resolve=True)
-                flat_used = flatten(without_paths({key: used[key] for key in study.shared_keys}))
-                flat_default = flatten(without_paths({key: default[key] for key in study.shared_keys}))
-                settings[system, arch] = {key: (value, flat_default.get(key, "(none)"))
-                                          for key, value in flat_used.items()}
-    return settings
-
-
-def configuration_html(settings: Mapping[tuple[str, str], Mapping[str, tuple[str, str]]]) -> str:
-    """The settings a sweep trained with: its draws, MLP block, architecture options, loss and training, and
-    every value that differs from the study's configuration (README, Fidelity)."""
-    first = next(iter(settings.values()))
-    shown = [key for key in first if key.split(".")[0] in ("draws", "train") or key == "system.test_set.trajectories"]
-    rows = "".join(f"<tr><th>{html.escape(key)}</th><td>{html.escape(first[key][0])}</td></tr>" for key in shown)
-    rows += "".join(f"<tr><th>{html.escape(arch)}</th><td>" + html.escape(", ".join(
-        f"{key.removeprefix('arch.')}={value}" for key, (value, _) in pair.items()
-        if key.startswith("arch.") and key not in ("arch.name", "arch.study"))) + "</td></tr>"
-        for arch, pair in {arch: pair for (_, arch), pair in settings.items()}.items())
-    changed = sorted({f"{key}={value} (the study's: {default})" for pair in settings.values()
-                      for key, (value, default) in pair.items() if value != default})
-    verdict = ("<p>These are the study's settings (README, Fidelity).</p>" if not changed else
-               "<p>Settings that differ from the study's (README, Fidelity):</p><ul>"
-               + "".join(f"<li><code>{html.escape(line)}</code></li>" for line in changed) + "</ul>")
-    return f"<table>{rows}</table>{verdict}"
-
-
-def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummary,
-                rows: Sequence[Mapping[str, Any]], figures: Mapping[str, list[Path]]) -> str:
-    grid = launch["sweep"]["grid"]
-    parts = sub_grids(grid)
-    axes = "".join((f"<tr><th colspan='2'>sub-grid {index + 1} of {len(parts)}</th></tr>" if len(parts) > 1 else "")
-                   + "".join(f"<tr><th>{html.escape(axis)}</th><td>{html.escape(', '.join(map(str, values)))}</td></tr>"
-                             for axis, values in part.items())
-                   for index, part in enumerate(parts))
-    overviews = "".join(f"<h3>{html.escape(path.stem.replace('overview__', '').replace('__', ' / '))}</h3>"
-                        + embedded_png(path, path.stem) for path in figures["overview"] if path.suffix == ".png")
-    singles = "".join(f"<details><summary>{html.escape(path.stem.replace('__', ' / '))}</summary>"
-                      f"{embedded_png(path, path.stem)}</details>" for path in figures["nsl"] if path.suffix == ".png")
-    name = html.escape(launch["sweep"]["name"])
-    return f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>NSL report: {name}</title>
-<style>{STYLE}</style></head><body>
-<h1>Neural scaling laws: sweep {name}</h1>
-<p>Sweep directory <code>{html.escape(str(Path(sweep_dir).resolve()))}</code>, sweep seed {launch['sweep_seed']},
-{summary.tasks:,} tasks.</p>
-<h2>Grid</h2><table>{axes}</table>
-<h2>Configuration</h2>{configuration_html(science_settings(sweep_dir, launch))}
-<h2>Tasks</h2><p>{summary.merged:,} tasks merged.</p><pre>{html.escape(summary.describe())}</pre>
-<h2>Neural scaling laws ({sum(r['error'] is None for r in rows)} of {len(rows)} fitted)</h2>
-<p>L(r) = &alpha; + &beta; r<sup>&delta;0</sup> &prod;<sub>i</sub>
-[1 + (r/&sigma;<sub>i</sub>)<sup>1/&phi;<sub>i</sub></sup>]<sup>&delta;<sub>i</sub>&phi;<sub>i</sub></sup>
-fitted to the lower envelope of the outcomes; M = mean<sub>k</sub>
-(ln L(r~<sub>k</sub>) &minus; ln E(r~<sub>k</sub>))<sup>2</sup>; backtest M: the law fitted below the middle of the
-log resource range, scored above it.</p>
-{nsl_table(rows)}
-<h2>Overview</h2>{overviews}
-<h2>Every NSL</h2>{singles}
-</body></html>
-"""
+from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 
 
 def main(cfg: DictConfig) -> int:
@@ -149,4 +46,3 @@ def main(cfg: DictConfig) -> int:
 
 if __name__ == "__main__":
     cli.run(main, __doc__, config_name="report")
-    sys.exit(0)

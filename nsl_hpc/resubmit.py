@@ -17,14 +17,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.launcher import dispatch
-from nsl_hpc.manifest import RUN_SETTINGS, read_base_config, read_launch_config, require_sweep, write_run_settings
-from nsl_hpc.plan import check_run_settings, lockstep_settings, make_packs, packing_for, planned_groups
-from nsl_hpc.rows import row_path, set_aside
-from nsl_hpc.studies import study_named
-from nsl_hpc.sweep import override_key, prepare_shared_data
-from nsl_hpc.sweep_dir import check_control_files, private_umask, sweep_lock
-from nsl_hpc.sweep_state import read_sweep_state
+from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock
+from nsl_hpc.sweep.executors import run_jobs
+from nsl_hpc.sweep.manifest import RUN_SETTINGS, read_base_config, read_launch_config, require_sweep
+from nsl_hpc.sweep.plan import check_run_settings, plan_jobs
+from nsl_hpc.sweep.prepare import override_key
+from nsl_hpc.sweep.rows import row_path, set_aside
+from nsl_hpc.sweep.task_states import read_sweep_state
 
 RESUBMITTABLE = ("failed", "frozen", "timeout", "missing", "corrupt")
 
@@ -61,16 +60,12 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
         for task in tasks:
             if state.states[task["task_id"]] == "corrupt":
                 set_aside(row_path(sweep_dir, task["task_id"]))
-        packing = packing_for(launch.packing, launch.launcher.name, cfg.time_factor)
-        groups, seconds = planned_groups(tasks, lockstep_settings(launch), OmegaConf.to_container(launch.cost))
-        packs = make_packs(groups, seconds, packing)
+        packs = plan_jobs(tasks, launch, cfg.time_factor)
         print(f"resubmitting {len(tasks):,} tasks ({', '.join(cfg.states)}) in {len(packs):,} jobs "
               f"({launch.launcher.name})")
         configs = {pair: OmegaConf.to_container(read_base_config(sweep_dir, *pair), resolve=True)
                    for pair in {(task["system"], task["arch"]) for task in tasks}}
-        prepare_shared_data(tasks, configs, study_named(launch.study.name))
-        write_run_settings(sweep_dir, launch)
-        return dispatch(sweep_dir, packs, launch.launcher, launch.sweep.name)
+        return run_jobs(sweep_dir, launch, packs, tasks, configs)
 
 
 if __name__ == "__main__":

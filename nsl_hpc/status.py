@@ -9,15 +9,14 @@ bar with an ETA, and the failed tasks with the last lines of their logs.
 `python -m nsl_hpc.resubmit sweep_dir=<dir>` runs them again, with the failed ones.
 """
 
-import sys
 import time
 
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
-from nsl_hpc.manifest import read_launch_config, require_sweep
-from nsl_hpc.plan import predicted_seconds
-from nsl_hpc.sweep_state import STATES, SweepState, read_sweep_state
+from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
+from nsl_hpc.sweep.plan import predicted_seconds
+from nsl_hpc.sweep.task_states import STATES, SweepState, read_sweep_state
 
 LOG_LINES = 5  # log lines shown per failed task
 
@@ -79,4 +78,3 @@ def main(cfg: DictConfig) -> int:
 
 if __name__ == "__main__":
     cli.run(main, __doc__, config_name="status")
-    sys.exit(0)

@@ -7,12 +7,11 @@ The row lands in <out_dir>/rows/<id[:2]>/<id>.parquet. A task whose row exists i
 recomputes it). Bad input gets one line on stderr and exit status 2 before any work starts.
 """
 
-import sys
 
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.task import describe, run_task
+from nsl_hpc.sweep.task import describe, run_task
 
 
 def main(cfg: DictConfig) -> int:
@@ -26,4 +25,3 @@ def main(cfg: DictConfig) -> int:
 
 if __name__ == "__main__":
     cli.run(main, __doc__, config_name="one_task")
-    sys.exit(0)

@@ -4,7 +4,7 @@ import pytest
 from omegaconf import DictConfig
 
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.cli import compose_config
+from nsl_hpc.config import compose_config
 
 
 @pytest.fixture(scope="session")

@@ -2,7 +2,7 @@
 
 from omegaconf import OmegaConf
 
-from nsl_hpc.cli import compose_config
+from nsl_hpc.config import compose_config
 
 SYSTEM_NAMES = ["spring", "ball", "motor"]
 ARCH_NAMES = ["unstructured", "input_affine", "port_hamiltonian"]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.datasets import (
+from nsl_hpc.studies.input_state.data import (
     build_test_set,
     build_training_set,
     load_trajectory,

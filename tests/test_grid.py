@@ -5,12 +5,12 @@ from collections import Counter
 import pytest
 from omegaconf import OmegaConf
 
-from nsl_hpc.cli import compose_config
+from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.grid import build_manifest, expand_grid, grid_size
 from nsl_hpc.studies import study_named
-from nsl_hpc.sweep import pair_configs
-from nsl_hpc.task import task_id
+from nsl_hpc.sweep.grid import build_manifest, expand_grid, grid_size
+from nsl_hpc.sweep.prepare import pair_configs
+from nsl_hpc.sweep.task import task_id
 
 INPUT_STATE = study_named("input_state")
 INPUT_OUTPUT = study_named("input_output")

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from mlflow.tracking import MlflowClient
 
-from nsl_hpc.tracking import sweep_run, tracking_uri
+from nsl_hpc.analysis.mlflow_runs import sweep_run, tracking_uri
 from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
 
 LOCAL = [*TINY_GRID, "launcher=local"]
@@ -209,7 +209,7 @@ def test_control_files_others_can_write_are_refused_and_written_private(tmp_path
     ("sweep.grid.epochs=null", "sweep.grid.epochs=None must be a list of values"),
     ("sweep.grid=[]", "Error merging override sweep.grid=[]"),
     ("launcher.workers=-1", "launcher.workers=-1 must be a positive integer"),
-    ("launcher.workers=abc", "launcher.workers='abc' must be a positive integer"),
+    ("launcher.workers=abc", "launcher.workers=abc: Value 'abc' of type 'str' could not be converted to Integer"),
     ("train.lr=-1", "train.lr=-1 must be a positive number"),
     ("watchdog.heartbeat_timeout_s=-1", "watchdog.heartbeat_timeout_s=-1 must be a positive number"),
     ("watchdog.overrun_factor=0.5", "watchdog.overrun_factor=0.5 must be a number of at least 1"),
@@ -300,7 +300,7 @@ def test_a_quote_in_the_sweep_path_does_not_break_the_mlflow_search(tmp_path):
     experiment = client.create_experiment("quotes")
     first = sweep_run(client, experiment, sweep_dir, "tiny", {"sweep_seed": "0"})
     assert sweep_run(client, experiment, sweep_dir, "tiny", {"sweep_seed": "0"}) == first
-    assert client.get_run(first).data.tags["nsl_hpc.sweep_dir"] == str(sweep_dir.resolve())
+    assert client.get_run(first).data.tags["nsl_hpc.sweep.directory"] == str(sweep_dir.resolve())
 
 
 def test_a_full_disk_during_a_sweep_and_during_merge_is_one_line_and_keeps_the_rows(tmp_path, tmpfs):

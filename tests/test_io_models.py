@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 import torch
 
-from nsl_hpc.io_training import simulate_narx, simulate_subnet
 from nsl_hpc.models.blocks import mlp_parameter_count
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
+from nsl_hpc.studies.input_output.training import simulate_narx, simulate_subnet
 
 B, P, T, NX = 7, 50, 13, 4
 

@@ -11,9 +11,9 @@ import pytest
 from omegaconf import OmegaConf
 
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.records import load_benchmark
-from nsl_hpc.rows import read_row
-from nsl_hpc.task import resolve_task, run_task
+from nsl_hpc.studies.input_output.data import load_benchmark
+from nsl_hpc.sweep.rows import read_row
+from nsl_hpc.sweep.task import resolve_task, run_task
 from tests.sweeps import nsl
 
 NARX_TASK = ["study=input_output", "system=wiener_hammerstein_sim", "arch=narx", "iter_multiplier=2",

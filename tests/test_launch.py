@@ -1,10 +1,13 @@
 """Launch with the debug and local launchers: manifest, plan, rows, idempotent re-launch, bad input."""
 
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from nsl_hpc.rows import read_row
+from nsl_hpc.config import compose_config
 from nsl_hpc.studies import study_named
+from nsl_hpc.studies.input_state.study import model_parameters
+from nsl_hpc.sweep.rows import read_row
 from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
 
 
@@ -151,3 +154,21 @@ def test_epoch_milestone_rows_with_a_constant_learning_rate_are_the_rows_of_sepa
     per_task = nsl("launch", *grid[:-1], "launcher=local", f"sweep_dir={tmp_path / 'short'}", "train.schedule_epochs=4")
     assert per_task.returncode == 2 and "add draws=shared_across_epochs (now draws=per_task)" in per_task.stderr
     assert not (tmp_path / "short").exists()
+
+
+def test_the_manifest_is_what_trains_a_hand_edited_size_is_not_drawn_again(tmp_path):
+    """Sizes are drawn once, at launch; jobs read them from the manifest."""
+    sweep_dir = tmp_path / "sweep"
+    assert nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0
+    manifest = pq.read_table(sweep_dir / "manifest.parquet").to_pylist()
+    edited = manifest[0]
+    edited["width"] = edited["width"] + 3
+    edited["params"] = model_parameters(tuple(compose_config(["arch=input_affine"]).arch.items()), "spring",
+                                        edited["width"], edited["depth"])
+    pq.write_table(pa.Table.from_pylist(manifest), sweep_dir / "manifest.parquet")
+    result = nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}")
+    assert result.returncode == 0, result.stderr
+    rows = {row["task_id"]: row for row in map(read_row, row_files(sweep_dir))}
+    assert rows[edited["task_id"]]["width"] == edited["width"]
+    assert rows[edited["task_id"]]["params"] == edited["params"]
+    assert all(rows[task["task_id"]]["width"] == task["width"] for task in manifest)

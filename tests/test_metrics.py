@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from nsl_hpc.metrics import normalized_errors
+from nsl_hpc.studies.metrics import normalized_errors
 
 
 def test_hand_computed_values():

@@ -6,17 +6,15 @@ import warnings
 import numpy as np
 import pytest
 
-from nsl_hpc.nsl import (
-    FitSettings,
+from nsl_hpc.analysis.broken_law import (
     NSLFit,
     NSLFitError,
-    backtest_nsl,
     choose_breaks,
-    fit_nsl,
     log_law,
     log_law_jacobian,
     lower_envelope,
 )
+from nsl_hpc.nsl import backtest_nsl, default_settings, fit_nsl
 
 
 def law(alpha: float, beta: float, delta0: float, *breaks: tuple[float, float, float]) -> NSLFit:
@@ -96,7 +94,7 @@ def test_extreme_scales_fit_without_overflow_or_nan():
 def test_default_objective_beats_the_studys():
     r, e = outcomes(GENERATING_LAWS[2], 0)
     default = fit_nsl(r, e, breaks=2)
-    study = fit_nsl(r, e, breaks=2, settings=FitSettings.default(objective="study"))
+    study = fit_nsl(r, e, breaks=2, settings=default_settings(objective="study"))
     assert study.b == 2 and np.isfinite(study.margin)
     assert default.margin < study.margin
 

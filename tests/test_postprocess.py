@@ -9,8 +9,8 @@ import pyarrow.parquet as pq
 import pytest
 from mlflow.tracking import MlflowClient
 
-from nsl_hpc.failures import record_failure
-from nsl_hpc.rows import read_row, row_path, write_row_atomically
+from nsl_hpc.sweep.failures import record_failure
+from nsl_hpc.sweep.rows import read_row, row_path, write_row_atomically
 from tests.sweeps import manifest_ids, nsl, row_files
 
 # 24 tasks: spring / input_affine, 3 seeds x 2 epoch counts x 2 data tiers x 2 width tiers.
@@ -90,7 +90,7 @@ def test_report_figures_and_mlflow_runs_are_updated_not_duplicated(sweep_copy):
     experiment = client.get_experiment_by_name("nsl_hpc").experiment_id
     runs = client.search_runs([experiment])
     assert len(runs) == 1 + NSLS
-    parent = next(run for run in runs if run.data.tags["nsl_hpc.nsl"] == "sweep")
+    parent = next(run for run in runs if run.data.tags["nsl_hpc.analysis.broken_law"] == "sweep")
     assert parent.data.metrics["merged"] == 24 and parent.data.params["sweep.name"] == "demo"
     assert {a.path for a in client.list_artifacts(parent.info.run_id)} >= {"results.parquet", "report.html"}
 
@@ -99,7 +99,7 @@ def test_report_figures_and_mlflow_runs_are_updated_not_duplicated(sweep_copy):
     assert again.returncode == 0, again.stderr
     runs = client.search_runs([experiment])
     assert len(runs) == 1 + NSLS
-    parent = next(run for run in runs if run.data.tags["nsl_hpc.nsl"] == "sweep")
+    parent = next(run for run in runs if run.data.tags["nsl_hpc.analysis.broken_law"] == "sweep")
     assert parent.data.metrics["merged"] == 23 and parent.data.metrics["missing"] == 1
 
 
@@ -111,7 +111,7 @@ def test_post_processing_bad_input_is_a_one_line_error(tmp_path, finished_sweep)
     sweep_dir = tmp_path / "empty"
     assert nsl("launch", *SMALL_GRID, f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0
     unmerged = nsl("fit", f"sweep_dir={sweep_dir}")
-    assert unmerged.returncode == 2 and "run python -m nsl_hpc.merge" in unmerged.stderr
+    assert unmerged.returncode == 2 and "run python -m nsl_hpc.analysis.merge" in unmerged.stderr
     merged = nsl("merge", f"sweep_dir={sweep_dir}")
     assert merged.returncode == 0 and "24 of 24 tasks (100.0%) dropped: 0 frozen, 0 failed, 24 missing" in merged.stdout
     empty = nsl("fit", f"sweep_dir={sweep_dir}")

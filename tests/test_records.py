@@ -8,10 +8,10 @@ import pytest
 import scipy.io
 
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.cli import compose_config
+from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.place_data import main as place_data
-from nsl_hpc.records import load_benchmark
+from nsl_hpc.studies.input_output.data import load_benchmark
 from tests.helpers import system_config
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

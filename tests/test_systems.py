@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.integrate import odeint
 
-from nsl_hpc.datasets import simulate_experiments
+from nsl_hpc.studies.input_state.data import simulate_experiments
 from nsl_hpc.systems import build_system
 from nsl_hpc.systems.simulation import Multisine, draw_multisine, simulate
 from tests.helpers import SYSTEM_NAMES, system_config

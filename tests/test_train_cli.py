@@ -6,7 +6,7 @@ import sys
 import pyarrow.parquet as pq
 import pytest
 
-from nsl_hpc.rows import read_row
+from nsl_hpc.sweep.rows import read_row
 
 TASK = ["system=ball", "arch=port_hamiltonian", "epochs=3", "data_tier=2", "width_tier=4", "depth_tier=2",
         "seed=3"]

@@ -7,12 +7,12 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from nsl_hpc.datasets import build_test_set, build_training_set
-from nsl_hpc.lockstep import Member, loss_weights, predict_derivatives, train_lockstep
-from nsl_hpc.metrics import normalized_errors
 from nsl_hpc.models import build_model
+from nsl_hpc.studies.input_state.data import build_test_set, build_training_set
+from nsl_hpc.studies.input_state.lockstep import Member, loss_weights, predict_derivatives, train_lockstep
+from nsl_hpc.studies.metrics import normalized_errors
+from nsl_hpc.studies.training import Scaling, batch_bounds, batch_count, warmup_cosine
 from nsl_hpc.systems import SYSTEMS
-from nsl_hpc.training import Scaling, batch_bounds, batch_count, warmup_cosine
 from tests.helpers import ARCH_NAMES, SYSTEM_NAMES
 
 # A trained model must reach at most this fraction of an untrained model's nMAE. Measured with the

@@ -1,6 +1,6 @@
 """The input-state architectures, by name; ``build_model`` turns an ``arch`` config into a module.
 
-The input-output models (NARX, SUBNET) are built by ``nsl_hpc.studies.input_output``.
+The input-output models (NARX, SUBNET) are built by ``nsl_hpc.studies.input_output.study``.
 """
 
 from collections.abc import Mapping

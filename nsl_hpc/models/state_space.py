@@ -1,6 +1,7 @@
 """An input-state architecture, declared once: the MLP heads it is made of and how dx/dt and y follow from
 their outputs. Both training paths are built from the declaration: ``StateSpaceModel`` (one nn.Module per
-model: the reference and the ground truth of the tests) and ``nsl_hpc.stacked`` (K models as batched tensors).
+model: the reference and the ground truth of the tests) and ``stacked`` (K models as batched
+tensors).
 
 Models work on standardised inputs z (n states) and v (m inputs); every tensor may carry any leading batch
 dimensions, shapes below are written for one (B).

@@ -6,137 +6,16 @@ manifests, launching, merging, fitting) is shared.
     input_output   silverbox, wiener_hammerstein and their *_sim stand-ins; narx, subnet  (.input_output)
 """
 
-import functools
-import math
-import random
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
-from omegaconf import DictConfig
-
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.seeding import stable_hash, stable_seed
-
-
-def require_member(key: str, value: Any, allowed: list) -> None:
-    if value not in allowed:
-        raise ConfigError(f"{key}={value!r} is outside the grid; allowed: {', '.join(map(str, allowed))}")
-
-
-def require_positive_int(key: str, value: Any) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-        raise ConfigError(f"{key}={value!r} must be a positive integer")
-
-
-def require_non_negative_int(key: str, value: Any) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-        raise ConfigError(f"{key}={value!r} must be a non-negative integer")
-
-
-DRAWS = ("per_task", "shared_across_epochs")
-
-
-def draw_tier(rng: random.Random, tier: int) -> int:
-    """An integer drawn uniformly in [ceil(tier / 2), tier]."""
-    return rng.randint(math.ceil(tier / 2), tier)
-
-
-class Study:
-    """What differs between studies. Subclasses set the class attributes and implement the methods."""
-
-    name: str
-    axes: tuple[str, ...]  # grid axes in expansion order: "system", "arch", "seed", then the size coordinates
-    length_axis: str  # the axis of training length (with shared draws, longer runs of the same model)
-    shared_keys: tuple[str, ...]  # config groups and keys that change the outcome of every task of a pair
-    lockstep: bool = False  # train_and_score_pack trains same-shape tasks together (nsl_hpc.lockstep)
-
-    @property
-    def size_axes(self) -> tuple[str, ...]:
-        """The coordinates sizes are drawn from and training length is set by (checked by check_coordinate)."""
-        return tuple(axis for axis in self.axes if axis not in ("system", "arch", "seed"))
-
-    @property
-    def task_keys(self) -> tuple[str, ...]:
-        """Scalar coordinates that differ between the tasks of one (system, arch), for the task id."""
-        return ("sweep_seed", *(axis for axis in self.axes if axis not in ("system", "arch")))
-
-    @functools.cache  # noqa: B019 (studies are a few long-lived objects)
-    def draw_keys(self, draws: str) -> tuple[str, ...]:
-        """What the random draws of a task (sizes, initial weights, batch order) depend on: every coordinate
-        (``draws: per_task``, Algorithms 1 and 2) or all but the training length (``shared_across_epochs``)."""
-        return ("sweep_seed", *(axis for axis in self.axes if draws == "per_task" or axis != self.length_axis))
-
-    def draw_rng(self, task: Mapping[str, Any], draws: str) -> random.Random:
-        """The generator of a task's size draws (Python's Mersenne Twister: seeding it costs a third of numpy's,
-        which matters for the 63,504 draws of a manifest)."""
-        return random.Random(stable_seed("sizes", *(task[key] for key in self.draw_keys(draws))))
-
-    def seed_for(self, purpose: str, task: Mapping[str, Any], draws: str) -> int:
-        """The seed of one random stream of a task ("init", "shuffle")."""
-        return stable_seed(purpose, *(task[key] for key in self.draw_keys(draws)))
-
-    def shared_identity(self, values: Mapping[str, Any]) -> str:
-        """Hash of the shared outcome-changing groups of a plain config dict (paths left out)."""
-        return stable_hash({key: without_paths(values[key]) for key in self.shared_keys})
-
-    def check_coordinate(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
-        """Raise ConfigError when ``value`` is not allowed for coordinate ``key`` (``label`` names it), or, for
-        the training length, when the settings that go with it are not."""
-        require_positive_int(label, value)
-        if key == self.length_axis and base["draws"] not in DRAWS:
-            raise ConfigError(f"draws={base['draws']!r} is unknown; choose one of: {', '.join(DRAWS)}")
-        self.check_size(label, key, value, base)
-
-    def check_size(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
-        """The study's own checks of a coordinate (``check_coordinate``)."""
-
-    def check_pair(self, base: Mapping[str, Any]) -> None:
-        """Raise ConfigError when a (system, arch) cannot run at all (e.g. its data is missing)."""
-
-    def check_task(self, task: Mapping[str, Any], sizes: Mapping[str, Any], base: Mapping[str, Any]) -> None:
-        """Raise ConfigError when a task's drawn sizes cannot run (checked before any work)."""
-
-    def prepare_data(self, base: Mapping[str, Any]) -> None:
-        """Simulate (or read) into ``cache_dir`` the data every task of a (system, arch) shares, so a sweep's
-        first jobs do not all simulate it at once (launch calls it before dispatching)."""
-
-    def sizes(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
-        """The sizes a task draws and what follows: at least train_points, params, steps and flops."""
-        drawn = self.draw(task, base)
-        return {**drawn, **self.training_length(task, drawn, base)}
-
-    def draw(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
-        """The sizes drawn from the task's coordinates (its training length aside): train_points, params..."""
-        raise NotImplementedError
-
-    def training_length(self, task: Mapping[str, Any], drawn: Mapping[str, Any],
-                        base: Mapping[str, Any]) -> dict[str, Any]:
-        """steps (optimizer steps) and flops (the compute resource) of a task with sizes ``drawn``."""
-        raise NotImplementedError
-
-    def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
-                        on_progress: Callable[[], None]) -> dict[str, Any]:
-        """Train the task's model and score it: nmae, nmse, steps, final_loss, finite, train_seconds and
-        study extras."""
-        raise NotImplementedError
-
-    def train_and_score_pack(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
-                             on_progress: Callable[[], None]) -> list[dict[str, Any]]:
-        """``train_and_score`` of each (cfg, task, sizes): one after another unless a study trains them
-        together."""
-        return [self.train_and_score(cfg, task, sizes, on_progress) for cfg, task, sizes in items]
-
-
-def without_paths(value: Any) -> Any:
-    """``value`` without its ``data_dir`` entries (where data lies does not change an outcome)."""
-    if isinstance(value, Mapping):
-        return {k: without_paths(v) for k, v in value.items() if k != "data_dir"}
-    return value
+from nsl_hpc.studies.base import Study
 
 
 def studies() -> dict[str, Study]:
-    from nsl_hpc.studies.input_output import InputOutput
-    from nsl_hpc.studies.input_state import InputState
+    from nsl_hpc.studies.input_output.study import InputOutput
+    from nsl_hpc.studies.input_state.study import InputState
 
     return {study.name: study for study in (InputState(), InputOutput())}
 

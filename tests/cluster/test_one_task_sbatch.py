@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from nsl_hpc.rows import read_row
+from nsl_hpc.sweep.rows import read_row
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.slurm

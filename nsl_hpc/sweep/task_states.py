@@ -3,15 +3,16 @@ one ``sacct`` call for all of the sweep's arrays."""
 
 import time
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from nsl_hpc.failures import read_failures
-from nsl_hpc.manifest import read_manifest
-from nsl_hpc.rows import row_path, row_state
-from nsl_hpc.slurm import job_states
-from nsl_hpc.submissions import read_submissions
+from nsl_hpc.sweep.failures import read_failures
+from nsl_hpc.sweep.manifest import read_manifest
+from nsl_hpc.sweep.rows import row_path, row_state
+from nsl_hpc.sweep.slurm import job_states
+from nsl_hpc.sweep.submissions import read_submissions
 
 ACCOUNTING_LAG_S = 30  # a just-submitted job may take a while to appear in sacct (slurmdbd restarts, load)
 STATES = ("done", "running", "pending", "failed", "frozen", "timeout", "missing", "corrupt")
@@ -48,20 +49,25 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
             for task_id in task_ids:
                 latest[task_id] = (element, record["submitted"])
     element_states = job_states(record["array_id"] for record in submissions) if submissions else {}
-    states = {}
+    now, states = time.time(), {}
     for task_id in manifest["task_id"].to_pylist():
-        row = row_state(row_path(sweep_dir, task_id))
-        if row != "missing":
-            states[task_id] = row  # done, or corrupt: the task ran to the end and its row was damaged since
-            continue
         element, submitted = latest.get(task_id, (None, 0.0))
-        failure = failures.get(task_id)
-        if failure is not None and failure["time"] >= submitted:
-            states[task_id] = failure["status"]
-        elif element in element_states and element_states[element] in ACTIVE_JOB_STATES:
-            states[task_id] = ACTIVE_JOB_STATES[element_states[element]]
-        elif element is not None and element not in element_states and time.time() - submitted < ACCOUNTING_LAG_S:
-            states[task_id] = "pending"  # submitted, not yet in the accounting database
-        else:
-            states[task_id] = "missing"
+        states[task_id] = task_state(row_state(row_path(sweep_dir, task_id)), failures.get(task_id), element,
+                                     submitted, element_states.get(element), now)
     return SweepState(states, failures, manifest.to_pylist(), element_states)
+
+
+def task_state(row: str, failure: Mapping[str, Any] | None, element: str | None, submitted: float,
+               element_state: str | None, now: float) -> str:
+    """One task's state (of STATES) from its row's state (done, corrupt, missing), its failure record, the
+    array element it was last submitted to (None: never) at time ``submitted`` (s since the epoch) and that
+    element's sacct state (None: not in the accounting database)."""
+    if row != "missing":
+        return row  # done, or corrupt: the task ran to the end and its row was damaged since
+    if failure is not None and failure["time"] >= submitted:
+        return failure["status"]
+    if element_state in ACTIVE_JOB_STATES:
+        return ACTIVE_JOB_STATES[element_state]
+    if element is not None and element_state is None and now - submitted < ACCOUNTING_LAG_S:
+        return "pending"  # submitted, not yet in the accounting database
+    return "missing"

@@ -1,4 +1,4 @@
-"""Input-output records of the input-output study: the measured benchmarks (Silverbox, Wiener-Hammerstein),
+"""Input-output signals of the input-output study: the measured benchmarks (Silverbox, Wiener-Hammerstein),
 read with the standard ``nonlinear_benchmarks`` loaders from ``data_dir`` (``system.source.data_dir``), or
 their simulated stand-ins, and their split into training pool, validation and test records.
 
@@ -28,7 +28,7 @@ STANDIN_VERSION = 1
 
 
 @dataclass(frozen=True)
-class Record:
+class Signals:
     """One single-input single-output record; both arrays (N,), float64, in the benchmark's units (V)."""
 
     u: np.ndarray
@@ -37,15 +37,15 @@ class Record:
     def __len__(self) -> int:
         return len(self.y)
 
-    def head(self, samples: int) -> "Record":
-        return Record(self.u[:samples], self.y[:samples])
+    def head(self, samples: int) -> "Signals":
+        return Signals(self.u[:samples], self.y[:samples])
 
 
 @dataclass(frozen=True)
 class Benchmark:
-    train: Record  # the training pool: a task trains on its first n_l samples
-    validation: Record  # the rest of the training record, never trained on
-    test: Record  # scored in free-run simulation after its first `init_samples` samples
+    train: Signals  # the training pool: a task trains on its first n_l samples
+    validation: Signals  # the rest of the training record, never trained on
+    test: Signals  # scored in free-run simulation after its first `init_samples` samples
 
 
 def load_benchmark(system_cfg: Mapping[str, Any], cache: ArrayCache) -> Benchmark:
@@ -55,16 +55,16 @@ def load_benchmark(system_cfg: Mapping[str, Any], cache: ArrayCache) -> Benchmar
         train, test = read_measured(system_cfg["name"], source)
         origin = f" of {measured_file(source)}"
     else:
-        train, test = simulated_records(system_cfg, cache)
+        train, test = simulated_signals(system_cfg, cache)
         origin = ""
     pool = system_cfg["train_samples"]
     if len(train) < pool:
         raise ConfigError(f"{system_cfg['name']}: the training record{origin} has {len(train):,} samples, fewer "
                           f"than system.train_samples={pool:,} (the largest data tier)")
-    return Benchmark(train.head(pool), Record(train.u[pool:], train.y[pool:]), test)
+    return Benchmark(train.head(pool), Signals(train.u[pool:], train.y[pool:]), test)
 
 
-def read_measured(name: str, source: Mapping[str, Any]) -> tuple[Record, Record]:
+def read_measured(name: str, source: Mapping[str, Any]) -> tuple[Signals, Signals]:
     """Training and test record read by ``nonlinear_benchmarks.<loader>(dir_placement=data_dir)``; the files
     are checked first, so a missing copy is our one-line error, never a download attempt."""
     import nonlinear_benchmarks  # imported here: only tasks on measured data need it
@@ -79,8 +79,8 @@ def read_measured(name: str, source: Mapping[str, Any]) -> tuple[Record, Record]
     except Exception as error:
         raise ConfigError(f"{name}: cannot read {data_file} ({type(error).__name__}: {error}); replace it with "
                           "an intact copy of the benchmark file") from None
-    return (checked_record(name, data_file, "training", train.u, train.y),
-            checked_record(name, data_file, "test", tests[source["test_index"]].u, tests[source["test_index"]].y))
+    return (checked_signals(name, data_file, "training", train.u, train.y),
+            checked_signals(name, data_file, "test", tests[source["test_index"]].u, tests[source["test_index"]].y))
 
 
 def require_files(name: str, source: Mapping[str, Any]) -> None:
@@ -98,8 +98,8 @@ def measured_file(source: Mapping[str, Any]) -> Path:
     return Path(source["data_dir"]) / source["files"][-1]
 
 
-def checked_record(name: str, data_file: Path, part: str, u: Any, y: Any) -> Record:
-    """u and y as a Record, refused unless both are finite, one-dimensional and of equal length."""
+def checked_signals(name: str, data_file: Path, part: str, u: Any, y: Any) -> Signals:
+    """u and y as a Signals, refused unless both are finite, one-dimensional and of equal length."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
     if u.ndim != 1 or u.shape != y.shape:
         raise ConfigError(f"{name}: {data_file} holds a {part} record of shapes u {u.shape}, y {y.shape}; expected "
@@ -107,32 +107,32 @@ def checked_record(name: str, data_file: Path, part: str, u: Any, y: Any) -> Rec
     if not (np.isfinite(u).all() and np.isfinite(y).all()):
         bad = int((~np.isfinite(u)).sum() + (~np.isfinite(y)).sum())
         raise ConfigError(f"{name}: {data_file} holds {bad} NaN or infinite values in its {part} record")
-    return Record(u, y)
+    return Signals(u, y)
 
 
-def simulated_records(system_cfg: Mapping[str, Any], cache: ArrayCache) -> tuple[Record, Record]:
+def simulated_signals(system_cfg: Mapping[str, Any], cache: ArrayCache) -> tuple[Signals, Signals]:
     """Training and test record of a stand-in, simulated once per configuration and then read from cache."""
     key = {"version": STANDIN_VERSION, "system": dict(system_cfg)}
 
     def create() -> dict[str, np.ndarray]:
         parts = {}
         for part in ("train", "test"):
-            record = simulate_record(system_cfg, part)
+            record = simulate_signals(system_cfg, part)
             parts[f"{part}_u"], parts[f"{part}_y"] = record.u, record.y
         return parts
 
     arrays = cache.get_or_create(key, create)
-    return Record(arrays["train_u"], arrays["train_y"]), Record(arrays["test_u"], arrays["test_y"])
+    return Signals(arrays["train_u"], arrays["train_y"]), Signals(arrays["test_u"], arrays["test_y"])
 
 
-def simulate_record(system_cfg: Mapping[str, Any], part: str) -> Record:
+def simulate_signals(system_cfg: Mapping[str, Any], part: str) -> Signals:
     """One record of a stand-in: its own input realisation, the simulated output plus white noise."""
     source, samples = system_cfg["source"], system_cfg["samples"][part]
     rng = np.random.default_rng(stable_seed("record", system_cfg["name"], source["seed"], part))
     u = random_phase_multisine(rng, samples, system_cfg["fs_hz"], **system_cfg["excitation"])
     simulate = {"duffing": simulate_duffing, "wiener_hammerstein": simulate_wiener_hammerstein}[source["kind"]]
     y = simulate(u, system_cfg["fs_hz"], **source["params"])
-    return Record(u, y + system_cfg["output_noise_std"] * rng.standard_normal(samples))
+    return Signals(u, y + system_cfg["output_noise_std"] * rng.standard_normal(samples))
 
 
 def random_phase_multisine(rng: np.random.Generator, samples: int, fs_hz: float, band_hz: list[float],

@@ -17,9 +17,9 @@ from matplotlib.figure import Figure  # no pyplot: no global state, no display n
 from matplotlib.ticker import LogLocator, NullFormatter
 from tqdm import tqdm
 
+from nsl_hpc.analysis.broken_law import lower_envelope
+from nsl_hpc.analysis.fitting import fit_from_row, fittable, pair_outcomes
 from nsl_hpc.atomic import replacing
-from nsl_hpc.fit import fit_from_row, fittable, pair_outcomes
-from nsl_hpc.nsl import lower_envelope
 
 FIGURES_DIR = "figures"
 

@@ -12,10 +12,12 @@ import pyarrow as pa
 import pyarrow.compute as pc
 from omegaconf import DictConfig, OmegaConf
 
-from nsl_hpc.cli import compose_config
-from nsl_hpc.errors import ConfigError
-from nsl_hpc.grid import Grid, build_manifest, sub_grids, validate_grid
-from nsl_hpc.manifest import (
+from nsl_hpc.config import compose_config
+from nsl_hpc.errors import ConfigError, require_non_negative_int
+from nsl_hpc.studies import study_named, study_of
+from nsl_hpc.studies.base import Study
+from nsl_hpc.sweep.grid import Grid, build_manifest, sub_grids, validate_grid
+from nsl_hpc.sweep.manifest import (
     base_config_path,
     manifest_path,
     read_launch_config,
@@ -23,11 +25,10 @@ from nsl_hpc.manifest import (
     write_sweep,
     write_yaml,
 )
-from nsl_hpc.plan import check_run_settings, lockstep_settings
-from nsl_hpc.rows import row_path, row_state, set_aside
-from nsl_hpc.studies import Study, require_non_negative_int, study_named, study_of
-from nsl_hpc.sweep_state import read_sweep_state
-from nsl_hpc.task import check_settings
+from nsl_hpc.sweep.plan import check_run_settings
+from nsl_hpc.sweep.rows import row_path, row_state, set_aside
+from nsl_hpc.sweep.task import check_settings
+from nsl_hpc.sweep.task_states import read_sweep_state
 
 
 def override_key(override: str) -> str:
@@ -45,7 +46,6 @@ def validate_launch(cfg: DictConfig, overrides: Sequence[str]) -> Study:
             raise ConfigError(f"{override_key(override)} is a grid axis of the sweep; set "
                               f"sweep.grid.{override_key(override)}=[...] instead of {override}")
     validate_grid(OmegaConf.to_container(cfg.sweep.grid), study)
-    lockstep_settings(cfg)
     return study
 
 

@@ -17,14 +17,14 @@ from typing import Any
 from mlflow.entities import Metric, Param, RunTag
 from mlflow.tracking import MlflowClient
 
-from nsl_hpc.fit import nsl_key
-from nsl_hpc.merge import MergeSummary
+from nsl_hpc.analysis.fitting import nsl_key
+from nsl_hpc.analysis.merge import MergeSummary
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_named
 
-SWEEP_TAG = "nsl_hpc.sweep_dir"  # the sweep directory, for people
+SWEEP_TAG = "nsl_hpc.sweep.directory"  # the sweep directory, for people
 SWEEP_ID_TAG = "nsl_hpc.sweep_id"  # a hash of it, for searches (a path may hold quotes; a hash holds none)
-NSL_TAG = "nsl_hpc.nsl"
+NSL_TAG = "nsl_hpc.analysis.broken_law"
 PARENT_TAG = "mlflow.parentRunId"
 LAW_COLUMNS = ("b", "alpha", "beta", "delta0")
 

@@ -20,14 +20,14 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.errors import ConfigError
-from nsl_hpc.io_training import SignalScaling, simulate, train_io_model
-from nsl_hpc.metrics import normalized_errors
+from nsl_hpc.errors import ConfigError, require_member
 from nsl_hpc.models.blocks import require_block
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
-from nsl_hpc.records import load_benchmark, require_files
-from nsl_hpc.studies import Study, draw_tier, require_member
+from nsl_hpc.studies.base import Study, draw_tier
+from nsl_hpc.studies.input_output.data import load_benchmark, require_files
+from nsl_hpc.studies.input_output.training import SignalScaling, simulate, train_io_model
+from nsl_hpc.studies.metrics import normalized_errors
 
 
 def build_io_model(arch_cfg: Mapping[str, Any], system_cfg: Mapping[str, Any], width: int, depth: int) -> nn.Module:

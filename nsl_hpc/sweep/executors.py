@@ -12,14 +12,19 @@ from pathlib import Path
 from typing import Any
 
 import submitit
+from omegaconf import DictConfig
 from tqdm import tqdm
 
 from nsl_hpc.errors import RunError
-from nsl_hpc.packs import PackRunner
-from nsl_hpc.plan import Pack
-from nsl_hpc.rows import row_path, row_state
-from nsl_hpc.slurm import queued_jobs, read_limits
-from nsl_hpc.submissions import record_submission
+from nsl_hpc.studies import study_named
+from nsl_hpc.sweep.job import JobRunner
+from nsl_hpc.sweep.launchers import DebugLauncher, Launcher, LocalLauncher, SlurmLauncher, launcher_from
+from nsl_hpc.sweep.manifest import write_run_settings
+from nsl_hpc.sweep.plan import Group, Pack
+from nsl_hpc.sweep.prepare import prepare_shared_data
+from nsl_hpc.sweep.rows import row_path, row_state
+from nsl_hpc.sweep.slurm import queued_jobs, read_limits
+from nsl_hpc.sweep.submissions import record_submission
 
 
 @dataclass(frozen=True)
@@ -31,7 +36,7 @@ class Submission:
     refusal: str | None = None  # sbatch's message when it refused an array
 
 
-def submit_to_slurm(sweep_dir: Path, packs: Sequence[Pack], launcher: Mapping[str, Any], name: str) -> Submission:
+def submit_to_slurm(sweep_dir: Path, packs: Sequence[Pack], launcher: SlurmLauncher, name: str) -> Submission:
     """Submit ``packs`` as job arrays, one time limit per array, indices from 0, within the limits."""
     limits = read_limits(launcher)
     room = limits.max_job_count - queued_jobs(user_only=False)
@@ -59,53 +64,63 @@ def array_chunks(packs: Sequence[Pack], max_array_size: int) -> list[list[Pack]]
     return chunks
 
 
-def submit_array(sweep_dir: Path, packs: Sequence[Pack], time_limit_min: int, launcher: Mapping[str, Any],
-                 name: str) -> str:
-    """One array of single-CPU elements, element i running ``packs[i]``; returns the array job id."""
+def slurm_executor(sweep_dir: Path, time_limit_min: int, launcher: SlurmLauncher, name: str
+                   ) -> submitit.SlurmExecutor:
+    """The submitit executor of one array: single-CPU elements of one time limit, warned before it."""
     executor = submitit.SlurmExecutor(folder=sweep_dir / "submitit" / "%A", max_num_timeout=3)
     executor.update_parameters(
-        job_name=f"nsl-{name}", time=time_limit_min, cpus_per_task=1, ntasks_per_node=1, mem=launcher["mem"],
-        partition=launcher["partition"], account=launcher["account"], qos=launcher["qos"],
-        array_parallelism=launcher["array_parallelism"], signal_delay_s=launcher["signal_delay_s"],
-        additional_parameters=dict(launcher["extra_sbatch"]), setup=list(launcher["setup"]),
+        job_name=f"nsl-{name}", time=time_limit_min, cpus_per_task=1, ntasks_per_node=1, mem=launcher.mem,
+        partition=launcher.partition, account=launcher.account, qos=launcher.qos,
+        array_parallelism=launcher.array_parallelism, signal_delay_s=launcher.signal_delay_s,
+        additional_parameters=dict(launcher.extra_sbatch), setup=list(launcher.setup),
         stderr_to_stdout=True)
-    jobs = executor.map_array(PackRunner(), [str(sweep_dir)] * len(packs), [list(p.task_ids) for p in packs])
+    return executor
+
+
+def submit_array(sweep_dir: Path, packs: Sequence[Pack], time_limit_min: int, launcher: SlurmLauncher,
+                 name: str) -> str:
+    """One array of single-CPU elements, element i running ``packs[i]``; returns the array job id."""
+    executor = slurm_executor(sweep_dir, time_limit_min, launcher, name)
+    jobs = executor.map_array(JobRunner(), [str(sweep_dir)] * len(packs), [list(pack.groups) for pack in packs])
     array_id = jobs[0].job_id.split("_")[0]  # a single element is a plain job: its id has no _<index>
     record_submission(sweep_dir, array_id, time_limit_min, [job.job_id for job in jobs],
                       [pack.task_ids for pack in packs])
     return array_id
 
 
-def balance(packs: Sequence[Pack], workers: int) -> list[list[str]]:
-    """Task ids of ``packs`` spread over ``workers`` lists of about equal predicted time (longest first)."""
-    loads = [[0.0, []] for _ in range(min(workers, len(packs)))]
-    for pack in sorted(packs, key=lambda p: -p.seconds):
-        lightest = min(loads, key=lambda load: load[0])
-        lightest[0] += pack.seconds
-        lightest[1].extend(pack.task_ids)
-    return [task_ids for _, task_ids in loads]
+def balance(packs: Sequence[Pack], workers: int) -> list[list[Group]]:
+    """The lockstep groups of ``packs`` spread over ``workers`` lists of about equal predicted time (longest
+    first)."""
+    groups = [group for pack in packs for group in pack.groups]
+    seconds, shares = [0.0] * min(workers, len(groups)), [[] for _ in range(min(workers, len(groups)))]
+    for group in sorted(groups, key=lambda group: -group.seconds):
+        lightest = seconds.index(min(seconds))
+        seconds[lightest] += group.seconds
+        shares[lightest].append(group)
+    return shares
 
 
-def run_locally(sweep_dir: Path, packs: Sequence[Pack], launcher: Mapping[str, Any]) -> dict[str, int]:
-    """Run ``packs`` on this machine (``launcher.name`` local: parallel processes; debug: in-process)
-    and wait, with a progress bar over tasks; returns counts by outcome."""
-    workers = launcher["workers"] or os.cpu_count() or 1
-    groups = balance(packs, workers)
-    task_ids = [task_id for group in groups for task_id in group]
+def run_locally(sweep_dir: Path, packs: Sequence[Pack], launcher: LocalLauncher | DebugLauncher) -> dict[str, int]:
+    """Run ``packs`` on this machine (local: parallel processes; debug: in-process) and wait, with a progress
+    bar over tasks; returns counts by outcome."""
+    debug = isinstance(launcher, DebugLauncher)
+    workers = launcher.workers or os.cpu_count() or 1
+    shares = balance(packs, workers)
+    task_ids = [task_id for share in shares for group in share for task_id in group.task_ids]
     folder = sweep_dir / "submitit" / "local" / "%j"
-    if launcher["name"] == "debug":
+    if debug:
         executor = submitit.DebugExecutor(folder=folder)
     else:
         executor = submitit.LocalExecutor(folder=folder)
         executor.update_parameters(timeout_min=int(sum(p.seconds for p in packs) * 10 / 60) + 60)
-    runner = PackRunner(None if launcher["name"] == "debug" else os.getpid())  # workers die with this process
-    jobs = executor.map_array(runner, [str(sweep_dir)] * len(groups), groups)
+    runner = JobRunner(None if debug else os.getpid())  # workers die with this process
+    jobs = executor.map_array(runner, [str(sweep_dir)] * len(shares), shares)
     counts: dict[str, int] = {}
     try:
         with tqdm(total=len(task_ids), desc="tasks", unit="task", disable=None) as bar:
             pending = list(jobs)
             while pending:
-                if launcher["name"] == "debug":
+                if debug:
                     finished = [pending.pop(0)]
                 else:
                     time.sleep(1.0)
@@ -137,11 +152,11 @@ def job_result(job: submitit.Job) -> dict[str, int]:
                        "launch again (finished rows are kept)") from None
 
 
-def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Mapping[str, Any], name: str) -> int:
+def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Launcher, name: str) -> int:
     """Submit ``packs`` (launcher slurm) or run them here, print what happened; returns the exit status:
     1 when a task ran here and did not finish."""
     sweep_dir = Path(sweep_dir).resolve()  # jobs find it from anywhere
-    if launcher["name"] == "slurm":
+    if isinstance(launcher, SlurmLauncher):
         submission = submit_to_slurm(sweep_dir, packs, launcher, name)
         elements = sum(submission.arrays.values())
         print(f"submitted {elements:,} jobs in {len(submission.arrays)} arrays: {', '.join(submission.arrays)}")
@@ -155,3 +170,12 @@ def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Mapping[str, Any]
     counts = run_locally(sweep_dir, packs, launcher)
     print("finished: " + ", ".join(f"{n:,} {outcome}" for outcome, n in sorted(counts.items())))
     return 0 if set(counts) <= {"ok", "skipped"} else 1
+
+
+def run_jobs(sweep_dir: Path, launch: DictConfig, packs: Sequence[Pack], tasks: Sequence[Mapping[str, Any]],
+             configs: Mapping[tuple[str, str], Mapping[str, Any]]) -> int:
+    """Run the planned ``packs`` of ``tasks`` (manifest rows) with the run settings ``launch``: the data they
+    share first, the settings recorded in run.yaml, then ``dispatch``; returns its exit status."""
+    prepare_shared_data(tasks, configs, study_named(launch.study.name))
+    write_run_settings(sweep_dir, launch)
+    return dispatch(sweep_dir, packs, launcher_from(launch.launcher), launch.sweep.name)

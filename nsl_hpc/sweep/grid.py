@@ -12,8 +12,8 @@ from typing import Any
 import pyarrow as pa
 
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.studies import Study
-from nsl_hpc.task import task_id_from
+from nsl_hpc.studies.base import Study
+from nsl_hpc.sweep.task import task_id_from
 
 Grid = Mapping[str, Sequence[Any]] | Sequence[Mapping[str, Sequence[Any]]]
 

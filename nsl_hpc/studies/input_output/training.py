@@ -4,7 +4,7 @@ Signals are standardised with the training prefix's mean and standard deviation.
 one-step-ahead windows (its regressors hold measured past outputs); a SUBNET on sub-sequences: the encoder
 reads P past samples, the model then simulates T steps, and the loss is the mean squared simulation error.
 Both draw mini-batches of B windows from a fresh shuffle of all windows each pass, and train for exactly
-n_i iterations (optimizer steps). Scoring simulates the test record freely (the models' own outputs fed
+n_i iterations (optimizer steps). Scoring simulates the test signals freely (the models' own outputs fed
 back) in float64 with numpy: a step of these tiny MLPs is a few microseconds there, tens in torch.
 """
 
@@ -21,8 +21,8 @@ from tqdm import tqdm
 from nsl_hpc.models.blocks import LAYER_NORM_EPS
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
-from nsl_hpc.records import Record
-from nsl_hpc.training import TrainingOutcome, nonzero, warmup_cosine
+from nsl_hpc.studies.input_output.data import Signals
+from nsl_hpc.studies.training import TrainingOutcome, nonzero, warmup_cosine
 
 
 @dataclass(frozen=True)
@@ -35,13 +35,13 @@ class SignalScaling:
     y_std: float
 
     @classmethod
-    def fit(cls, record: Record) -> "SignalScaling":
-        return cls(float(record.u.mean()), float(nonzero(record.u.std())),
-                   float(record.y.mean()), float(nonzero(record.y.std())))
+    def fit(cls, signals: Signals) -> "SignalScaling":
+        return cls(float(signals.u.mean()), float(nonzero(signals.u.std())),
+                   float(signals.y.mean()), float(nonzero(signals.y.std())))
 
-    def normalise(self, record: Record) -> tuple[np.ndarray, np.ndarray]:
+    def normalise(self, signals: Signals) -> tuple[np.ndarray, np.ndarray]:
         """Standardised (u, y), each (N,)."""
-        return (record.u - self.u_mean) / self.u_std, (record.y - self.y_mean) / self.y_std
+        return (signals.u - self.u_mean) / self.u_std, (signals.y - self.y_mean) / self.y_std
 
 
 def narx_windows(model: NARX, u: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -60,10 +60,10 @@ def subnet_windows(model: SUBNET, u: torch.Tensor, y: torch.Tensor, horizon: int
     return u.unfold(0, length, 1), y.unfold(0, length, 1)
 
 
-def window_loss(model: nn.Module, record: Record, scaling: SignalScaling, horizon: int,
+def window_loss(model: nn.Module, signals: Signals, scaling: SignalScaling, horizon: int,
                 dtype: torch.dtype) -> tuple[int, Callable[[torch.Tensor], torch.Tensor]]:
-    """(number of windows W, loss of a batch of window indices (B,)) for ``model`` on ``record``."""
-    u, y = (torch.as_tensor(a, dtype=dtype) for a in scaling.normalise(record))
+    """(number of windows W, loss of a batch of window indices (B,)) for ``model`` on ``signals``."""
+    u, y = (torch.as_tensor(a, dtype=dtype) for a in scaling.normalise(signals))
     if isinstance(model, NARX):
         past_y, inputs, target = narx_windows(model, u, y)
         return len(target), lambda idx: (model(past_y[idx], inputs[idx]) - target[idx]).square().mean()
@@ -78,13 +78,13 @@ def window_loss(model: nn.Module, record: Record, scaling: SignalScaling, horizo
     return len(u_windows), loss
 
 
-def train_io_model(model: nn.Module, record: Record, scaling: SignalScaling, cfg: Mapping[str, Any],
+def train_io_model(model: nn.Module, signals: Signals, scaling: SignalScaling, cfg: Mapping[str, Any],
                    iterations: int, horizon: int, shuffle_seed: int,
                    on_progress: Callable[[], None] = lambda: None) -> TrainingOutcome:
     """Adam (warm-up + cosine over ``iterations`` steps, gradient clipping) on mini-batches of
     ``cfg.batch_size`` windows (all windows when there are fewer); ``cfg`` is the ``train`` group.
     ``on_progress`` is called after each pass over the windows; stops early (finite=False) on a NaN loss."""
-    windows, batch_loss = window_loss(model, record, scaling, horizon, getattr(torch, cfg["dtype"]))
+    windows, batch_loss = window_loss(model, signals, scaling, horizon, getattr(torch, cfg["dtype"]))
     batch = min(cfg["batch_size"], windows)
     schedule = warmup_cosine(iterations, cfg["warmup_fraction"], cfg["lr"])
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg["lr"], foreach=True)
@@ -181,10 +181,10 @@ def simulate_subnet(model: SUBNET, u: np.ndarray, y: np.ndarray, init: int) -> n
     return simulated
 
 
-def simulate(model: nn.Module, record: Record, scaling: SignalScaling, init: int) -> np.ndarray:
-    """Free-run simulated output (N,) of ``record`` in its units; the first ``init`` samples are measured."""
+def simulate(model: nn.Module, signals: Signals, scaling: SignalScaling, init: int) -> np.ndarray:
+    """Free-run simulated output (N,) of ``signals`` in its units; the first ``init`` samples are measured."""
     model.eval()
-    u, y = scaling.normalise(record)
+    u, y = scaling.normalise(signals)
     with torch.no_grad():
         run = simulate_narx if isinstance(model, NARX) else simulate_subnet
         return run(model, u, y, init) * scaling.y_std + scaling.y_mean

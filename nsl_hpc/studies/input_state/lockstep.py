@@ -6,7 +6,7 @@ takes when trained alone (K = 1, the single-model path). Mini-batches of differe
 masked; a model that has finished (or diverged) gets padding only (zero loss weight, learning rate 0) until
 the end of the block, then leaves the stack. The loss, the gradient-norm clipping and Adam
 (torch.optim.Adam's arithmetic) are computed per model, in a few operations on the (K, P) parameter rows of
-``nsl_hpc.stacked``. A model is kept (``Snapshot``) after its epochs and after each of its milestones.
+``stacked``. A model is kept (``Snapshot``) after its epochs and after each of its milestones.
 
 Everything that does not depend on the parameters is prepared for a block of steps at once: the batches'
 rows (one gather), their loss weights (the batch spreads of the targets) and the learning rates. A step is
@@ -23,9 +23,9 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from nsl_hpc.datasets import Dataset
-from nsl_hpc.stacked import StackedModels
-from nsl_hpc.training import Scaling, TrainingOutcome, batch_bounds, learning_rate_at
+from nsl_hpc.studies.input_state.data import Dataset
+from nsl_hpc.studies.input_state.stacked import StackedModels
+from nsl_hpc.studies.training import Scaling, TrainingOutcome, batch_bounds, learning_rate_at
 
 ADAM_BETAS, ADAM_EPS, CLIP_EPS = (0.9, 0.999), 1e-8, 1e-6  # torch.optim.Adam and clip_grad_norm_ defaults
 BLOCK_STEPS = 32  # steps prepared at once: (K, BLOCK_STEPS, batch) rows of data in memory

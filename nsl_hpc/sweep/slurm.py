@@ -4,11 +4,11 @@ import getpass
 import re
 import subprocess
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any
 
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.errors import ConfigError, SlurmError
+from nsl_hpc.sweep.launchers import SlurmLauncher
 
 
 def slurm_command(*args: str, retries: int = 3, backoff_s: float = 2.0) -> str:
@@ -22,7 +22,7 @@ def slurm_command(*args: str, retries: int = 3, backoff_s: float = 2.0) -> str:
             return result.stdout
         if attempt + 1 < retries:
             time.sleep(backoff_s * 2**attempt)
-    raise ConfigError(f"{' '.join(args[:3])} failed: {' '.join(result.stderr.split())}")
+    raise SlurmError(f"{' '.join(args[:3])} failed: {' '.join(result.stderr.split())}")
 
 
 @dataclass(frozen=True)
@@ -35,7 +35,7 @@ class Limits:
     max_submit_jobs: int | None
 
 
-def read_limits(launcher: Mapping[str, Any]) -> Limits:
+def read_limits(launcher: SlurmLauncher) -> Limits:
     """Limits from ``scontrol show config`` and ``sacctmgr``, unless set in the launcher config."""
     config = slurm_command("scontrol", "show", "config")
 
@@ -45,13 +45,13 @@ def read_limits(launcher: Mapping[str, Any]) -> Limits:
             raise ConfigError(f"scontrol show config has no {name}; set it in the launcher config")
         return int(match.group(1))
 
-    max_submit = launcher["max_submit_jobs"]
+    max_submit = launcher.max_submit_jobs
     if max_submit is None:
         values = slurm_command("sacctmgr", "-n", "-P", "show", "assoc", f"user={getpass.getuser()}",
                                "format=MaxSubmitJobs").split()
         max_submit = min((int(v) for v in values if v.isdigit()), default=None)
-    return Limits(launcher["max_array_size"] or setting("MaxArraySize"),
-                  launcher["max_job_count"] or setting("MaxJobCount"), max_submit)
+    return Limits(launcher.max_array_size or setting("MaxArraySize"),
+                  launcher.max_job_count or setting("MaxJobCount"), max_submit)
 
 
 def queued_jobs(user_only: bool) -> int:

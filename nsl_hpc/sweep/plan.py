@@ -5,9 +5,12 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
+from omegaconf import DictConfig, OmegaConf
 
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.errors import ConfigError, require_positive_int
+from nsl_hpc.studies import study_named
+from nsl_hpc.studies.base import model_of
+from nsl_hpc.sweep.launchers import SlurmLauncher, launcher_from
 
 
 def predicted_seconds(arch: str, steps: int, params: int, cost: Mapping[str, Any]) -> float:
@@ -28,18 +31,13 @@ def lockstep_key(task: Mapping[str, Any], buckets: Sequence[int]) -> tuple:
     return task["system"], task["arch"], task["depth"], padded_width(task["width"], buckets)
 
 
-def run_key(task: Mapping[str, Any], lockstep: Mapping[str, Any]) -> tuple:
-    """Tasks with equal keys are one model (with epoch milestones: they differ only in epochs)."""
-    return tuple(task[key] for key in lockstep["run_keys"]) if lockstep["run_keys"] else (task["task_id"],)
-
-
 def lockstep_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any]) -> list[list[Mapping[str, Any]]]:
-    """Manifest rows in groups of the tasks of at most ``lockstep["size"]`` models (``run_key``) of one
+    """Manifest rows in groups of the tasks of at most ``lockstep["size"]`` models (``model_of``) of one
     ``lockstep_key`` that train in lockstep, by step count so that a group's models run about equally long;
     size 1 trains every model alone."""
     runs: dict[tuple, list[Mapping[str, Any]]] = {}
     for task in tasks:
-        runs.setdefault(run_key(task, lockstep), []).append(task)
+        runs.setdefault(model_of(task, lockstep["run_keys"]), []).append(task)
     by_key: dict[tuple, list[list[Mapping[str, Any]]]] = {}
     for run in runs.values():
         by_key.setdefault(lockstep_key(run[0], lockstep["width_buckets"]), []).append(run)
@@ -55,7 +53,7 @@ def model_steps(group: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any])
     """The steps each model of a lockstep group trains (its longest task's), ascending."""
     steps: dict[tuple, int] = {}
     for task in group:
-        key = run_key(task, lockstep)
+        key = model_of(task, lockstep["run_keys"])
         steps[key] = max(steps.get(key, 0), task["steps"])
     return sorted(steps.values())
 
@@ -76,21 +74,33 @@ def group_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any], l
                                    for steps, models in training_segments(group, lockstep))
 
 
-def planned_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any], cost: Mapping[str, Any]
-                   ) -> tuple[list[tuple[str, ...]], list[float]]:
-    """The lockstep groups of ``tasks`` as task-id tuples, and their predicted seconds (``make_packs``'s input)."""
-    groups = lockstep_groups(tasks, lockstep)
-    return ([tuple(task["task_id"] for task in group) for group in groups],
-            [group_seconds(group, cost, lockstep) for group in groups])
+@dataclass(frozen=True)
+class Group:
+    """Tasks one process trains together (in lockstep; one task when K = 1); ``seconds``: predicted wall time."""
+
+    task_ids: tuple[str, ...]
+    seconds: float
 
 
 @dataclass(frozen=True)
 class Pack:
-    """Tasks that run one after another in one job; ``seconds`` is their predicted total."""
+    """Lockstep groups that run one after another in one job; ``seconds`` is their predicted total. The job
+    trains exactly these groups (``nsl_hpc.sweep.job``)."""
 
-    task_ids: tuple[str, ...]
+    groups: tuple[Group, ...]
     seconds: float
     time_limit_min: int
+
+    @property
+    def task_ids(self) -> tuple[str, ...]:
+        return tuple(task_id for group in self.groups for task_id in group.task_ids)
+
+
+def planned_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any], cost: Mapping[str, Any]
+                   ) -> list[Group]:
+    """The lockstep groups of ``tasks`` with their predicted seconds (``make_packs``'s input)."""
+    return [Group(tuple(task["task_id"] for task in group), group_seconds(group, cost, lockstep))
+            for group in lockstep_groups(tasks, lockstep)]
 
 
 def time_limit_minutes(seconds: float, packing: Mapping[str, Any]) -> int:
@@ -108,28 +118,22 @@ def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
     """Of a launch config: ``size`` (K, the models a job trains in lockstep: ``lockstep.size`` when enabled
     and the study can, else 1), ``width_buckets``, and ``run_keys``, the keys of one model: with epoch
     milestones (train.schedule_epochs, shared draws) the study's draw keys, else none (a model per task)."""
-    from nsl_hpc.studies import require_positive_int, study_named
-
     settings, study = launch["lockstep"], study_named(launch["study"]["name"])
     require_positive_int("lockstep.size", settings["size"])
     for width in settings["width_buckets"]:
         require_positive_int("lockstep.width_buckets value", width)
-    milestones = study.lockstep and launch["train"].get("schedule_epochs") is not None
     return {"size": settings["size"] if settings["enabled"] and study.lockstep else 1,
-            "width_buckets": list(settings["width_buckets"]),
-            "run_keys": list(study.draw_keys(launch["draws"])) if milestones else []}
+            "width_buckets": list(settings["width_buckets"]), "run_keys": list(study.model_keys(launch))}
 
 
 def check_run_settings(launch: Mapping[str, Any]) -> None:
     """Raise ConfigError for run settings (launcher, packing, cost, watchdog, lockstep) no job can run with."""
-    from nsl_hpc.studies import require_positive_int
-
     def positive(key: str, value: Any) -> None:
         if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
             raise ConfigError(f"{key}={value!r} must be a positive number")
 
     lockstep_settings(launch)
-    workers = launch["launcher"].get("workers")
+    workers = getattr(launcher_from(launch["launcher"]), "workers", None)
     if workers is not None:
         require_positive_int("launcher.workers", workers)
     watchdog = launch["watchdog"]
@@ -146,30 +150,39 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
     positive("cost.params_per_overhead", launch["cost"]["params_per_overhead"])
 
 
-def packing_for(packing: Mapping[str, Any], launcher_name: str, time_factor: float = 1.0) -> dict[str, Any]:
+def packing_for(packing: Mapping[str, Any], launcher: Mapping[str, Any], time_factor: float = 1.0) -> dict[str, Any]:
     """The packing settings a launcher uses: packing is for the scheduler (local workers balance single
     tasks), and ``time_factor`` stretches the time limits (resubmission after timeouts)."""
-    return {**packing, "enabled": packing["enabled"] and launcher_name == "slurm",
+    return {**packing, "enabled": packing["enabled"] and isinstance(launcher_from(launcher), SlurmLauncher),
             "time_safety": packing["time_safety"] * time_factor}
 
 
-def make_packs(groups: Sequence[tuple[str, ...]], seconds: Sequence[float], packing: Mapping[str, Any]) -> list[Pack]:
-    """Put lockstep groups (task-id tuples, ``planned_groups``) into packs that run one after another in a
-    job: short groups (under ``short_task_minutes``) fill packs of about ``pack_minutes`` of predicted
-    work; longer ones (or all, with packing disabled) run alone."""
-    order = np.argsort(seconds, kind="stable")
+def make_packs(groups: Sequence[Group], packing: Mapping[str, Any]) -> list[Pack]:
+    """Put lockstep groups (``planned_groups``) into packs that run one after another in a job: short groups
+    (under ``short_task_minutes``) fill packs of about ``pack_minutes`` of predicted work; longer ones (or
+    all, with packing disabled) run alone."""
     short_limit = packing["short_task_minutes"] * 60 if packing["enabled"] else 0.0
     packs, current, total = [], [], 0.0
-    for index in order:
-        group, cost = groups[index], float(seconds[index])
-        if cost >= short_limit:
-            packs.append(Pack(tuple(group), cost, time_limit_minutes(cost, packing)))
+
+    def close(members: list[Group], seconds: float) -> None:
+        packs.append(Pack(tuple(members), seconds, time_limit_minutes(seconds, packing)))
+
+    for group in sorted(groups, key=lambda group: group.seconds):  # stable: equal times keep their order
+        if group.seconds >= short_limit:
+            close([group], group.seconds)
             continue
-        if current and total + cost > packing["pack_minutes"] * 60:
-            packs.append(Pack(tuple(current), total, time_limit_minutes(total, packing)))
+        if current and total + group.seconds > packing["pack_minutes"] * 60:
+            close(current, total)
             current, total = [], 0.0
-        current.extend(group)
-        total += cost
+        current.append(group)
+        total += group.seconds
     if current:
-        packs.append(Pack(tuple(current), total, time_limit_minutes(total, packing)))
+        close(current, total)
     return packs
+
+
+def plan_jobs(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, time_factor: float = 1.0) -> list[Pack]:
+    """The jobs that run ``tasks`` (manifest rows) with a sweep's run settings ``launch``: lockstep groups
+    with predicted times, packed for the launcher; ``time_factor`` stretches the time limits."""
+    groups = planned_groups(tasks, lockstep_settings(launch), OmegaConf.to_container(launch.cost))
+    return make_packs(groups, packing_for(launch.packing, launch.launcher, time_factor))

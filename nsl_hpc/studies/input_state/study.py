@@ -16,15 +16,15 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.datasets import build_test_set, build_training_set, points_per_trajectory, training_points
-from nsl_hpc.errors import ConfigError
-from nsl_hpc.lockstep import LOSSES, Member, Snapshot, predict_derivatives, train_lockstep
-from nsl_hpc.metrics import normalized_errors
+from nsl_hpc.errors import ConfigError, require_member, require_positive_int
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
-from nsl_hpc.studies import Study, draw_tier, require_member, require_positive_int
+from nsl_hpc.studies.base import Study, draw_tier, model_of
+from nsl_hpc.studies.input_state.data import build_test_set, build_training_set, points_per_trajectory, training_points
+from nsl_hpc.studies.input_state.lockstep import LOSSES, Member, Snapshot, predict_derivatives, train_lockstep
+from nsl_hpc.studies.metrics import normalized_errors
+from nsl_hpc.studies.training import SCHEDULES, Scaling, batch_count
 from nsl_hpc.systems import SYSTEMS
-from nsl_hpc.training import SCHEDULES, Scaling, batch_count
 
 TIER_OF = {"data_tier": "data", "width_tier": "width", "depth_tier": "depth"}
 
@@ -94,8 +94,7 @@ class InputState(Study):
         one model, scored after each one's epochs. train_seconds is the training time divided among the items."""
         runs: dict[tuple, list[int]] = {}
         for i, (cfg, task, _) in enumerate(items):
-            milestones = cfg.train.schedule_epochs is not None
-            runs.setdefault(tuple(task[key] for key in self.draw_keys(cfg.draws)) if milestones else (i,), []).append(i)
+            runs.setdefault(model_of(task, self.model_keys(cfg)), []).append(i)
         members = [self.member(*items[run[0]], epochs=[items[i][1]["epochs"] for i in run]) for run in runs.values()]
         cfg = items[0][0]
         started = time.perf_counter()

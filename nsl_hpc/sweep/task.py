@@ -17,10 +17,11 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 import nsl_hpc
-from nsl_hpc.errors import ConfigError
-from nsl_hpc.rows import row_path, write_row_atomically
+from nsl_hpc.errors import ConfigError, require_non_negative_int, require_positive_int
 from nsl_hpc.seeding import stable_hash
-from nsl_hpc.studies import Study, require_non_negative_int, require_positive_int, study_of
+from nsl_hpc.studies import study_of
+from nsl_hpc.studies.base import Study
+from nsl_hpc.sweep.rows import row_path, write_row_atomically
 
 
 @dataclass(frozen=True)
@@ -32,8 +33,9 @@ class ResolvedTask:
     sizes: dict[str, Any]
 
 
-def resolve_task(cfg: DictConfig) -> ResolvedTask:
-    """Validate the task's keys (raising ConfigError before any work) and draw its sizes."""
+def resolve_task(cfg: DictConfig, sizes: Mapping[str, Any] | None = None) -> ResolvedTask:
+    """Validate the task's keys (raising ConfigError before any work) and draw its sizes, or take ``sizes``
+    as drawn (a sweep's job takes them from the manifest, which is the truth; they are not drawn again)."""
     values = OmegaConf.to_container(cfg, resolve=True)
     study = study_of(values)
     for key in ("seed", "sweep_seed"):
@@ -43,7 +45,7 @@ def resolve_task(cfg: DictConfig) -> ResolvedTask:
     check_settings(values)
     coordinates = {"system": values["system"]["name"], "arch": values["arch"]["name"],
                    **{key: values[key] for key in study.task_keys}}
-    sizes = study.sizes(coordinates, values)
+    sizes = dict(sizes) if sizes is not None else study.sizes(coordinates, values)
     study.check_task(coordinates, sizes, values)
     return ResolvedTask(study, coordinates, sizes)
 
@@ -115,11 +117,13 @@ def run_task(cfg: DictConfig, on_progress: Callable[[], None] = lambda: None) ->
     return run_tasks([cfg], on_progress)[0]
 
 
-def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lambda: None) -> list[TaskResult]:
+def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lambda: None,
+              sizes: Sequence[Mapping[str, Any]] | None = None) -> list[TaskResult]:
     """Train and score tasks of one study and shape together (in lockstep where the study can) and write
-    one row per task, each the row the task would have alone; tasks whose row exists are skipped."""
+    one row per task, each the row the task would have alone; tasks whose row exists are skipped.
+    ``sizes``: each task's drawn sizes (``resolve_task``), drawn here when None."""
     started = time.perf_counter()
-    tasks = [resolve_task(cfg) for cfg in cfgs]
+    tasks = [resolve_task(cfg, None if sizes is None else sizes[i]) for i, cfg in enumerate(cfgs)]
     paths = [row_path(Path(cfg.out_dir), cfg.task_id or task_id(cfg)) for cfg in cfgs]
     todo = [i for i, (cfg, path) in enumerate(zip(cfgs, paths, strict=True)) if cfg.force or not path.exists()]
     results = [TaskResult(path, None, skipped=True) for path in paths]
@@ -131,7 +135,7 @@ def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lamb
     for i in todo:
         inject_fault(cfgs[i].fault, cfgs[i].seed)
     outcomes = tasks[todo[0]].study.train_and_score_pack(
-        [(cfgs[i], tasks[i].coordinates, tasks[i].sizes) for i in todo], on_progress)
+        [(cfgs[i], {**tasks[i].coordinates, "task_id": paths[i].stem}, tasks[i].sizes) for i in todo], on_progress)
     for i, outcome in zip(todo, outcomes, strict=True):
         finite = outcome.pop("finite") and all(math.isfinite(outcome[key]) for key in ("nmae", "nmse"))
         row = {

@@ -1,6 +1,6 @@
 """What the training loops share: the input-state scaling, mini-batch bounds, the learning-rate schedule
-and the outcome record. The loops are ``nsl_hpc.lockstep`` (input-state models, alone or K in lockstep) and
-``nsl_hpc.io_training`` (NARX and SUBNET).
+and the outcome record. The loops are ``input_state.lockstep`` (input-state models, alone or K in lockstep) and
+``input_output.training`` (NARX and SUBNET).
 
 Models read standardised inputs, fitted on the training data (ddof 0, as scikit-learn's StandardScaler):
 z = (x - mean_x) / std_x, v = (u - mean_u) / std_u. Their targets are dx/dt and y as they are (the study's,
@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from nsl_hpc.datasets import Dataset
+from nsl_hpc.studies.input_state.data import Dataset
 
 
 def nonzero(scale: np.ndarray | float) -> np.ndarray | float:

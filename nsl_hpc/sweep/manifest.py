@@ -8,7 +8,7 @@
 - ``launch.yaml``: the launch's whole config (grid, sweep seed, study, ...), written by the first launch.
 - ``run.yaml``: the settings jobs run by (launcher, packing, cost, watchdog, lockstep), written at every launch or
   resubmit that dispatches work: resubmit starts from the last ones.
-Paths inside the sweep directory are stored relative to it (``nsl_hpc.sweep_dir.portable_paths``), so a sweep can
+Paths inside the sweep directory are stored relative to it (``nsl_hpc.sweep.directory.portable_paths``), so a sweep can
 be moved and its commands run from anywhere; a damaged file is a one-line error naming it.
 """
 
@@ -24,7 +24,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from nsl_hpc.atomic import create_parquet, write_text
 from nsl_hpc.errors import ConfigError, damaged_file
-from nsl_hpc.sweep_dir import portable_paths
+from nsl_hpc.sweep.directory import portable_paths
 
 MANIFEST_FILE = "manifest.parquet"
 LAUNCH_CONFIG_FILE = "launch.yaml"

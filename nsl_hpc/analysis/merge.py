@@ -1,0 +1,186 @@
+"""Merging a sweep's rows into results.parquet, with an account of the tasks that have none."""
+
+
+import contextlib
+import json
+import os
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.dataset as ds
+import pyarrow.parquet as pq
+
+from nsl_hpc.atomic import write_parquet, write_text
+from nsl_hpc.sweep.failures import FAILURE_STATES, read_failures
+from nsl_hpc.sweep.manifest import read_manifest
+from nsl_hpc.sweep.rows import set_aside
+
+RESULTS_FILE = "results.parquet"
+SUMMARY_FILE = "merge_summary.json"
+CACHE_FILE = ".merge_cache.parquet"
+SHARD_KEY = ("shard", "size", "mtime_ns")  # a cached row stands while its shard keeps this key
+
+
+@dataclass(frozen=True)
+class MergeSummary:
+    """What the merge kept and dropped (task counts) and which shards it skipped."""
+
+    tasks: int
+    merged: int
+    frozen: int
+    failed: int
+    timeout: int
+    missing: int
+    diverged: int  # merged, but with non-finite errors: kept with status 'diverged', never fitted
+    corrupt_shards: list[str]
+    duplicate_rows: int
+    unknown_rows: int
+
+    @property
+    def dropped(self) -> int:
+        return self.tasks - self.merged
+
+    def describe(self) -> str:
+        share = 100 * self.dropped / self.tasks if self.tasks else 0.0
+        lines = [f"{self.dropped:,} of {self.tasks:,} tasks ({share:.1f}%) dropped: {self.frozen:,} frozen, "
+                 f"{self.failed:,} failed, {self.missing:,} missing"
+                 + (f", {self.timeout:,} timed out" if self.timeout else "")]
+        if self.diverged:
+            lines.append(f"{self.diverged:,} merged tasks diverged (non-finite errors): kept, not fitted")
+        if self.corrupt_shards:
+            lines.append(f"{len(self.corrupt_shards):,} corrupt shards moved to corrupt/ (their tasks count as "
+                         "missing; resubmit runs them again): "
+                         + ", ".join(self.corrupt_shards[:5]) + (" ..." if len(self.corrupt_shards) > 5 else ""))
+        if self.duplicate_rows:
+            lines.append(f"{self.duplicate_rows:,} duplicate rows of already merged tasks ignored")
+        if self.unknown_rows:
+            lines.append(f"{self.unknown_rows:,} rows of tasks outside the manifest ignored")
+        return "\n".join(lines)
+
+
+def results_path(sweep_dir: Path) -> Path:
+    return Path(sweep_dir) / RESULTS_FILE
+
+
+def read_shards(paths: list[str], skip: Sequence[str]) -> tuple[pa.Table, list[str]]:
+    """The shards at ``paths`` as one table of the columns not in ``skip`` (but task_id) and ``shard``, the
+    path each row came from: one pyarrow dataset scan (the fewer columns, the faster); when that fails,
+    each shard on its own to find the unreadable ones, which are returned apart."""
+    if not paths:
+        return pa.table({"task_id": pa.array([], pa.string()), "shard": pa.array([], pa.string())}), []
+    try:
+        dataset = ds.dataset(paths, format="parquet")
+        table = dataset.to_table(columns=outcome_columns(dataset.schema.names, skip))
+        if table.num_rows == len(paths) and all(  # one row per shard, in order, named after its task
+                os.path.basename(path).startswith(task_id)
+                for path, task_id in zip(paths, table["task_id"].to_pylist(), strict=True)):
+            return table.append_column("shard", pa.array(paths, pa.string())), []
+        return table.append_column("shard", dataset.to_table(columns=["__filename"])["__filename"]), []
+    except (pa.ArrowException, OSError):
+        pass
+
+    def read_one(path: str) -> pa.Table | None:
+        try:
+            table = pq.read_table(path)
+        except (pa.ArrowException, OSError):
+            return None
+        table = table.select(outcome_columns(table.column_names, skip))
+        return table.append_column("shard", pa.array([path] * table.num_rows, pa.string()))
+
+    with ThreadPoolExecutor() as pool:
+        tables = list(pool.map(read_one, paths))
+    good = [table for table in tables if table is not None]
+    return (pa.concat_tables(good, promote_options="permissive") if good else read_shards([], skip)[0],
+            [path for path, table in zip(paths, tables, strict=True) if table is None])
+
+
+def list_shards(sweep_dir: Path) -> pa.Table:
+    """Every row file of the sweep with its SHARD_KEY (shard: path relative to the sweep dir), sorted."""
+    entries = [entry for bucket in os.scandir(Path(sweep_dir) / "rows") if bucket.is_dir()
+               for entry in os.scandir(bucket.path) if entry.name.endswith(".parquet")] \
+        if (Path(sweep_dir) / "rows").is_dir() else []
+    stats = [entry.stat() for entry in entries]
+    shards = [os.path.relpath(entry.path, sweep_dir) for entry in entries]
+    table = pa.table({"shard": shards, "size": [s.st_size for s in stats],
+                      "mtime_ns": [s.st_mtime_ns for s in stats]}, schema=pa.schema(
+                          [("shard", pa.string()), ("size", pa.int64()), ("mtime_ns", pa.int64())]))
+    return table.sort_by("shard")
+
+
+def read_cache(sweep_dir: Path, shards: pa.Table) -> pa.Table | None:
+    """Cached rows whose shard still has the same size and modification time (None without a cache)."""
+    try:
+        cached = pq.read_table(Path(sweep_dir) / CACHE_FILE)
+    except (pa.ArrowException, OSError):
+        return None
+    return cached.join(shards, list(SHARD_KEY), join_type="left semi")
+
+
+def read_rows(sweep_dir: Path, skip: Sequence[str]) -> tuple[pa.Table, list[str]]:
+    """Every readable row of the sweep (with its SHARD_KEY), in shard order, reading only the shards the
+    cache does not hold as they are; returns the rows and the unreadable shards. Updates the cache."""
+    shards = list_shards(sweep_dir)
+    cached = read_cache(sweep_dir, shards)
+    unread = shards if cached is None else shards.join(cached.select(list(SHARD_KEY)), list(SHARD_KEY),
+                                                       join_type="left anti")
+    unread_paths = [os.path.join(sweep_dir, shard) for shard in unread["shard"].to_pylist()]
+    new, corrupt = read_shards(unread_paths, skip)
+    relative = {path: shard for path, shard in zip(unread_paths, unread["shard"].to_pylist(), strict=True)}
+    new = new.set_column(new.schema.get_field_index("shard"), "shard",
+                         pa.array([relative[path] for path in new["shard"].to_pylist()], pa.string()))
+    new = new.join(shards, "shard", join_type="inner")  # add size and mtime_ns
+    rows = new if cached is None else pa.concat_tables([cached, new], promote_options="permissive")
+    rows = rows.combine_chunks().sort_by("shard")  # one chunk per shard would make every later step slow
+    write_parquet(rows, Path(sweep_dir) / CACHE_FILE)
+    return rows, [relative[path] for path in corrupt]
+
+
+def outcome_columns(names: Sequence[str], manifest_names: Sequence[str]) -> list[str]:
+    """task_id and the columns of a row that the manifest does not hold already."""
+    return ["task_id", *(name for name in names if name not in manifest_names)]
+
+
+def one_row_per_manifest_task(rows: pa.Table, task_ids: pa.ChunkedArray) -> tuple[pa.Table, int, int]:
+    """``rows`` without rows of tasks outside ``task_ids`` and without repeated task ids (the first row
+    of a task wins); returns (rows, unknown, duplicates). ``rows`` should be a single chunk (speed)."""
+    known = pc.is_in(rows["task_id"], value_set=task_ids)
+    unknown = rows.num_rows - (pc.sum(known).as_py() or 0)
+    rows = rows.filter(known)
+    _, first = np.unique(rows["task_id"].to_numpy(zero_copy_only=False), return_index=True)
+    return rows.take(pa.array(np.sort(first), pa.int64())), unknown, rows.num_rows - len(first)
+
+
+def dropped_counts(sweep_dir: Path, task_ids: pa.ChunkedArray, merged_ids: pa.ChunkedArray) -> dict[str, int]:
+    """Tasks without a merged row by their failure record's state (failed, frozen, timeout) or missing."""
+    failures = read_failures(sweep_dir)
+    merged = set(merged_ids.to_pylist())
+    states = [failures[t]["status"] if t in failures else "missing" for t in task_ids.to_pylist() if t not in merged]
+    return {state: states.count(state) for state in (*FAILURE_STATES, "missing")}
+
+
+def merge_sweep(sweep_dir: Path) -> MergeSummary:
+    """Write results.parquet and merge_summary.json for the sweep; returns the summary."""
+    sweep_dir = Path(sweep_dir)
+    manifest = read_manifest(sweep_dir)
+    rows, corrupt = read_rows(sweep_dir, manifest.column_names)
+    for shard in corrupt:  # no row: moved aside, so status, launch and resubmit see the task as to run
+        with contextlib.suppress(FileNotFoundError):
+            set_aside(sweep_dir / shard)
+    rows, unknown, duplicates = one_row_per_manifest_task(rows.drop_columns(list(SHARD_KEY)), manifest["task_id"])
+    ordered = manifest.append_column("manifest_index", pa.array(np.arange(manifest.num_rows)))
+    results = ordered.join(rows, "task_id", join_type="inner")
+    results = results.sort_by("manifest_index").drop_columns(["manifest_index"])
+    write_parquet(results, results_path(sweep_dir))
+    diverged = int(pc.sum(pc.not_equal(results["status"], "ok")).as_py() or 0) if results.num_rows else 0
+    summary = MergeSummary(tasks=manifest.num_rows, merged=results.num_rows,
+                           **dropped_counts(sweep_dir, manifest["task_id"], results["task_id"]),
+                           diverged=diverged,
+                           corrupt_shards=corrupt,
+                           duplicate_rows=duplicates, unknown_rows=unknown)
+    write_text(json.dumps(asdict(summary), indent=1), sweep_dir / SUMMARY_FILE)
+    return summary

@@ -1,0 +1,132 @@
+"""What a study is (``Study``): which coordinates a task has (its grid axes), how its sizes are drawn from them,
+and how it trains and is scored; plus the checks of coordinate values every study uses."""
+
+import functools
+import math
+import random
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+from omegaconf import DictConfig
+
+from nsl_hpc.errors import ConfigError, require_positive_int
+from nsl_hpc.seeding import stable_hash, stable_seed
+
+DRAWS = ("per_task", "shared_across_epochs")
+
+
+def draw_tier(rng: random.Random, tier: int) -> int:
+    """An integer drawn uniformly in [ceil(tier / 2), tier]."""
+    return rng.randint(math.ceil(tier / 2), tier)
+
+
+class Study:
+    """What differs between studies. Subclasses set the class attributes and implement the methods."""
+
+    name: str
+    axes: tuple[str, ...]  # grid axes in expansion order: "system", "arch", "seed", then the size coordinates
+    length_axis: str  # the axis of training length (with shared draws, longer runs of the same model)
+    shared_keys: tuple[str, ...]  # config groups and keys that change the outcome of every task of a pair
+    lockstep: bool = False  # train_and_score_pack trains same-shape tasks together (a lockstep loop)
+
+    @property
+    def size_axes(self) -> tuple[str, ...]:
+        """The coordinates sizes are drawn from and training length is set by (checked by check_coordinate)."""
+        return tuple(axis for axis in self.axes if axis not in ("system", "arch", "seed"))
+
+    @property
+    def task_keys(self) -> tuple[str, ...]:
+        """Scalar coordinates that differ between the tasks of one (system, arch), for the task id."""
+        return ("sweep_seed", *(axis for axis in self.axes if axis not in ("system", "arch")))
+
+    @functools.cache  # noqa: B019 (studies are a few long-lived objects)
+    def draw_keys(self, draws: str) -> tuple[str, ...]:
+        """What the random draws of a task (sizes, initial weights, batch order) depend on: every coordinate
+        (``draws: per_task``, Algorithms 1 and 2) or all but the training length (``shared_across_epochs``)."""
+        return ("sweep_seed", *(axis for axis in self.axes if draws == "per_task" or axis != self.length_axis))
+
+    def model_keys(self, base: Mapping[str, Any]) -> tuple[str, ...]:
+        """The coordinates that make tasks one model (``model_of``): with epoch milestones (a lockstep study
+        with ``train.schedule_epochs``, which needs shared draws) the draw keys, so tasks that differ only in
+        training length are one run kept after each one's length; else none (a model per task)."""
+        if not self.lockstep or base["train"].get("schedule_epochs") is None:
+            return ()
+        return self.draw_keys(base["draws"])
+
+    def draw_rng(self, task: Mapping[str, Any], draws: str) -> random.Random:
+        """The generator of a task's size draws (Python's Mersenne Twister: seeding it costs a third of numpy's,
+        which matters for the 63,504 draws of a manifest)."""
+        return random.Random(stable_seed("sizes", *(task[key] for key in self.draw_keys(draws))))
+
+    def seed_for(self, purpose: str, task: Mapping[str, Any], draws: str) -> int:
+        """The seed of one random stream of a task ("init", "shuffle")."""
+        return stable_seed(purpose, *(task[key] for key in self.draw_keys(draws)))
+
+    def shared_identity(self, values: Mapping[str, Any]) -> str:
+        """Hash of the shared outcome-changing groups of a plain config dict (paths left out)."""
+        return stable_hash({key: without_paths(values[key]) for key in self.shared_keys})
+
+    def check_coordinate(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
+        """Raise ConfigError when ``value`` is not allowed for coordinate ``key`` (``label`` names it), or, for
+        the training length, when the settings that go with it are not."""
+        require_positive_int(label, value)
+        if key == self.length_axis and base["draws"] not in DRAWS:
+            raise ConfigError(f"draws={base['draws']!r} is unknown; choose one of: {', '.join(DRAWS)}")
+        self.check_size(label, key, value, base)
+
+    def check_size(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
+        """The study's own checks of a coordinate (``check_coordinate``)."""
+
+    def check_pair(self, base: Mapping[str, Any]) -> None:
+        """Raise ConfigError when a (system, arch) cannot run at all (e.g. its data is missing)."""
+
+    def check_task(self, task: Mapping[str, Any], sizes: Mapping[str, Any], base: Mapping[str, Any]) -> None:
+        """Raise ConfigError when a task's drawn sizes cannot run (checked before any work)."""
+
+    def prepare_data(self, base: Mapping[str, Any]) -> None:
+        """Simulate (or read) into ``cache_dir`` the data every task of a (system, arch) shares, so a sweep's
+        first jobs do not all simulate it at once (launch calls it before dispatching)."""
+
+    def sizes(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
+        """The sizes a task draws and what follows: at least train_points, params, steps and flops."""
+        drawn = self.draw(task, base)
+        return {**drawn, **self.training_length(task, drawn, base)}
+
+    def sizes_in(self, row: Mapping[str, Any]) -> dict[str, Any]:
+        """The drawn sizes of a manifest row: its columns other than task_id and the coordinates."""
+        coordinates = {"task_id", "system", "arch", *self.task_keys}
+        return {key: value for key, value in row.items() if key not in coordinates}
+
+    def draw(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
+        """The sizes drawn from the task's coordinates (its training length aside): train_points, params..."""
+        raise NotImplementedError
+
+    def training_length(self, task: Mapping[str, Any], drawn: Mapping[str, Any],
+                        base: Mapping[str, Any]) -> dict[str, Any]:
+        """steps (optimizer steps) and flops (the compute resource) of a task with sizes ``drawn``."""
+        raise NotImplementedError
+
+    def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
+                        on_progress: Callable[[], None]) -> dict[str, Any]:
+        """Train the task's model and score it: nmae, nmse, steps, final_loss, finite, train_seconds and
+        study extras. ``task``: its coordinates and task_id; ``sizes``: its drawn sizes."""
+        raise NotImplementedError
+
+    def train_and_score_pack(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
+                             on_progress: Callable[[], None]) -> list[dict[str, Any]]:
+        """``train_and_score`` of each (cfg, task, sizes): one after another unless a study trains them
+        together."""
+        return [self.train_and_score(cfg, task, sizes, on_progress) for cfg, task, sizes in items]
+
+
+def model_of(task: Mapping[str, Any], model_keys: Sequence[str]) -> tuple:
+    """Which model a task (a manifest row, or coordinates with its task_id) trains: tasks with equal values
+    are one model. ``model_keys``: ``Study.model_keys``; none means one model per task."""
+    return tuple(task[key] for key in model_keys) if model_keys else (task["task_id"],)
+
+
+def without_paths(value: Any) -> Any:
+    """``value`` without its ``data_dir`` entries (where data lies does not change an outcome)."""
+    if isinstance(value, Mapping):
+        return {k: without_paths(v) for k, v in value.items() if k != "data_dir"}
+    return value

@@ -1,0 +1,210 @@
+"""What one job runs: the lockstep groups of its pack (``nsl_hpc.sweep.plan.Pack``), exactly as planned, one
+after another, each in a watched child process that trains the group's tasks together (each writes its own
+row) with the sizes drawn in the manifest.
+A child that raises or crashes is recorded as failed; one whose heartbeat (every 32 steps or
+epoch) stops for ``watchdog.heartbeat_timeout_s``, or that runs ``watchdog.overrun_factor`` times longer
+than predicted, is killed and recorded as frozen. Either way the pack goes on with its next task. On SLURM's warning
+signal before the time limit (submitit calls ``checkpoint``) the running task is recorded as timeout and
+the job is requeued with the tasks it has not started.
+"""
+
+import contextlib
+import ctypes
+import multiprocessing
+import os
+import shutil
+import signal
+import sys
+import time
+import traceback
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+import pyarrow.compute as pc
+import submitit
+from omegaconf import DictConfig
+
+from nsl_hpc.studies import study_named
+from nsl_hpc.sweep.directory import process_alive
+from nsl_hpc.sweep.failures import failure_path, record_failure, task_log_path
+from nsl_hpc.sweep.manifest import read_base_config, read_launch_config, read_manifest
+from nsl_hpc.sweep.plan import Group
+from nsl_hpc.sweep.rows import row_path, row_state, set_aside
+from nsl_hpc.sweep.task import describe, run_tasks
+
+POLL_SECONDS = 0.2
+PR_SET_PDEATHSIG = 1  # prctl(2)
+
+
+def manifest_rows(sweep_dir: Path, task_ids: Sequence[str]) -> list[dict[str, Any]]:
+    """The manifest rows of ``task_ids``, in that order."""
+    table = read_manifest(sweep_dir)
+    wanted = pa.array(list(task_ids), type=pa.string())
+    rows = table.filter(pc.is_in(table["task_id"], value_set=wanted)).to_pylist()
+    by_id = {row["task_id"]: row for row in rows}
+    return [by_id[task_id] for task_id in task_ids]
+
+
+def task_config(sweep_dir: Path, task: Mapping[str, Any]) -> DictConfig:
+    """The full config of one manifest row ``task`` (a dict with the manifest's columns)."""
+    cfg = read_base_config(sweep_dir, task["system"], task["arch"])
+    for key in (*study_named(cfg.study.name).task_keys, "task_id"):  # system and arch: the base config's groups
+        cfg[key] = task[key]
+    return cfg
+
+
+def task_sizes(cfg: DictConfig, task: Mapping[str, Any]) -> dict[str, Any]:
+    """The sizes drawn for a manifest row ``task`` (the manifest is the truth: they are not drawn again)."""
+    return study_named(cfg.study.name).sizes_in(task)
+
+
+def die_with_parent() -> None:
+    """Have the kernel kill this process when its parent ends (Linux), so no worker outlives a killed
+    launcher and no task outlives its job runner; exit now if the parent is already gone."""
+    parent = os.getppid()
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent:
+        os._exit(1)
+
+
+def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], cfgs: Sequence[DictConfig], heartbeat) -> None:
+    """Child process body: output to the first task's log, train the group (manifest rows ``group`` with their
+    configs ``cfgs``); exit status 1 on an exception."""
+    die_with_parent()
+    log = task_log_path(sweep_dir, cfgs[0].task_id)
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "w") as handle:
+        os.dup2(handle.fileno(), 1)
+        os.dup2(handle.fileno(), 2)
+    sys.stdout = open(1, "w", buffering=1, closefd=False)  # noqa: SIM115
+    sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
+    try:
+        sizes = [task_sizes(cfg, task) for cfg, task in zip(cfgs, group, strict=True)]
+        for result in run_tasks(cfgs, lambda: setattr(heartbeat, "value", time.time()), sizes):
+            print(describe(result.row) if result.row else f"skipped: {result.path} exists")
+    except BaseException:
+        traceback.print_exc()
+        sys.stderr.flush()
+        os._exit(1)
+    sys.stdout.flush()
+    os._exit(0)
+
+
+class JobRunner:
+    """The callable submitit pickles into every job: ``JobRunner(launcher_pid)(sweep_dir, groups)`` trains the
+    lockstep groups (``nsl_hpc.sweep.plan.Group``) of one pack, exactly as planned. Given the pid of a local
+    launcher, the runner stops its task and exits as soon as that process is gone (the local executor's
+    processes would otherwise finish the sweep as orphans)."""
+
+    def __init__(self, launcher_pid: int | None = None) -> None:
+        self.launcher_pid = launcher_pid
+        self.running: tuple[Path, list[str], multiprocessing.Process] | None = None
+        self.started: set[Group] = set()
+
+    def launcher_gone(self) -> bool:
+        return self.launcher_pid is not None and not process_alive(self.launcher_pid)
+
+    def __call__(self, sweep_dir: str, groups: Sequence[Group]) -> dict[str, int]:
+        """Run the tasks of each group that have no valid row yet (a corrupt one is moved aside first) together;
+        returns counts by outcome (per task)."""
+        sweep = Path(sweep_dir)
+        launch = read_launch_config(sweep)
+        rows = manifest_rows(sweep, [task_id for group in groups for task_id in group.task_ids])
+        by_id = {task["task_id"]: task for task in rows}
+        counts: Counter[str] = Counter()
+        for group in groups:
+            if self.launcher_gone():
+                os._exit(1)
+            self.started.add(group)
+            todo = []
+            for task_id in group.task_ids:
+                path = row_path(sweep, task_id)
+                state = row_state(path)
+                if state == "done":
+                    counts["skipped"] += 1
+                    continue
+                if state == "corrupt":
+                    set_aside(path)
+                todo.append(by_id[task_id])
+            if todo:
+                counts[self.run_watched(sweep, todo, group.seconds, launch)] += len(todo)
+        return dict(counts)
+
+    def run_watched(self, sweep: Path, group: Sequence[Mapping[str, Any]], predicted: float, launch: DictConfig
+                    ) -> str:
+        """Run the tasks (manifest rows) of one lockstep group, predicted to take ``predicted`` seconds, in a
+        child process under the watchdog (``launch.watchdog``); returns ok, failed or frozen (the outcome of
+        each of its tasks)."""
+        cfgs = [task_config(sweep, task) for task in group]
+        for cfg in cfgs:
+            if cfg.fault.once and failure_path(sweep, cfg.task_id).exists():
+                cfg.fault.kind = None  # test-only faults strike a task's first attempt only
+        watchdog = launch.watchdog
+        ids = [task["task_id"] for task in group]
+        context = multiprocessing.get_context("fork")
+        heartbeat = context.Value("d", time.time(), lock=False)
+        child = context.Process(target=run_child, args=(sweep, group, cfgs, heartbeat), daemon=True)
+        started = time.time()
+        child.start()
+        self.running = (sweep, ids, child)
+        try:
+            while child.is_alive():
+                child.join(POLL_SECONDS)
+                if self.launcher_gone():  # its task dies with it (die_with_parent)
+                    os._exit(1)
+                silent, elapsed = time.time() - heartbeat.value, time.time() - started
+                if child.is_alive() and silent > watchdog.heartbeat_timeout_s:
+                    return self.stop_frozen(child, sweep, ids, f"no heartbeat for {silent:.0f} s")
+                if child.is_alive() and elapsed > watchdog.overrun_factor * predicted:
+                    return self.stop_frozen(child, sweep, ids, f"ran {elapsed:.0f} s, over "
+                                            f"{watchdog.overrun_factor}x its predicted {predicted:.0f} s")
+        finally:
+            self.running = None
+        if child.exitcode == 0 and all(row_state(row_path(sweep, task_id)) == "done" for task_id in ids):
+            log = task_log_path(sweep, ids[0])
+            log.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):  # the bucket directory, once empty
+                log.parent.rmdir()
+            return "ok"
+        reason = (f"exit status {child.exitcode}" if child.exitcode >= 0
+                  else f"killed by signal {signal.Signals(-child.exitcode).name}")
+        record_group_failure(sweep, ids, "failed", reason)
+        return "failed"
+
+    @staticmethod
+    def stop_frozen(child: multiprocessing.Process, sweep: Path, ids: Sequence[str], reason: str) -> str:
+        child.kill()
+        child.join()
+        record_group_failure(sweep, ids, "frozen", reason)
+        return "frozen"
+
+    def checkpoint(self, sweep_dir: str, groups: Sequence[Group]) -> submitit.helpers.DelayedSubmission | None:
+        """On SLURM's warning signal: record the running group's tasks as timeout, requeue the groups not
+        started (none left: no requeue, which SLURM would delay by minutes for nothing)."""
+        if self.running is not None:
+            sweep, ids, child = self.running
+            with contextlib.suppress(ProcessLookupError):
+                child.kill()
+            record_group_failure(sweep, ids, "timeout", "the job reached its time limit while this task ran")
+        remaining = [group for group in groups if group not in self.started]
+        if not remaining:
+            return None
+        return submitit.helpers.DelayedSubmission(JobRunner(self.launcher_pid), sweep_dir, remaining)
+
+
+def record_group_failure(sweep: Path, ids: Sequence[str], status: str, reason: str) -> None:
+    """A failure record for each task of a lockstep group without a row; they share the first one's log."""
+    first_log = task_log_path(sweep, ids[0])
+    for task_id in ids:
+        if row_state(row_path(sweep, task_id)) == "done":
+            continue
+        log = task_log_path(sweep, task_id)
+        if task_id != ids[0] and first_log.exists():
+            log.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(first_log, log)
+        group = f" (in a lockstep group of {len(ids)})" if len(ids) > 1 else ""
+        record_failure(sweep, task_id, status, reason + group)

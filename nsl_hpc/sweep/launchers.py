@@ -1,0 +1,75 @@
+"""Where a sweep's jobs run: one schema per launcher, registered as Hydra structured configs in the ``launcher``
+group (``launcher=local|debug|slurm``, fields overridden with ``launcher.<field>=...``). Site settings (a
+partition, an account) go in ``conf/local/default.yaml``."""
+
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import OmegaConf
+
+from nsl_hpc.errors import ConfigError
+
+
+@dataclass
+class LocalLauncher:
+    """Parallel processes on this machine (submitit's local executor), in the foreground with a progress bar.
+    The embedded default."""
+
+    name: str = "local"
+    workers: int | None = None  # processes at once; None = every CPU of this machine
+
+
+@dataclass
+class DebugLauncher:
+    """In-process, one job after another (submitit's debug executor): CI dry runs and debugging."""
+
+    name: str = "debug"
+    workers: int = 1  # jobs run one after another in the launching process
+
+
+@dataclass
+class SlurmLauncher:
+    """SLURM job arrays of single-CPU jobs (submitit's SLURM executor); launch returns once they are submitted."""
+
+    name: str = "slurm"
+    partition: str | None = None  # --partition; None = the cluster's default
+    account: str | None = None  # --account
+    qos: str | None = None  # --qos
+    mem: str = "2G"  # --mem of one array element (the largest task needs < 1 GB)
+    array_parallelism: int = 512  # --array=0-N%K: at most K elements of one array run at once
+    signal_delay_s: int = 120  # --signal: warn a job this long before its time limit (records `timeout`)
+    max_array_size: int | None = None  # None = MaxArraySize from `scontrol show config`
+    max_job_count: int | None = None  # None = MaxJobCount from `scontrol show config`
+    max_submit_jobs: int | None = None  # None = the user's MaxSubmitJobs from sacctmgr (no limit when none is set)
+    extra_sbatch: dict[str, Any] = field(default_factory=dict)  # any other sbatch flag, e.g. {constraint: cpu}
+    setup: list[str] = field(default_factory=list)  # shell lines run before each job (e.g. module load python)
+
+
+Launcher = LocalLauncher | DebugLauncher | SlurmLauncher
+LAUNCHERS: dict[str, type] = {"local": LocalLauncher, "debug": DebugLauncher, "slurm": SlurmLauncher}
+
+
+def register_launchers() -> None:
+    """Make ``launcher=<name>`` select these schemas (Hydra's config store; idempotent)."""
+    store = ConfigStore.instance()
+    for name, schema in LAUNCHERS.items():
+        store.store(group="launcher", name=name, node=schema)
+
+
+def launcher_from(values: Mapping[str, Any]) -> Launcher:
+    """The launcher a config's ``launcher`` group describes (a composed config, or one read from run.yaml)."""
+    plain = OmegaConf.to_container(values, resolve=True) if OmegaConf.is_config(values) else dict(values)
+    schema = LAUNCHERS.get(plain.get("name"))
+    if schema is None:
+        raise ConfigError(f"launcher.name={plain.get('name')!r} is unknown; choose one of: {', '.join(LAUNCHERS)}")
+    try:
+        return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema), plain))
+    except Exception as error:  # OmegaConf's validation errors: a key the schema lacks, a value of another type
+        raise ConfigError(f"launcher: {' '.join(str(error).split())[:200]}") from None
+
+
+def as_mapping(launcher: Launcher) -> dict[str, Any]:
+    """The launcher's fields as a plain dict (run.yaml)."""
+    return asdict(launcher)

@@ -1,0 +1,195 @@
+"""The orchestration core, pure functions only (seconds: no cluster, no training): predicted times, lockstep
+groups, packs and time classes, array splitting, array-id expansion, task-state classification, the sbatch
+text submitit gets, and composing every config file with every command's root config."""
+
+import sys
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from nsl_hpc.config import compose_config, config_dir, config_groups
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.sweep.executors import array_chunks, balance, slurm_executor
+from nsl_hpc.sweep.launchers import DebugLauncher, SlurmLauncher, launcher_from
+from nsl_hpc.sweep.plan import (
+    Group,
+    Pack,
+    group_seconds,
+    lockstep_groups,
+    make_packs,
+    padded_width,
+    plan_jobs,
+    predicted_seconds,
+    time_limit_minutes,
+)
+from nsl_hpc.sweep.slurm import expand_array_ids
+from nsl_hpc.sweep.task_states import ACCOUNTING_LAG_S, task_state
+
+GOLDEN = Path(__file__).parent / "golden"
+COST = {"startup_s": 2.0, "step_seconds": {"unstructured": 1e-3}, "params_per_overhead": 1000, "lockstep_extra": 0.5}
+PACKING = {"enabled": True, "short_task_minutes": 5, "pack_minutes": 20, "time_safety": 3.0,
+           "time_classes_minutes": [20, 60, 240]}
+
+
+def task(task_id: str, steps: int = 1000, width: int = 4, depth: int = 1, params: int = 100, seed: int = 0,
+         epochs: int = 1) -> dict:
+    return {"task_id": task_id, "system": "spring", "arch": "unstructured", "depth": depth, "width": width,
+            "steps": steps, "params": params, "seed": seed, "epochs": epochs, "sweep_seed": 0}
+
+
+def lockstep(size: int = 4, buckets=(2, 4, 8), run_keys=()) -> dict:
+    return {"size": size, "width_buckets": list(buckets), "run_keys": list(run_keys)}
+
+
+def test_predicted_seconds_follow_the_cost_model():
+    assert predicted_seconds("unstructured", 1000, 1000, COST) == pytest.approx(2.0 + 1000 * 1e-3 * 2)
+
+
+def test_time_limit_is_the_smallest_class_holding_the_safety_margin_and_too_long_is_one_line():
+    assert time_limit_minutes(6 * 60, PACKING) == 20  # 18 min with safety 3
+    assert time_limit_minutes(7 * 60, PACKING) == 60  # 21 min
+    assert time_limit_minutes(80 * 60, PACKING) == 240
+    with pytest.raises(ConfigError, match=r"more than the largest of packing\.time_classes_minutes"):
+        time_limit_minutes(81 * 60, PACKING)
+
+
+def test_widths_pad_to_their_bucket_and_groups_never_mix_keys_or_exceed_k():
+    assert [padded_width(w, [2, 4, 8]) for w in (1, 2, 3, 5, 8, 9)] == [2, 2, 4, 8, 8, 9]
+    tasks = [task(f"t{i}", width=w, depth=d, steps=100 * i)
+             for i, (w, d) in enumerate((w, d) for w in (1, 2, 3, 4, 5) for d in (1, 2) for _ in range(3))]
+    groups = lockstep_groups(tasks, lockstep(size=4))
+    assert sorted(t["task_id"] for g in groups for t in g) == sorted(t["task_id"] for t in tasks)
+    for group in groups:
+        assert len(group) <= 4
+        assert len({(t["depth"], padded_width(t["width"], [2, 4, 8])) for t in group}) == 1
+    assert len(groups) == 10  # (depth 2) x (buckets 2: 6 tasks, 4: 6 tasks, 8: 3 tasks) -> 2 + 2 + 1 each
+    assert all(len(g) == 1 for g in lockstep_groups(tasks, lockstep(size=1)))
+
+
+def test_milestone_tasks_of_one_model_stay_in_one_group_and_cost_their_longest_run():
+    tasks = [task(f"s{seed}e{epochs}", steps=100 * epochs, seed=seed, epochs=epochs)
+             for seed in range(3) for epochs in (1, 2, 4)]
+    groups = lockstep_groups(tasks, lockstep(size=2, run_keys=["seed"]))
+    assert sorted(len(g) for g in groups) == [3, 6]  # 2 models of 3 tasks, then 1 model
+    for group in groups:
+        assert len({t["seed"] for t in group}) == len(group) // 3
+    one = [t for t in tasks if t["seed"] == 0]
+    per_step = predicted_seconds("unstructured", 1, 100, COST) - COST["startup_s"]
+    assert group_seconds(one, COST, lockstep(run_keys=["seed"])) == pytest.approx(2.0 + 400 * per_step)
+
+
+def test_group_seconds_charge_the_extra_share_while_more_models_train():
+    tasks = [task("a", steps=100), task("b", steps=300)]
+    per_step = predicted_seconds("unstructured", 1, 100, COST) - COST["startup_s"]
+    expected = 2.0 + 100 * per_step * 1.5 + 200 * per_step
+    assert group_seconds(tasks, COST, lockstep()) == pytest.approx(expected)
+
+
+def test_packs_carry_whole_groups_short_ones_fill_packs_long_ones_run_alone():
+    groups = [Group((f"s{i}a", f"s{i}b"), 60.0) for i in range(50)] + [Group(("long",), 10 * 60.0)]
+    packs = make_packs(groups, PACKING)
+    assert sorted(g.task_ids for p in packs for g in p.groups) == sorted(g.task_ids for g in groups)  # whole, once
+    long = [p for p in packs if p.groups == (Group(("long",), 600.0),)]
+    assert len(long) == 1 and long[0].time_limit_min == 60
+    short = [p for p in packs if p not in long]
+    assert [len(p.groups) for p in short] == [20, 20, 10]  # 20 min of 1-min groups per pack
+    assert all(p.seconds == sum(g.seconds for g in p.groups) for p in packs)
+    assert short[0].task_ids[:3] == ("s0a", "s0b", "s1a")
+    assert len(make_packs(groups, {**PACKING, "enabled": False})) == len(groups)
+
+
+def test_plan_jobs_packs_for_slurm_only_and_stretches_time_limits():
+    tasks = [task(f"t{i}", steps=1000 + i, width=1 + i % 16, depth=1 + i % 3) for i in range(200)]
+    launch = compose_config(["+sweep=demo", "launcher=slurm"], "launch")
+    slurm = plan_jobs(tasks, launch)
+    assert sorted(t for p in slurm for t in p.task_ids) == sorted(t["task_id"] for t in tasks)
+    assert len(slurm) < sum(len(p.groups) for p in slurm)  # short groups share jobs
+    local = plan_jobs(tasks, compose_config(["+sweep=demo"], "launch"))
+    assert all(len(p.groups) == 1 for p in local)
+    stretched = plan_jobs(tasks, launch, time_factor=100)
+    assert max(p.time_limit_min for p in stretched) > max(p.time_limit_min for p in slurm)
+
+
+def test_arrays_split_by_time_limit_and_size():
+    packs = [Pack((Group((f"t{i}",), 1.0),), 1.0, limit) for i, limit in enumerate([20] * 5 + [60] * 2)]
+    chunks = array_chunks(packs, max_array_size=2)
+    assert [[p.time_limit_min for p in c] for c in chunks] == [[20, 20], [20, 20], [20], [60, 60]]
+
+
+def test_local_workers_get_whole_groups_of_about_equal_time():
+    packs = make_packs([Group((f"t{i}",), float(i + 1)) for i in range(10)], PACKING)
+    shares = balance(packs, workers=3)
+    assert len(shares) == 3
+    assert sorted(g.task_ids for share in shares for g in share) == [(f"t{i}",) for i in sorted(map(str, range(10)))]
+    loads = [sum(g.seconds for g in share) for share in shares]
+    assert max(loads) - min(loads) <= 10  # 55 s over 3 workers: greedy longest-first
+
+
+@pytest.mark.parametrize(("job_id", "elements"), [
+    ("12", ["12"]), ("12_3", ["12_3"]), ("12_[0-2,5%4]", ["12_0", "12_1", "12_2", "12_5"]), ("7_[4]", ["7_4"]),
+])
+def test_array_ids_expand(job_id, elements):
+    assert expand_array_ids(job_id) == elements
+
+
+@pytest.mark.parametrize(("row", "failure", "element", "element_state", "age", "state"), [
+    ("done", {"time": 5.0, "status": "failed"}, "1_0", "FAILED", 100, "done"),
+    ("corrupt", None, "1_0", "COMPLETED", 100, "corrupt"),
+    ("missing", {"time": 5.0, "status": "frozen"}, "1_0", "RUNNING", 100, "frozen"),  # recorded after submission
+    ("missing", {"time": -5.0, "status": "failed"}, "1_0", "RUNNING", 100, "running"),  # an older attempt's
+    ("missing", None, "1_0", "PENDING", 100, "pending"),
+    ("missing", None, "1_0", "REQUEUED", 100, "pending"),
+    ("missing", None, "1_0", None, 1, "pending"),  # just submitted, not yet in sacct
+    ("missing", None, "1_0", None, ACCOUNTING_LAG_S + 1, "missing"),
+    ("missing", None, "1_0", "CANCELLED", 100, "missing"),
+    ("missing", None, None, None, 0, "missing"),  # never submitted
+])
+def test_task_states_are_classified(row, failure, element, element_state, age, state):
+    assert task_state(row, failure, element, 0.0, element_state, now=age) == state
+
+
+def test_launchers_are_schemas_and_a_wrong_one_is_one_line():
+    assert launcher_from({"name": "debug"}) == DebugLauncher()
+    slurm = launcher_from(OmegaConf.create({"name": "slurm", "partition": "cpu", "extra_sbatch": {"hold": True}}))
+    assert isinstance(slurm, SlurmLauncher) and slurm.partition == "cpu" and slurm.mem == "2G"
+    with pytest.raises(ConfigError, match=r"launcher\.name=.pbs. is unknown"):
+        launcher_from({"name": "pbs"})
+    with pytest.raises(ConfigError, match=r"launcher: .*nodes"):
+        launcher_from({"name": "slurm", "nodes": 2})
+
+
+def test_the_sbatch_text_of_a_typical_array_is_the_recorded_one():
+    """Like submitit's own recorded sbatch test: what sbatch gets for an array of 3 packs of 60 minutes."""
+    launcher = SlurmLauncher(partition="cpu", account="nsl", setup=["module load python"],
+                             extra_sbatch={"constraint": "intel"})
+    executor = slurm_executor(Path("/sweeps/demo"), 60, launcher, "demo")
+    executor.parameters["map_count"] = 3
+    text = executor._make_submission_file_text(executor._submitit_command_str, "UID")
+    text = text.replace(sys.executable, "PYTHON")
+    assert text == (GOLDEN / "slurm_array.sbatch").read_text()
+
+
+ROOTS = sorted(path.stem for path in config_dir().glob("*.yaml"))
+
+
+@pytest.mark.parametrize("root", ROOTS)
+def test_every_command_root_config_composes(root):
+    required = sorted(OmegaConf.missing_keys(OmegaConf.load(config_dir() / f"{root}.yaml")))
+    cfg = compose_config([f"{key}=x" for key in required], root)
+    assert all(cfg[key] == "x" for key in required)
+
+
+@pytest.mark.parametrize(("group", "option"), [(group, option) for group, options in config_groups().items()
+                                               for option in options])
+def test_every_config_file_composes_with_the_root_config_that_uses_it(group, option):
+    """Each option of each group, in the root config that has the group (a system or arch with its study)."""
+    root = "report" if group in ("nsl", "figures") else "launch"
+    override = f"+sweep={option}" if group == "sweep" else f"{group}={option}"
+    extra = ["sweep_dir=x"] if root == "report" else [] if group == "sweep" else ["+sweep=demo"]
+    path = config_dir() / group / f"{option}.yaml"
+    study = OmegaConf.load(path).get("study") if path.exists() and group in ("system", "arch") else None
+    cfg = compose_config([override, *extra, *([f"study={study}"] if study else [])], root)
+    chosen = cfg.sweep if group == "sweep" else cfg[group]
+    if "name" in chosen:
+        assert chosen.name == option
