@@ -2,6 +2,7 @@
 #   make demo   the main job: the demo sweep (216 tasks) on local processes, then merge, NSL fits,
 #               figures, MLflow and report.html
 #   make test   start the local SLURM cluster (cluster/up.sh) and run the test suite
+#   make test-fast  the tests that need no cluster and run no command end to end (< 2 min)
 #   make demo-io  the input-output demo (io_demo, 60 tasks on the simulated stand-ins), merge ... report.html
 #   make data   copy the measured Silverbox / Wiener-Hammerstein files from DATA_SOURCE into data/
 PYTHON ?= python3
@@ -12,7 +13,7 @@ DEMO_DIR ?= runs/demo
 IO_DEMO_DIR ?= runs/io_demo
 DATA_SOURCE ?= ../shared/data
 
-.PHONY: install demo demo-io data test lint
+.PHONY: install demo demo-io data test test-fast lint
 
 install: $(INSTALLED)
 
@@ -39,6 +40,10 @@ data: $(INSTALLED)
 test: $(INSTALLED)
 	bash cluster/up.sh --optional
 	$(PY) -m pytest
+
+# Everything but the cluster and the end-to-end tests: the science, the planning core, fits (< 2 min).
+test-fast: $(INSTALLED)
+	$(PY) -m pytest -m "not slurm and not e2e" --ignore=tests/cluster
 
 lint: $(INSTALLED)
 	$(VENV)/bin/ruff check .

@@ -1,6 +1,10 @@
 """clean: what finished tasks no longer need goes; rows and the records of failures stay."""
 
+import pytest
+
 from tests.sweeps import ALONE, TINY_GRID, nsl, row_files
+
+pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
 
 
 def test_clean_keeps_rows_and_failures_then_removes_them_once_resolved(tmp_path):

@@ -16,6 +16,8 @@ from mlflow.tracking import MlflowClient
 from nsl_hpc.analysis.mlflow_runs import sweep_run, tracking_uri
 from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
 
+pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
+
 LOCAL = [*TINY_GRID, "launcher=local"]
 
 

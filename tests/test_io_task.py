@@ -16,6 +16,8 @@ from nsl_hpc.sweep.rows import read_row
 from nsl_hpc.sweep.task import resolve_task, run_task
 from tests.sweeps import nsl
 
+pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
+
 NARX_TASK = ["study=input_output", "system=wiener_hammerstein_sim", "arch=narx", "iter_multiplier=2",
              "data_tier=625", "width_tier=16", "depth=1", "seed=1"]
 SUBNET_TASK = ["study=input_output", "system=silverbox_sim", "arch=subnet", "iter_multiplier=1", "data_tier=500",

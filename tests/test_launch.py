@@ -10,6 +10,8 @@ from nsl_hpc.studies.input_state.study import model_parameters
 from nsl_hpc.sweep.rows import read_row
 from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
 
+pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
+
 
 @pytest.mark.parametrize("launcher", ["debug", "local"])
 def test_tiny_sweep_completes_with_one_row_per_task(launcher, tmp_path):

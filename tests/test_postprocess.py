@@ -13,6 +13,8 @@ from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.rows import read_row, row_path, write_row_atomically
 from tests.sweeps import manifest_ids, nsl, row_files
 
+pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
+
 # 24 tasks: spring / input_affine, 3 seeds x 2 epoch counts x 2 data tiers x 2 width tiers.
 SMALL_GRID = ["+sweep=demo", "sweep.grid.system=[spring]", "sweep.grid.arch=[input_affine]", "sweep.grid.seed=[0,1,2]",
               "sweep.grid.epochs=[4,32]", "sweep.grid.data_tier=[2,8]", "sweep.grid.width_tier=[4,16]"]

@@ -8,6 +8,8 @@ import pytest
 
 from nsl_hpc.sweep.rows import read_row
 
+pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
+
 TASK = ["system=ball", "arch=port_hamiltonian", "epochs=3", "data_tier=2", "width_tier=4", "depth_tier=2",
         "seed=3"]
 TIMING_COLUMNS = {"train_seconds", "wall_seconds"}
