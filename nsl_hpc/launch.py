@@ -28,11 +28,11 @@ from nsl_hpc.sweep.prepare import BuiltSweep, PreparedSweep, build_sweep, prepar
 
 def describe_lockstep(tasks: Sequence[Mapping[str, Any]], packs: Sequence[Pack], lockstep: Mapping[str, Any]) -> str:
     """How the tasks to run train: as how many models, in how many lockstep groups."""
-    models = len({model_of(task, lockstep["run_keys"]) for task in tasks})
+    models = len({model_of(task, lockstep["model_keys"]) for task in tasks})
     groups = sum(len(pack.groups) for pack in packs)
     return (f"  lockstep: {len(tasks):,} tasks as {models:,} models in {groups:,} groups of up to "
             f"{lockstep['size']} models" + (" (epoch milestones: a row per task after its epochs)"
-                                            if lockstep["run_keys"] else ""))
+                                            if lockstep["model_keys"] else ""))
 
 
 def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str) -> str:
@@ -68,7 +68,7 @@ def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> int:
     lockstep, tasks = lockstep_settings(cfg), prepared.todo.to_pylist()
     packs = plan_jobs(tasks, cfg)
     print(describe_plan(prepared, packs, cfg.launcher.name))
-    if tasks and (lockstep["size"] > 1 or lockstep["run_keys"]):
+    if tasks and (lockstep["size"] > 1 or lockstep["model_keys"]):
         print(describe_lockstep(tasks, packs, lockstep))
     if prepared.infeasible:
         count = len(prepared.infeasible)

@@ -38,8 +38,8 @@ def task(task_id: str, steps: int = 1000, width: int = 4, depth: int = 1, params
             "steps": steps, "params": params, "seed": seed, "epochs": epochs, "sweep_seed": 0}
 
 
-def lockstep(size: int = 4, buckets=(2, 4, 8), run_keys=()) -> dict:
-    return {"size": size, "width_buckets": list(buckets), "run_keys": list(run_keys)}
+def lockstep(size: int = 4, buckets=(2, 4, 8), model_keys=()) -> dict:
+    return {"size": size, "width_buckets": list(buckets), "model_keys": list(model_keys)}
 
 
 def test_predicted_seconds_follow_the_cost_model():
@@ -70,13 +70,13 @@ def test_widths_pad_to_their_bucket_and_groups_never_mix_keys_or_exceed_k():
 def test_milestone_tasks_of_one_model_stay_in_one_group_and_cost_their_longest_run():
     tasks = [task(f"s{seed}e{epochs}", steps=100 * epochs, seed=seed, epochs=epochs)
              for seed in range(3) for epochs in (1, 2, 4)]
-    groups = lockstep_groups(tasks, lockstep(size=2, run_keys=["seed"]))
+    groups = lockstep_groups(tasks, lockstep(size=2, model_keys=["seed"]))
     assert sorted(len(g) for g in groups) == [3, 6]  # 2 models of 3 tasks, then 1 model
     for group in groups:
         assert len({t["seed"] for t in group}) == len(group) // 3
     one = [t for t in tasks if t["seed"] == 0]
     per_step = predicted_seconds("unstructured", 1, 100, COST) - COST["startup_s"]
-    assert group_seconds(one, COST, lockstep(run_keys=["seed"])) == pytest.approx(2.0 + 400 * per_step)
+    assert group_seconds(one, COST, lockstep(model_keys=["seed"])) == pytest.approx(2.0 + 400 * per_step)
 
 
 def test_group_seconds_charge_the_extra_share_while_more_models_train():

@@ -37,7 +37,7 @@ def lockstep_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, A
     size 1 trains every model alone."""
     runs: dict[tuple, list[Mapping[str, Any]]] = {}
     for task in tasks:
-        runs.setdefault(model_of(task, lockstep["run_keys"]), []).append(task)
+        runs.setdefault(model_of(task, lockstep["model_keys"]), []).append(task)
     by_key: dict[tuple, list[list[Mapping[str, Any]]]] = {}
     for run in runs.values():
         by_key.setdefault(lockstep_key(run[0], lockstep["width_buckets"]), []).append(run)
@@ -53,7 +53,7 @@ def model_steps(group: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any])
     """The steps each model of a lockstep group trains (its longest task's), ascending."""
     steps: dict[tuple, int] = {}
     for task in group:
-        key = model_of(task, lockstep["run_keys"])
+        key = model_of(task, lockstep["model_keys"])
         steps[key] = max(steps.get(key, 0), task["steps"])
     return sorted(steps.values())
 
@@ -116,14 +116,14 @@ def time_limit_minutes(seconds: float, packing: Mapping[str, Any]) -> int:
 
 def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
     """Of a launch config: ``size`` (K, the models a job trains in lockstep: ``lockstep.size`` when enabled
-    and the study can, else 1), ``width_buckets``, and ``run_keys``, the keys of one model: with epoch
+    and the study can, else 1), ``width_buckets``, and ``model_keys``, the keys of one model: with epoch
     milestones (train.schedule_epochs, shared draws) the study's draw keys, else none (a model per task)."""
     settings, study = launch["lockstep"], study_named(launch["study"]["name"])
     require_positive_int("lockstep.size", settings["size"])
     for width in settings["width_buckets"]:
         require_positive_int("lockstep.width_buckets value", width)
     return {"size": settings["size"] if settings["enabled"] and study.lockstep else 1,
-            "width_buckets": list(settings["width_buckets"]), "run_keys": list(study.model_keys(launch))}
+            "width_buckets": list(settings["width_buckets"]), "model_keys": list(study.model_keys(launch))}
 
 
 def check_run_settings(launch: Mapping[str, Any]) -> None:
