@@ -1,11 +1,12 @@
 """What one job runs: the lockstep groups of its pack (``nsl_hpc.sweep.plan.Pack``), exactly as planned, one
 after another, each in a watched child process that trains the group's tasks together (each writes its own
 row) with the sizes drawn in the manifest.
-A child that raises or crashes is recorded as failed; one whose heartbeat (every 32 steps or
-epoch) stops for ``watchdog.heartbeat_timeout_s``, or that runs ``watchdog.overrun_factor`` times longer
-than predicted, is killed and recorded as frozen. Either way the pack goes on with its next task. On SLURM's warning
-signal before the time limit (submitit calls ``checkpoint``) the running task is recorded as timeout and
-the job is requeued with the tasks it has not started.
+
+A child that raises or crashes is recorded as failed; one whose heartbeat (every 32 steps or epoch) stops for
+``watchdog.heartbeat_timeout_s``, or that runs ``watchdog.overrun_factor`` times longer than its group's
+predicted seconds, is killed and recorded as frozen. Either way the job goes on with its next group. On SLURM's
+warning signal before the time limit (submitit calls ``checkpoint``) the running group's tasks are recorded as
+timeout and the job is requeued with the groups it has not started.
 """
 
 import contextlib
