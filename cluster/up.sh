@@ -78,8 +78,12 @@ render() {  # render TEMPLATE DESTINATION MODE: returns 0 when the destination c
   printf '%s\n' "$rendered" > "$2"
 }
 
-restart() {  # restart DAEMON: stop it if running, start it
-  if running "$1"; then pkill -x "$1"; for _ in $(seq 30); do running "$1" || break; sleep 0.5; done; fi
+restart() {  # restart DAEMON: stop it if running (a busy controller saves its state first), start it
+  if running "$1"; then
+    pkill -x "$1"
+    for _ in $(seq 120); do running "$1" || break; sleep 0.5; done
+    running "$1" && die "$1 did not stop within 60 s; see $STATE/log/"
+  fi
   "/usr/sbin/$1"
 }
 
@@ -106,4 +110,6 @@ fi
 if [[ $ctl_changed == 1 ]] || ! running slurmctld; then restart slurmctld; fi
 if [[ $ctl_changed == 1 ]] || ! running slurmd; then restart slurmd; fi
 wait_for 60 "the node $HOST" bash -c "sinfo -h -N -o %T | grep -Eq '^(idle|mixed|allocated)'"
+wait_for 60 "MaxArraySize=$MAX_ARRAY_SIZE in the controller" bash -c \
+  "scontrol show config | grep -Eq '^MaxArraySize +=  *$MAX_ARRAY_SIZE\$'"
 say "up: cluster $CLUSTER_NAME, node $HOST, $(nproc) CPUs, MaxArraySize=$MAX_ARRAY_SIZE, logs in $STATE/log"

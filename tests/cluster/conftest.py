@@ -24,3 +24,4 @@ def slurm_cluster() -> None:
     if os.environ.get("CI") == "true":
         pytest.fail(message)
     pytest.skip(message)
+

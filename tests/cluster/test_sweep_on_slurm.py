@@ -12,7 +12,7 @@ import pytest
 from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
 
 REPO = Path(__file__).resolve().parents[2]
-pytestmark = pytest.mark.slurm
+pytestmark = [pytest.mark.slurm, pytest.mark.xdist_group("slurm")]  # one cluster: one worker, in turn
 UNPACKED = ["launcher=slurm", "packing.enabled=false", ALONE]  # one array element per task
 
 
@@ -64,6 +64,7 @@ def test_faults_on_slurm_then_resubmit_completes_every_task_once(slurm_cluster, 
     launched = nsl("launch", *TINY_GRID, "sweep.grid.seed=[0,1,2,3,4,5]", "sweep.grid.epochs=[2,400]", *UNPACKED,
                    f"sweep_dir={sweep_dir}", "fault.kind=hang", "fault.seed=1", "watchdog.heartbeat_timeout_s=10")
     assert launched.returncode == 0, launched.stderr
+    assert len(submitted_arrays(launched.stdout)) == 1, launched.stdout
     (array,) = submitted_arrays(launched.stdout)
     seeds = dict(zip(*pq.read_table(sweep_dir / "manifest.parquet", columns=["task_id", "seed"]).to_pydict().values(),
                      strict=True))
