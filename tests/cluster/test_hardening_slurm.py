@@ -7,7 +7,7 @@ import pytest
 
 from tests.sweeps import TINY_GRID, nsl
 
-pytestmark = [pytest.mark.slurm, pytest.mark.xdist_group("slurm")]  # one cluster: one worker, in turn
+pytestmark = pytest.mark.slurm
 
 
 def queued_arrays(name: str) -> set[str]:

@@ -9,7 +9,7 @@ import pytest
 from nsl_hpc.sweep.rows import read_row
 
 REPO = Path(__file__).resolve().parents[2]
-pytestmark = [pytest.mark.slurm, pytest.mark.xdist_group("slurm")]  # one cluster: one worker, in turn
+pytestmark = pytest.mark.slurm
 
 
 def submit_and_wait(log_dir: Path, *overrides: str) -> tuple[subprocess.CompletedProcess, str, str]:

@@ -12,7 +12,7 @@ import pytest
 from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
 
 REPO = Path(__file__).resolve().parents[2]
-pytestmark = [pytest.mark.slurm, pytest.mark.xdist_group("slurm")]  # one cluster: one worker, in turn
+pytestmark = pytest.mark.slurm
 UNPACKED = ["launcher=slurm", "packing.enabled=false", ALONE]  # one array element per task
 
 
