@@ -3,7 +3,7 @@ group (``launcher=local|debug|slurm``, fields overridden with ``launcher.<field>
 partition, an account) go in ``conf/local/default.yaml``."""
 
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
@@ -69,7 +69,3 @@ def launcher_from(values: Mapping[str, Any]) -> Launcher:
     except Exception as error:  # OmegaConf's validation errors: a key the schema lacks, a value of another type
         raise ConfigError(f"launcher: {' '.join(str(error).split())[:200]}") from None
 
-
-def as_mapping(launcher: Launcher) -> dict[str, Any]:
-    """The launcher's fields as a plain dict (run.yaml)."""
-    return asdict(launcher)
