@@ -216,10 +216,10 @@ def study_manifest(*overrides: str) -> tuple[DictConfig, list[dict[str, Any]]]:
 
 def planner_core_hours(launch: DictConfig, manifest: list[dict[str, Any]]) -> float:
     """The core-hours ``launch +sweep=input_state launcher=slurm dry_run=true`` predicts (``cost.*``)."""
-    from nsl_hpc.sweep.plan import lockstep_settings, make_packs, packing_for, planned_groups
+    from nsl_hpc.sweep.plan import make_packs, packing_for, sweep_groups
 
-    groups = planned_groups(manifest, lockstep_settings(launch), OmegaConf.to_container(launch.cost))
-    return sum(pack.seconds for pack in make_packs(groups, packing_for(launch.packing, {"name": "slurm"}))) / 3600
+    packs = make_packs(sweep_groups(manifest, launch), packing_for(launch.packing, {"name": "slurm"}))
+    return sum(pack.seconds for pack in packs) / 3600
 
 
 def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, float]) -> dict[str, float]:

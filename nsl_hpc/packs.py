@@ -8,18 +8,15 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import submitit
-from omegaconf import OmegaConf
 
 from nsl_hpc.sweep.job import JobRunner, manifest_rows
 from nsl_hpc.sweep.manifest import read_launch_config
-from nsl_hpc.sweep.plan import Group, lockstep_settings, planned_groups
+from nsl_hpc.sweep.plan import Group, sweep_groups
 
 
 def legacy_groups(sweep_dir: str, task_ids: Sequence[str]) -> list[Group]:
     """The lockstep groups 0.1's runner formed from a pack's task ids (with the sweep's run settings)."""
-    launch = read_launch_config(Path(sweep_dir))
-    return planned_groups(manifest_rows(Path(sweep_dir), task_ids), lockstep_settings(launch),
-                          OmegaConf.to_container(launch.cost))
+    return sweep_groups(manifest_rows(Path(sweep_dir), task_ids), read_launch_config(Path(sweep_dir)))
 
 
 class PackRunner(JobRunner):

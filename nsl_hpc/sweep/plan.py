@@ -184,5 +184,9 @@ def make_packs(groups: Sequence[Group], packing: Mapping[str, Any]) -> list[Pack
 def plan_jobs(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, time_factor: float = 1.0) -> list[Pack]:
     """The jobs that run ``tasks`` (manifest rows) with a sweep's run settings ``launch``: lockstep groups
     with predicted times, packed for the launcher; ``time_factor`` stretches the time limits."""
-    groups = planned_groups(tasks, lockstep_settings(launch), OmegaConf.to_container(launch.cost))
-    return make_packs(groups, packing_for(launch.packing, launch.launcher, time_factor))
+    return make_packs(sweep_groups(tasks, launch), packing_for(launch.packing, launch.launcher, time_factor))
+
+
+def sweep_groups(tasks: Sequence[Mapping[str, Any]], launch: DictConfig) -> list[Group]:
+    """The lockstep groups of ``tasks`` (manifest rows) with the sweep's lockstep and cost settings."""
+    return planned_groups(tasks, lockstep_settings(launch), OmegaConf.to_container(launch.cost))
