@@ -15,6 +15,7 @@ from nsl_hpc.sweep.launchers import DebugLauncher, SlurmLauncher, launcher_from
 from nsl_hpc.sweep.plan import (
     Group,
     Pack,
+    check_signal_delay,
     group_seconds,
     lockstep_groups,
     make_packs,
@@ -52,6 +53,13 @@ def test_time_limit_is_the_smallest_class_holding_the_safety_margin_and_too_long
     assert time_limit_minutes(80 * 60, PACKING) == 240
     with pytest.raises(ConfigError, match=r"more than the largest of packing\.time_classes_minutes"):
         time_limit_minutes(81 * 60, PACKING)
+
+
+def test_slurm_warning_must_leave_start_up_time_in_the_shortest_job():
+    check_signal_delay(120, [60, 240])
+    check_signal_delay(25, [1])  # sent 25-55 s before the end of a 60 s job: at least 5 s after its start
+    with pytest.raises(ConfigError, match=r"signal_delay_s=45 leaves no start-up time in a 1-minute job.*at most 25"):
+        check_signal_delay(45, [1, 60])
 
 
 def test_widths_pad_to_their_bucket_and_groups_never_mix_keys_or_exceed_k():

@@ -133,7 +133,8 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
             raise ConfigError(f"{key}={value!r} must be a positive number")
 
     lockstep_settings(launch)
-    workers = getattr(launcher_from(launch["launcher"]), "workers", None)
+    launcher = launcher_from(launch["launcher"])
+    workers = getattr(launcher, "workers", None)
     if workers is not None:
         require_positive_int("launcher.workers", workers)
     watchdog = launch["watchdog"]
@@ -148,6 +149,19 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
     for arch, seconds in launch["cost"]["step_seconds"].items():
         positive(f"cost.step_seconds.{arch}", seconds)
     positive("cost.params_per_overhead", launch["cost"]["params_per_overhead"])
+    if isinstance(launcher, SlurmLauncher):
+        check_signal_delay(launcher.signal_delay_s, launch["packing"]["time_classes_minutes"])
+
+
+def check_signal_delay(signal_delay_s: int, time_classes_minutes: Sequence[float]) -> None:
+    """Raise ConfigError unless SLURM's warning (``--signal``, sent up to 30 s early: slurmctld checks time
+    limits every 30 s) reaches every job after its start-up, i.e. leaves at least 5 s of its shortest limit."""
+    require_positive_int("launcher.signal_delay_s", signal_delay_s)
+    shortest_s = 60 * min(time_classes_minutes)
+    if signal_delay_s + 30 > shortest_s - 5:
+        raise ConfigError(f"launcher.signal_delay_s={signal_delay_s} leaves no start-up time in a "
+                          f"{shortest_s / 60:g}-minute job (SLURM may warn up to 30 s early): use at most "
+                          f"{max(int(shortest_s) - 35, 0)} or a longer packing.time_classes_minutes")
 
 
 def packing_for(packing: Mapping[str, Any], launcher: Mapping[str, Any], time_factor: float = 1.0) -> dict[str, Any]:

@@ -88,12 +88,12 @@ def test_faults_on_slurm_then_resubmit_completes_every_task_once(slurm_cluster, 
 
 
 def test_time_limit_records_timeout_requeues_unstarted_tasks_and_resubmit_finishes(slurm_cluster, tmp_path):
-    """Two hanging tasks in one 1-minute job: SLURM's warning (--signal, 45 s before the limit) records
+    """Two hanging tasks in one 1-minute job: SLURM's warning (--signal, 20-50 s before the limit) records
     the first as timeout and requeues the job with the second, which times out in turn; a resubmit
     (the fault strikes a first attempt only) finishes both."""
     sweep_dir = tmp_path / "sweep"
     launched = nsl("launch", *TINY_GRID, "sweep.grid.seed=[0,1]", "launcher=slurm", f"sweep_dir={sweep_dir}",
-                   "packing.time_classes_minutes=[1]", "launcher.signal_delay_s=45", ALONE, "fault.kind=hang",
+                   "packing.time_classes_minutes=[1]", "launcher.signal_delay_s=20", ALONE, "fault.kind=hang",
                    "watchdog.overrun_factor=1000")
     assert launched.returncode == 0, launched.stderr
     assert len(submitted_arrays(launched.stdout)) == 1 and "submitted 1 jobs" in launched.stdout
