@@ -69,7 +69,7 @@ def test_known_laws_are_recovered_without_hints(breaks, seed):
     fit = fit_nsl(r, e)
     true_margin = np.mean((np.log(true.predict(fit.envelope_r)) - np.log(fit.envelope_e)) ** 2)
     assert fit.b == breaks
-    assert fit.margin <= true_margin
+    assert fit.fit_margin <= true_margin
     for (sigma, _, delta), (true_sigma, _, true_delta) in zip(fit.breaks, true.breaks, strict=True):
         assert abs(math.log10(sigma / true_sigma)) < 0.5 and abs(delta - true_delta) < 0.15
 

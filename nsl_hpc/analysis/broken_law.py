@@ -27,6 +27,7 @@ from scipy.optimize import least_squares
 from scipy.special import expit
 
 OBJECTIVES = ("margin", "study")
+ENVELOPES = ("step", "interpolated")
 
 
 class NSLFitError(ValueError):
@@ -35,8 +36,10 @@ class NSLFitError(ValueError):
 
 @dataclass(frozen=True)
 class NSLFit:
-    """A fitted law; ``breaks`` holds (sigma, phi, delta) per break, ``envelope_r`` / ``envelope_e`` the K
-    envelope points it was fitted to and ``margins`` the best margin found for each number of breaks tried."""
+    """A fitted law; ``breaks`` holds (sigma, phi, delta) per break. ``margin``: M of Definition 1 (on the
+    step envelope, as the study reports it); ``envelope_r`` / ``envelope_e``: the K points of the ``envelope``
+    the law was fitted to, ``fit_margin`` its margin there and ``margins`` the best such margin for each
+    number of breaks tried."""
 
     alpha: float
     beta: float
@@ -47,6 +50,8 @@ class NSLFit:
     envelope_e: np.ndarray = field(repr=False)
     margins: dict[int, float] = field(default_factory=dict)
     objective: str = "margin"
+    envelope: str = "step"
+    fit_margin: float | None = None
 
     @property
     def b(self) -> int:
@@ -71,14 +76,31 @@ class NSLFit:
         return f"L({symbol}) = " + "".join(terms)
 
 
-def lower_envelope(resources: np.ndarray, errors: np.ndarray, points: int) -> tuple[np.ndarray, np.ndarray]:
-    """(r~, e~): ``points`` log-spaced resources from the smallest to the largest, and the smallest error of
-    the outcomes with a resource at most r~_k."""
-    order = np.argsort(resources, kind="stable")
-    sorted_r, running_min = resources[order], np.minimum.accumulate(errors[order])
-    grid = np.geomspace(sorted_r[0], sorted_r[-1], points)
-    grid[0], grid[-1] = sorted_r[0], sorted_r[-1]
-    return grid, running_min[np.searchsorted(sorted_r, grid, side="right") - 1]
+def pareto_points(resources: np.ndarray, errors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The outcomes on the lower envelope, by increasing resource: each has a smaller error than every
+    outcome with a smaller resource (of outcomes with equal resources, the best)."""
+    order = np.lexsort((errors, resources))
+    r, running_min = resources[order], np.minimum.accumulate(errors[order])
+    new = np.concatenate([[True], running_min[1:] < running_min[:-1]])
+    return r[new], running_min[new]
+
+
+def lower_envelope(resources: np.ndarray, errors: np.ndarray, points: int, kind: str = "step"
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(r~, e~): ``points`` log-spaced resources from the smallest to the largest and the envelope there.
+
+    ``step``: Definition 1, the smallest error of the outcomes with a resource at most r~_k (a staircase).
+    ``interpolated``: the study's alternative (Section 4): straight lines in log-log between consecutive
+    outcomes on the envelope, so a sparse envelope has finite slopes instead of vertical steps."""
+    if kind not in ENVELOPES:
+        raise NSLFitError(f"envelope={kind!r}; choose from {', '.join(ENVELOPES)}")
+    r, e = np.asarray(resources, dtype=float), np.asarray(errors, dtype=float)
+    pareto_r, pareto_e = pareto_points(r, e)
+    grid = np.geomspace(r.min(), r.max(), points)
+    grid[0], grid[-1] = r.min(), r.max()
+    if kind == "interpolated":
+        return grid, np.exp(np.interp(np.log(grid), np.log(pareto_r), np.log(pareto_e)))
+    return grid, pareto_e[np.searchsorted(pareto_r, grid, side="right") - 1]
 
 
 def softplus(z: np.ndarray) -> np.ndarray:
@@ -136,26 +158,78 @@ class Bounds:
         return np.clip(theta, self.lower, self.upper)
 
 
-def piecewise_linear_starts(x: np.ndarray, log_e: np.ndarray, b: int, positions: int, alpha_share: float,
-                            phi_min: float) -> list[tuple[float, np.ndarray]]:
-    """Initial thetas from least-squares piecewise-linear fits of ln(e~ - alpha) with corners at every
-    combination of b of ``positions`` evenly spaced inner points of the log grid, with alpha = 0 and
-    alpha = ``alpha_share`` * min e~; returned with their squared error, best first."""
+def segment_costs(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(K+1, K+1): [i, j] = squared error of the least-squares line through points i..j-1 (inf for < 2)."""
+    sums = [np.concatenate([[0.0], np.cumsum(v)]) for v in (np.ones_like(x), x, y, x * x, x * y, y * y)]
+    n, sx, sy, sxx, sxy, syy = (s[None, :] - s[:, None] for s in sums)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        var_x, cov, var_y = sxx - sx * sx / n, sxy - sx * sy / n, syy - sy * sy / n
+        sse = var_y - np.where(var_x > 1e-12, cov * cov / np.where(var_x > 1e-12, var_x, 1.0), 0.0)
+    return np.where(n >= 2, np.maximum(sse, 0.0), np.inf)
+
+
+def best_segmentation(x: np.ndarray, y: np.ndarray, b: int) -> list[int]:
+    """Inner boundaries of the b + 1 contiguous runs of grid points whose separate line fits leave the least
+    squared error (dynamic programming over every boundary position, O(b K^2))."""
+    costs = segment_costs(x, y)
+    best, choices = costs[0], []
+    for _ in range(b):
+        total = best[:, None] + costs
+        choice = np.argmin(total, axis=0)
+        best, choices = total[choice, np.arange(len(best))], choices + [choice]
+    boundaries = [len(x)]
+    for choice in reversed(choices):
+        boundaries.append(int(choice[boundaries[-1]]))
+    return sorted(boundaries[1:])
+
+
+def hinge_fit(x: np.ndarray, y: np.ndarray, corners: Sequence[float]) -> tuple[float, np.ndarray]:
+    """Least-squares continuous piecewise-linear fit of y(x) with these corners: (squared error,
+    [intercept, first slope, slope change at each corner])."""
+    design = np.column_stack([np.ones_like(x), x, *(np.maximum(x - c, 0) for c in corners)])
+    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
+    return float(np.sum((design @ coef - y) ** 2)), coef
+
+
+def piecewise_linear_starts(x: np.ndarray, log_e: np.ndarray, b: int, positions: int,
+                            alpha_shares: Sequence[float], phi_min: float) -> list[tuple[float, np.ndarray]]:
+    """Initial thetas from continuous piecewise-linear least-squares fits of ln(e~ - alpha), alpha = 0 and
+    alpha = each of ``alpha_shares`` * min e~, with corners (a) at every combination of b of ``positions`` evenly
+    spaced inner points of the log grid and (b) at the boundaries of the best segmentation of the grid
+    (which finds breaks closer together than the even positions are); returned with their margin, best
+    first."""
     span = x[-1] - x[0]
     phi = max(phi_min, 0.03 * span)
-    corners = x[0] + span * np.arange(1, positions + 1) / (positions + 1)
+    even = x[0] + span * np.arange(1, positions + 1) / (positions + 1)
     e = np.exp(log_e)
     starts = []
-    for alpha in (0.0, alpha_share * e.min()):
+    for alpha in (0.0, *(share * e.min() for share in alpha_shares)):
         y = np.log(e - alpha)
         log_alpha = np.log(alpha) if alpha > 0 else log_e.min() - 30
-        for chosen in itertools.combinations(corners, b):
-            design = np.column_stack([np.ones_like(x), x, *(np.maximum(x - c, 0) for c in chosen)])
-            coef, *_ = np.linalg.lstsq(design, y, rcond=None)
-            sse = float(np.sum((design @ coef - y) ** 2))
-            breaks = [v for c, d in zip(chosen, coef[2:], strict=True) for v in (c, phi, d)]
-            starts.append((sse, np.array([log_alpha, coef[0], coef[1], *breaks])))
+        segmented = [tuple((x[i - 1] + x[i]) / 2 for i in best_segmentation(x, y, b))] if b else []
+        for corners in [*itertools.combinations(even, b), *segmented]:
+            _, coef = hinge_fit(x, y, corners)
+            breaks = [v for c, d in zip(corners, coef[2:], strict=True) for v in (c, phi, d)]
+            theta = np.array([log_alpha, coef[0], coef[1], *breaks])
+            starts.append((margin_of(theta, x, log_e), theta))
     return sorted(starts, key=lambda start: start[0])
+
+
+def random_starts(x: np.ndarray, log_e: np.ndarray, b: int, count: int, bounds: Bounds, seed: int
+                  ) -> list[np.ndarray]:
+    """``count`` random thetas in ``bounds`` (positions uniform in range, slopes and phi moderate, alpha 0 or
+    a share of min e~ drawn from U(0.5, 1)), each through the first envelope point: starts that no
+    structured guess supplies (e.g. a saturating alpha together with a break)."""
+    rng = np.random.default_rng(seed)
+    starts = []
+    for _ in range(count):
+        log_alpha = log_e.min() + np.log(rng.uniform(0.5, 1.0)) if rng.random() < 0.5 else bounds.lower[0]
+        breaks = [v for position in np.sort(rng.uniform(bounds.lower[3], bounds.upper[3], b))
+                  for v in (position, rng.uniform(bounds.lower[4], 1.0), rng.uniform(-3, 3))] if b else []
+        theta = np.array([log_alpha, 0.0, rng.uniform(-2, 1), *breaks])
+        theta[1] = log_e[0] - log_power(theta, x[:1])[0]  # through (x_0, e~_0)
+        starts.append(bounds.clip(theta))
+    return starts
 
 
 def refine_margin(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, bounds: Bounds) -> np.ndarray:
@@ -166,38 +240,54 @@ def refine_margin(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, bounds: B
     return result.x
 
 
-def refine_study(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, bounds: Bounds, steps: int, lr: float
-                 ) -> np.ndarray:
-    """The study's fit: Adam on mean_k(5 max(L - e~, 0) + max(e~ - L, 0)), projected onto the bounds."""
+def study_loss(theta: np.ndarray, x: np.ndarray, e: np.ndarray, beta: float) -> tuple[float, np.ndarray]:
+    """Section 4.3's loss mean_k(beta max(L - e~, 0) + max(e~ - L, 0)) at theta, and its gradient."""
+    law = np.exp(log_law(theta, x))
+    above = law > e
+    loss = float(np.mean(np.where(above, beta * (law - e), e - law)))
+    weight = np.where(above, beta, -1.0) / len(x)  # d loss / d L
+    return loss, (weight * law) @ log_law_jacobian(theta, x)
+
+
+def refine_study(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, settings: "FitSettings") -> np.ndarray:
+    """Section 4.3 as written: Adam on the study's loss over [ln alpha, ln beta, delta0, (ln sigma_i, phi_i,
+    delta_i)...], unbounded but for phi_i: held at ``study_phi`` (the published laws' 0.2) or, with
+    study_phi = null, kept >= phi_min (the study's max(phi_i, 0.2))."""
+    theta = theta.copy()
+    phis = np.zeros(len(theta), dtype=bool)
+    phis[4::3] = True
+    theta[phis] = settings.study_phi if settings.study_phi is not None else np.maximum(theta[phis], settings.phi_min)
     e = np.exp(log_e)
-    param = torch.nn.Parameter(torch.from_numpy(bounds.clip(theta).copy()))
-    optimizer = torch.optim.Adam([param], lr=lr)
-    for _ in range(steps):
-        t = param.detach().numpy()
-        law = np.exp(log_law(t, x))
-        weight = np.where(law > e, 5.0, -1.0) / len(x)  # d loss / d L
-        param.grad = torch.from_numpy((weight * law) @ log_law_jacobian(t, x))
+    param = torch.nn.Parameter(torch.from_numpy(theta))
+    optimizer = torch.optim.Adam([param], lr=settings.study_lr)
+    for _ in range(settings.study_steps):
+        _, gradient = study_loss(param.detach().numpy(), x, e, settings.study_beta)
+        if settings.study_phi is not None:
+            gradient[phis] = 0.0
+        param.grad = torch.from_numpy(gradient)
         optimizer.step()
         with torch.no_grad():
-            param.copy_(torch.from_numpy(bounds.clip(param.detach().numpy())))
+            param[torch.from_numpy(phis)] = param[torch.from_numpy(phis)].clamp(min=settings.phi_min)
     return param.detach().numpy()
 
 
-def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings") -> np.ndarray:
-    """The best theta with b breaks over the top ``settings.starts`` piecewise-linear starts."""
+def refine(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings") -> np.ndarray:
+    """theta refined by the settings' objective."""
+    if settings.objective == "study":
+        return refine_study(theta, x, log_e, settings)
     bounds = Bounds.for_grid(x, log_e, b, settings.max_slope, settings.edge, settings.phi_min)
-    starts = piecewise_linear_starts(x, log_e, b, settings.positions, settings.alpha_share,
-                                     settings.phi_min)[:settings.starts]
-    best, best_margin = None, math.inf
-    for _, theta in starts:
-        if settings.objective == "study":
-            theta = refine_study(theta, x, log_e, bounds, settings.study_steps, settings.study_lr)
-        else:
-            theta = refine_margin(theta, x, log_e, bounds)
-        m = margin_of(theta, x, log_e)
-        if m < best_margin:
-            best, best_margin = theta, m
-    return best
+    return refine_margin(theta, x, log_e, bounds)
+
+
+def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings") -> np.ndarray:
+    """The best theta with b breaks over the top ``settings.starts`` piecewise-linear starts and
+    ``settings.random_starts`` random ones (seeded: a fit depends only on its outcomes and settings)."""
+    starts = piecewise_linear_starts(x, log_e, b, settings.positions, settings.alpha_shares, settings.phi_min)
+    bounds = Bounds.for_grid(x, log_e, b, settings.max_slope, settings.edge, settings.phi_min)
+    chosen = [theta for _, theta in starts[:settings.starts]]
+    chosen += random_starts(x, log_e, b, settings.random_starts, bounds, seed=b)
+    refined = [refine(theta, x, log_e, b, settings) for theta in chosen]
+    return min(refined, key=lambda theta: margin_of(theta, x, log_e))
 
 
 @dataclass(frozen=True)
@@ -206,26 +296,51 @@ class FitSettings:
     reads them)."""
 
     objective: str
+    envelope: str
     positions: int
     starts: int
-    alpha_share: float
+    random_starts: int
+    alpha_shares: tuple[float, ...]
     max_slope: float
     edge: float
     phi_min: float
     min_gain: float
     margin_floor: float
+    study_beta: float
+    study_phi: float | None
     study_steps: int
     study_lr: float
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any], **changes: Any) -> "FitSettings":
         """Settings from an ``nsl`` config (other keys ignored), with ``changes`` applied."""
-        return cls(**{name: changes.get(name, values[name]) for name in cls.__dataclass_fields__})
+        chosen = {name: changes.get(name, values[name]) for name in cls.__dataclass_fields__}
+        return cls(**chosen | {"alpha_shares": tuple(chosen["alpha_shares"])})
+
+    @property
+    def fitted_envelope(self) -> str:
+        """The envelope the fit minimises its objective on: the study's procedure fits Definition 1's."""
+        return "step" if self.objective == "study" else self.envelope
+
+    def check(self) -> None:
+        if self.objective not in OBJECTIVES:
+            raise NSLFitError(f"objective={self.objective!r}; choose from {', '.join(OBJECTIVES)}")
+        if self.envelope not in ENVELOPES:
+            raise NSLFitError(f"envelope={self.envelope!r}; choose from {', '.join(ENVELOPES)}")
+
+
+def at_slope_bound(theta: np.ndarray, max_slope: float) -> bool:
+    """Whether a slope of theta sits at the |delta| bound: the data did not resolve that break (the envelope
+    drops faster than any bounded law can follow, e.g. a step made by one lucky outcome, or two breaks
+    collapsed onto one position with opposite slopes)."""
+    slopes = np.concatenate([[theta[2]], theta[5::3]])
+    return bool(np.any(np.abs(slopes) >= max_slope * (1 - 1e-3)))
 
 
 def choose_breaks(margins: dict[int, float], min_gain: float, margin_floor: float) -> int:
     """b minimising ln max(M_b, floor) + b ln(1 / (1 - min_gain)), the smallest on ties: each break must
-    cut the margin by at least ``min_gain`` (and not merely below the floor) to be worth it."""
+    cut the margin by at least ``min_gain`` (and not merely below the floor) to be worth it. ``margins``
+    holds the candidates (fit_broken_law leaves out laws at the slope bound)."""
     penalty = math.log(1 / (1 - min_gain))
     score = {b: math.log(max(m, margin_floor)) + b * penalty for b, m in margins.items()}
     return min(score, key=lambda b: (round(score[b], 12), b))
@@ -247,12 +362,38 @@ def validated_outcomes(resources: Sequence[float], errors: Sequence[float]) -> t
     return r, e
 
 
-def uncentered(theta: np.ndarray, middle: float) -> np.ndarray:
-    """theta for x from theta fitted for x - middle."""
+def centred(theta: np.ndarray, middle: float) -> np.ndarray:
+    """theta for x - middle from theta for x (fitting around the middle of the range decouples beta and
+    delta0)."""
+    theta = theta.copy()
+    theta[1] += theta[2] * middle
+    theta[3::3] -= middle
+    return theta
+
+
+def uncentred(theta: np.ndarray, middle: float) -> np.ndarray:
+    """theta for x from theta for x - middle."""
     theta = theta.copy()
     theta[1] -= theta[2] * middle
     theta[3::3] += middle
     return theta
+
+
+def law_of(theta: np.ndarray, r: np.ndarray, e: np.ndarray, K: int, settings: FitSettings,
+           margins: dict[int, float]) -> NSLFit:
+    """The NSLFit of theta for outcomes (r, e): its margin is Definition 1's (step envelope)."""
+    grid_r, grid_e = lower_envelope(r, e, K, settings.fitted_envelope)
+    step_e = grid_e if settings.fitted_envelope == "step" else lower_envelope(r, e, K, "step")[1]
+    x = np.log(grid_r)
+    alpha = float(np.exp(theta[0]))
+    if margin_of(np.concatenate([[-np.inf], theta[1:]]), x, np.log(grid_e)) <= \
+            margin_of(theta, x, np.log(grid_e)) * (1 + 1e-9):
+        alpha = 0.0  # a negligible alpha is reported as none
+    return NSLFit(alpha=alpha, beta=float(np.exp(theta[1])), delta0=float(theta[2]),
+                  breaks=[(float(np.exp(s)), float(p), float(d)) for s, p, d in theta[3:].reshape(-1, 3)],
+                  margin=margin_of(theta, x, np.log(step_e)), envelope_r=grid_r, envelope_e=grid_e,
+                  margins=margins, objective=settings.objective, envelope=settings.fitted_envelope,
+                  fit_margin=margin_of(theta, x, np.log(grid_e)))
 
 
 def fit_broken_law(resources: Sequence[float], errors: Sequence[float], breaks: int | None, max_breaks: int, K: int,
@@ -262,26 +403,30 @@ def fit_broken_law(resources: Sequence[float], errors: Sequence[float], breaks: 
     ``breaks``: a fixed number of breaks b; None chooses b in 0..``max_breaks`` (see choose_breaks).
     ``K``: envelope points. ``settings``: the search.
     Raises NSLFitError for outcomes that cannot be fitted."""
-    if settings.objective not in OBJECTIVES:
-        raise NSLFitError(f"objective={settings.objective!r}; choose from {', '.join(OBJECTIVES)}")
+    settings.check()
     if K < 2:
         raise NSLFitError(f"K={K}: the envelope needs at least 2 points")
     r, e = validated_outcomes(resources, errors)
-    grid_r, grid_e = lower_envelope(r, e, K)
+    grid_r, grid_e = lower_envelope(r, e, K, settings.fitted_envelope)
     x, log_e = np.log(grid_r), np.log(grid_e)
-    middle = (x[0] + x[-1]) / 2  # fitted around the middle of the range: beta and delta0 decouple
+    middle = (x[0] + x[-1]) / 2
     choices = [breaks] if breaks is not None else range(max_breaks + 1)
-    thetas = {b: uncentered(fit_breaks(x - middle, log_e, b, settings), middle) for b in choices}
+    thetas = {b: uncentred(fit_breaks(x - middle, log_e, b, settings), middle) for b in choices}
     margins = {b: margin_of(theta, x, log_e) for b, theta in thetas.items()}
-    chosen = breaks if breaks is not None else choose_breaks(margins, settings.min_gain, settings.margin_floor)
-    theta = thetas[chosen]
-    alpha = float(np.exp(theta[0]))
-    if margin_of(np.concatenate([[-np.inf], theta[1:]]), x, log_e) <= margins[chosen] * (1 + 1e-9):
-        alpha = 0.0  # a negligible alpha is reported as none
-    return NSLFit(alpha=alpha, beta=float(np.exp(theta[1])), delta0=float(theta[2]),
-                  breaks=[(float(np.exp(s)), float(p), float(d)) for s, p, d in theta[3:].reshape(-1, 3)],
-                  margin=margins[chosen], envelope_r=grid_r, envelope_e=grid_e, margins=margins,
-                  objective=settings.objective)
+    resolved = {b: m for b, m in margins.items() if b == 0 or not at_slope_bound(thetas[b], settings.max_slope)}
+    chosen = breaks if breaks is not None else choose_breaks(resolved, settings.min_gain, settings.margin_floor)
+    return law_of(thetas[chosen], r, e, K, settings, margins)
+
+
+def refit(fit: NSLFit, resources: np.ndarray, errors: np.ndarray, K: int, settings: FitSettings) -> np.ndarray:
+    """theta of ``fit``'s law (same b) refined on other outcomes, e.g. a bootstrap resample."""
+    grid_r, grid_e = lower_envelope(resources, errors, K, settings.fitted_envelope)
+    x, log_e = np.log(grid_r), np.log(grid_e)
+    middle = (x[0] + x[-1]) / 2
+    with np.errstate(divide="ignore"):
+        start = fit.parameters()
+    start[0] = max(start[0], log_e.min() - 30)
+    return uncentred(refine(centred(start, middle), x - middle, log_e, fit.b, settings), middle)
 
 
 @dataclass(frozen=True)
