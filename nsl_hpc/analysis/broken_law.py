@@ -176,7 +176,7 @@ def best_segmentation(x: np.ndarray, y: np.ndarray, b: int) -> list[int]:
     for _ in range(b):
         total = best[:, None] + costs
         choice = np.argmin(total, axis=0)
-        best, choices = total[choice, np.arange(len(best))], choices + [choice]
+        best, choices = total[choice, np.arange(len(best))], [*choices, choice]
     boundaries = [len(x)]
     for choice in reversed(choices):
         boundaries.append(int(choice[boundaries[-1]]))
