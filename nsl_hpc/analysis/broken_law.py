@@ -76,13 +76,18 @@ class NSLFit:
         return f"L({symbol}) = " + "".join(terms)
 
 
-def pareto_points(resources: np.ndarray, errors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The outcomes on the lower envelope, by increasing resource: each has a smaller error than every
-    outcome with a smaller resource (of outcomes with equal resources, the best)."""
+def pareto_indices(resources: np.ndarray, errors: np.ndarray) -> np.ndarray:
+    """Indices of the outcomes on the lower envelope, by increasing resource: each has a smaller error than
+    every outcome with a smaller resource (of outcomes with equal resources, the best)."""
     order = np.lexsort((errors, resources))
-    r, running_min = resources[order], np.minimum.accumulate(errors[order])
-    new = np.concatenate([[True], running_min[1:] < running_min[:-1]])
-    return r[new], running_min[new]
+    running_min = np.minimum.accumulate(errors[order])
+    return order[np.concatenate([[True], running_min[1:] < running_min[:-1]])]
+
+
+def pareto_points(resources: np.ndarray, errors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(resources, errors) of the outcomes on the lower envelope (pareto_indices)."""
+    on = pareto_indices(resources, errors)
+    return resources[on], errors[on]
 
 
 def lower_envelope(resources: np.ndarray, errors: np.ndarray, points: int, kind: str = "step"
@@ -232,11 +237,13 @@ def random_starts(x: np.ndarray, log_e: np.ndarray, b: int, count: int, bounds: 
     return starts
 
 
-def refine_margin(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, bounds: Bounds) -> np.ndarray:
-    """Minimise the margin from ``theta`` (bounded trust-region least squares on the log residuals)."""
+def refine_margin(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, bounds: Bounds, evaluations: int
+                  ) -> np.ndarray:
+    """Minimise the margin from ``theta`` (bounded trust-region least squares on the log residuals, at most
+    ``evaluations`` evaluations; stops when M changes by less than 1e-6 of itself)."""
     result = least_squares(lambda t: log_law(t, x) - log_e, bounds.clip(theta),
                            jac=lambda t: log_law_jacobian(t, x), bounds=(bounds.lower, bounds.upper),
-                           x_scale="jac", max_nfev=200)
+                           x_scale="jac", max_nfev=evaluations, ftol=1e-6)
     return result.x
 
 
@@ -271,22 +278,26 @@ def refine_study(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, settings: 
     return param.detach().numpy()
 
 
-def refine(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings") -> np.ndarray:
-    """theta refined by the settings' objective."""
+def refine(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings",
+           evaluations: int = 200) -> np.ndarray:
+    """theta refined by the settings' objective (``evaluations``: the margin objective's budget)."""
     if settings.objective == "study":
         return refine_study(theta, x, log_e, settings)
     bounds = Bounds.for_grid(x, log_e, b, settings.max_slope, settings.edge, settings.phi_min)
-    return refine_margin(theta, x, log_e, bounds)
+    return refine_margin(theta, x, log_e, bounds, evaluations)
 
 
 def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings") -> np.ndarray:
-    """The best theta with b breaks over the top ``settings.starts`` piecewise-linear starts and
-    ``settings.random_starts`` random ones (seeded: a fit depends only on its outcomes and settings)."""
+    """The best theta with b breaks from the top ``settings.starts`` piecewise-linear starts and
+    ``settings.random_starts`` random ones (seeded: a fit depends only on its outcomes and settings): each
+    refined briefly, the best two to convergence."""
     starts = piecewise_linear_starts(x, log_e, b, settings.positions, settings.alpha_shares, settings.phi_min)
     bounds = Bounds.for_grid(x, log_e, b, settings.max_slope, settings.edge, settings.phi_min)
     chosen = [theta for _, theta in starts[:settings.starts]]
     chosen += random_starts(x, log_e, b, settings.random_starts, bounds, seed=b)
-    refined = [refine(theta, x, log_e, b, settings) for theta in chosen]
+    screened = sorted((refine(theta, x, log_e, b, settings, evaluations=30) for theta in chosen),
+                      key=lambda theta: margin_of(theta, x, log_e))  # a short refinement of every start ...
+    refined = [refine(theta, x, log_e, b, settings) for theta in screened[:2]]  # ... the best two to the end
     return min(refined, key=lambda theta: margin_of(theta, x, log_e))
 
 
@@ -426,7 +437,7 @@ def refit(fit: NSLFit, resources: np.ndarray, errors: np.ndarray, K: int, settin
     with np.errstate(divide="ignore"):
         start = fit.parameters()
     start[0] = max(start[0], log_e.min() - 30)
-    return uncentred(refine(centred(start, middle), x - middle, log_e, fit.b, settings), middle)
+    return uncentred(refine(centred(start, middle), x - middle, log_e, fit.b, settings, evaluations=50), middle)
 
 
 @dataclass(frozen=True)

@@ -15,10 +15,13 @@ import pyarrow.parquet as pq
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from nsl_hpc.analysis.bootstrap import bootstrap_thetas, intervals
 from nsl_hpc.analysis.broken_law import FitSettings, NSLFit, NSLFitError, backtest_broken_law, fit_broken_law
 from nsl_hpc.analysis.merge import results_path
+from nsl_hpc.analysis.published import comparison
 from nsl_hpc.atomic import write_parquet, write_text
 from nsl_hpc.errors import ConfigError
+from nsl_hpc.seeding import stable_seed
 
 FITS_FILE = "nsl_fits.parquet"
 FITS_TEXT_FILE = "nsl_fits.txt"
@@ -60,8 +63,9 @@ def pair_outcomes(results: pa.Table, system: str, arch: str) -> pa.Table:
 
 def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, nsl: dict[str, Any], symbol: str
             ) -> dict[str, Any]:
-    """One NSL's row (KEY_COLUMNS, outcomes, excluded, b, parameters, margin, formula, backtest; error on
-    failure). ``excluded``: merged tasks left out (not ok, or non-finite / non-positive values)."""
+    """One NSL's row (KEY_COLUMNS, outcomes, excluded, b, parameters, margin, formula, backtest, bootstrap
+    intervals and thetas, the published law's paper_* columns; error on failure). ``excluded``: merged tasks
+    left out (not ok, or non-finite / non-positive values)."""
     settings = FitSettings.from_mapping(nsl)
     options = {"breaks": nsl["breaks"], "max_breaks": nsl["max_breaks"], "K": nsl["K"], "settings": settings}
     row: dict[str, Any] = {**key, "outcomes": len(r), "excluded": excluded, "error": None}
@@ -72,17 +76,31 @@ def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, ns
     slots = nsl["breaks"] if nsl["breaks"] is not None else nsl["max_breaks"]
     padded = fit.breaks + [(None, None, None)] * (slots - fit.b)
     row.update(b=fit.b, alpha=fit.alpha, beta=fit.beta, delta0=fit.delta0, margin=fit.margin,
-               formula=fit.formula(symbol), margins_by_b=json.dumps(fit.margins), objective=fit.objective)
+               fit_margin=fit.fit_margin, envelope=fit.envelope, formula=fit.formula(symbol),
+               margins_by_b=json.dumps(fit.margins), objective=fit.objective, r_max=float(r.max()))
     for i, (sigma, phi, delta) in enumerate(padded, start=1):
         row.update({f"sigma_{i}": sigma, f"phi_{i}": phi, f"delta_{i}": delta})
+    thetas = bootstrap_thetas(fit, r, e, nsl["bootstrap"], stable_seed("bootstrap", *key.values()), nsl["K"],
+                              settings)
+    row.update(bootstrap=nsl["bootstrap"], bootstrap_thetas=thetas.tolist())
+    if nsl["bootstrap"]:
+        bounds = intervals(fit, thetas, float(r.max()), nsl["bootstrap_level"])
+        row.update({name: bounds.get(name) for name in interval_columns(slots)})
+    row.update(comparison(tuple(key.values()), r, e, nsl["K"]))
     log_r = np.log(r)
     cut = float(np.exp(log_r.min() + nsl["backtest_cut"] * (log_r.max() - log_r.min())))
     try:
-        backtest = backtest_broken_law(r, e, cut, **options)
+        backtest = backtest_broken_law(r, e, cut, **options | {"breaks": fit.b})
         row.update(backtest_cut=cut, backtest_margin=backtest.margin, backtest_final_ratio=backtest.final_ratio)
     except NSLFitError:
         row.update(backtest_cut=cut, backtest_margin=None, backtest_final_ratio=None)
     return row
+
+
+def interval_columns(slots: int) -> list[str]:
+    """The columns of the bootstrap intervals (point values where the fit has them, then _lo / _hi)."""
+    names = ["last_slope", "alpha", "L_at_max", "L_at_10x", *(f"sigma_{i}" for i in range(1, slots + 1))]
+    return ["last_slope", "L_at_max", "L_at_10x"] + [f"{name}_{end}" for name in names for end in ("lo", "hi")]
 
 
 def fit_from_row(row: dict[str, Any]) -> NSLFit:
@@ -122,10 +140,23 @@ def describe_fit(row: dict[str, Any]) -> str:
                 f", backtest M={row['backtest_margin']:.2g} (L/E at the largest resource "
                 f"{row['backtest_final_ratio']:.2f})")
     excluded = f" ({row['excluded']:,} excluded: not ok or non-positive)" if row["excluded"] else ""
-    return (f"{key}: b={row['b']} M={row['margin']:.2g} from {row['outcomes']:,} outcomes{excluded}{backtest}\n"
-            f"    {row['formula']}")
+    lines = [f"{key}: b={row['b']} M={row['margin']:.2g} from {row['outcomes']:,} outcomes{excluded}{backtest}",
+             f"    {row['formula']}"]
+    if row.get("bootstrap"):
+        breaks = "".join(f", sigma_{i} {row[f'sigma_{i}_lo']:.2g}..{row[f'sigma_{i}_hi']:.2g}"
+                         for i in range(1, row["b"] + 1))
+        lines.append(f"    90% ({row['bootstrap']} resamples): last slope {row['last_slope']:.2f} "
+                     f"[{row['last_slope_lo']:.2f}, {row['last_slope_hi']:.2f}]{breaks}, "
+                     f"L(r_max) {row['L_at_max']:.2g} [{row['L_at_max_lo']:.2g}, {row['L_at_max_hi']:.2g}], "
+                     f"L(10 r_max) {row['L_at_10x']:.2g} [{row['L_at_10x_lo']:.2g}, {row['L_at_10x_hi']:.2g}]")
+    if row.get("paper_b") is not None:
+        lines.append(f"    paper ({row['paper_where']}): b={row['paper_b']} M={row['paper_margin']:.2g} "
+                     f"last slope {row['paper_last_slope']:.2f}; on our envelope M={row['paper_margin_on_ours']:.2g}")
+    return "\n".join(lines)
 
 
 def write_fits(sweep_dir: Path, rows: list[dict[str, Any]]) -> None:
-    write_parquet(pa.Table.from_pylist(rows), fits_path(sweep_dir))
+    columns = dict.fromkeys(name for row in rows for name in row)  # rows not fitted lack the law's columns
+    write_parquet(pa.Table.from_pylist([{name: row.get(name) for name in columns} for row in rows]),
+                  fits_path(sweep_dir))
     write_text("\n".join(describe_fit(row) for row in rows) + "\n", Path(sweep_dir) / FITS_TEXT_FILE)

@@ -1,0 +1,68 @@
+"""How sure a fitted law is: refit it on resampled outcomes and read intervals off the refits.
+
+A replicate draws the outcomes (tasks) with replacement, rebuilds the lower envelope from the draw and refines
+the fitted law on it (same b, started from the fit: the intervals are conditional on b). Quantiles of the
+replicates give the intervals of the last slope, the break positions, alpha and L at the largest observed
+resource and ten times beyond it.
+"""
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from nsl_hpc.analysis.broken_law import FitSettings, NSLFit, log_law, refit
+
+
+def bootstrap_thetas(fit: NSLFit, resources: np.ndarray, errors: np.ndarray, replicates: int, seed: int, K: int,
+                     settings: FitSettings) -> np.ndarray:
+    """(replicates, 3 + 3 b): theta = [ln alpha, ln beta, delta0, (ln sigma_i, phi_i, delta_i)...] of each refit."""
+    rng = np.random.default_rng(seed)
+    n = len(resources)
+    thetas = []
+    for _ in range(replicates):
+        drawn = rng.integers(0, n, n)
+        thetas.append(refit(fit, resources[drawn], errors[drawn], K, settings))
+    return np.array(thetas).reshape(replicates, 3 + 3 * fit.b)
+
+
+def last_slope(theta: np.ndarray) -> np.ndarray:
+    """delta0 + sum_i delta_i of theta (..., 3 + 3 b): the log-log slope of the law's power part beyond its
+    last break."""
+    return theta[..., 2] + theta[..., 5::3].sum(axis=-1)
+
+
+def law_values(thetas: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(replicates, len(r)): L(r) of every theta."""
+    x = np.log(np.asarray(r, dtype=float))
+    return np.exp(np.stack([log_law(theta, x) for theta in thetas]))
+
+
+def intervals(fit: NSLFit, thetas: np.ndarray, largest: float, level: float) -> dict[str, Any]:
+    """The fit's point values and ``level`` intervals (``<name>_lo``, ``<name>_hi``) of last_slope, sigma_i,
+    alpha, L_at_max (L at the ``largest`` observed resource) and L_at_10x (at 10 x largest)."""
+    tail = (1 - level) / 2
+    point = fit.parameters()
+    values: dict[str, Any] = {"last_slope": float(last_slope(point)), "L_at_max": float(fit.predict(largest)),
+                              "L_at_10x": float(fit.predict(10 * largest))}
+    samples = {"last_slope": last_slope(thetas), "alpha": np.exp(thetas[:, 0])}
+    samples |= dict(zip(("L_at_max", "L_at_10x"), law_values(thetas, np.array([largest, 10 * largest])).T,
+                        strict=True))
+    samples |= {f"sigma_{i}": np.exp(thetas[:, 3 * i]) for i in range(1, fit.b + 1)}
+    for name, sample in samples.items():
+        low, high = np.quantile(sample, [tail, 1 - tail])
+        values |= {f"{name}_lo": float(low), f"{name}_hi": float(high)}
+    return values
+
+
+def band(thetas: np.ndarray, r: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pointwise ``level`` band (low, high) of L over the resources ``r``."""
+    tail = (1 - level) / 2
+    low, high = np.quantile(law_values(thetas, r), [tail, 1 - tail], axis=0)
+    return low, high
+
+
+def thetas_of(row: Mapping[str, Any]) -> np.ndarray:
+    """The bootstrap thetas an nsl_fits row holds, (replicates, 3 + 3 b) (0 rows when none)."""
+    stored = row.get("bootstrap_thetas") or []
+    return np.array([list(theta) for theta in stored], dtype=float).reshape(len(stored), 3 + 3 * (row["b"] or 0))

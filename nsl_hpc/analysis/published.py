@@ -1,0 +1,75 @@
+"""The study's published laws (conf/published_laws.yaml) beside a sweep's own: b, M, last slope, breaks and
+the margin of the published law on our envelope."""
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+from functools import cache
+from typing import Any
+
+import numpy as np
+from omegaconf import OmegaConf
+
+from nsl_hpc.analysis.broken_law import NSLFit, lower_envelope
+from nsl_hpc.config import config_dir
+
+KEY = ("system", "arch", "resource", "metric")
+PUBLISHED_FILE = "published_laws.yaml"
+
+
+@dataclass(frozen=True)
+class PublishedLaw:
+    """One law of the paper: its parameters, margin M, breaks b, resource range and place in the paper."""
+
+    law: NSLFit
+    margin: float
+    b: int
+    resource_range: tuple[float, float]
+    where: str
+
+    @property
+    def last_slope(self) -> float:
+        return self.law.delta0 + sum(delta for _, _, delta in self.law.breaks)
+
+
+def key_of(entry: Mapping[str, Any]) -> tuple[str, ...]:
+    return tuple(entry[k] for k in KEY)
+
+
+@cache
+def published_laws() -> dict[tuple[str, ...], PublishedLaw]:
+    """Every published law by (system, arch, resource, metric)."""
+    data = OmegaConf.to_container(OmegaConf.load(config_dir() / PUBLISHED_FILE))
+    laws = {}
+    for entry in data["laws"]:
+        law = NSLFit(entry["alpha"], entry["beta"], entry["delta0"], [tuple(b) for b in entry["breaks"]],
+                     entry["M"], np.empty(0), np.empty(0))
+        laws[key_of(entry)] = PublishedLaw(law, entry["M"], entry["b"], tuple(entry["range"]), entry["where"])
+    return laws
+
+
+@cache
+def published_margins_by_b() -> dict[tuple[str, ...], dict[int, float]]:
+    """Published margins per b where the paper gives no formula (its appendix on choosing b)."""
+    data = OmegaConf.to_container(OmegaConf.load(config_dir() / PUBLISHED_FILE))
+    return {key_of(entry): {int(b): m for b, m in entry["margins"].items()} for entry in data["margins_by_b"]}
+
+
+def comparison(key: tuple[str, ...], resources: np.ndarray, errors: np.ndarray, K: int) -> dict[str, Any]:
+    """The paper_* columns of one NSL: the published law's b, M, last slope, breaks (JSON list of sigma_i),
+    place, and its margin on our Definition 1 envelope (``paper_margin_on_ours``); None where the paper
+    publishes none."""
+    columns: dict[str, Any] = {"paper_b": None, "paper_margin": None, "paper_last_slope": None,
+                               "paper_breaks": None, "paper_margin_on_ours": None, "paper_where": None,
+                               "paper_margins_by_b": None}
+    if key in published_margins_by_b():
+        columns["paper_margins_by_b"] = json.dumps(published_margins_by_b()[key])
+    published = published_laws().get(key)
+    if published is None:
+        return columns
+    grid_r, grid_e = lower_envelope(resources, errors, K, "step")
+    on_ours = float(np.mean((np.log(published.law.predict(grid_r)) - np.log(grid_e)) ** 2))
+    return columns | {"paper_b": published.b, "paper_margin": published.margin,
+                      "paper_last_slope": published.last_slope,
+                      "paper_breaks": json.dumps([sigma for sigma, _, _ in published.law.breaks]),
+                      "paper_margin_on_ours": on_ours, "paper_where": published.where}
