@@ -32,7 +32,7 @@ def main(cfg: DictConfig) -> int:
         raise ConfigError(f"{fits_path(sweep_dir)} does not exist; run python -m nsl_hpc.fit sweep_dir={sweep_dir}")
     fits = pq.read_table(fits_path(sweep_dir)).to_pylist()
     entries = what_it_takes(read_results(sweep_dir), fits, cfg.resource, cfg.metric, lambda best: [cfg.target],
-                            nsl, cfg.decades, cfg.window_decades)
+                            nsl)
     if not entries:
         raise ConfigError(f"no fitted {cfg.resource}-{cfg.metric} law in {fits_path(sweep_dir)}")
     symbol = nsl["resources"][cfg.resource]["symbol"]

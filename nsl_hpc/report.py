@@ -15,7 +15,8 @@ from nsl_hpc.analysis.figures import draw_figures, figure_stem
 from nsl_hpc.analysis.fitting import FITS_TEXT_FILE, fit_sweep, fits_path, nsl_key, read_results, write_fits
 from nsl_hpc.analysis.merge import merge_sweep, results_path
 from nsl_hpc.analysis.mlflow_runs import log_to_mlflow, tracking_uri
-from nsl_hpc.analysis.report import REPORT_FILE, report_html
+from nsl_hpc.analysis.prediction import what_it_takes
+from nsl_hpc.analysis.report import REPORT_FILE, report_html, what_it_takes_html
 from nsl_hpc.atomic import write_text
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 
@@ -29,10 +30,14 @@ def main(cfg: DictConfig) -> int:
     rows = fit_sweep(results, cfg.nsl, cfg.workers)
     write_fits(sweep_dir, rows)
     print(f"{sum(row['error'] is None for row in rows)} of {len(rows)} NSLs fitted -> {fits_path(sweep_dir)}")
-    nsl, figure_settings = OmegaConf.to_container(cfg.nsl), OmegaConf.to_container(cfg.figures)
+    nsl, figure_settings = OmegaConf.to_container(cfg.nsl, resolve=True), OmegaConf.to_container(cfg.figures)
     figures = draw_figures(sweep_dir, results, rows, nsl, figure_settings)
+    wanted = nsl["predict"]["report"]
+    entries = what_it_takes(results, rows, wanted["resource"], wanted["metric"],
+                            lambda best: [factor * best for factor in wanted["factors"]], nsl)
+    section = what_it_takes_html(entries, wanted, nsl["resources"][wanted["resource"]]["symbol"])
     report = sweep_dir / REPORT_FILE
-    write_text(report_html(sweep_dir, launch, summary, rows, figures), report)
+    write_text(report_html(sweep_dir, launch, summary, rows, figures, section), report)
     if cfg.mlflow.enabled:
         by_key = {nsl_key(row): figure_stem(sweep_dir, row).with_suffix(".png") for row in rows}
         artifacts = [results_path(sweep_dir), fits_path(sweep_dir), sweep_dir / FITS_TEXT_FILE, report,

@@ -1,6 +1,7 @@
 """Figures of a sweep's NSLs, like the study's: per NSL a log-log scatter of every outcome (colour and
 marker size from other resources, log colour bar), the lower envelope, the fitted law with its breaks, the
-formula and M; and per (resource, metric) an overview grid architecture x system. PNG and PDF under
+formula, M and its bootstrap band, and the published law where the study gives one (dashed); and per
+(resource, metric) an overview grid architecture x system. PNG and PDF under
 ``<sweep_dir>/figures/`` (``nsl/<system>__<arch>__<resource>__<metric>.*``, ``overview__<resource>__<metric>.*``).
 """
 
@@ -17,8 +18,11 @@ from matplotlib.figure import Figure  # no pyplot: no global state, no display n
 from matplotlib.ticker import LogLocator, NullFormatter
 from tqdm import tqdm
 
+from nsl_hpc.analysis.bootstrap import band, thetas_of
 from nsl_hpc.analysis.broken_law import lower_envelope
 from nsl_hpc.analysis.fitting import fit_from_row, fittable, pair_outcomes
+from nsl_hpc.analysis.published import KEY as PUBLISHED_KEY
+from nsl_hpc.analysis.published import published_laws
 from nsl_hpc.atomic import replacing
 
 FIGURES_DIR = "figures"
@@ -69,20 +73,32 @@ def draw_nsl(ax: Axes, data: Mapping[str, np.ndarray], row: Mapping[str, Any], n
                         norm=norm, cmap="viridis", alpha=0.6, linewidths=0, rasterized=True)
     grid_r, grid_e = lower_envelope(data["r"], data["e"], nsl["K"])
     ax.step(grid_r, grid_e, where="post", color="black", lw=1.2, label=f"envelope (K={nsl['K']})")
+    dense = np.geomspace(grid_r[0], grid_r[-1], 400)
     if row["error"] is None:
         fit = fit_from_row(row)
-        dense = np.geomspace(grid_r[0], grid_r[-1], 400)
         formula = "\n".join(textwrap.wrap(row["formula"], figures["formula_width"]))
         ax.plot(dense, fit.predict(dense), color="crimson", lw=1.8, label=f"{formula}\nM = {row['margin']:.2g}")
+        thetas = thetas_of(row)
+        if len(thetas):
+            low, high = band(thetas, dense, nsl["bootstrap_level"])
+            ax.fill_between(dense, low, high, color="crimson", alpha=0.15, lw=0,
+                            label=f"{nsl['bootstrap_level']:.0%} band ({len(thetas)} resamples)")
         for i, (sigma, _, _) in enumerate(fit.breaks):
             ax.axvline(sigma, color="crimson", ls=":", lw=1, label="breaks" if i == 0 else None)
+    published = published_laws().get(tuple(row[k] for k in PUBLISHED_KEY))
+    if published is not None:
+        on_ours = row.get("paper_margin_on_ours")
+        ax.plot(dense, published.law.predict(dense), color="darkorange", ls="--", lw=1.8,
+                label=f"published (b={published.b}, M={published.margin:.2g}"
+                      + ("" if on_ours is None else f"; M on ours {on_ours:.2g}") + ")")
+    ax.set_ylim(data["e"].min() / 2, data["e"].max() * 2)  # a band or a published law far off stays in view
     ax.set_xscale("log")
     ax.set_yscale("log")
     for axis, values in ((ax.xaxis, data["r"]), (ax.yaxis, data["e"])):
         log_ticks(axis, values)
     ax.grid(True, which="major", alpha=0.3)
     if legend:
-        ax.figure.legend(loc="outside lower center", fontsize=8, ncols=3)
+        ax.figure.legend(loc="outside lower center", fontsize=8, ncols=2)
     return points
 
 

@@ -1,7 +1,8 @@
 """MLflow logging of a post-processed sweep: one parent run per sweep (its config as params, task counts
 as metrics, merged table, fits, figures and report as artifacts) and one child run per NSL (its law as
-params, M as metric, its figure). Runs are found again by tags, so post-processing twice updates them:
-a child whose law changed is replaced (MLflow params are write-once), never duplicated.
+params; M, the bootstrap intervals and the published law's M as metrics; its figure). Runs are found
+again by tags, so post-processing twice updates them: a child whose law changed is replaced (MLflow params
+are write-once), never duplicated.
 
 The default store is ``sqlite:///<sweep_dir>/mlflow.db`` with artifacts in ``<sweep_dir>/mlartifacts``;
 ``mlflow.tracking_uri`` points at a team server instead. Only post-processing writes to MLflow: tasks
@@ -17,7 +18,7 @@ from typing import Any
 from mlflow.entities import Metric, Param, RunTag
 from mlflow.tracking import MlflowClient
 
-from nsl_hpc.analysis.fitting import nsl_key
+from nsl_hpc.analysis.fitting import interval_columns, nsl_key
 from nsl_hpc.analysis.merge import MergeSummary
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_named
@@ -102,9 +103,10 @@ def log_nsl_runs(client: MlflowClient, experiment: str, parent: str, rows: Seque
                                     tags={NSL_TAG: key, PARENT_TAG: parent})
             client.log_batch(run.info.run_id, params=[Param(k, v) for k, v in params.items()])
         run_id = run.info.run_id
-        metrics = {"M": row["margin"], "outcomes": row["outcomes"]}
-        if row["backtest_margin"] is not None:
-            metrics["backtest_M"] = row["backtest_margin"]
+        metrics = {"M": row["margin"], "outcomes": row["outcomes"], "backtest_M": row["backtest_margin"],
+                   "paper_M": row.get("paper_margin"), "paper_M_on_ours": row.get("paper_margin_on_ours"),
+                   **{name: row.get(name) for name in interval_columns(row["b"])}}
+        metrics = {name: value for name, value in metrics.items() if value is not None}
         client.log_batch(run_id, metrics=[Metric(k, float(v), now_ms(), 0) for k, v in metrics.items()],
                          tags=[RunTag("formula", row["formula"])])
         if key in figures:

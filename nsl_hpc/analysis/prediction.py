@@ -82,11 +82,11 @@ def format_need(need: Need) -> str:
 
 
 def what_it_takes(results: pa.Table, fits: Sequence[Mapping[str, Any]], resource: str, metric: str,
-                  targets: Callable[[float], Sequence[float]], nsl: Mapping[str, Any], decades: float,
-                  window_decades: float) -> list[dict[str, Any]]:
+                  targets: Callable[[float], Sequence[float]], nsl: Mapping[str, Any]) -> list[dict[str, Any]]:
     """Per fitted (system, arch) law of ``resource`` and ``metric`` and per target error (``targets`` of the
     pair's best observed error): system, arch, target, best (observed), need (a Need) and, for compute,
-    the smallest model and data sizes on the envelope near the needed compute (model, data, mix_where)."""
+    the smallest model and data sizes on the envelope near the needed compute (model, data, mix_where);
+    search and window: ``nsl.predict``."""
     columns = {name: spec["column"] for name, spec in nsl["resources"].items()}
     entries = []
     for row in fits:
@@ -98,12 +98,13 @@ def what_it_takes(results: pa.Table, fits: Sequence[Mapping[str, Any]], resource
         e = pair[metric].to_numpy().astype(float)[keep]
         r = values[resource]
         for target in targets(float(e.min())):
-            need = need_for(row, target, float(r.min()), decades, nsl["bootstrap_level"])
+            need = need_for(row, target, float(r.min()), nsl["predict"]["decades"], nsl["bootstrap_level"])
             entry = {"system": row["system"], "arch": row["arch"], "target": target, "best": float(e.min()),
                      "need": need}
             if resource == "compute" and need.reachable:
                 entry |= dict(zip(("model", "data", "mix_where"), envelope_mix(
-                    r, e, values["model"], values["data"], need.resource, window_decades), strict=True))
+                    r, e, values["model"], values["data"], need.resource, nsl["predict"]["window_decades"]),
+                    strict=True))
             entries.append(entry)
     return entries
 

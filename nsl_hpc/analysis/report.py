@@ -3,6 +3,7 @@
 
 import base64
 import html
+import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -11,6 +12,7 @@ from omegaconf import OmegaConf
 
 from nsl_hpc.analysis.merge import MergeSummary
 from nsl_hpc.analysis.mlflow_runs import flatten
+from nsl_hpc.analysis.prediction import format_need
 from nsl_hpc.config import compose_config
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import without_paths
@@ -28,19 +30,73 @@ def embedded_png(path: Path, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
 
 
+def cells(values: Sequence[Any]) -> str:
+    return "".join(f"<td>{html.escape(str(v))}</td>" for v in values)
+
+
+def interval(row: Mapping[str, Any], name: str, digits: str = ".2f") -> str:
+    """'point [low, high]' of a bootstrapped quantity, '' when not bootstrapped."""
+    if row.get(f"{name}_lo") is None:
+        return "" if row.get(name) is None else format(row[name], digits)
+    return f"{row[name]:{digits}} [{row[f'{name}_lo']:{digits}}, {row[f'{name}_hi']:{digits}}]"
+
+
 def nsl_table(rows: Sequence[Mapping[str, Any]]) -> str:
     head = ("<tr><th>system</th><th>arch</th><th>resource</th><th>metric</th><th>outcomes</th><th>b</th>"
-            "<th>M</th><th>backtest M</th><th>law</th></tr>")
-    cells = []
+            "<th>M</th><th>last slope [90%]</th><th>backtest M</th><th>law</th></tr>")
+    body = []
     for row in rows:
         fitted = row["error"] is None
         backtest = row.get("backtest_margin")
-        cells.append("<tr>" + "".join(f"<td>{html.escape(str(v))}</td>" for v in (
+        body.append("<tr>" + cells((
             row["system"], row["arch"], row["resource"], row["metric"], f"{row['outcomes']:,}",
             row["b"] if fitted else "", f"{row['margin']:.2g}" if fitted else "",
+            interval(row, "last_slope") if fitted else "",
             f"{backtest:.2g}" if fitted and backtest is not None else "")) +
             f"<td><code>{html.escape(row['formula'] if fitted else 'not fitted: ' + row['error'])}</code></td></tr>")
-    return f"<table>{head}{''.join(cells)}</table>"
+    return f"<table>{head}{''.join(body)}</table>"
+
+
+def comparison_table(rows: Sequence[Mapping[str, Any]]) -> str:
+    """Paper vs ours for every fitted NSL the study publishes a law (or margins) for."""
+    head = ("<tr><th>NSL</th><th>b paper / ours</th><th>M paper / ours</th><th>published law's M on our envelope"
+            "</th><th>last slope paper / ours [90%]</th><th>breaks paper</th><th>breaks ours [90%]</th>"
+            "<th>in the paper</th></tr>")
+    body = []
+    for row in rows:
+        if row["error"] is not None or (row.get("paper_b") is None and row.get("paper_margins_by_b") is None):
+            continue
+        ours_breaks = ", ".join(interval(row, f"sigma_{i}", ".2g") for i in range(1, row["b"] + 1)) or "none"
+        name = " / ".join(row[k] for k in ("system", "arch", "resource", "metric"))
+        if row.get("paper_b") is None:  # margins only (the appendix on choosing b)
+            published = json.loads(row["paper_margins_by_b"])
+            ours = json.loads(row["margins_by_b"])
+            margins = "; ".join(f"b={b}: {m:.2g} / {ours[b]:.2g}" for b, m in published.items() if b in ours)
+            body.append("<tr>" + cells((name, f"1-4 / {row['b']}", margins, "", f"/ {interval(row, 'last_slope')}",
+                                        "", ours_breaks, "Appendix (margins by b; ours: fitted envelope)")) + "</tr>")
+            continue
+        paper_breaks = ", ".join(f"{sigma:.2g}" for sigma in json.loads(row["paper_breaks"])) or "none"
+        body.append("<tr>" + cells((
+            name, f"{row['paper_b']} / {row['b']}", f"{row['paper_margin']:.2g} / {row['margin']:.2g}",
+            f"{row['paper_margin_on_ours']:.2g}", f"{row['paper_last_slope']:.2f} / {interval(row, 'last_slope')}",
+            paper_breaks, ours_breaks, row["paper_where"])) + "</tr>")
+    if not body:
+        return "<p>The study publishes no law for the NSLs of this sweep.</p>"
+    return f"<table>{head}{''.join(body)}</table>"
+
+
+def what_it_takes_html(entries: Sequence[Mapping[str, Any]], settings: Mapping[str, Any], symbol: str) -> str:
+    """The report's table of what_it_takes entries."""
+    head = (f"<tr><th>system</th><th>arch</th><th>target {settings['metric']}</th><th>best observed</th>"
+            f"<th>{symbol} needed [90%]</th><th>smallest model / data on the envelope there</th></tr>")
+    body = "".join("<tr>" + cells((
+        entry["system"], entry["arch"], f"{entry['target']:.3g}", f"{entry['best']:.3g}", format_need(entry["need"]),
+        f"{entry['model']:,.0f} parameters / {entry['data']:,.0f} points" if "model" in entry else "")) + "</tr>"
+        for entry in entries)
+    factors = ", ".join(f"{factor:g}" for factor in settings["factors"])
+    return (f"<p>The {settings['resource']} each law needs to reach {factors} &times; the best "
+            f"{settings['metric']} observed for its (system, arch) (<code>python -m nsl_hpc.predict</code> "
+            f"answers for any target).</p><table>{head}{body}</table>")
 
 
 def science_settings(sweep_dir: Path, launch: Mapping[str, Any]) -> dict[tuple[str, str], dict[str, tuple[str, str]]]:
@@ -80,7 +136,7 @@ def configuration_html(settings: Mapping[tuple[str, str], Mapping[str, tuple[str
 
 
 def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummary,
-                rows: Sequence[Mapping[str, Any]], figures: Mapping[str, list[Path]]) -> str:
+                rows: Sequence[Mapping[str, Any]], figures: Mapping[str, list[Path]], what_it_takes: str) -> str:
     grid = launch["sweep"]["grid"]
     parts = sub_grids(grid)
     axes = "".join((f"<tr><th colspan='2'>sub-grid {index + 1} of {len(parts)}</th></tr>" if len(parts) > 1 else "")
@@ -104,9 +160,16 @@ def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummar
 <p>L(r) = &alpha; + &beta; r<sup>&delta;0</sup> &prod;<sub>i</sub>
 [1 + (r/&sigma;<sub>i</sub>)<sup>1/&phi;<sub>i</sub></sup>]<sup>&delta;<sub>i</sub>&phi;<sub>i</sub></sup>
 fitted to the lower envelope of the outcomes; M = mean<sub>k</sub>
-(ln L(r~<sub>k</sub>) &minus; ln E(r~<sub>k</sub>))<sup>2</sup>; backtest M: the law fitted below the middle of the
-log resource range, scored above it.</p>
+(ln L(r~<sub>k</sub>) &minus; ln E(r~<sub>k</sub>))<sup>2</sup> on Definition 1's envelope; last slope =
+&delta;0 + &Sigma; &delta;<sub>i</sub> with its 90% interval from refits on resampled tasks (given b); backtest M:
+the law fitted below the middle of the log resource range, scored above it.</p>
 {nsl_table(rows)}
+<h2>Against the published laws</h2>
+<p>The study's laws (<code>conf/published_laws.yaml</code>) beside ours where it publishes one: a published M and
+ours are each on their own outcomes; the published law's M on our envelope says how well it describes ours. Break
+positions are &sigma;<sub>i</sub>; ours with their 90% intervals.</p>
+{comparison_table(rows)}
+<h2>What it takes</h2>{what_it_takes}
 <h2>Overview</h2>{overviews}
 <h2>Every NSL</h2>{singles}
 </body></html>
