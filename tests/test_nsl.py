@@ -1,4 +1,6 @@
-"""Broken NSLs: envelope, margin, law and its Jacobian, recovery of known laws without hints, bad input."""
+"""Broken NSLs: envelope, margin, law and its Jacobian, recovery of known laws without hints, hard shapes
+against a direct multi-start fit, the study's procedure, bootstrap intervals, the published laws, what a law
+needs for a target error, bad input."""
 
 import math
 import warnings
@@ -6,7 +8,11 @@ import warnings
 import numpy as np
 import pytest
 
+from scipy.optimize import least_squares
+
+from nsl_hpc.analysis.bootstrap import bootstrap_thetas, intervals
 from nsl_hpc.analysis.broken_law import (
+    Bounds,
     NSLFit,
     NSLFitError,
     choose_breaks,
@@ -14,6 +20,8 @@ from nsl_hpc.analysis.broken_law import (
     log_law_jacobian,
     lower_envelope,
 )
+from nsl_hpc.analysis.prediction import need_for, resource_for
+from nsl_hpc.analysis.published import comparison, published_laws
 from nsl_hpc.nsl import backtest_nsl, default_settings, fit_nsl
 
 
@@ -62,7 +70,7 @@ GENERATING_LAWS = {
 
 
 @pytest.mark.parametrize("breaks", sorted(GENERATING_LAWS))
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", [0])
 def test_known_laws_are_recovered_without_hints(breaks, seed):
     true = GENERATING_LAWS[breaks]
     r, e = outcomes(true, seed)
@@ -72,6 +80,73 @@ def test_known_laws_are_recovered_without_hints(breaks, seed):
     assert fit.fit_margin <= true_margin
     for (sigma, _, delta), (true_sigma, _, true_delta) in zip(fit.breaks, true.breaks, strict=True):
         assert abs(math.log10(sigma / true_sigma)) < 0.5 and abs(delta - true_delta) < 0.15
+
+
+def shape(delta0: float, *breaks: tuple[float, float, float], low: float) -> NSLFit:
+    """A law with these slopes and breaks that starts at error 10 at ``low``."""
+    unit = law(0.0, 1.0, delta0, *breaks)
+    return law(0.0, 10 / float(unit.predict(low)), delta0, *breaks)
+
+
+DIP, BUMP = 10**0.1, 10**0.2
+HARD_SHAPES = {  # name: (law, smallest and largest resource, outcomes); errors stay in [1e-6, 10]
+    "b0": (shape(-0.5, low=1e2), 1e2, 1e8, 300),
+    "b1 to slope -5": (shape(-0.1, (1e4, 0.2, -4.9), low=1e2), 1e2, 10**5.2, 3000),
+    "steep start, slope change +5": (shape(-4.0, (10**3.5, 0.2, 3.8), low=1e2), 1e2, 1e8, 3000),
+    "dip: breaks 0.1 decades apart": (shape(-0.3, (1e5, 0.2, -3.0), (1e5 * DIP, 0.2, 3.0), low=1e2), 1e2, 1e9, 3000),
+    "bump: breaks 0.2 decades apart": (shape(-0.5, (1e5, 0.2, 3.0), (1e5 * BUMP, 0.2, -3.0), low=1e2), 1e2, 1e9, 300),
+    "plateau then steep fall": (shape(0.0, (1e5, 0.2, -5.0), (1e6, 0.2, 4.5), low=1e2), 1e2, 1e10, 30000),
+    "b3": (shape(-0.02, (1e4, 0.3, -0.4), (1e7, 0.3, 0.3), (1e10, 0.3, -0.4), low=1e2), 1e2, 1e12, 3000),
+    "b4": (shape(-0.2, (1e4, 0.2, -0.8), (1e6, 0.2, 0.6), (1e8, 0.2, -1.0), (1e10, 0.2, 0.8), low=1e2),
+           1e2, 1e11, 30000),
+}
+
+
+def direct_multistart_margin(r: np.ndarray, e: np.ndarray, b: int, starts: int = 20) -> float:
+    """The reference: bounded least squares of ln L on the same envelope and box from random starts."""
+    settings = default_settings()
+    grid, envelope = lower_envelope(r, e, 100, settings.envelope)
+    x, y = np.log(grid), np.log(envelope)
+    bounds = Bounds.for_grid(x, y, b, settings.max_slope, settings.edge, settings.phi_min)
+    rng = np.random.default_rng(0)
+    best = math.inf
+    for _ in range(starts):
+        theta = rng.uniform(bounds.lower, np.minimum(bounds.upper, bounds.lower + 40))
+        theta[2], theta[5::3], theta[4::3] = rng.uniform(-2, 1), rng.uniform(-3, 3, b), rng.uniform(0.2, 1, b)
+        theta[3::3] = np.sort(theta[3::3])
+        theta[1] = y[0] - theta[2] * x[0]
+        result = least_squares(lambda t: log_law(t, x) - y, bounds.clip(theta), bounds=(bounds.lower, bounds.upper),
+                               jac=lambda t: log_law_jacobian(t, x), x_scale="jac", max_nfev=400)
+        best = min(best, float(np.mean(result.fun**2)))
+    return best
+
+
+def last_slope(fit: NSLFit) -> float:
+    return fit.delta0 + sum(delta for _, _, delta in fit.breaks)
+
+
+@pytest.mark.parametrize("name", HARD_SHAPES)
+def test_hard_shapes_fit_like_a_direct_multistart_and_choose_b_within_one(name):
+    true, low, high, n = HARD_SHAPES[name]
+    r, e = outcomes(true, 0, n, low, high)
+    assert true.predict(low) == pytest.approx(10) and true.predict(np.geomspace(low, high, 400)).min() >= 1e-6
+    given = fit_nsl(r, e, breaks=true.b)
+    assert given.fit_margin <= 1.25 * direct_multistart_margin(r, e, true.b)
+    chosen = fit_nsl(r, e)
+    assert abs(chosen.b - true.b) <= 1
+    if n >= 3000:
+        assert abs(last_slope(chosen) - last_slope(true)) <= 0.1
+
+
+def test_a_sparse_staircase_envelope_leaves_no_slope_at_its_bound():
+    """36 outcomes in three tiers of resources (the demo's shape): each tier's best outcome makes the step
+    envelope fall vertically, which once drew laws with |delta| = max_slope."""
+    rng = np.random.default_rng(4)
+    r = np.concatenate([rng.uniform(tier / 2, tier, 12) for tier in (200, 800, 3200)])
+    e = 3 * r**-0.4 * (1 + rng.exponential(0.5, r.size))
+    for settings in (default_settings(), default_settings(envelope="step")):
+        fit = fit_nsl(r, e, settings=settings)
+        assert all(abs(delta) < settings.max_slope * 0.999 for delta in [fit.delta0, *(d for *_, d in fit.breaks)])
 
 
 def test_saturating_alpha_is_recovered():
@@ -91,12 +166,65 @@ def test_extreme_scales_fit_without_overflow_or_nan():
     assert np.all(np.isfinite(fit.predict(np.array([1.0, 1e15, 1e20]))))
 
 
-def test_default_objective_beats_the_studys():
-    r, e = outcomes(GENERATING_LAWS[2], 0)
+def test_the_studys_procedure_holds_phi_and_fits_its_own_loss_and_envelope():
+    r, e = outcomes(GENERATING_LAWS[2], 0, n=1000)
+    settings = default_settings(objective="study", study_steps=300)
+    study = fit_nsl(r, e, breaks=2, settings=settings)
+    assert study.b == 2 and study.envelope == "step" and [phi for _, phi, _ in study.breaks] == [0.2, 0.2]
+    freed = fit_nsl(r, e, breaks=2, settings=default_settings(objective="study", study_steps=300, study_phi=None))
+    assert all(phi >= 0.2 for _, phi, _ in freed.breaks)
+    step = study.envelope_e
+
+    def study_loss(fit: NSLFit) -> float:  # Section 4.3 with beta = 5, on Definition 1's envelope
+        above = fit.predict(study.envelope_r) - step
+        return float(np.mean(np.where(above > 0, 5.0, -1.0) * above))
+
     default = fit_nsl(r, e, breaks=2)
-    study = fit_nsl(r, e, breaks=2, settings=default_settings(objective="study"))
-    assert study.b == 2 and np.isfinite(study.margin)
-    assert default.margin < study.margin
+    assert study_loss(freed) < study_loss(default) and default.margin < freed.margin  # each wins its own
+
+
+def test_bootstrap_intervals_on_a_tiny_cloud_are_reproducible_and_hold_the_fit():
+    true = GENERATING_LAWS[1]
+    r, e = outcomes(true, 2, n=200)
+    settings = default_settings()
+    fit = fit_nsl(r, e, breaks=1)
+    thetas = bootstrap_thetas(fit, r, e, 40, seed=7, K=100, settings=settings)
+    assert thetas.shape == (40, 6)
+    np.testing.assert_array_equal(thetas, bootstrap_thetas(fit, r, e, 40, seed=7, K=100, settings=settings))
+    bounds = intervals(fit, thetas, float(r.max()), 0.9)
+    for name in ("last_slope", "L_at_max", "L_at_10x"):
+        assert bounds[f"{name}_lo"] <= bounds[f"{name}_hi"]
+    assert bounds["last_slope_lo"] - 0.05 <= bounds["last_slope"] <= bounds["last_slope_hi"] + 0.05
+    assert bounds["last_slope_lo"] < -0.35 + 0.3 and bounds["last_slope_hi"] > -0.35 - 0.3
+    assert bounds["sigma_1_lo"] < 1e6 * 10 and bounds["sigma_1_hi"] > 1e6 / 10
+    assert bounds["L_at_10x_hi"] - bounds["L_at_10x_lo"] > bounds["L_at_max_hi"] - bounds["L_at_max_lo"]
+
+
+def test_a_law_needs_its_own_inverse_and_says_when_it_cannot_reach_a_target():
+    fit = law(0.001, 5.0, -0.5, (1e6, 0.5, -0.3))
+    theta = fit.parameters()
+    for r in (1e3, 1e7, 3e9):
+        assert resource_for(theta, float(fit.predict(r)), 1.0, 12) == pytest.approx(r, rel=1e-6)
+    assert resource_for(theta, 0.0009, 1.0, 12) == math.inf  # alpha = 0.001 is the floor
+    row = {"alpha": fit.alpha, "beta": fit.beta, "delta0": fit.delta0, "b": 1, "sigma_1": 1e6, "phi_1": 0.5,
+           "delta_1": -0.3, "margin": 0.0, "margins_by_b": "{}", "objective": "margin", "r_max": 1e6,
+           "bootstrap_thetas": [list(theta), list(theta)]}
+    need = need_for(row, float(fit.predict(1e8)), 1.0, 12, 0.9)
+    assert need.resource == pytest.approx(1e8, rel=1e-6) and need.extrapolation_decades == pytest.approx(2)
+    assert need.low == pytest.approx(1e8, rel=1e-6) and need.high == pytest.approx(1e8, rel=1e-6)
+    assert not need_for(row, 0.0009, 1.0, 12, 0.9).reachable
+
+
+def test_published_laws_are_data_and_measured_on_our_envelope():
+    laws = published_laws()
+    assert len(laws) == 10
+    ball = laws["ball", "input_affine", "compute", "nmae"]
+    assert ball.b == 2 and ball.margin == 0.04 and ball.last_slope == pytest.approx(-0.073 - 1.1 + 0.68)
+    assert all(published.b == len(published.law.breaks) for published in laws.values())
+    r = np.geomspace(1e4, 1e12, 500)
+    on_itself = comparison(("ball", "input_affine", "compute", "nmae"), r, ball.law.predict(r), 100)
+    assert on_itself["paper_b"] == 2 and on_itself["paper_margin_on_ours"] < 1e-3
+    assert comparison(("spring", "unstructured", "data", "nmae"), r, ball.law.predict(r), 100)["paper_b"] is None
 
 
 def test_fixed_breaks_and_choice_rule():

@@ -259,7 +259,8 @@ def study_loss(theta: np.ndarray, x: np.ndarray, e: np.ndarray, beta: float) -> 
 def refine_study(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, settings: "FitSettings") -> np.ndarray:
     """Section 4.3 as written: Adam on the study's loss over [ln alpha, ln beta, delta0, (ln sigma_i, phi_i,
     delta_i)...], unbounded but for phi_i: held at ``study_phi`` (the published laws' 0.2) or, with
-    study_phi = null, kept >= phi_min (the study's max(phi_i, 0.2))."""
+    study_phi = null, kept >= phi_min (the study's max(phi_i, 0.2)). Returns the iterate of least loss (the
+    loss is piecewise linear: a constant-rate Adam circles its minimum instead of settling)."""
     theta = theta.copy()
     phis = np.zeros(len(theta), dtype=bool)
     phis[4::3] = True
@@ -267,15 +268,18 @@ def refine_study(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, settings: 
     e = np.exp(log_e)
     param = torch.nn.Parameter(torch.from_numpy(theta))
     optimizer = torch.optim.Adam([param], lr=settings.study_lr)
+    best, best_loss = theta.copy(), math.inf
     for _ in range(settings.study_steps):
-        _, gradient = study_loss(param.detach().numpy(), x, e, settings.study_beta)
+        loss, gradient = study_loss(param.detach().numpy(), x, e, settings.study_beta)
+        if loss < best_loss:
+            best, best_loss = param.detach().numpy().copy(), loss
         if settings.study_phi is not None:
             gradient[phis] = 0.0
         param.grad = torch.from_numpy(gradient)
         optimizer.step()
         with torch.no_grad():
             param[torch.from_numpy(phis)] = param[torch.from_numpy(phis)].clamp(min=settings.phi_min)
-    return param.detach().numpy()
+    return best
 
 
 def refine(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings",
@@ -289,16 +293,22 @@ def refine(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, b: int, settings
 
 def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings") -> np.ndarray:
     """The best theta with b breaks from the top ``settings.starts`` piecewise-linear starts and
-    ``settings.random_starts`` random ones (seeded: a fit depends only on its outcomes and settings): each
-    refined briefly, the best two to convergence."""
+    ``settings.random_starts`` random ones (seeded: a fit depends only on its outcomes and settings), by the
+    settings' objective: each refined briefly (the study's Adam: ranked as they start), the best two to the
+    end."""
     starts = piecewise_linear_starts(x, log_e, b, settings.positions, settings.alpha_shares, settings.phi_min)
     bounds = Bounds.for_grid(x, log_e, b, settings.max_slope, settings.edge, settings.phi_min)
     chosen = [theta for _, theta in starts[:settings.starts]]
     chosen += random_starts(x, log_e, b, settings.random_starts, bounds, seed=b)
-    screened = sorted((refine(theta, x, log_e, b, settings, evaluations=30) for theta in chosen),
-                      key=lambda theta: margin_of(theta, x, log_e))  # a short refinement of every start ...
-    refined = [refine(theta, x, log_e, b, settings) for theta in screened[:2]]  # ... the best two to the end
-    return min(refined, key=lambda theta: margin_of(theta, x, log_e))
+    def objective(theta: np.ndarray) -> float:
+        if settings.objective == "study":
+            return study_loss(theta, x, np.exp(log_e), settings.study_beta)[0]
+        return margin_of(theta, x, log_e)
+
+    if settings.objective == "margin":  # a short refinement of every start ...
+        chosen = [refine(theta, x, log_e, b, settings, evaluations=30) for theta in chosen]
+    refined = [refine(theta, x, log_e, b, settings) for theta in sorted(chosen, key=objective)[:2]]
+    return min(refined, key=objective)  # ... the best two to the end
 
 
 @dataclass(frozen=True)
