@@ -7,7 +7,6 @@ import warnings
 
 import numpy as np
 import pytest
-
 from scipy.optimize import least_squares
 
 from nsl_hpc.analysis.bootstrap import bootstrap_thetas, intervals
