@@ -74,6 +74,29 @@ def test_fit_writes_one_row_per_nsl_and_reports_excluded_outcomes(sweep_copy):
     text = (sweep_copy / "nsl_fits.txt").read_text()
     assert text.count("(1 excluded: not ok or non-positive)") == 3
     assert text.count("L(c) = ") == 2 and text.count("L(d) = ") == 2 and text.count("L(p) = ") == 2
+    assert text.count("90% (200 resamples): last slope") == NSLS and text.count("paper (Section 5.2") == 1
+    for fit in fits:
+        assert len(fit["bootstrap_thetas"]) == 200 and fit["last_slope_lo"] <= fit["last_slope_hi"]
+        assert fit["L_at_max_lo"] <= fit["L_at_max_hi"] and fit["r_max"] > 0
+    published = next(f for f in fits if (f["resource"], f["metric"]) == ("data", "nmae"))
+    assert (published["paper_b"], published["paper_margin"]) == (2, 0.07) and published["paper_margin_on_ours"] > 0
+    assert all(f["paper_b"] is None for f in fits if f is not published)
+
+
+def test_predict_answers_from_the_fitted_laws_and_refuses_bad_targets(sweep_copy):
+    assert nsl("predict", f"sweep_dir={sweep_copy}", "target=0.1").stderr.startswith("error: ")  # not fitted yet
+    assert nsl("report", f"sweep_dir={sweep_copy}", "nsl.max_breaks=1", "mlflow.enabled=false").returncode == 0
+    best = min(pq.read_table(sweep_copy / "results.parquet")["nmae"].to_pylist())
+    within = nsl("predict", f"sweep_dir={sweep_copy}", f"target={2 * best}")
+    assert within.returncode == 0, within.stderr
+    assert "nMAE" in within.stdout and "spring / input_affine: " in within.stdout and "needs c = " in within.stdout
+    assert "parameters, data from" in within.stdout or "not reachable" in within.stdout
+    data = nsl("predict", f"sweep_dir={sweep_copy}", f"target={best / 2}", "resource=data", "metric=nmse")
+    assert data.returncode == 0 and "needs d = " in data.stdout
+    for args, message in ((["target=0"], "target=0 must be a positive error"),
+                          (["target=0.1", "metric=accuracy"], "metric='accuracy'; choose one of nmae, nmse")):
+        refused = nsl("predict", f"sweep_dir={sweep_copy}", *args)
+        assert refused.returncode == 2 and refused.stderr.strip() == f"error: {message}"
 
 
 def test_report_figures_and_mlflow_runs_are_updated_not_duplicated(sweep_copy):
@@ -82,6 +105,8 @@ def test_report_figures_and_mlflow_runs_are_updated_not_duplicated(sweep_copy):
     report = (sweep_copy / "report.html").read_text()
     assert report.count("data:image/png;base64,") == NSLS + NSLS  # every NSL and the 6 overview grids
     assert "0 of 24 tasks (0.0%) dropped" in report and report.count("<td><code>L(") == NSLS
+    assert "Against the published laws" in report and "Section 5.2, Figure fig:data-nmae-aff-spring" in report
+    assert "What it takes" in report and "c needed [90%]" in report
     for png in (sweep_copy / "figures").rglob("*.png"):
         image = matplotlib.image.imread(png)
         assert image.shape[0] > 300 and image.shape[1] > 300 and image.std() > 0
@@ -95,6 +120,9 @@ def test_report_figures_and_mlflow_runs_are_updated_not_duplicated(sweep_copy):
     parent = next(run for run in runs if run.data.tags["nsl_hpc.analysis.broken_law"] == "sweep")
     assert parent.data.metrics["merged"] == 24 and parent.data.params["sweep.name"] == "demo"
     assert {a.path for a in client.list_artifacts(parent.info.run_id)} >= {"results.parquet", "report.html"}
+    child = next(run for run in runs if run.data.tags["nsl_hpc.analysis.broken_law"] == "spring/input_affine/data/nmae")
+    assert child.data.metrics["paper_M"] == 0.07 and child.data.metrics["last_slope_lo"] <= child.data.metrics[
+        "last_slope_hi"]
 
     row_path(sweep_copy, manifest_ids(sweep_copy)[0]).unlink()  # one task fewer: some laws change
     again = nsl("report", f"sweep_dir={sweep_copy}", "nsl.max_breaks=1")

@@ -2,7 +2,8 @@
 
 For outcomes (r_i, e_i) (r: compute, data or parameters; e: nMAE or nMSE):
 
-- lower envelope E(r) = min{e_i : r_i <= r}, sampled at K log-spaced resources r~_k from min r to max r;
+- lower envelope E(r) = min{e_i : r_i <= r}, sampled at K log-spaced resources r~_k from min r to max r
+  (or its log-log interpolation between the outcomes on it, the envelope the default fit follows);
 - law L(r) = alpha + beta r^delta0 prod_i [1 + (r / sigma_i)^(1 / phi_i)]^(delta_i phi_i),
   alpha, beta >= 0, sigma_i > 0, phi_i >= phi_min (conf/nsl/default.yaml);
 - margin M = mean_k (ln L(r~_k) - ln E(r~_k))^2 (natural logarithms).
@@ -11,8 +12,9 @@ Everything is evaluated in log space, ln L = logaddexp(ln alpha, ln beta + delta
 + sum_i delta_i phi_i softplus((x - ln sigma_i) / phi_i)) with x = ln r, so resources up to 1e15 and errors
 down to 1e-8 neither overflow nor underflow. The law is piecewise linear in log-log space with smooth
 corners: the fit starts from piecewise-linear least-squares fits of the envelope with corners at every
-combination of candidate positions on the log grid, refines the best few with bounded least squares on the
-log residuals (which minimises M directly), and picks the number of breaks b by a penalised margin.
+combination of candidate positions on the log grid and at the best segmentation of the grid, plus a few
+random starts, refines them with bounded least squares on the log residuals (which minimises M directly),
+and picks the number of breaks b by a penalised margin among the laws whose slopes stay inside their bound.
 """
 
 import itertools
@@ -188,12 +190,11 @@ def best_segmentation(x: np.ndarray, y: np.ndarray, b: int) -> list[int]:
     return sorted(boundaries[1:])
 
 
-def hinge_fit(x: np.ndarray, y: np.ndarray, corners: Sequence[float]) -> tuple[float, np.ndarray]:
-    """Least-squares continuous piecewise-linear fit of y(x) with these corners: (squared error,
-    [intercept, first slope, slope change at each corner])."""
+def hinge_fit(x: np.ndarray, y: np.ndarray, corners: Sequence[float]) -> np.ndarray:
+    """Least-squares continuous piecewise-linear fit of y(x) with these corners: [intercept, first slope,
+    slope change at each corner]."""
     design = np.column_stack([np.ones_like(x), x, *(np.maximum(x - c, 0) for c in corners)])
-    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
-    return float(np.sum((design @ coef - y) ** 2)), coef
+    return np.linalg.lstsq(design, y, rcond=None)[0]
 
 
 def piecewise_linear_starts(x: np.ndarray, log_e: np.ndarray, b: int, positions: int,
@@ -213,7 +214,7 @@ def piecewise_linear_starts(x: np.ndarray, log_e: np.ndarray, b: int, positions:
         log_alpha = np.log(alpha) if alpha > 0 else log_e.min() - 30
         segmented = [tuple((x[i - 1] + x[i]) / 2 for i in best_segmentation(x, y, b))] if b else []
         for corners in [*itertools.combinations(even, b), *segmented]:
-            _, coef = hinge_fit(x, y, corners)
+            coef = hinge_fit(x, y, corners)
             breaks = [v for c, d in zip(corners, coef[2:], strict=True) for v in (c, phi, d)]
             theta = np.array([log_alpha, coef[0], coef[1], *breaks])
             starts.append((margin_of(theta, x, log_e), theta))
