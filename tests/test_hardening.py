@@ -122,7 +122,8 @@ def test_concurrent_launches_of_different_grids_into_one_new_directory_accept_on
 def test_a_second_command_is_refused_naming_the_running_one(tmp_path):
     sweep_dir = tmp_path / "sweep"
     first = subprocess.Popen([sys.executable, "-m", "nsl_hpc.launch", *LOCAL, f"sweep_dir={sweep_dir}",
-                              "sweep.grid.epochs=[3000]"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                              "sweep.grid.epochs=[3000]", "fault.kind=hang", "watchdog.heartbeat_timeout_s=600"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # its tasks never end
     try:
         while not (sweep_dir / "logs").exists():  # its tasks run: it holds the lock
             assert first.poll() is None, first.stderr.read()

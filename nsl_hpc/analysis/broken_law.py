@@ -301,6 +301,7 @@ def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings"
     bounds = Bounds.for_grid(x, log_e, b, settings.max_slope, settings.edge, settings.phi_min)
     chosen = [theta for _, theta in starts[:settings.starts]]
     chosen += random_starts(x, log_e, b, settings.random_starts, bounds, seed=b)
+
     def objective(theta: np.ndarray) -> float:
         if settings.objective == "study":
             return study_loss(theta, x, np.exp(log_e), settings.study_beta)[0]
