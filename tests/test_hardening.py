@@ -14,6 +14,7 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.mlflow_runs import sweep_run, tracking_uri
+from nsl_hpc.sweep.job import heed_first_warning_only
 from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
 
 pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
@@ -322,3 +323,18 @@ def test_a_full_disk_during_a_sweep_and_during_merge_is_one_line_and_keeps_the_r
     assert merged.returncode == 1 and "No space left on device" in merged.stderr, merged.stderr
     assert len(merged.stderr.strip().splitlines()) == 1
     assert {path: path.read_bytes() for path in row_files(sweep_dir) if path in rows} == rows
+
+
+def test_a_repeated_slurm_warning_reaches_the_checkpoint_handler_once():
+    """SLURM delivers --signal=USR2 twice (directly and through srun); submitit's handler must run once."""
+    calls = []
+    previous = signal.signal(signal.SIGUSR2, lambda signum, frame: calls.append(signum))
+    try:
+        heed_first_warning_only()
+        heed_first_warning_only()  # idempotent: still one wrapper
+        for _ in range(2):
+            os.kill(os.getpid(), signal.SIGUSR2)
+            time.sleep(0.05)
+        assert calls == [signal.SIGUSR2]
+    finally:
+        signal.signal(signal.SIGUSR2, previous)

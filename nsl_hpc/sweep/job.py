@@ -16,6 +16,7 @@ import os
 import shutil
 import signal
 import sys
+import threading
 import time
 import traceback
 from collections import Counter
@@ -95,6 +96,26 @@ def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], cfgs: Sequenc
     os._exit(0)
 
 
+def heed_first_warning_only() -> None:
+    """SLURM's warning (--signal=USR2) reaches a job step twice: from slurmstepd and forwarded by the batch
+    step's srun. A second SIGUSR2 while submitit's handler checkpoints re-enters it and fails the job ("A
+    temporary saved file already exists", lost requeue); so the handler submitit installed runs once. No-op
+    outside a submitit SLURM job (no Python handler installed)."""
+    handler = signal.getsignal(signal.SIGUSR2)
+    if not callable(handler) or getattr(handler, "heeds_first_only", False) \
+            or threading.current_thread() is not threading.main_thread():
+        return
+    fired: list[int] = []
+
+    def first_only(signum: int, frame: Any) -> None:
+        if not fired:
+            fired.append(signum)
+            handler(signum, frame)
+
+    first_only.heeds_first_only = True  # type: ignore[attr-defined]
+    signal.signal(signal.SIGUSR2, first_only)
+
+
 class JobRunner:
     """The callable submitit pickles into every job: ``JobRunner(launcher_pid)(sweep_dir, groups)`` trains the
     lockstep groups (``nsl_hpc.sweep.plan.Group``) of one pack, exactly as planned. Given the pid of a local
@@ -112,6 +133,7 @@ class JobRunner:
     def __call__(self, sweep_dir: str, groups: Sequence[Group]) -> dict[str, int]:
         """Run the tasks of each group that have no valid row yet (a corrupt one is moved aside first) together;
         returns counts by outcome (per task)."""
+        heed_first_warning_only()
         sweep = Path(sweep_dir)
         launch = read_launch_config(sweep)
         rows = manifest_rows(sweep, [task_id for group in groups for task_id in group.task_ids])
