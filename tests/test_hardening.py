@@ -1,6 +1,7 @@
 """A sweep directory that cannot be destroyed, hijacked, run twice or silently lose a task: one test per way a
 hostile but fair user lost a sweep before (the SLURM case is in tests/cluster/test_hardening_slurm.py)."""
 
+import multiprocessing
 import os
 import shutil
 import signal
@@ -14,7 +15,7 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.mlflow_runs import sweep_run, tracking_uri
-from nsl_hpc.sweep.job import heed_first_warning_only
+from nsl_hpc.sweep.job import leave_warnings_to_the_runner
 from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
 
 pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
@@ -325,16 +326,29 @@ def test_a_full_disk_during_a_sweep_and_during_merge_is_one_line_and_keeps_the_r
     assert {path: path.read_bytes() for path in row_files(sweep_dir) if path in rows} == rows
 
 
-def test_a_repeated_slurm_warning_reaches_the_checkpoint_handler_once():
-    """SLURM delivers --signal=USR2 twice (directly and through srun); submitit's handler must run once."""
-    calls = []
-    previous = signal.signal(signal.SIGUSR2, lambda signum, frame: calls.append(signum))
+def warned_child(ready, leave: bool) -> None:
+    if leave:
+        leave_warnings_to_the_runner()
+    ready.set()
+    time.sleep(2)
+    os._exit(0)
+
+
+@pytest.mark.parametrize("leave", [False, True])
+def test_a_task_process_leaves_slurms_warning_to_the_job_runner(leave, tmp_path):
+    """SIGUSR2 reaches every process of a SLURM job step; a forked task process inherits submitit's handler,
+    and must not run it (it raced the runner's checkpoint on a fresh clone)."""
+    marker = tmp_path / "handled"
+    previous = signal.signal(signal.SIGUSR2, lambda signum, frame: (marker.write_text("child"), os._exit(3)))
     try:
-        heed_first_warning_only()
-        heed_first_warning_only()  # idempotent: still one wrapper
-        for _ in range(2):
-            os.kill(os.getpid(), signal.SIGUSR2)
-            time.sleep(0.05)
-        assert calls == [signal.SIGUSR2]
+        context = multiprocessing.get_context("fork")
+        ready = context.Event()
+        child = context.Process(target=warned_child, args=(ready, leave))
+        child.start()
+        assert ready.wait(30)
+        os.kill(child.pid, signal.SIGUSR2)
+        child.join(30)
     finally:
         signal.signal(signal.SIGUSR2, previous)
+    assert (child.exitcode, marker.exists()) == ((0, False) if leave else (3, True))
+

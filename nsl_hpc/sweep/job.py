@@ -16,7 +16,6 @@ import os
 import shutil
 import signal
 import sys
-import threading
 import time
 import traceback
 from collections import Counter
@@ -73,9 +72,20 @@ def die_with_parent() -> None:
         os._exit(1)
 
 
+def leave_warnings_to_the_runner() -> None:
+    """In a forked task process: ignore SLURM's warning (SIGUSR2 reaches every process of the job step) and
+    take the default SIGTERM / SIGCONT. The fork inherits submitit's handlers; a child running them checkpoints
+    and requeues the job too, racing the runner's own checkpoint ("A temporary saved file already exists": the
+    job fails and its unstarted groups are lost). The runner handles the warning and kills the child."""
+    signal.signal(signal.SIGUSR2, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGCONT, signal.SIG_DFL)
+
+
 def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], cfgs: Sequence[DictConfig], heartbeat) -> None:
     """Child process body: output to the first task's log, train the group (manifest rows ``group`` with their
     configs ``cfgs``); exit status 1 on an exception."""
+    leave_warnings_to_the_runner()
     die_with_parent()
     log = task_log_path(sweep_dir, cfgs[0].task_id)
     log.parent.mkdir(parents=True, exist_ok=True)
@@ -96,26 +106,6 @@ def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], cfgs: Sequenc
     os._exit(0)
 
 
-def heed_first_warning_only() -> None:
-    """SLURM's warning (--signal=USR2) reaches a job step twice: from slurmstepd and forwarded by the batch
-    step's srun. A second SIGUSR2 while submitit's handler checkpoints re-enters it and fails the job ("A
-    temporary saved file already exists", lost requeue); so the handler submitit installed runs once. No-op
-    outside a submitit SLURM job (no Python handler installed)."""
-    handler = signal.getsignal(signal.SIGUSR2)
-    if not callable(handler) or getattr(handler, "heeds_first_only", False) \
-            or threading.current_thread() is not threading.main_thread():
-        return
-    fired: list[int] = []
-
-    def first_only(signum: int, frame: Any) -> None:
-        if not fired:
-            fired.append(signum)
-            handler(signum, frame)
-
-    first_only.heeds_first_only = True  # type: ignore[attr-defined]
-    signal.signal(signal.SIGUSR2, first_only)
-
-
 class JobRunner:
     """The callable submitit pickles into every job: ``JobRunner(launcher_pid)(sweep_dir, groups)`` trains the
     lockstep groups (``nsl_hpc.sweep.plan.Group``) of one pack, exactly as planned. Given the pid of a local
@@ -133,7 +123,6 @@ class JobRunner:
     def __call__(self, sweep_dir: str, groups: Sequence[Group]) -> dict[str, int]:
         """Run the tasks of each group that have no valid row yet (a corrupt one is moved aside first) together;
         returns counts by outcome (per task)."""
-        heed_first_warning_only()
         sweep = Path(sweep_dir)
         launch = read_launch_config(sweep)
         rows = manifest_rows(sweep, [task_id for group in groups for task_id in group.task_ids])
