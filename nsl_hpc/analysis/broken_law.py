@@ -402,11 +402,11 @@ def uncentred(theta: np.ndarray, middle: float) -> np.ndarray:
     return theta
 
 
-def law_of(theta: np.ndarray, r: np.ndarray, e: np.ndarray, K: int, settings: FitSettings,
-           margins: dict[int, float]) -> NSLFit:
-    """The NSLFit of theta for outcomes (r, e): its margin is Definition 1's (step envelope)."""
-    grid_r, grid_e = lower_envelope(r, e, K, settings.fitted_envelope)
-    step_e = grid_e if settings.fitted_envelope == "step" else lower_envelope(r, e, K, "step")[1]
+def law_of(theta: np.ndarray, r: np.ndarray, e: np.ndarray, grid_r: np.ndarray, grid_e: np.ndarray,
+           settings: FitSettings, margins: dict[int, float]) -> NSLFit:
+    """The NSLFit of theta fitted to the envelope (grid_r, grid_e) of outcomes (r, e): its margin is Definition
+    1's (step envelope)."""
+    step_e = grid_e if settings.fitted_envelope == "step" else lower_envelope(r, e, len(grid_r), "step")[1]
     x = np.log(grid_r)
     alpha = float(np.exp(theta[0]))
     if margin_of(np.concatenate([[-np.inf], theta[1:]]), x, np.log(grid_e)) <= \
@@ -438,7 +438,7 @@ def fit_broken_law(resources: Sequence[float], errors: Sequence[float], breaks: 
     margins = {b: margin_of(theta, x, log_e) for b, theta in thetas.items()}
     resolved = {b: m for b, m in margins.items() if b == 0 or not at_slope_bound(thetas[b], settings.max_slope)}
     chosen = breaks if breaks is not None else choose_breaks(resolved, settings.min_gain, settings.margin_floor)
-    return law_of(thetas[chosen], r, e, K, settings, margins)
+    return law_of(thetas[chosen], r, e, grid_r, grid_e, settings, margins)
 
 
 def refit(fit: NSLFit, resources: np.ndarray, errors: np.ndarray, K: int, settings: FitSettings) -> np.ndarray:

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 from omegaconf import OmegaConf
 
+from nsl_hpc.analysis.bootstrap import last_slope
 from nsl_hpc.analysis.broken_law import NSLFit, lower_envelope
 from nsl_hpc.config import config_dir
 
@@ -29,7 +30,7 @@ class PublishedLaw:
 
     @property
     def last_slope(self) -> float:
-        return self.law.delta0 + sum(delta for _, _, delta in self.law.breaks)
+        return float(last_slope(self.law.parameters()))
 
 
 def key_of(entry: Mapping[str, Any]) -> tuple[str, ...]:
