@@ -7,6 +7,7 @@ Linear -> LayerNorm -> SiLU (``block: layernorm_silu``, the authors' code) or Li
 
 from dataclasses import dataclass
 
+import torch
 from torch import nn
 
 from nsl_hpc.errors import ConfigError
@@ -32,6 +33,18 @@ def mlp(in_dim: int, out_dim: int, width: int, depth: int, block: str) -> nn.Seq
         layers += [nn.LayerNorm(width, eps=LAYER_NORM_EPS), nn.SiLU()] if block == "layernorm_silu" else [nn.Tanh()]
     layers.append(nn.Linear(width, out_dim))
     return nn.Sequential(*layers)
+
+
+def masked_layer_norm(a: torch.Tensor, mask: torch.Tensor | None, inverse: torch.Tensor
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+    """LayerNorm without its affine part of a (..., width) over each model's own units, and 1 / the spread
+    (..., 1): ``inverse`` (..., 1) is 1 / their number, ``mask`` (..., width) 1 on them (None: all units are
+    its own). Padded units of ``a`` must be 0; they stay 0."""
+    centered = a - a.sum(dim=-1, keepdim=True) * inverse
+    if mask is not None:
+        centered = centered * mask
+    spread = (centered.square().sum(dim=-1, keepdim=True) * inverse + LAYER_NORM_EPS).rsqrt()
+    return centered * spread, spread
 
 
 def mlp_parameter_count(in_dim: int, out_dim: int, width: int, depth: int, block: str) -> int:

@@ -1,6 +1,6 @@
-"""What the training loops share: the input-state scaling, mini-batch bounds, the learning-rate schedule
-and the outcome record. The loops are ``input_state.lockstep`` (input-state models, alone or K in lockstep) and
-``input_output.training`` (NARX and SUBNET).
+"""What the training loops share: the input-state scaling, mini-batch bounds, the learning-rate schedule,
+the outcome record and Adam on the rows of a stack of models. The loops are ``input_state.lockstep``
+(input-state models, alone or K in lockstep) and ``input_output.packed`` (NARX and SUBNET, alone or K packed).
 
 Models read standardised inputs, fitted on the training data (ddof 0, as scikit-learn's StandardScaler):
 z = (x - mean_x) / std_x, v = (u - mean_u) / std_u. Their targets are dx/dt and y as they are (the study's,
@@ -9,6 +9,7 @@ which it is O(1), and y std_u divided by its RMS (a port-Hamiltonian model in th
 u, t as well: the diagonal std_x keeps J skew and R PSD, and the two scalar rescalings only scale J, R and H).
 """
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,6 +68,7 @@ def batch_bounds(samples: int, batch_size: int) -> list[tuple[int, int]]:
 
 
 SCHEDULES = ("warmup_cosine", "constant")
+ADAM_BETAS, ADAM_EPS, CLIP_EPS = (0.9, 0.999), 1e-8, 1e-6  # torch.optim.Adam and clip_grad_norm_ defaults
 
 
 def warmup_cosine(total_steps: int, warmup_fraction: float, lr: float) -> np.ndarray:
@@ -95,3 +97,29 @@ class TrainingOutcome:
     steps: int
     final_loss: float
     finite: bool
+
+
+class Adam:
+    """torch.optim.Adam with gradient-norm clipping (clip_grad_norm_), per row of ``theta`` (K, P)."""
+
+    def __init__(self, theta: torch.Tensor, clip_norm: float):
+        self.theta, self.clip_norm = theta, clip_norm
+        self.first, self.second = torch.zeros_like(theta), torch.zeros_like(theta)
+        self.steps = 0
+
+    def keep(self, rows: torch.Tensor, theta: torch.Tensor) -> None:
+        """Keep the moments of ``rows``; ``theta`` is the stack's new parameter tensor."""
+        self.theta, self.first, self.second = theta, self.first[rows], self.second[rows]
+
+    def step(self, grad: torch.Tensor, lr: torch.Tensor) -> None:
+        """One update from the parameters' gradient ``grad`` (K, P), overwritten, with learning rates ``lr``
+        (K, 1)."""
+        norm = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
+        grad.mul_((self.clip_norm / (norm + CLIP_EPS)).clamp_max_(1.0))
+        beta1, beta2 = ADAM_BETAS
+        self.steps += 1
+        self.first.lerp_(grad, 1 - beta1)
+        self.second.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+        denominator = self.second.sqrt().div_(math.sqrt(1 - beta2 ** self.steps)).add_(ADAM_EPS)
+        step_size = lr / (1 - beta1 ** self.steps)  # (K, 1)
+        self.theta.addcdiv_(self.first * step_size, denominator, value=-1.0)

@@ -25,9 +25,8 @@ from tqdm import tqdm
 
 from nsl_hpc.studies.input_state.data import Dataset
 from nsl_hpc.studies.input_state.stacked import StackedModels
-from nsl_hpc.studies.training import Scaling, TrainingOutcome, batch_bounds, learning_rate_at
+from nsl_hpc.studies.training import Adam, Scaling, TrainingOutcome, batch_bounds, learning_rate_at
 
-ADAM_BETAS, ADAM_EPS, CLIP_EPS = (0.9, 0.999), 1e-8, 1e-6  # torch.optim.Adam and clip_grad_norm_ defaults
 BLOCK_STEPS = 32  # steps prepared at once: (K, BLOCK_STEPS, batch) rows of data in memory
 
 
@@ -129,32 +128,6 @@ def stacked_data(members: Sequence[Member], dtype: torch.dtype) -> torch.Tensor:
         parts.append(torch.cat([z, v, dz, y], dim=1))
     rows = max(len(part) for part in parts) + 1
     return torch.stack([nn.functional.pad(part, (0, 0, 0, rows - len(part))) for part in parts])
-
-
-class Adam:
-    """torch.optim.Adam with gradient-norm clipping (clip_grad_norm_), per row of ``theta`` (K, P)."""
-
-    def __init__(self, theta: torch.Tensor, clip_norm: float):
-        self.theta, self.clip_norm = theta, clip_norm
-        self.first, self.second = torch.zeros_like(theta), torch.zeros_like(theta)
-        self.steps = 0
-
-    def keep(self, rows: torch.Tensor, theta: torch.Tensor) -> None:
-        """Keep the moments of ``rows``; ``theta`` is the stack's new parameter tensor."""
-        self.theta, self.first, self.second = theta, self.first[rows], self.second[rows]
-
-    def step(self, grad: torch.Tensor, lr: torch.Tensor) -> None:
-        """One update from the parameters' gradient ``grad`` (K, P), overwritten, with learning rates ``lr``
-        (K, 1)."""
-        norm = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
-        grad.mul_((self.clip_norm / (norm + CLIP_EPS)).clamp_max_(1.0))
-        beta1, beta2 = ADAM_BETAS
-        self.steps += 1
-        self.first.lerp_(grad, 1 - beta1)
-        self.second.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-        denominator = self.second.sqrt().div_(math.sqrt(1 - beta2 ** self.steps)).add_(ADAM_EPS)
-        step_size = lr / (1 - beta1 ** self.steps)  # (K, 1)
-        self.theta.addcdiv_(self.first * step_size, denominator, value=-1.0)
 
 
 class Lockstep:

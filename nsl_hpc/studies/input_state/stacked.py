@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch.nn import functional
 
-from nsl_hpc.models.blocks import LAYER_NORM_EPS, Head
+from nsl_hpc.models.blocks import LAYER_NORM_EPS, Head, masked_layer_norm
 from nsl_hpc.models.state_space import StateSpaceModel
 
 # Heads of different widths get chains of their own when K n_h (n_h of the widest) reaches this: measured
@@ -221,11 +221,7 @@ class StackedModels:
         head use torch's fused layer_norm; padded units of ``a`` are 0 and stay 0."""
         if self.fused_norm[c]:
             return functional.layer_norm(a, a.shape[-1:], eps=LAYER_NORM_EPS), None
-        centered = a - a.sum(dim=-1, keepdim=True) * inverse
-        if self.padded[c]:
-            centered = centered * mask
-        spread = (centered.square().sum(dim=-1, keepdim=True) * inverse + LAYER_NORM_EPS).rsqrt()
-        return centered * spread, spread
+        return masked_layer_norm(a, mask if self.padded[c] else None, inverse)
 
     def forward(self, zv: torch.Tensor, theta: torch.Tensor | None = None,
                 models: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
