@@ -1,5 +1,5 @@
-"""NARX and SUBNET: documented shapes, parameter counts, an encoder that sees only the past, and a numpy
-free-run simulation equal to the torch models run step by step."""
+"""NARX and SUBNET: documented shapes, parameter counts, an encoder that sees only the past, and numpy free-run
+and one-step predictions of a pack of models equal to each torch model run step by step."""
 
 import numpy as np
 import pytest
@@ -8,7 +8,8 @@ import torch
 from nsl_hpc.models.blocks import mlp_parameter_count
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
-from nsl_hpc.studies.input_output.training import simulate_narx, simulate_subnet
+from nsl_hpc.studies.input_output.packed import PackedMLPs
+from nsl_hpc.studies.input_output.scoring import numpy_mlps, one_step_narx, simulate_narx, simulate_subnet
 
 B, P, T, NX = 7, 50, 13, 4
 
@@ -55,24 +56,43 @@ def test_narx_maps_its_regressors_to_one_output():
     assert model(torch.randn(B, 5), torch.randn(B, 4)).shape == (B,)
 
 
+def numpy_of(*models) -> dict:
+    """The float64 numpy MLPs of ``models`` packed (zero-padded to the widest)."""
+    nets = PackedMLPs(list(models), torch.float64)
+    return numpy_mlps(nets, nets.theta)
+
+
 @pytest.mark.parametrize("block", ["layernorm_silu", "tanh"])
-def test_numpy_free_run_equals_the_torch_models_step_by_step(block):
-    torch.manual_seed(0)
-    subnet = SUBNET(state_dim=NX, past=P, width=8, depth=2, block=block).double()
-    for parameter in subnet.parameters():  # LayerNorm scales and shifts away from 1 and 0 too
-        parameter.data.normal_(0, 0.3)
+def test_numpy_free_run_of_a_pack_equals_each_torch_model_step_by_step(block):
+    """Two models of different widths simulated together (the narrower zero-padded) give what each torch
+    module gives alone."""
     rng = np.random.default_rng(2)
     u, y = rng.standard_normal(P + 40), rng.standard_normal(P + 40)
-    with torch.no_grad():
-        expected = subnet(torch.tensor(u[None, :P]), torch.tensor(y[None, :P]), torch.tensor(u[None, P:]))[0].numpy()
-    np.testing.assert_allclose(simulate_subnet(subnet, u, y, P)[P:], expected, rtol=1e-10, atol=1e-12)
-    np.testing.assert_array_equal(simulate_subnet(subnet, u, y, P)[:P], y[:P])
+    subnets = []
+    for seed, width in ((0, 8), (1, 5)):
+        torch.manual_seed(seed)
+        subnets.append(SUBNET(state_dim=NX, past=P, width=width, depth=2, block=block).double())
+        for parameter in subnets[-1].parameters():  # LayerNorm scales and shifts away from 1 and 0 too
+            parameter.data.normal_(0, 0.3)
+    simulated = simulate_subnet(numpy_of(*subnets), NX, P, np.stack([u, u]), np.stack([y, y]), P)
+    for subnet, row in zip(subnets, simulated, strict=True):
+        with torch.no_grad():
+            expected = subnet(torch.tensor(u[None, :P]), torch.tensor(y[None, :P]), torch.tensor(u[None, P:]))[0]
+        np.testing.assert_allclose(row[P:], expected.numpy(), rtol=1e-10, atol=1e-12)
+        np.testing.assert_array_equal(row[:P], y[:P])
 
-    torch.manual_seed(3)
-    narx = NARX(past_outputs=6, past_inputs=4, width=5, depth=2, block=block).double()
-    simulated = simulate_narx(narx, u, y, init=P)
-    fed_back = y.copy()
-    with torch.no_grad():
-        for t in range(P, len(u)):
-            fed_back[t] = narx(torch.tensor(fed_back[None, t - 6:t]), torch.tensor(u[None, t - 4:t + 1])).item()
-    np.testing.assert_allclose(simulated, fed_back, rtol=1e-10, atol=1e-12)
+    narxes = []
+    for seed, width in ((3, 5), (4, 2)):
+        torch.manual_seed(seed)
+        narxes.append(NARX(past_outputs=6, past_inputs=4, width=width, depth=2, block=block).double())
+    mlps = numpy_of(*narxes)
+    simulated = simulate_narx(mlps["net"], 6, 4, np.stack([u, u]), np.stack([y, y]), init=P)
+    one_step = one_step_narx(mlps["net"], 6, 4, np.stack([u, u]), np.stack([y, y]), init=P)
+    for narx, free_row, one_step_row in zip(narxes, simulated, one_step, strict=True):
+        fed_back, measured_past = y.copy(), y.copy()
+        with torch.no_grad():
+            for t in range(P, len(u)):
+                fed_back[t] = narx(torch.tensor(fed_back[None, t - 6:t]), torch.tensor(u[None, t - 4:t + 1])).item()
+                measured_past[t] = narx(torch.tensor(y[None, t - 6:t]), torch.tensor(u[None, t - 4:t + 1])).item()
+        np.testing.assert_allclose(free_row, fed_back, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(one_step_row, measured_past, rtol=1e-10, atol=1e-12)

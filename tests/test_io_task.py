@@ -31,6 +31,7 @@ def test_a_narx_task_writes_one_row_with_the_study_resources(compose):
     assert row["steps"] == 2 * row["train_points"]  # n_i = m n_l
     assert row["flops"] == row["params"] * row["steps"] * 256  # c = p n_i B
     assert row["nmse"] < 0.5  # a fitted model, far better than predicting the mean (nMSE 1)
+    assert row["nmse_one_step_test"] < row["nmse"]  # measured past outputs help
     again = run_task(compose(*NARX_TASK, "force=true")).row
     assert (again["nmse"], again["final_loss"]) == (row["nmse"], row["final_loss"])  # config + seed decide
 
@@ -40,8 +41,11 @@ def test_a_subnet_task_counts_compute_over_its_horizon_and_reports_rmse_in_mv(co
     row = run_task(cfg).row
     assert row["status"] == "ok" and row["steps"] == row["train_points"]
     assert row["flops"] == row["params"] * row["steps"] * 256 * 150  # c = p n_i B T, T = 150 on Silverbox
-    measured = load_benchmark(OmegaConf.to_container(cfg.system, resolve=True), cache).test.y[50:]
+    measured = load_benchmark(OmegaConf.to_container(cfg.system, resolve=True), cache).tests["test"].y[50:]
     assert row["rmse_mv"] == pytest.approx(1000 * np.sqrt(row["nmse"]) * measured.std(ddof=1), rel=1e-9)
+    assert (row["nmae"], row["nmse"], row["rmse_mv"]) == (
+        row["nmae_free_run_test"], row["nmse_free_run_test"], row["rmse_mv_free_run_test"])
+    assert "nmae_one_step_test" not in row  # SUBNET is scored in simulation only
 
 
 @pytest.mark.parametrize(("override", "message"), [

@@ -29,24 +29,27 @@ def io_system(name: str, **source) -> dict:
     ("silverbox_sim", 64_000, 1_062, 40_475), ("wiener_hammerstein_sim", 80_000, 20_000, 78_800)])
 def test_stand_ins_have_the_benchmarks_shapes_and_are_reproducible(name, train, validation, test, cache, tmp_path):
     records = load_benchmark(io_system(name), cache)
-    assert (len(records.train), len(records.validation), len(records.test)) == (train, validation, test)
-    for record in (records.train, records.validation, records.test):
+    assert (len(records.train), len(records.validation), len(records.tests["test"])) == (train, validation, test)
+    for record in (records.train, records.validation, records.tests["test"]):
         assert record.u.shape == record.y.shape and np.isfinite(record.y).all()
         assert 0.01 < record.y.std() < 1.0  # volts, like the measured records
     fresh = load_benchmark(io_system(name), ArrayCache(tmp_path))  # simulated again, not read from the cache
-    assert np.array_equal(fresh.test.y, records.test.y) and np.array_equal(fresh.train.u, records.train.u)
-    assert not np.allclose(records.train.u[:1000], records.test.u[:1000])  # separate input realisations
+    assert np.array_equal(fresh.tests["test"].y, records.tests["test"].y)
+    assert np.array_equal(fresh.train.u, records.train.u)
+    assert not np.allclose(records.train.u[:1000], records.tests["test"].u[:1000])  # separate input realisations
 
 
 @MEASURED
 def test_measured_records_load_through_the_loader_with_the_official_split_sizes(tmp_path, cache):
     place_data(compose_config([f"source={SHARED_DATA}", f"data_dir={tmp_path}"], "place_data"))
     silverbox = load_benchmark(io_system("silverbox", data_dir=str(tmp_path)), cache)
-    assert (len(silverbox.train), len(silverbox.validation), len(silverbox.test)) == (64_000, 1_062, 40_475)
-    assert silverbox.test.y.std() == pytest.approx(0.05345, abs=1e-4)  # arrow (full): 53.45 mV
+    assert (len(silverbox.train), len(silverbox.validation)) == (64_000, 1_062)
+    assert list(silverbox.tests) == ["multisine", "arrow_full", "arrow_no_extrapolation"]
+    assert len(silverbox.tests["arrow_full"]) == 40_475
+    assert silverbox.tests["arrow_full"].y.std() == pytest.approx(0.05345, abs=1e-4)  # arrow (full): 53.45 mV
     wh = load_benchmark(io_system("wiener_hammerstein", data_dir=str(tmp_path)), cache)
-    assert (len(wh.train), len(wh.validation), len(wh.test)) == (80_000, 20_000, 78_800)
-    assert wh.test.y.std() == pytest.approx(0.24386, abs=1e-4)
+    assert (len(wh.train), len(wh.validation), len(wh.tests["test"])) == (80_000, 20_000, 78_800)
+    assert wh.tests["test"].y.std() == pytest.approx(0.24386, abs=1e-4)
 
 
 def write_wh_file(data_dir: Path, u, y) -> None:

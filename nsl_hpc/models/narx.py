@@ -18,6 +18,10 @@ class NARX(nn.Module):
         """past_y (B, n_y) = y_{t-n_y..t-1}, inputs (B, n_u + 1) = u_{t-n_u..t} (oldest first) -> y_t (B,)."""
         return self.net(torch.cat([past_y, inputs], dim=-1))[:, 0]
 
+    def mlps(self) -> dict[str, nn.Sequential]:
+        """Its MLPs by name (a packed path stacks them)."""
+        return {"net": self.net}
+
     def counted_parameters(self) -> int:
         """p of the compute and model-size resources: every parameter."""
         return sum(p.numel() for p in self.parameters())

@@ -32,6 +32,10 @@ class SUBNET(nn.Module):
             x = x + self.f(torch.cat([x, future_u[:, k:k + 1]], dim=-1))
         return self.h(torch.stack(states, dim=1))[..., 0]  # h of all T states at once
 
+    def mlps(self) -> dict[str, nn.Sequential]:
+        """Its MLPs by name (a packed path stacks them)."""
+        return {"encoder": self.encoder, "f": self.f, "h": self.h}
+
     def counted_parameters(self) -> int:
         """p of the compute and model-size resources: f and h (the encoder runs once per sequence)."""
         return sum(p.numel() for module in (self.f, self.h) for p in module.parameters())

@@ -4,7 +4,7 @@ their simulated stand-ins, and their split into training pool, validation and te
 
 A task trains on the prefix u_1..u_{n_l}, y_1..y_{n_l} of the training pool (the first ``train_samples``
 samples of the benchmark's training record); the rest of that record is the validation split, kept out of
-training and not used for selection. The score is a free-run simulation of the test record.
+training and not used for selection. Every test record of the benchmark (``system.tests``) is scored.
 """
 
 import contextlib
@@ -45,28 +45,29 @@ class Signals:
 class Benchmark:
     train: Signals  # the training pool: a task trains on its first n_l samples
     validation: Signals  # the rest of the training record, never trained on
-    test: Signals  # scored in free-run simulation after its first `init_samples` samples
+    tests: dict[str, Signals]  # the test records by name (system.tests); scored after their first init_samples
 
 
 def load_benchmark(system_cfg: Mapping[str, Any], cache: ArrayCache) -> Benchmark:
     """The records of an input-output system (measured or simulated), split as configured."""
     source = system_cfg["source"]
     if source["kind"] == "benchmark":
-        train, test = read_measured(system_cfg["name"], source)
+        train, tests = read_measured(system_cfg["name"], source, system_cfg["tests"])
         origin = f" of {measured_file(source)}"
     else:
-        train, test = simulated_signals(system_cfg, cache)
+        train, tests = simulated_signals(system_cfg, cache)
         origin = ""
     pool = system_cfg["train_samples"]
     if len(train) < pool:
         raise ConfigError(f"{system_cfg['name']}: the training record{origin} has {len(train):,} samples, fewer "
                           f"than system.train_samples={pool:,} (the largest data tier)")
-    return Benchmark(train.head(pool), Signals(train.u[pool:], train.y[pool:]), test)
+    return Benchmark(train.head(pool), Signals(train.u[pool:], train.y[pool:]), tests)
 
 
-def read_measured(name: str, source: Mapping[str, Any]) -> tuple[Signals, Signals]:
-    """Training and test record read by ``nonlinear_benchmarks.<loader>(dir_placement=data_dir)``; the files
-    are checked first, so a missing copy is our one-line error, never a download attempt."""
+def read_measured(name: str, source: Mapping[str, Any], names: list[str]) -> tuple[Signals, dict[str, Signals]]:
+    """Training record and test records (named ``names``, in the loader's order) read by
+    ``nonlinear_benchmarks.<loader>(dir_placement=data_dir)``; the files are checked first, so a missing copy
+    is our one-line error, never a download attempt."""
     import nonlinear_benchmarks  # imported here: only tasks on measured data need it
 
     require_files(name, source)
@@ -79,8 +80,12 @@ def read_measured(name: str, source: Mapping[str, Any]) -> tuple[Signals, Signal
     except Exception as error:
         raise ConfigError(f"{name}: cannot read {data_file} ({type(error).__name__}: {error}); replace it with "
                           "an intact copy of the benchmark file") from None
+    if len(tests) != len(names):
+        raise ConfigError(f"{name}: {data_file} holds {len(tests)} test records, system.tests names {len(names)} "
+                          f"({', '.join(names)})")
     return (checked_signals(name, data_file, "training", train.u, train.y),
-            checked_signals(name, data_file, "test", tests[source["test_index"]].u, tests[source["test_index"]].y))
+            {test_name: checked_signals(name, data_file, f"{test_name} test", test.u, test.y)
+             for test_name, test in zip(names, tests, strict=True)})
 
 
 def require_files(name: str, source: Mapping[str, Any]) -> None:
@@ -110,19 +115,22 @@ def checked_signals(name: str, data_file: Path, part: str, u: Any, y: Any) -> Si
     return Signals(u, y)
 
 
-def simulated_signals(system_cfg: Mapping[str, Any], cache: ArrayCache) -> tuple[Signals, Signals]:
-    """Training and test record of a stand-in, simulated once per configuration and then read from cache."""
+def simulated_signals(system_cfg: Mapping[str, Any], cache: ArrayCache) -> tuple[Signals, dict[str, Signals]]:
+    """Training record and test records (``system.tests``) of a stand-in, simulated once per configuration and
+    then read from cache."""
     key = {"version": STANDIN_VERSION, "system": dict(system_cfg)}
+    parts = ["train", *system_cfg["tests"]]
 
     def create() -> dict[str, np.ndarray]:
-        parts = {}
-        for part in ("train", "test"):
+        arrays = {}
+        for part in parts:
             record = simulate_signals(system_cfg, part)
-            parts[f"{part}_u"], parts[f"{part}_y"] = record.u, record.y
-        return parts
+            arrays[f"{part}_u"], arrays[f"{part}_y"] = record.u, record.y
+        return arrays
 
     arrays = cache.get_or_create(key, create)
-    return Signals(arrays["train_u"], arrays["train_y"]), Signals(arrays["test_u"], arrays["test_y"])
+    records = {part: Signals(arrays[f"{part}_u"], arrays[f"{part}_y"]) for part in parts}
+    return records.pop("train"), records
 
 
 def simulate_signals(system_cfg: Mapping[str, Any], part: str) -> Signals:

@@ -1,0 +1,321 @@
+"""NARX or SUBNET models of one architecture and depth trained K at a time, each as if alone: the input-output
+fast path (K = 1 is the single-model path).
+
+Each model keeps its own initial weights, width, training prefix (and its scaling), window shuffle, iteration
+count and learning-rate schedule: at iteration s model k takes the s-th mini-batch it takes in the plain loop
+(``training.train_io_model``: each pass a fresh permutation of its W windows on its own generator, cut into
+W // b batches of b = min(B, W)). Batches of different sizes are padded and masked (zero loss weight); a model
+that has finished gets padding and learning rate 0 until the end of the block of ``BLOCK_STEPS`` iterations,
+then leaves. A model whose loss is not finite at the end of a pass has diverged (as in the plain loop) and
+leaves at the end of the block.
+
+The MLPs of all K models (``model.mlps()``) are batched MLPs, weights (K, in, n_h), zero-padded to the widest
+n_h: LayerNorm averages over each model's own units and padded entries get exactly zero gradient, so a padded
+model computes and learns what it does alone. All parameters of a model are one row of ``theta`` (K, P):
+clipping and Adam are a few operations on (K, P) tensors (``studies.training.Adam``). SUBNET's T-step rollout
+advances all K models at once, and the inputs' part of f's first layer is computed for all T steps at once.
+"""
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional
+
+from nsl_hpc.models.blocks import LAYER_NORM_EPS, masked_layer_norm
+from nsl_hpc.models.narx import NARX
+from nsl_hpc.studies.input_output.data import Signals
+from nsl_hpc.studies.input_output.training import SignalScaling
+from nsl_hpc.studies.training import Adam, TrainingOutcome, learning_rate_at
+
+BLOCK_STEPS = 16  # iterations whose batch orders and learning rates are prepared at once (a heartbeat each)
+
+Layer = tuple[torch.Tensor, ...]  # weight (K, in, out), bias (K, 1, out)[, LayerNorm scale, shift (K, 1, out)]
+
+
+@dataclass(frozen=True)
+class IOMember:
+    """One model of a pack, initialised, with what it trains on: the training prefix ``record``, its scaling,
+    ``iterations`` optimizer steps and the seed of its window shuffle."""
+
+    model: nn.Module
+    record: Signals
+    scaling: SignalScaling
+    iterations: int
+    shuffle_seed: int
+
+
+def mlp_shape(net: nn.Sequential) -> tuple[int, int, int, bool]:
+    """(inputs, outputs, depth, LayerNorm) of an MLP of ``nsl_hpc.models.blocks.mlp``."""
+    linears = [layer for layer in net if isinstance(layer, nn.Linear)]
+    return (linears[0].in_features, linears[-1].out_features, len(linears) - 1,
+            any(isinstance(layer, nn.LayerNorm) for layer in net))
+
+
+class PackedMLPs:
+    """The MLPs of K models of one architecture, depth and block as batched MLPs; ``theta`` (K, P) holds every
+    parameter, zero-padded to the widest hidden width ``width``."""
+
+    def __init__(self, models: Sequence[nn.Module], dtype: torch.dtype):
+        first = models[0].mlps()
+        self.shapes = {name: mlp_shape(net) for name, net in first.items()}
+        if any({name: mlp_shape(net) for name, net in model.mlps().items()} != self.shapes for model in models):
+            raise ValueError(f"models packed together need one architecture, depth and block ({type(models[0])}, "
+                             f"MLPs {self.shapes}); widths may differ")
+        self.depth, self.layer_norm = next(iter(self.shapes.values()))[2:]
+        own = [next(iter(model.mlps().values()))[0].out_features for model in models]
+        self.width = max(own)
+        size = sum(rows * columns for name in self.shapes for layer in self.tensor_shapes(name)
+                   for rows, columns in layer)
+        self.use_theta(torch.zeros(len(models), size, dtype=dtype))
+        mask = torch.zeros_like(self.theta)
+        with torch.no_grad():
+            for k, model in enumerate(models):
+                self.load(k, model, mask)
+        self.gradient_mask = mask  # (K, P): 0 on padding
+        units = torch.tensor(own, dtype=dtype)
+        self.model_units = (torch.arange(self.width) < units[:, None]).to(dtype)[:, None], (1.0 / units)[:, None, None]
+        self.models = torch.arange(len(models))  # the models of the rows of theta
+        self.units = self.model_units
+
+    def tensor_shapes(self, name: str) -> list[list[tuple[int, int]]]:
+        """(rows, columns) of each tensor of each layer of MLP ``name``."""
+        inputs, outputs, depth, layer_norm = self.shapes[name]
+        norm = [(1, self.width)] * 2 if layer_norm else []
+        return [*([[(fan_in, self.width), (1, self.width), *norm]
+                   for fan_in in [inputs] + [self.width] * (depth - 1)]),
+                [(self.width, outputs), (1, outputs)]]
+
+    def layers(self, theta: torch.Tensor) -> dict[str, list[Layer]]:
+        """Per MLP, per layer, views (K, rows, columns) of its tensors in ``theta`` (K, P)."""
+        views, offset = {}, 0
+        for name in self.shapes:
+            layers = []
+            for shapes in self.tensor_shapes(name):
+                tensors = []
+                for rows, columns in shapes:
+                    tensors.append(theta[:, offset:offset + rows * columns].view(-1, rows, columns))
+                    offset += rows * columns
+                layers.append(tuple(tensors))
+            views[name] = layers
+        return views
+
+    def use_theta(self, theta: torch.Tensor) -> None:
+        """Hold the parameters in ``theta`` (K, P); the trained layers are leaf views into it."""
+        self.theta = theta
+        self.trained = self.layers(theta)
+        self.parameters = [tensor.requires_grad_(True) for layers in self.trained.values() for layer in layers
+                           for tensor in layer]
+
+    def load(self, k: int, model: nn.Module, mask: torch.Tensor) -> None:
+        """Copy the parameters of ``model`` into row k; set its entries of ``mask`` (K, P) to 1."""
+        masks = self.layers(mask)
+        for name, net in model.mlps().items():
+            linears = [layer for layer in net if isinstance(layer, nn.Linear)]
+            norms = [layer for layer in net if isinstance(layer, nn.LayerNorm)] + [None] * len(linears)
+            for tensors, mask_tensors, linear, norm in zip(self.trained[name], masks[name], linears, norms,
+                                                           strict=False):
+                values = [linear.weight.T, linear.bias[None]]
+                if norm is not None:
+                    values += [norm.weight[None], norm.bias[None]]
+                for tensor, tensor_mask, value in zip(tensors, mask_tensors, values, strict=True):
+                    tensor[k, :value.shape[0], :value.shape[1]] = value
+                    tensor_mask[k, :value.shape[0], :value.shape[1]] = 1.0
+
+    def keep(self, rows: torch.Tensor) -> None:
+        """Keep only the models of ``rows`` (K',): ``theta`` becomes a new (K', P) tensor."""
+        self.use_theta(self.theta.detach()[rows])
+        self.gradient_mask = self.gradient_mask[rows]
+        self.models = self.models[rows]
+        self.units = tuple(tensor[self.models] for tensor in self.model_units)
+
+    @property
+    def padded(self) -> bool:
+        """Some model training is narrower than ``width``."""
+        return bool((self.units[0] == 0).any())
+
+    def parameter_gradient(self, loss: torch.Tensor) -> torch.Tensor:
+        """d loss / d parameters (K, P), exactly 0 on padding entries."""
+        grads = torch.autograd.grad(loss, self.parameters, materialize_grads=True)
+        return torch.cat([grad.reshape(len(self.theta), -1) for grad in grads], dim=1).mul_(self.gradient_mask)
+
+    def run(self, name: str, x: torch.Tensor | None, first: torch.Tensor | None = None) -> torch.Tensor:
+        """Output (K, B, out) of the trained MLP ``name`` for x (K, B, in), or from its first layer's
+        pre-activation ``first`` (K, B, width)."""
+        layers = self.trained[name]
+        for weight, bias, *norm in layers[:-1]:
+            a = torch.baddbmm(bias, x, weight) if first is None else first
+            first, x = None, self.activate(a, norm)
+        weight, bias = layers[-1]
+        return torch.baddbmm(bias, x, weight)
+
+    def activate(self, a: torch.Tensor, norm: list[torch.Tensor]) -> torch.Tensor:
+        """A hidden layer's activation of its pre-activation a (K, B, width): tanh, or LayerNorm over each
+        model's own units with its scale and shift, then SiLU."""
+        if not norm:
+            return torch.tanh(a)
+        scale, shift = norm
+        padded = self.padded
+        if len(a) == 1 and not padded:  # one model: torch's fused LayerNorm as the module computes it
+            return functional.silu(functional.layer_norm(a, a.shape[-1:], scale.view(-1), shift.view(-1),
+                                                         LAYER_NORM_EPS))
+        if padded:
+            normalized, _ = masked_layer_norm(a, self.units[0], self.units[1])
+        else:
+            normalized = functional.layer_norm(a, a.shape[-1:], eps=LAYER_NORM_EPS)
+        return functional.silu(torch.addcmul(shift, normalized, scale))
+
+
+class Windows:
+    """The training windows of the members' standardised records (zero-padded to the longest, (K, N)), by
+    the index w of their first sample: NARX regressors y_{t-n_y..t-1}, u_{t-n_u..t} with t = w + max(n_y, n_u)
+    and the target y_t; SUBNET sub-sequences u, y_{w..w+P+T-1}."""
+
+    def __init__(self, members: Sequence[IOMember], horizon: int, dtype: torch.dtype):
+        model = members[0].model
+        self.narx = isinstance(model, NARX)
+        if self.narx:
+            self.past = max(model.past_outputs, model.past_inputs)
+            length = self.past + 1
+        else:
+            self.past, self.horizon, self.state_dim = model.past, horizon, model.state_dim
+            length = model.past + horizon
+        self.counts = [len(member.record) - length + 1 for member in members]
+        records = [member.scaling.normalise(member.record) for member in members]
+        samples = max(len(member.record) for member in members)
+        as_rows = lambda signals: torch.stack([  # noqa: E731
+            nn.functional.pad(torch.as_tensor(signal, dtype=dtype), (0, samples - len(signal))) for signal in signals])
+        self.u, self.y = as_rows(u for u, _ in records), as_rows(y for _, y in records)
+        if self.narx:  # positions in (y, u) concatenated of a window's regressors
+            self.offsets = torch.cat([torch.arange(self.past - model.past_outputs, self.past),
+                                      samples + torch.arange(self.past - model.past_inputs, self.past + 1)])
+        else:
+            self.offsets = torch.arange(length)
+        self.signals = torch.cat([self.y, self.u], dim=1) if self.narx else None
+
+    def keep(self, rows: torch.Tensor) -> None:
+        self.u, self.y = self.u[rows], self.y[rows]
+        if self.narx:
+            self.signals = self.signals[rows]
+
+    def gather(self, signal: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:
+        """signal (K, N') at ``offsets`` after each of ``starts`` (K, B): (K, B, len(offsets))."""
+        index = (starts[..., None] + self.offsets).flatten(1)
+        return signal.gather(1, index).view(*starts.shape, len(self.offsets))
+
+    def losses(self, nets: PackedMLPs, starts: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """The loss (K,) of each model on its windows ``starts`` (K, B): the sum of ``weights`` (K, B) times the
+        squared error of each window (NARX: one step ahead; SUBNET: summed over its T simulated steps)."""
+        if self.narx:
+            predicted = nets.run("net", self.gather(self.signals, starts))[..., 0]
+            target = self.y.gather(1, starts + self.past)
+            return ((predicted - target).square() * weights).sum(dim=1)
+        u, y = self.gather(self.u, starts), self.gather(self.y, starts)  # (K, B, P + T)
+        past = self.past
+        x = nets.run("encoder", torch.cat([u[..., :past], y[..., :past]], dim=-1))  # (K, B, n_x)
+        weight, bias, *_ = nets.trained["f"][0]
+        from_inputs = torch.addcmul(bias[:, None], u[..., past:].transpose(1, 2)[..., None],
+                                    weight[:, None, self.state_dim:])  # (K, T, B, width): u's part, every step
+        w_x = weight[:, :self.state_dim]
+        states = []
+        for k in range(self.horizon):
+            states.append(x)
+            x = x + nets.run("f", None, first=torch.baddbmm(from_inputs[:, k], x, w_x))
+        simulated = nets.run("h", torch.stack(states, dim=2).flatten(1, 2)).view(y.shape[0], y.shape[1], -1)
+        return ((simulated - y[..., past:]).square().sum(dim=2) * weights).sum(dim=1)
+
+
+class WindowOrder:
+    """The windows one member trains on, iteration after iteration: each pass a fresh ``torch.randperm`` of its
+    ``windows`` (its own generator) cut into windows // b batches of b = min(B, windows); -1 pads a batch to
+    ``width`` and fills the iterations after its last."""
+
+    def __init__(self, windows: int, batch: int, iterations: int, seed: int, width: int):
+        self.windows, self.batch, self.width = windows, batch, width
+        self.per_pass, self.remaining = windows // batch, iterations
+        self.generator = torch.Generator().manual_seed(seed)
+        self.pending = torch.empty(0, width, dtype=torch.long)
+
+    def take(self, count: int) -> torch.Tensor:
+        """Window indices (count, width) of the next ``count`` iterations."""
+        wanted = min(count, self.remaining)
+        parts, available = [self.pending], len(self.pending)
+        while available < wanted:
+            order = torch.randperm(self.windows, generator=self.generator)[:self.per_pass * self.batch]
+            parts.append(nn.functional.pad(order.view(self.per_pass, self.batch), (0, self.width - self.batch),
+                                           value=-1))
+            available += self.per_pass
+        rows = torch.cat(parts)
+        self.pending, self.remaining = rows[wanted:], self.remaining - wanted
+        return torch.cat([rows[:wanted], rows.new_full((count - wanted, self.width), -1)])
+
+
+def settle(losses: np.ndarray, start: int, iterations: int, per_pass: int) -> TrainingOutcome | None:
+    """The outcome of a model after this block's ``losses`` (its iterations start + 1 ..): diverged at the end
+    of a pass with a non-finite loss, finished after ``iterations``, or None (still training)."""
+    for i, loss in enumerate(losses[:max(0, iterations - start)].tolist()):
+        taken = start + i + 1
+        if (taken % per_pass == 0 or taken == iterations) and not math.isfinite(loss):
+            return TrainingOutcome(taken, loss, finite=False)
+        if taken == iterations:
+            return TrainingOutcome(taken, loss, finite=True)
+    return None
+
+
+def train_packed(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon: int,
+                 on_progress: Callable[[], None] = lambda: None
+                 ) -> tuple[PackedMLPs, torch.Tensor, list[TrainingOutcome]]:
+    """Train every member as if alone (``cfg`` is the ``train`` group; ``horizon``: SUBNET's T); returns the
+    pack, each member's trained parameters (K, P) (rows of its ``theta`` layout) and outcomes. ``on_progress``
+    is called after every block of ``BLOCK_STEPS`` iterations (a heartbeat)."""
+    dtype = getattr(torch, cfg["dtype"])
+    nets = PackedMLPs([member.model for member in members], dtype)
+    optimizer = Adam(nets.theta, cfg["grad_clip_norm"])
+    windows = Windows(members, horizon, dtype)
+    batches = [min(cfg["batch_size"], count) for count in windows.counts]
+    orders = [WindowOrder(count, batch, member.iterations, member.shuffle_seed, max(batches))
+              for count, batch, member in zip(windows.counts, batches, members, strict=True)]
+    totals = np.array([member.iterations for member in members])
+    shares = torch.tensor([1.0 / (batch * (1 if windows.narx else horizon)) for batch in batches], dtype=dtype)
+    final = nets.theta.detach().clone()
+    outcomes: list[TrainingOutcome | None] = [None if total else TrainingOutcome(0, math.nan, finite=True)
+                                              for total in totals]
+    live = [k for k, outcome in enumerate(outcomes) if outcome is None]
+    if len(live) < len(members):
+        leave(nets, optimizer, windows, live)
+    start, total = 0, int(totals.max(initial=0))
+    while live:
+        size = min(BLOCK_STEPS, total - start)
+        starts = torch.stack([orders[k].take(size) for k in live], dim=1)  # (L, K', width)
+        weights = (starts >= 0).to(dtype) * shares[live][:, None]
+        steps = np.arange(start, start + size)[:, None]
+        rates = learning_rate_at(steps, totals[live], "warmup_cosine", cfg["warmup_fraction"], cfg["lr"])
+        rates = torch.as_tensor(rates, dtype=dtype).unsqueeze(-1)  # (L, K', 1): 0 after a model's last step
+        losses = torch.empty(size, len(live), dtype=dtype)
+        for i in range(size):
+            step_losses = windows.losses(nets, starts[i].clamp_min(0), weights[i])
+            optimizer.step(nets.parameter_gradient(step_losses.sum()), rates[i])
+            losses[i] = step_losses.detach()
+        for row, k in enumerate(live):
+            outcomes[k] = settle(losses[:, row].double().numpy(), start, int(totals[k]), orders[k].per_pass)
+            if outcomes[k] is not None:
+                final[k] = nets.theta[row].detach()
+        still = [row for row, k in enumerate(live) if outcomes[k] is None]
+        if len(still) < len(live):
+            live = [live[row] for row in still]
+            leave(nets, optimizer, windows, still)
+        start += size
+        on_progress()
+    return nets, final, outcomes
+
+
+def leave(nets: PackedMLPs, optimizer: Adam, windows: Windows, rows: list[int]) -> None:
+    """Train only these rows from now on."""
+    index = torch.tensor(rows, dtype=torch.long)
+    nets.keep(index)
+    optimizer.keep(index, nets.theta)
+    windows.keep(index)

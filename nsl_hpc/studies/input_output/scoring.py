@@ -1,0 +1,148 @@
+"""Scores of trained input-output models on every test record of their benchmark, all models of a pack at
+once, in float64 numpy (a step of these tiny MLPs costs a few microseconds there, tens in torch).
+
+Every model is simulated freely (its own outputs fed back; the first ``init`` samples of a record are the
+measured ones) and a NARX model also one step ahead (measured past outputs). Columns are named
+``<metric>_<mode>_<record>``: metric nmae, nmse or rmse_mv (RMSE in mV), mode free_run or one_step, the record
+as the system's ``tests`` name it (e.g. ``nmae_free_run_arrow_full``).
+"""
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from nsl_hpc.models.blocks import LAYER_NORM_EPS
+from nsl_hpc.models.narx import NARX
+from nsl_hpc.studies.input_output.data import Signals
+from nsl_hpc.studies.input_output.packed import PackedMLPs
+from nsl_hpc.studies.input_output.training import SignalScaling
+from nsl_hpc.studies.metrics import normalized_errors
+
+CHUNK = 4096  # time steps whose inputs' part of the first layer is computed at once
+MODES = ("free_run", "one_step")
+
+
+@dataclass(frozen=True)
+class NumpyLayer:
+    """One layer of K MLPs in float64: weight (K, in, out), bias (K, 1, out) and, for a hidden layer, its
+    activation: LayerNorm over each model's own units (``units``: mask (K, 1, out), 1 / their number
+    (K, 1, 1)) with scale and shift (``norm``, (K, 1, out) each) then SiLU, or tanh when ``norm`` is None."""
+
+    weight: np.ndarray
+    bias: np.ndarray
+    norm: tuple[np.ndarray, np.ndarray] | None = None
+    units: tuple[np.ndarray, np.ndarray] | None = None
+
+    def activate(self, pre: np.ndarray) -> np.ndarray:
+        """The hidden activation of the pre-activation ``pre`` (K, B, out)."""
+        if self.norm is None:
+            return np.tanh(pre)
+        mask, inverse = self.units
+        centered = (pre - pre.sum(axis=-1, keepdims=True) * inverse) * mask
+        scale, shift = self.norm
+        t = centered / np.sqrt(np.square(centered).sum(axis=-1, keepdims=True) * inverse + LAYER_NORM_EPS)
+        t = t * scale + shift
+        return t / (1.0 + np.exp(-t))
+
+
+def numpy_mlps(nets: PackedMLPs, theta: torch.Tensor) -> dict[str, list[NumpyLayer]]:
+    """The MLPs of the pack's models with parameters ``theta`` (K, P), every model it was built from, in
+    float64."""
+    units = tuple(tensor.double().numpy() for tensor in nets.model_units)
+    mlps = {}
+    for name, layers in nets.layers(theta.detach().double()).items():
+        arrays = [[tensor.numpy() for tensor in layer] for layer in layers]
+        mlps[name] = [NumpyLayer(weight, bias, tuple(norm) or None, units) for weight, bias, *norm in arrays[:-1]]
+        mlps[name].append(NumpyLayer(*arrays[-1]))
+    return mlps
+
+
+def hidden(layers: list[NumpyLayer], first: np.ndarray) -> np.ndarray:
+    """The MLPs' output (K, B, out) given their first layer's pre-activation ``first`` (K, B, width)."""
+    h = layers[0].activate(first)
+    for layer in layers[1:-1]:
+        h = layer.activate(h @ layer.weight + layer.bias)
+    return h @ layers[-1].weight + layers[-1].bias
+
+
+def simulate_narx(net: list[NumpyLayer], past_outputs: int, past_inputs: int, u: np.ndarray, y: np.ndarray,
+                  init: int) -> np.ndarray:
+    """Free-run simulation (K, N) on standardised u, y (K, N): y_0..y_{init-1} are given, every later output
+    is predicted from the model's own past predictions. ``init`` >= max(n_y, n_u)."""
+    first = net[0]
+    w_y, w_u = first.weight[:, :past_outputs], first.weight[:, past_outputs:]
+    windows = np.lib.stride_tricks.sliding_window_view(u, past_inputs + 1, axis=1)  # window j: u_j..u_{j+n_u}
+    simulated = y.astype(float).copy()
+    for begin in range(init, u.shape[1], CHUNK):
+        stop = min(begin + CHUNK, u.shape[1])
+        from_inputs = windows[:, begin - past_inputs:stop - past_inputs] @ w_u + first.bias  # (K, chunk, width)
+        for j, t in enumerate(range(begin, stop)):
+            pre = from_inputs[:, j:j + 1] + simulated[:, None, t - past_outputs:t] @ w_y
+            simulated[:, t] = hidden(net, pre)[:, 0, 0]
+    return simulated
+
+
+def one_step_narx(net: list[NumpyLayer], past_outputs: int, past_inputs: int, u: np.ndarray, y: np.ndarray,
+                  init: int) -> np.ndarray:
+    """One-step-ahead predictions (K, N) on standardised u, y (K, N): y_t from the measured y_{t-n_y..t-1} and
+    u_{t-n_u..t}, for t >= ``init``; the first ``init`` samples are the measured ones."""
+    first = net[0]
+    w_y, w_u = first.weight[:, :past_outputs], first.weight[:, past_outputs:]
+    u_windows = np.lib.stride_tricks.sliding_window_view(u, past_inputs + 1, axis=1)
+    y_windows = np.lib.stride_tricks.sliding_window_view(y, past_outputs, axis=1)  # window j: y_j..y_{j+n_y-1}
+    predicted = y.astype(float).copy()
+    for begin in range(init, u.shape[1], CHUNK):
+        stop = min(begin + CHUNK, u.shape[1])
+        pre = (u_windows[:, begin - past_inputs:stop - past_inputs] @ w_u
+               + y_windows[:, begin - past_outputs:stop - past_outputs] @ w_y + first.bias)
+        predicted[:, begin:stop] = hidden(net, pre)[..., 0]
+    return predicted
+
+
+def simulate_subnet(mlps: Mapping[str, list[NumpyLayer]], state_dim: int, past: int, u: np.ndarray, y: np.ndarray,
+                    init: int) -> np.ndarray:
+    """Free-run simulation (K, N) on standardised u, y (K, N): the encoder reads the ``past`` samples before
+    index ``init`` (init >= P), then x_{k+1} = x_k + f(x_k, u_k), y_k = h(x_k)."""
+    encoder, f, h = mlps["encoder"], mlps["f"], mlps["h"]
+    window = np.concatenate([u[:, init - past:init], y[:, init - past:init]], axis=1)[:, None]  # (K, 1, 2P)
+    x = hidden(encoder, window @ encoder[0].weight + encoder[0].bias)  # (K, 1, n_x)
+    w_x, w_u = f[0].weight[:, :state_dim], f[0].weight[:, state_dim:]  # (K, n_x, width), (K, 1, width)
+    simulated = y.astype(float).copy()
+    for begin in range(init, u.shape[1], CHUNK):
+        stop = min(begin + CHUNK, u.shape[1])
+        from_inputs = u[:, begin:stop, None] * w_u + f[0].bias  # (K, chunk, width)
+        for j in range(stop - begin):
+            simulated[:, begin + j] = hidden(h, x @ h[0].weight + h[0].bias)[:, 0, 0]
+            x = x + hidden(f, from_inputs[:, j:j + 1] + x @ w_x)
+    return simulated
+
+
+def predictions(model: torch.nn.Module, mlps: Mapping[str, list[NumpyLayer]], u: np.ndarray, y: np.ndarray,
+                init: int) -> dict[str, np.ndarray]:
+    """Standardised outputs (K, N) of the models (of ``model``'s architecture) by mode."""
+    if isinstance(model, NARX):
+        args = (mlps["net"], model.past_outputs, model.past_inputs, u, y, init)
+        return {"free_run": simulate_narx(*args), "one_step": one_step_narx(*args)}
+    return {"free_run": simulate_subnet(mlps, model.state_dim, model.past, u, y, init)}
+
+
+def score_records(model: torch.nn.Module, mlps: Mapping[str, list[NumpyLayer]], scalings: Sequence[SignalScaling],
+                  tests: Mapping[str, Signals], init: int, mv_per_unit: float) -> list[dict[str, float]]:
+    """Per model (K, in the order of ``scalings``), its scores on every test record by name: nmae, nmse and
+    rmse_mv (RMSE times ``mv_per_unit``) of each mode, counted after the first ``init`` samples."""
+    rows: list[dict[str, float]] = [{} for _ in scalings]
+    for record_name, record in tests.items():
+        u = np.stack([scaling.normalise(record)[0] for scaling in scalings])
+        y = np.stack([scaling.normalise(record)[1] for scaling in scalings])
+        with np.errstate(all="ignore"):  # a diverged or unstable model's simulation overflows to inf / NaN
+            by_mode = predictions(model, mlps, u, y, init)
+            for mode, standardised in by_mode.items():
+                for row, scaling, output in zip(rows, scalings, standardised, strict=True):
+                    predicted, measured = output[init:] * scaling.y_std + scaling.y_mean, record.y[init:]
+                    errors = normalized_errors(measured[:, None], predicted[:, None])
+                    row.update({f"{metric}_{mode}_{record_name}": value for metric, value in errors.items()})
+                    row[f"rmse_mv_{mode}_{record_name}"] = mv_per_unit * float(
+                        np.sqrt(np.mean(np.square(predicted - measured))))
+    return rows
