@@ -39,8 +39,8 @@ def task(task_id: str, steps: int = 1000, width: int = 4, depth: int = 1, params
             "steps": steps, "params": params, "seed": seed, "epochs": epochs, "sweep_seed": 0}
 
 
-def lockstep(size: int = 4, buckets=(2, 4, 8), model_keys=()) -> dict:
-    return {"size": size, "width_buckets": list(buckets), "model_keys": list(model_keys)}
+def lockstep(size: int = 4, buckets=(2, 4, 8), model_keys=(), memory_mb: float = 1000.0) -> dict:
+    return {"size": size, "width_buckets": list(buckets), "model_keys": list(model_keys), "memory_mb": memory_mb}
 
 
 def test_predicted_seconds_follow_the_cost_model():
@@ -73,6 +73,16 @@ def test_widths_pad_to_their_bucket_and_groups_never_mix_keys_or_exceed_k():
         assert len({(t["depth"], padded_width(t["width"], [2, 4, 8])) for t in group}) == 1
     assert len(groups) == 10  # (depth 2) x (buckets 2: 6 tasks, 4: 6 tasks, 8: 3 tasks) -> 2 + 2 + 1 each
     assert all(len(g) == 1 for g in lockstep_groups(tasks, lockstep(size=1)))
+
+
+def test_a_group_holds_no_more_models_than_its_largest_fits_in_the_memory_budget():
+    """Models of 100 MB (steps 0..5) then 300 MB (6..9) in a 1,000 MB budget: 10 of the first fit, 3 of the
+    second; a model larger than the budget still trains (alone)."""
+    tasks = [{**task(f"t{i}", steps=i), "train_memory_mb": 100.0 if i < 6 else 300.0} for i in range(10)]
+    groups = lockstep_groups(tasks, lockstep(size=32, memory_mb=1000))
+    assert [[t["task_id"] for t in g] for g in groups] == [[f"t{i}" for i in range(6)], ["t6", "t7", "t8"], ["t9"]]
+    huge = [{**task("big"), "train_memory_mb": 5000.0}]
+    assert [[t["task_id"] for t in g] for g in lockstep_groups(huge, lockstep(memory_mb=1000))] == [["big"]]
 
 
 def test_milestone_tasks_of_one_model_stay_in_one_group_and_cost_their_longest_run():

@@ -33,20 +33,33 @@ def lockstep_key(task: Mapping[str, Any], buckets: Sequence[int]) -> tuple:
 
 def lockstep_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any]) -> list[list[Mapping[str, Any]]]:
     """Manifest rows in groups of the tasks of at most ``lockstep["size"]`` models (``model_of``) of one
-    ``lockstep_key`` that train in lockstep, by step count so that a group's models run about equally long;
-    size 1 trains every model alone."""
+    ``lockstep_key`` that train in lockstep, by step count so that a group's models run about equally long, and
+    so that their number times the largest's ``train_memory_mb`` stays within ``lockstep["memory_mb"]`` (a
+    model alone may exceed it); size 1 trains every model alone."""
     runs: dict[tuple, list[Mapping[str, Any]]] = {}
     for task in tasks:
         runs.setdefault(model_of(task, lockstep["model_keys"]), []).append(task)
     by_key: dict[tuple, list[list[Mapping[str, Any]]]] = {}
     for run in runs.values():
         by_key.setdefault(lockstep_key(run[0], lockstep["width_buckets"]), []).append(run)
-    groups, size = [], lockstep["size"]
+    groups = []
     for key in sorted(by_key, key=str):
         members = sorted(by_key[key], key=lambda run: (max(task["steps"] for task in run), run[0]["task_id"]))
-        groups += [[task for run in members[start:start + size] for task in run]
-                   for start in range(0, len(members), size)]
+        group: list[list[Mapping[str, Any]]] = []
+        for run in members:
+            if group and (len(group) == lockstep["size"] or (len(group) + 1) * max(
+                    memory_mb(member) for member in [*group, run]) > lockstep["memory_mb"]):
+                groups.append([task for member in group for task in member])
+                group = []
+            group.append(run)
+        if group:
+            groups.append([task for member in group for task in member])
     return groups
+
+
+def memory_mb(run: Sequence[Mapping[str, Any]]) -> float:
+    """The training memory (MB) of a model (its tasks' ``train_memory_mb``; 0 when the study has none)."""
+    return max(task.get("train_memory_mb", 0.0) for task in run)
 
 
 def model_steps(group: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any]) -> list[int]:
@@ -122,8 +135,12 @@ def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
     require_positive_int("lockstep.size", settings["size"])
     for width in settings["width_buckets"]:
         require_positive_int("lockstep.width_buckets value", width)
+    if isinstance(settings["memory_mb"], bool) or not isinstance(settings["memory_mb"], int | float) \
+            or not settings["memory_mb"] > 0:
+        raise ConfigError(f"lockstep.memory_mb={settings['memory_mb']!r} must be a positive number")
     return {"size": settings["size"] if settings["enabled"] and study.lockstep else 1,
-            "width_buckets": list(settings["width_buckets"]), "model_keys": list(study.model_keys(launch))}
+            "width_buckets": list(settings["width_buckets"]), "memory_mb": settings["memory_mb"],
+            "model_keys": list(study.model_keys(launch))}
 
 
 def check_run_settings(launch: Mapping[str, Any]) -> None:

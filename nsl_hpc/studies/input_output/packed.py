@@ -221,11 +221,11 @@ class Windows:
         from_inputs = torch.addcmul(bias[:, None], u[..., past:].transpose(1, 2)[..., None],
                                     weight[:, None, self.state_dim:])  # (K, T, B, width): u's part, every step
         w_x = weight[:, :self.state_dim]
-        states = []
-        for k in range(self.horizon):
-            states.append(x)
-            x = x + nets.run("f", None, first=torch.baddbmm(from_inputs[:, k], x, w_x))
-        simulated = nets.run("h", torch.stack(states, dim=2).flatten(1, 2)).view(y.shape[0], y.shape[1], -1)
+        outputs = []
+        for from_input in from_inputs.unbind(1):  # unbind: one backward for all T (a slice's fills (K, T, B, width))
+            outputs.append(nets.run("h", x))
+            x = x + nets.run("f", None, first=torch.baddbmm(from_input, x, w_x))
+        simulated = torch.cat(outputs, dim=2)  # (K, B, T)
         return ((simulated - y[..., past:]).square().sum(dim=2) * weights).sum(dim=1)
 
 
