@@ -41,6 +41,7 @@ from nsl_hpc import cli
 from nsl_hpc.atomic import write_text
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config
+from nsl_hpc.errors import ConfigError
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set
@@ -201,21 +202,21 @@ def interpolate(table: Mapping[tuple[int, int], float], widths: list[int], depth
     return float(np.interp(d, depths, at_depth))
 
 
-def study_manifest(*overrides: str) -> tuple[DictConfig, list[dict[str, Any]]]:
-    """The launch config and manifest rows of the input-state study (``+sweep=input_state`` and ``overrides``)."""
+def study_manifest(sweep: str, *overrides: str) -> tuple[DictConfig, list[dict[str, Any]]]:
+    """The launch config and manifest rows of a study's sweep (``+sweep=<sweep>`` and ``overrides``)."""
     from nsl_hpc.studies import study_named
     from nsl_hpc.sweep.grid import build_manifest
     from nsl_hpc.sweep.prepare import pair_configs
 
-    arguments = ["+sweep=input_state", *overrides]
+    arguments = [f"+sweep={sweep}", *overrides]
     launch = compose_config(arguments, "launch")
-    study = study_named("input_state")
+    study = study_named(launch.study.name)
     return launch, build_manifest(launch.sweep.grid, study, pair_configs(launch, arguments, study),
                                   launch.sweep_seed).to_pylist()
 
 
 def planner_core_hours(launch: DictConfig, manifest: list[dict[str, Any]]) -> float:
-    """The core-hours ``launch +sweep=input_state launcher=slurm dry_run=true`` predicts (``cost.*``)."""
+    """The core-hours ``launch +sweep=<its sweep> launcher=slurm dry_run=true`` predicts (``cost.*``)."""
     from nsl_hpc.sweep.plan import make_packs, packing_for, sweep_groups
 
     packs = make_packs(sweep_groups(manifest, launch), packing_for(launch.packing, {"name": "slurm"}))
@@ -230,7 +231,7 @@ def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, 
     milestones (shared draws); and the planner's prediction."""
     from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments
 
-    launch, manifest = study_manifest()
+    launch, manifest = study_manifest("input_state")
     grid = cfg.projection
     costs = {}
     for arch in sorted({task["arch"] for task in manifest}):
@@ -260,7 +261,7 @@ def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, 
         return seconds, len(groups)
 
     faithful, groups = ours(manifest, {**lockstep_settings(launch), "size": cfg.pack_size})
-    shared_launch, shared = study_manifest("draws=shared_across_epochs", "train.schedule_epochs=16384")
+    shared_launch, shared = study_manifest("input_state", "draws=shared_across_epochs", "train.schedule_epochs=16384")
     milestones, _ = ours(shared, {**lockstep_settings(shared_launch), "size": cfg.pack_size})
     return {"core_hours_reference": one_process_per_task("reference") / 3600,
             "core_hours_authors": one_process_per_task("authors") / 3600, "core_hours_ours": faithful / 3600,
@@ -322,28 +323,58 @@ def write_readme(path: Path, table: str) -> None:
     write_text(f"{head}{README_START}\n{table}\n{README_END}{rest.split(README_END, 1)[1]}", path)
 
 
+PARTS = ("input_state", "input_output")
+
+
+def input_state_part(cfg: DictConfig, root: Path) -> tuple[str, dict[str, Any]]:
+    """The input-state table (README's Performance) and its headline figures."""
+    bench = Bench(cfg, ArrayCache(root / "cache"))
+    speeds = speed_table(bench, cfg)
+    peak = matmul_peak_flops(cfg.matmul_size)
+    breakdown = task_breakdown(bench, cfg, root)
+    projection = projected_core_hours(bench, cfg, breakdown)
+    memory = largest_task_peak_memory(cfg, root)
+    headline = {"single_speedup_min": min(row["single_ratio"] for row in speeds),
+                "packed_speedup": min(row["packed_ratio"] for row in speeds),
+                "authors_single_speedup_min": min(row["authors_single_ratio"] for row in speeds),
+                "authors_packed_speedup": min(row["authors_packed_ratio"] for row in speeds),
+                **{k: v for k, v in projection.items() if k.startswith("core_hours")},
+                "largest_task_peak_gib": memory, "matmul_peak_gflops": peak / 1e9, "speeds": speeds,
+                "task_seconds": breakdown}
+    return report(speeds, breakdown, peak, projection, memory, cfg), headline
+
+
+def input_output_part(cfg: DictConfig, root: Path) -> tuple[str, dict[str, Any]]:
+    """The input-output table and its headline figures (``nsl_hpc.io_bench``)."""
+    from nsl_hpc import io_bench
+
+    python = [sys.executable, "-c"]
+    _, process_s = timed(lambda: subprocess.run([*python, "import nsl_hpc.sweep.task"], check=True))
+    bench = io_bench.IOBench(cfg, ArrayCache(root / "io-cache"))
+    rows = io_bench.speed_rows(bench)
+    projected = io_bench.projection(bench, process_s)
+    headline = {"io_single_speedup_min": min(row["single_ratio"] for row in rows),
+                "io_packed_speedup": min(row["packed_ratio"] for row in rows), **projected, "io_speeds": rows}
+    return io_bench.report(rows, projected, cfg.io), headline
+
+
 def main(cfg: DictConfig) -> int:
+    unknown = [part for part in cfg.parts if part not in PARTS]
+    if unknown:
+        raise ConfigError(f"parts={list(cfg.parts)} names unknown parts {unknown}; choose from: {', '.join(PARTS)}")
     torch.set_num_threads(1)
+    tables, headline = [], {}
     with tempfile.TemporaryDirectory() as folder:
-        root = Path(folder)
-        bench = Bench(cfg, ArrayCache(root / "cache"))
-        speeds = speed_table(bench, cfg)
-        peak = matmul_peak_flops(cfg.matmul_size)
-        breakdown = task_breakdown(bench, cfg, root)
-        projection = projected_core_hours(bench, cfg, breakdown)
-        memory = largest_task_peak_memory(cfg, root)
-    table = report(speeds, breakdown, peak, projection, memory, cfg)
+        for part in cfg.parts:
+            table, figures = {"input_state": input_state_part, "input_output": input_output_part}[part](
+                cfg, Path(folder))
+            tables.append(table)
+            headline.update(figures)
+    table = "\n\n".join(tables)
     print(table)
     if cfg.readme:
         write_readme(Path(cfg.readme), table)
     if cfg.out:
-        headline = {"single_speedup_min": min(row["single_ratio"] for row in speeds),
-                    "packed_speedup": min(row["packed_ratio"] for row in speeds),
-                    "authors_single_speedup_min": min(row["authors_single_ratio"] for row in speeds),
-                    "authors_packed_speedup": min(row["authors_packed_ratio"] for row in speeds),
-                    **{k: v for k, v in projection.items() if k.startswith("core_hours")},
-                    "largest_task_peak_gib": memory, "matmul_peak_gflops": peak / 1e9, "speeds": speeds,
-                    "task_seconds": breakdown}
         write_text(json.dumps(headline, indent=2), Path(cfg.out))
     return 0
 

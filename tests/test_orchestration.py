@@ -28,7 +28,8 @@ from nsl_hpc.sweep.slurm import expand_array_ids
 from nsl_hpc.sweep.task_states import ACCOUNTING_LAG_S, task_state
 
 GOLDEN = Path(__file__).parent / "golden"
-COST = {"startup_s": 2.0, "step_seconds": {"unstructured": 1e-3}, "params_per_overhead": 1000, "lockstep_extra": 0.5}
+COST = {"startup_s": 2.0, "step_seconds": {"unstructured": 1e-3}, "params_per_overhead": {"unstructured": 1000},
+        "lockstep_extra": {"unstructured": 0.5}}
 PACKING = {"enabled": True, "short_task_minutes": 5, "pack_minutes": 20, "time_safety": 3.0,
            "time_classes_minutes": [20, 60, 240]}
 

@@ -16,7 +16,7 @@ from nsl_hpc.sweep.launchers import SlurmLauncher, launcher_from
 def predicted_seconds(arch: str, steps: int, params: int, cost: Mapping[str, Any]) -> float:
     """Predicted wall time (s) of one task on one core, from the ``cost`` config (a plain dict when
     called per task of a large sweep: DictConfig lookups are slow)."""
-    per_step = cost["step_seconds"][arch] * (1 + params / cost["params_per_overhead"])
+    per_step = cost["step_seconds"][arch] * (1 + params / cost["params_per_overhead"][arch])
     return cost["startup_s"] + steps * per_step
 
 
@@ -80,10 +80,11 @@ def training_segments(group: Sequence[Mapping[str, Any]], lockstep: Mapping[str,
 
 def group_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any], lockstep: Mapping[str, Any]) -> float:
     """Predicted wall time (s) of a lockstep group: a step of its largest member costs what it costs alone,
-    plus ``cost.lockstep_extra`` of that for each further model still training (finished ones leave)."""
+    plus ``cost.lockstep_extra[arch]`` of that for each further model still training (finished ones leave)."""
     largest = max(group, key=lambda task: task["params"])
     per_step = predicted_seconds(largest["arch"], 1, largest["params"], cost) - cost["startup_s"]
-    return cost["startup_s"] + sum(steps * per_step * (1 + (models - 1) * cost["lockstep_extra"])
+    extra = cost["lockstep_extra"][largest["arch"]]
+    return cost["startup_s"] + sum(steps * per_step * (1 + (models - 1) * extra)
                                    for steps, models in training_segments(group, lockstep))
 
 
@@ -163,9 +164,9 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
         positive(f"packing.{key}", launch["packing"][key])
     for limit in launch["packing"]["time_classes_minutes"]:
         positive("packing.time_classes_minutes value", limit)
-    for arch, seconds in launch["cost"]["step_seconds"].items():
-        positive(f"cost.step_seconds.{arch}", seconds)
-    positive("cost.params_per_overhead", launch["cost"]["params_per_overhead"])
+    for key in ("step_seconds", "params_per_overhead", "lockstep_extra"):
+        for arch, value in launch["cost"][key].items():
+            positive(f"cost.{key}.{arch}", value)
     if isinstance(launcher, SlurmLauncher):
         check_signal_delay(launcher.signal_delay_s, launch["packing"]["time_classes_minutes"])
 
