@@ -1,11 +1,14 @@
 """Fit a broken NSL to every (system, arch, resource, metric) of a merged sweep.
 
     python -m nsl_hpc.fit sweep_dir=runs/demo [nsl.max_breaks=3] [nsl.objective=study]
+    python -m nsl_hpc.fit sweep_dir=runs/io metrics=[nmse,nmse_one_step_test,rmse_mv_free_run_arrow_full]
 
 Reads ``<sweep_dir>/results.parquet`` (``python -m nsl_hpc.merge``) and writes ``<sweep_dir>/nsl_fits.parquet``
 (one row per NSL: system, arch, resource, metric, b, alpha, beta, delta0, sigma_i, phi_i, delta_i, margin,
 formula, extrapolation backtest) and ``<sweep_dir>/nsl_fits.txt``. Only tasks with status ok and finite,
-positive errors are fitted; an NSL that cannot be fitted gets its reason in the ``error`` column.
+positive errors are fitted; an NSL that cannot be fitted gets its reason in the ``error`` column. ``metrics``
+picks the results columns fitted (default: ``nsl.metrics``, nmae and nmse), e.g. an input-output sweep's extra
+scores (``<metric>_<mode>_<record>``).
 """
 
 from pathlib import Path
@@ -13,13 +16,14 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.analysis.fitting import FITS_TEXT_FILE, fit_sweep, fits_path, read_results, write_fits
+from nsl_hpc.analysis.fitting import FITS_TEXT_FILE, choose_metrics, fit_sweep, fits_path, read_results, write_fits
 from nsl_hpc.sweep.manifest import require_sweep
 
 
 def main(cfg: DictConfig) -> int:
     sweep_dir = require_sweep(cfg.sweep_dir)
-    rows = fit_sweep(read_results(sweep_dir), cfg.nsl, cfg.workers)
+    results = read_results(sweep_dir)
+    rows = fit_sweep(results, choose_metrics(cfg.nsl, cfg.metrics, results), cfg.workers)
     write_fits(sweep_dir, rows)
     failed = sum(row["error"] is not None for row in rows)
     print(f"{len(rows) - failed} NSLs fitted ({failed} not fittable) -> {fits_path(sweep_dir)}, "

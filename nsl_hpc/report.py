@@ -3,6 +3,7 @@ self-contained ``<sweep_dir>/report.html`` and log it all to MLflow.
 
     python -m nsl_hpc.report sweep_dir=runs/demo
     python -m nsl_hpc.report sweep_dir=runs/demo mlflow.tracking_uri=http://mlflow.example:5000
+    python -m nsl_hpc.report sweep_dir=runs/io metrics=[nmae,nmae_one_step_test]   # other scores (README)
 
 Safe to re-run while a sweep is still going: every output is replaced atomically and MLflow runs are
 updated, not duplicated. The steps also run alone: ``python -m nsl_hpc.merge``, ``python -m nsl_hpc.fit``.
@@ -12,7 +13,15 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.figures import draw_figures, figure_stem
-from nsl_hpc.analysis.fitting import FITS_TEXT_FILE, fit_sweep, fits_path, nsl_key, read_results, write_fits
+from nsl_hpc.analysis.fitting import (
+    FITS_TEXT_FILE,
+    choose_metrics,
+    fit_sweep,
+    fits_path,
+    nsl_key,
+    read_results,
+    write_fits,
+)
 from nsl_hpc.analysis.merge import merge_sweep, results_path
 from nsl_hpc.analysis.mlflow_runs import log_to_mlflow, tracking_uri
 from nsl_hpc.analysis.prediction import what_it_takes
@@ -27,10 +36,11 @@ def main(cfg: DictConfig) -> int:
     summary = merge_sweep(sweep_dir)
     print(f"merged {summary.merged:,} tasks into {results_path(sweep_dir)}\n{summary.describe()}")
     results = read_results(sweep_dir)
-    rows = fit_sweep(results, cfg.nsl, cfg.workers)
+    chosen = choose_metrics(cfg.nsl, cfg.metrics, results)
+    rows = fit_sweep(results, chosen, cfg.workers)
     write_fits(sweep_dir, rows)
     print(f"{sum(row['error'] is None for row in rows)} of {len(rows)} NSLs fitted -> {fits_path(sweep_dir)}")
-    nsl, figure_settings = OmegaConf.to_container(cfg.nsl, resolve=True), OmegaConf.to_container(cfg.figures)
+    nsl, figure_settings = OmegaConf.to_container(chosen, resolve=True), OmegaConf.to_container(cfg.figures)
     figures = draw_figures(sweep_dir, results, rows, nsl, figure_settings)
     wanted = nsl["predict"]["report"]
     entries = what_it_takes(results, rows, wanted["resource"], wanted["metric"],

@@ -115,3 +115,15 @@ def test_an_input_output_sweep_runs_merges_and_fits(tmp_path):
     assert len(narx) == 6 and all(fit["error"] is None for fit in narx)  # 3 resources x 2 metrics
     assert "sub-grid 3 of 3" in (sweep_dir / "report.html").read_text()
     assert read_row(next((sweep_dir / "rows").rglob("*.parquet")))["arch"] in ("narx", "subnet")
+    subnets = results.column("arch").to_pylist().count("subnet")
+    assert subnets and results.column("nmae_one_step_test").null_count == subnets  # SUBNET: free run only
+
+    refit = nsl("fit", f"sweep_dir={sweep_dir}", "nsl.max_breaks=1", "nsl.bootstrap=0",
+                "metrics=[nmae_one_step_test,rmse_mv]")
+    assert refit.returncode == 0, refit.stderr
+    fits = pq.read_table(sweep_dir / "nsl_fits.parquet").to_pylist()
+    assert {fit["metric"] for fit in fits} == {"nmae_one_step_test", "rmse_mv"}
+    one_step = [fit for fit in fits if (fit["metric"], fit["system"]) == ("nmae_one_step_test", "silverbox_sim")]
+    assert one_step and all(fit["error"] is None for fit in one_step)
+    bad = nsl("fit", f"sweep_dir={sweep_dir}", "metrics=[nmae_free_run_arrow]")
+    assert bad.returncode != 0 and "nmae_free_run_arrow not among the sweep's scores; choose from: nmae" in bad.stderr

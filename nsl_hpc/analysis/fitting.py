@@ -3,7 +3,7 @@
 
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -35,6 +35,37 @@ def nsl_key(row: Mapping[str, Any]) -> str:
 
 def fits_path(sweep_dir: Path) -> Path:
     return Path(sweep_dir) / FITS_FILE
+
+
+def metric_label(column: str, labels: Mapping[str, str]) -> str:
+    """A figure label for a results column: its ``nsl.metrics`` label, or one spelled out from the
+    ``<metric>_<mode>_<record>`` name of an extra score (``nmse_one_step_arrow_full``: nMSE, one step,
+    arrow_full)."""
+    if column in labels:
+        return labels[column]
+    for metric, label in {**labels, "rmse_mv": "RMSE [mV]"}.items():
+        for mode in ("free_run", "one_step"):
+            if column.startswith(f"{metric}_{mode}_"):
+                return f"{label}, {mode.replace('_', ' ')}, {column.removeprefix(f'{metric}_{mode}_')}"
+    return column
+
+
+def choose_metrics(nsl: DictConfig, metrics: Sequence[str] | None, results: pa.Table) -> DictConfig:
+    """``nsl`` fitting the results columns ``metrics`` (None: its own ``nsl.metrics``); refused with a one-line
+    error naming the score columns there are when one is missing. The report's "What it takes" metric falls
+    back to the first chosen."""
+    if metrics is None:
+        return nsl
+    scores = [name for name in results.column_names if name.split("_")[0] in ("nmae", "nmse", "rmse")]
+    missing = [metric for metric in metrics if metric not in scores]
+    if missing or not metrics:
+        raise ConfigError(f"metrics={list(metrics)}: {', '.join(missing) or 'none chosen'} not among the sweep's "
+                          f"scores; choose from: {', '.join(scores)}")
+    chosen = OmegaConf.to_container(nsl, resolve=True)
+    chosen["metrics"] = {metric: metric_label(metric, chosen["metrics"]) for metric in metrics}
+    if chosen["predict"]["report"]["metric"] not in chosen["metrics"]:
+        chosen["predict"]["report"]["metric"] = metrics[0]
+    return OmegaConf.create(chosen)
 
 
 def read_results(sweep_dir: Path) -> pa.Table:
