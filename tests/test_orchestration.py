@@ -21,6 +21,7 @@ from nsl_hpc.sweep.plan import (
     make_packs,
     padded_width,
     plan_jobs,
+    planned_groups,
     predicted_seconds,
     time_limit_minutes,
 )
@@ -74,6 +75,19 @@ def test_widths_pad_to_their_bucket_and_groups_never_mix_keys_or_exceed_k():
         assert len({(t["depth"], padded_width(t["width"], [2, 4, 8])) for t in group}) == 1
     assert len(groups) == 10  # (depth 2) x (buckets 2: 6 tasks, 4: 6 tasks, 8: 3 tasks) -> 2 + 2 + 1 each
     assert all(len(g) == 1 for g in lockstep_groups(tasks, lockstep(size=1)))
+
+
+def test_a_group_predicted_longer_than_allowed_is_halved_until_it_fits_or_holds_one_model():
+    """8 models of 1,000 steps (1.1 ms a step alone, 0.5 of that per further model): the group of 8 takes
+    2 + 1.1 * 4.5 = 6.95 s; with 5 s allowed it is halved into 4 + 4 (2 + 1.1 * 2.5 = 4.75 s each)."""
+    tasks = [task(f"t{i}", steps=1000) for i in range(8)]
+    whole = planned_groups(tasks, lockstep(size=8), COST)
+    assert [len(group.task_ids) for group in whole] == [8] and whole[0].seconds == pytest.approx(6.95)
+    halved = planned_groups(tasks, lockstep(size=8), COST, longest_s=5.0)
+    assert [group.task_ids for group in halved] == [tuple(f"t{i}" for i in range(k, k + 4)) for k in (0, 4)]
+    assert all(group.seconds == pytest.approx(4.75) for group in halved)
+    alone = planned_groups(tasks, lockstep(size=8), COST, longest_s=1.0)  # too long even alone: one model each
+    assert sorted(len(group.task_ids) for group in alone) == [1] * 8
 
 
 def test_a_group_holds_no_more_models_than_its_largest_fits_in_the_memory_budget():

@@ -1,6 +1,7 @@
 """Planning a sweep's jobs: predicted task times, lockstep groups of same-shape tasks, packs of short
 groups, time classes, and SLURM limits."""
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -110,11 +111,22 @@ class Pack:
         return tuple(task_id for group in self.groups for task_id in group.task_ids)
 
 
-def planned_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any], cost: Mapping[str, Any]
-                   ) -> list[Group]:
-    """The lockstep groups of ``tasks`` with their predicted seconds (``make_packs``'s input)."""
-    return [Group(tuple(task["task_id"] for task in group), group_seconds(group, cost, lockstep))
-            for group in lockstep_groups(tasks, lockstep)]
+def planned_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any], cost: Mapping[str, Any],
+                   longest_s: float = math.inf) -> list[Group]:
+    """The lockstep groups of ``tasks`` with their predicted seconds (``make_packs``'s input); a group predicted
+    longer than ``longest_s`` is halved (by model, in its order) until each part fits or holds one model."""
+    planned, pending = [], lockstep_groups(tasks, lockstep)
+    while pending:
+        group = pending.pop()
+        seconds = group_seconds(group, cost, lockstep)
+        models = list(dict.fromkeys(model_of(task, lockstep["model_keys"]) for task in group))
+        if seconds > longest_s and len(models) > 1:
+            first = set(models[:len(models) // 2])
+            pending += [[task for task in group if (model_of(task, lockstep["model_keys"]) in first) == part]
+                        for part in (False, True)]
+            continue
+        planned.append(Group(tuple(task["task_id"] for task in group), seconds))
+    return planned[::-1]
 
 
 def time_limit_minutes(seconds: float, packing: Mapping[str, Any]) -> int:
@@ -220,5 +232,7 @@ def plan_jobs(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, time_facto
 
 
 def sweep_groups(tasks: Sequence[Mapping[str, Any]], launch: DictConfig) -> list[Group]:
-    """The lockstep groups of ``tasks`` (manifest rows) with the sweep's lockstep and cost settings."""
-    return planned_groups(tasks, lockstep_settings(launch), OmegaConf.to_container(launch.cost))
+    """The lockstep groups of ``tasks`` (manifest rows) with the sweep's lockstep and cost settings, none
+    predicted to outlast the largest time class when it can be split."""
+    longest_s = 60 * max(launch.packing.time_classes_minutes) / launch.packing.time_safety
+    return planned_groups(tasks, lockstep_settings(launch), OmegaConf.to_container(launch.cost), longest_s)
