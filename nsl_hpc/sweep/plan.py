@@ -115,18 +115,16 @@ def planned_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, An
                    longest_s: float = math.inf) -> list[Group]:
     """The lockstep groups of ``tasks`` with their predicted seconds (``make_packs``'s input); a group predicted
     longer than ``longest_s`` is halved (by model, in its order) until each part fits or holds one model."""
-    planned, pending = [], lockstep_groups(tasks, lockstep)
-    while pending:
-        group = pending.pop()
+    def fitting(group: list[Mapping[str, Any]]) -> list[Group]:
         seconds = group_seconds(group, cost, lockstep)
         models = list(dict.fromkeys(model_of(task, lockstep["model_keys"]) for task in group))
-        if seconds > longest_s and len(models) > 1:
-            first = set(models[:len(models) // 2])
-            pending += [[task for task in group if (model_of(task, lockstep["model_keys"]) in first) == part]
-                        for part in (False, True)]
-            continue
-        planned.append(Group(tuple(task["task_id"] for task in group), seconds))
-    return planned[::-1]
+        if seconds <= longest_s or len(models) == 1:
+            return [Group(tuple(task["task_id"] for task in group), seconds)]
+        first = set(models[:len(models) // 2])
+        return [part for half in (True, False) for part in fitting(
+            [task for task in group if (model_of(task, lockstep["model_keys"]) in first) == half])]
+
+    return [part for group in lockstep_groups(tasks, lockstep) for part in fitting(group)]
 
 
 def time_limit_minutes(seconds: float, packing: Mapping[str, Any]) -> int:
