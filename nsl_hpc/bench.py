@@ -1,8 +1,8 @@
 """Training-speed benchmark: plain PyTorch loops against ours, side by side in one process.
 
-    python -m nsl_hpc.bench [out=bench.json] [readme=README.md] [steps=300] [pack_size=32]
+    python -m nsl_hpc.bench [parts=[input_state,input_output]] [out=bench.json] [readme=README.md] [steps=300]
 
-Prints (and with ``readme=`` writes between the README's bench markers):
+Prints (and with ``readme=`` writes between the README's markers of each part) the input-state part:
 1. per architecture at a small and a large size: samples/s of two reference loops on the modules, the plain
    loop (random mini-batch gather, forward, the study's loss, backward, Adam step, zero_grad) and the authors'
    loop (a shuffling DataLoader, forward, loss, backward, clip_grad_norm_, Adam step, LambdaLR step,
@@ -16,7 +16,8 @@ Prints (and with ``readme=`` writes between the README's bench markers):
    grid's step counts; ours with epoch milestones (one model per 14 tasks that differ only in epochs, shared
    draws); and the planner's own prediction (``cost.*``, for time limits);
 5. the peak memory of the largest input-state task.
-Everything runs on one thread. ``out=`` writes the headline figures as JSON.
+and the input-output part (``nsl_hpc.io_bench``). Everything runs on one thread. ``out=`` writes the headline
+figures as JSON.
 """
 
 import copy
@@ -51,7 +52,8 @@ from nsl_hpc.studies.training import Scaling, batch_count, warmup_cosine
 from nsl_hpc.sweep.rows import write_row_atomically
 from nsl_hpc.systems import SYSTEMS
 
-README_START, README_END = "<!-- bench:start -->", "<!-- bench:end -->"
+MARKERS = {"input_state": ("<!-- bench:start -->", "<!-- bench:end -->"),
+           "input_output": ("<!-- bench-io:start -->", "<!-- bench-io:end -->")}
 
 
 def timed(function: Callable[[], Any]) -> tuple[Any, float]:
@@ -315,12 +317,14 @@ def report(speeds: list[dict], breakdown: Mapping[str, float], peak: float, proj
     return "\n".join(lines)
 
 
-def write_readme(path: Path, table: str) -> None:
+def write_readme(path: Path, table: str, part: str) -> None:
+    """Replace the block between ``part``'s markers of ``path`` with ``table``."""
+    start, end = MARKERS[part]
     text = path.read_text()
-    if README_START not in text or README_END not in text:
-        raise ValueError(f"{path} lacks the markers {README_START} ... {README_END}")
-    head, rest = text.split(README_START, 1)
-    write_text(f"{head}{README_START}\n{table}\n{README_END}{rest.split(README_END, 1)[1]}", path)
+    if start not in text or end not in text:
+        raise ValueError(f"{path} lacks the markers {start} ... {end}")
+    head, rest = text.split(start, 1)
+    write_text(f"{head}{start}\n{table}\n{end}{rest.split(end, 1)[1]}", path)
 
 
 PARTS = ("input_state", "input_output")
@@ -363,17 +367,15 @@ def main(cfg: DictConfig) -> int:
     if unknown:
         raise ConfigError(f"parts={list(cfg.parts)} names unknown parts {unknown}; choose from: {', '.join(PARTS)}")
     torch.set_num_threads(1)
-    tables, headline = [], {}
+    headline = {}
     with tempfile.TemporaryDirectory() as folder:
         for part in cfg.parts:
             table, figures = {"input_state": input_state_part, "input_output": input_output_part}[part](
                 cfg, Path(folder))
-            tables.append(table)
+            print(table, end="\n\n")
+            if cfg.readme:
+                write_readme(Path(cfg.readme), table, part)
             headline.update(figures)
-    table = "\n\n".join(tables)
-    print(table)
-    if cfg.readme:
-        write_readme(Path(cfg.readme), table)
     if cfg.out:
         write_text(json.dumps(headline, indent=2), Path(cfg.out))
     return 0
