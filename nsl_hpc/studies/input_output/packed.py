@@ -225,10 +225,10 @@ class Windows:
             states.append(x)
             x = x + nets.run("f", None, first=torch.baddbmm(from_input, x, w_x))
         steps = max(1, H_CHUNK_VALUES // (x.shape[0] * x.shape[1] * nets.width))  # h of this many steps at once
-        simulated = torch.cat([nets.run("h", torch.cat(states[k:k + steps], dim=1))
-                               for k in range(0, self.horizon, steps)], dim=1).view(*y.shape[:2], -1)  # (K, T B)
         target = y[..., past:].transpose(1, 2)  # (K, T, B)
-        return ((simulated.view(target.shape) - target).square().sum(dim=1) * weights).sum(dim=1)
+        simulated = torch.cat([nets.run("h", torch.cat(states[k:k + steps], dim=1))  # (K, steps B, 1) each
+                               for k in range(0, self.horizon, steps)], dim=1).view(target.shape)
+        return ((simulated - target).square().sum(dim=1) * weights).sum(dim=1)
 
 
 class WindowOrder:
