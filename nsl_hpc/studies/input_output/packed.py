@@ -69,7 +69,6 @@ class PackedMLPs:
         if any({name: mlp_shape(net) for name, net in model.mlps().items()} != self.shapes for model in models):
             raise ValueError(f"models packed together need one architecture, depth and block ({type(models[0])}, "
                              f"MLPs {self.shapes}); widths may differ")
-        self.depth, self.layer_norm = next(iter(self.shapes.values()))[2:]
         own = [next(iter(model.mlps().values()))[0].out_features for model in models]
         self.width = max(own)
         size = sum(rows * columns for name in self.shapes for layer in self.tensor_shapes(name)
