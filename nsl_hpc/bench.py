@@ -221,7 +221,8 @@ def planner_core_hours(launch: DictConfig, manifest: list[dict[str, Any]]) -> fl
     """The core-hours ``launch +sweep=<its sweep> launcher=slurm dry_run=true`` predicts (``cost.*``)."""
     from nsl_hpc.sweep.plan import make_packs, packing_for, sweep_groups
 
-    packs = make_packs(sweep_groups(manifest, launch), packing_for(launch.packing, {"name": "slurm"}))
+    packing = packing_for(launch.packing, {"name": "slurm"})
+    packs = make_packs(sweep_groups(manifest, launch, packing), packing)
     return sum(pack.seconds for pack in packs) / 3600
 
 

@@ -1,22 +1,27 @@
 """Remove from a sweep directory what finished tasks no longer need: submitit's pickles and logs of jobs
-whose tasks all have a row, and stale failure records and logs of tasks that succeeded since. Rows, the
-manifest, the sweep's configs and the failure records and logs of tasks without a row are kept, as are
-the files of jobs still pending or running, whatever the paths are set to. The simulated-data cache's
-entries go once every task has a row.
+whose tasks all have a row, stale failure records and logs of tasks that succeeded since, and stale training
+checkpoints (of groups whose tasks all have a row, or that are not in the manifest) and group locks no job
+renews. Rows, the manifest, the sweep's configs, the checkpoints of groups still to finish and the failure
+records and logs of tasks without a row are kept, as are the files of jobs still pending or running, whatever
+the paths are set to. The simulated-data cache's entries go once every task has a row.
 
     python -m nsl_hpc.clean sweep_dir=runs/input_state [dry_run=true]
 
 The dry run lists every path the real run removes (a folder with a trailing /: it goes with its content).
 """
 
+import contextlib
 import re
 import shutil
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
+from nsl_hpc.checkpoint import info_path
+from nsl_hpc.sweep.checkpoints import STALE_S, saved_groups
 from nsl_hpc.sweep.directory import process_alive, sweep_lock
 from nsl_hpc.sweep.failures import failure_path, task_log_path
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
@@ -55,6 +60,19 @@ def stale_failure_files(sweep_dir: Path, done: set[str], failed: set[str]) -> It
     for task_id in failed & done:
         yield failure_path(sweep_dir, task_id)
         yield task_log_path(sweep_dir, task_id)
+
+
+def stale_checkpoint_files(sweep_dir: Path, done: set[str], known: set[str]) -> Iterator[Path]:
+    """Checkpoints (with their descriptions and locks) of groups whose tasks all have a row or are not in the
+    manifest, and locks not renewed for ``STALE_S`` (their job is gone)."""
+    finished = [saved.path for saved in saved_groups(sweep_dir)
+                if all(task_id in done or task_id not in known for task_id in saved.task_ids)]
+    for path in finished:
+        yield from (path, info_path(path), path.with_suffix(".lock"))
+    for lock in (sweep_dir / "checkpoints").glob("*/*.lock"):
+        with contextlib.suppress(FileNotFoundError):
+            if lock.with_suffix(".pt") not in finished and time.time() - lock.stat().st_mtime > STALE_S:
+                yield lock
 
 
 def cache_entries(cache_dir: Path) -> Iterator[Path]:
@@ -104,7 +122,8 @@ def doomed_paths(sweep_dir: Path) -> tuple[list[Path], int, int]:
     state = read_sweep_state(sweep_dir)
     done = {task_id for task_id, status in state.states.items() if status == "done"}
     doomed = [*finished_slurm_job_files(sweep_dir, done, state.element_states),
-              *finished_local_job_files(sweep_dir), *stale_failure_files(sweep_dir, done, set(state.failures))]
+              *finished_local_job_files(sweep_dir), *stale_failure_files(sweep_dir, done, set(state.failures)),
+              *stale_checkpoint_files(sweep_dir, done, set(state.states))]
     if len(done) == len(state.states):
         doomed += cache_entries(Path(read_launch_config(sweep_dir).cache_dir))
     keep = protected(sweep_dir, done)

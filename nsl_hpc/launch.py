@@ -19,6 +19,7 @@ from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.studies.base import model_of
+from nsl_hpc.sweep.checkpoints import saved_groups
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 from nsl_hpc.sweep.executors import run_jobs
 from nsl_hpc.sweep.failures import record_failure
@@ -43,6 +44,10 @@ def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str)
     for pack in packs:
         by_limit[pack.time_limit_min] = by_limit.get(pack.time_limit_min, 0) + 1
     classes = ", ".join(f"{n:,} x {limit} min" for limit, n in sorted(by_limit.items()))
+    chains = sorted(pack.chain for pack in packs if pack.chain > 1)
+    if chains:
+        classes += (f"; {len(chains):,} longer than launcher.max_time_minutes run as chains of "
+                    f"{chains[0]}{f'-{chains[-1]}' if chains[-1] > chains[0] else ''} jobs")
     core_hours = sum(pack.seconds for pack in packs) / 3600
     predicted = f"{core_hours:,.1f} core-hours" if core_hours >= 1 else f"{core_hours * 60:.1f} core-minutes"
     notes = "".join([f", {prepared.queued:,} queued in SLURM (not submitted again)" if prepared.queued else "",
@@ -66,7 +71,7 @@ def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> int:
     """Prepare the sweep directory, print the plan, and (unless a dry run) run or submit the tasks to run."""
     prepared = prepare_sweep(cfg, built, sweep_dir)
     lockstep, tasks = lockstep_settings(cfg), prepared.todo.to_pylist()
-    packs = plan_jobs(tasks, cfg)
+    packs = plan_jobs(tasks, cfg, saved=[saved.task_ids for saved in saved_groups(prepared.sweep_dir)])
     print(describe_plan(prepared, packs, cfg.launcher.name))
     if tasks and (lockstep["size"] > 1 or lockstep["model_keys"]):
         print(describe_lockstep(tasks, packs, lockstep))

@@ -11,12 +11,13 @@ import submitit
 
 from nsl_hpc.sweep.job import JobRunner, manifest_rows
 from nsl_hpc.sweep.manifest import read_launch_config
-from nsl_hpc.sweep.plan import Group, sweep_groups
+from nsl_hpc.sweep.plan import Group, packing_for, sweep_groups
 
 
 def legacy_groups(sweep_dir: str, task_ids: Sequence[str]) -> list[Group]:
     """The lockstep groups 0.1's runner formed from a pack's task ids (with the sweep's run settings)."""
-    return sweep_groups(manifest_rows(Path(sweep_dir), task_ids), read_launch_config(Path(sweep_dir)))
+    launch = read_launch_config(Path(sweep_dir))
+    return sweep_groups(manifest_rows(Path(sweep_dir), task_ids), launch, packing_for(launch.packing, launch.launcher))
 
 
 class PackRunner(JobRunner):

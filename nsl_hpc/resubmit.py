@@ -7,8 +7,10 @@ duplicated; running and pending tasks are left alone.
     python -m nsl_hpc.resubmit sweep_dir=runs/input_state launcher=slurm launcher.partition=long
     python -m nsl_hpc.resubmit sweep_dir=runs/input_state 'states=[frozen]' watchdog.overrun_factor=100
 
-It runs with the sweep's last run settings (launcher, packing, cost, watchdog, lockstep: <sweep_dir>/run.yaml,
-written by every launch or resubmit that ran something), with those named on the command line instead.
+It runs with the sweep's last run settings (launcher, packing, cost, watchdog, lockstep, checkpoint:
+<sweep_dir>/run.yaml, written by every launch or resubmit that ran something), with those named on the command
+line instead. A group with a training checkpoint (its job crashed, was killed or lost its node) is run as that
+group again and continues from the checkpoint.
 """
 
 from collections.abc import Sequence
@@ -17,6 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.errors import ConfigError
+from nsl_hpc.sweep.checkpoints import saved_groups
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock
 from nsl_hpc.sweep.executors import run_jobs
 from nsl_hpc.sweep.manifest import RUN_SETTINGS, read_base_config, read_launch_config, require_sweep
@@ -60,7 +63,7 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
         for task in tasks:
             if state.states[task["task_id"]] == "corrupt":
                 set_aside(row_path(sweep_dir, task["task_id"]))
-        packs = plan_jobs(tasks, launch, cfg.time_factor)
+        packs = plan_jobs(tasks, launch, cfg.time_factor, [saved.task_ids for saved in saved_groups(sweep_dir)])
         print(f"resubmitting {len(tasks):,} tasks ({', '.join(cfg.states)}) in {len(packs):,} jobs "
               f"({launch.launcher.name})")
         configs = {pair: OmegaConf.to_container(read_base_config(sweep_dir, *pair), resolve=True)

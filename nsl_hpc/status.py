@@ -6,14 +6,18 @@ bar with an ETA, and the failed tasks with the last lines of their logs.
 
 `missing` tasks have no row, no failure record and no active job (cancelled, lost, never submitted);
 `corrupt` ones a file where their row belongs that is no valid row (truncated, overwritten):
-`python -m nsl_hpc.resubmit sweep_dir=<dir>` runs them again, with the failed ones.
+`python -m nsl_hpc.resubmit sweep_dir=<dir>` runs them again, with the failed ones. Groups with a training
+checkpoint are listed with their progress and how often they were resumed (a time cap's chain, a preemption,
+a requeue, a resubmit after a crash): `running (resumed 2 times)`.
 """
 
 import time
+from collections import Counter
 
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
+from nsl_hpc.sweep.checkpoints import saved_groups
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 from nsl_hpc.sweep.plan import predicted_seconds
 from nsl_hpc.sweep.task_states import STATES, SweepState, read_sweep_state
@@ -38,6 +42,22 @@ def summary(state: SweepState, cost) -> str:
     line = " | ".join(f"{name} {counts[name]:,}" for name in STATES)
     return (f"{total:,} tasks: {line}\n[{'#' * filled}{'.' * (bar_width - filled)}] "
             f"{100 * counts['done'] / total:.1f}% done, {eta}")
+
+
+def checkpoint_report(sweep_dir, state: SweepState, limit: int) -> str:
+    """A line per group with a checkpoint and tasks without a row: their state, resumes and progress."""
+    lines, now = [], time.time()
+    groups = [saved for saved in saved_groups(sweep_dir)
+              if any(state.states.get(task_id) not in (None, "done") for task_id in saved.task_ids)]
+    for saved in groups[:limit]:
+        states = Counter(state.states.get(task_id) for task_id in saved.task_ids)
+        label = "running" if states["running"] else states.most_common(1)[0][0]
+        lines.append(f"{label} (resumed {saved.resumes} time{'' if saved.resumes == 1 else 's'}): "
+                     f"{len(saved.task_ids)} task{'' if len(saved.task_ids) == 1 else 's'} in a group at step "
+                     f"{saved.step:,} of {saved.total_steps:,}, checkpoint written {now - saved.saved:.0f} s ago")
+    if len(groups) > limit:
+        lines.append(f"... and {len(groups) - limit:,} more groups with a checkpoint")
+    return "\n".join(lines)
 
 
 def failure_report(state: SweepState, limit: int) -> str:
@@ -70,9 +90,10 @@ def main(cfg: DictConfig) -> int:
         confirming = False
         time.sleep(interval)
         interval = min(interval * 1.5, cfg.max_interval_s)  # back off: sites rate-limit sacct
-    report = failure_report(state, cfg.show_failures)
-    if report:
-        print(report)
+    for report in (checkpoint_report(cfg.sweep_dir, state, cfg.show_failures),
+                   failure_report(state, cfg.show_failures)):
+        if report:
+            print(report)
     return 0
 
 

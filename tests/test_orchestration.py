@@ -17,13 +17,13 @@ from nsl_hpc.sweep.plan import (
     Pack,
     check_signal_delay,
     group_seconds,
+    job_time,
     lockstep_groups,
     make_packs,
     padded_width,
     plan_jobs,
     planned_groups,
     predicted_seconds,
-    time_limit_minutes,
 )
 from nsl_hpc.sweep.slurm import expand_array_ids
 from nsl_hpc.sweep.task_states import ACCOUNTING_LAG_S, task_state
@@ -50,11 +50,11 @@ def test_predicted_seconds_follow_the_cost_model():
 
 
 def test_time_limit_is_the_smallest_class_holding_the_safety_margin_and_too_long_is_one_line():
-    assert time_limit_minutes(6 * 60, PACKING) == 20  # 18 min with safety 3
-    assert time_limit_minutes(7 * 60, PACKING) == 60  # 21 min
-    assert time_limit_minutes(80 * 60, PACKING) == 240
+    assert job_time(6 * 60, PACKING) == (20, 1)  # 18 min with safety 3
+    assert job_time(7 * 60, PACKING) == (60, 1)  # 21 min
+    assert job_time(80 * 60, PACKING) == (240, 1)
     with pytest.raises(ConfigError, match=r"more than the largest of packing\.time_classes_minutes"):
-        time_limit_minutes(81 * 60, PACKING)
+        job_time(81 * 60, PACKING)
 
 
 def test_slurm_warning_must_leave_start_up_time_in_the_shortest_job():

@@ -9,6 +9,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.errors import ConfigError, require_positive_int
 from nsl_hpc.seeding import stable_hash, stable_seed
 
@@ -113,9 +114,10 @@ class Study:
         raise NotImplementedError
 
     def train_and_score_pack(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
-                             on_progress: Callable[[], None]) -> list[dict[str, Any]]:
+                             on_progress: Callable[[], None], checkpoint: Checkpointer | None = None
+                             ) -> list[dict[str, Any]]:
         """``train_and_score`` of each (cfg, task, sizes): one after another unless a study trains them
-        together."""
+        together (and then continues from ``checkpoint`` and writes it as training goes on)."""
         return [self.train_and_score(cfg, task, sizes, on_progress) for cfg, task, sizes in items]
 
 

@@ -98,6 +98,31 @@ class TrainingOutcome:
     final_loss: float
     finite: bool
 
+    def as_state(self) -> list:
+        """A checkpoint's form of it (``from_state`` reads it back)."""
+        return [self.steps, self.final_loss, self.finite]
+
+    @classmethod
+    def from_state(cls, state: list | None) -> "TrainingOutcome | None":
+        return None if state is None else cls(*state)
+
+
+class BatchOrder:
+    """What the per-model batch orders of the packed loops share: a shuffle ``generator``, the batches of the
+    current pass not yet taken (``pending``) and the steps still to take (``remaining``): the state a checkpoint
+    keeps."""
+
+    generator: torch.Generator
+    pending: torch.Tensor
+    remaining: int
+
+    def state(self) -> dict:
+        return {"generator": self.generator.get_state(), "pending": self.pending.clone(), "remaining": self.remaining}
+
+    def load_state(self, state: dict) -> None:
+        self.generator.set_state(state["generator"])
+        self.pending, self.remaining = state["pending"], state["remaining"]
+
 
 class Adam:
     """torch.optim.Adam with gradient-norm clipping (clip_grad_norm_), per row of ``theta`` (K, P)."""
@@ -110,6 +135,19 @@ class Adam:
     def keep(self, rows: torch.Tensor, theta: torch.Tensor) -> None:
         """Keep the moments of ``rows``; ``theta`` is the stack's new parameter tensor."""
         self.theta, self.first, self.second = theta, self.first[rows], self.second[rows]
+
+    def state(self) -> dict:
+        """The parameters, moments and step count (a checkpoint's part)."""
+        return {"theta": self.theta.detach().clone(), "first": self.first.clone(), "second": self.second.clone(),
+                "steps": self.steps}
+
+    def load_state(self, state: dict) -> None:
+        """Continue from ``state`` (of as many rows as ``theta`` has now)."""
+        with torch.no_grad():
+            self.theta.copy_(state["theta"])
+        self.first.copy_(state["first"])
+        self.second.copy_(state["second"])
+        self.steps = state["steps"]
 
     def step(self, grad: torch.Tensor, lr: torch.Tensor) -> None:
         """One update from the parameters' gradient ``grad`` (K, P), overwritten, with learning rates ``lr``

@@ -64,10 +64,11 @@ def array_chunks(packs: Sequence[Pack], max_array_size: int) -> list[list[Pack]]
     return chunks
 
 
-def slurm_executor(sweep_dir: Path, time_limit_min: int, launcher: SlurmLauncher, name: str
+def slurm_executor(sweep_dir: Path, time_limit_min: int, launcher: SlurmLauncher, name: str, chain: int = 1
                    ) -> submitit.SlurmExecutor:
-    """The submitit executor of one array: single-CPU elements of one time limit, warned before it."""
-    executor = submitit.SlurmExecutor(folder=sweep_dir / "submitit" / "%A", max_num_timeout=3)
+    """The submitit executor of one array: single-CPU elements of one time limit, warned before it, each
+    requeued up to ``chain`` + 2 times at its time limit (a chain of ``chain`` jobs, and some slack)."""
+    executor = submitit.SlurmExecutor(folder=sweep_dir / "submitit" / "%A", max_num_timeout=chain + 2)
     executor.update_parameters(
         job_name=f"nsl-{name}", time=time_limit_min, cpus_per_task=1, ntasks_per_node=1, mem=launcher.mem,
         partition=launcher.partition, account=launcher.account, qos=launcher.qos,
@@ -80,7 +81,7 @@ def slurm_executor(sweep_dir: Path, time_limit_min: int, launcher: SlurmLauncher
 def submit_array(sweep_dir: Path, packs: Sequence[Pack], time_limit_min: int, launcher: SlurmLauncher,
                  name: str) -> str:
     """One array of single-CPU elements, element i running ``packs[i]``; returns the array job id."""
-    executor = slurm_executor(sweep_dir, time_limit_min, launcher, name)
+    executor = slurm_executor(sweep_dir, time_limit_min, launcher, name, max(pack.chain for pack in packs))
     jobs = executor.map_array(JobRunner(), [str(sweep_dir)] * len(packs), [list(pack.groups) for pack in packs])
     array_id = jobs[0].job_id.split("_")[0]  # a single element is a plain job: its id has no _<index>
     record_submission(sweep_dir, array_id, time_limit_min, [job.job_id for job in jobs],

@@ -2,11 +2,22 @@
 after another, each in a watched child process that trains the group's tasks together (each writes its own
 row) with the sizes drawn in the manifest.
 
-A child that raises or crashes is recorded as failed; one whose heartbeat (every 32 steps or epoch) stops for
-``watchdog.heartbeat_timeout_s``, or that runs ``watchdog.overrun_factor`` times longer than its group's
-predicted seconds, is killed and recorded as frozen. Either way the job goes on with its next group. On SLURM's
-warning signal before the time limit (submitit calls ``checkpoint``) the running group's tasks are recorded as
-timeout and the job is requeued with the groups it has not started.
+A child that raises or crashes is recorded as failed (with how much training it lost); one whose heartbeat
+(every 32 steps or epoch) stops for ``watchdog.heartbeat_timeout_s``, or that runs ``watchdog.overrun_factor``
+times longer than its group's predicted seconds, is killed and recorded as frozen. Either way the job goes on
+with its next group.
+
+Training checkpoints (``checkpoint.every_minutes`` > 0, ``nsl_hpc.sweep.checkpoints``): the child writes its
+group's state every that many minutes and continues from it when the group runs again. On SLURM's warning
+signal (a time limit ahead or a preemption; submitit calls ``checkpoint``) the runner asks the child to write
+its state and stop (SIGUSR1), and the job is requeued with the running group and those it has not started: a
+group longer than a job's time limit runs as a chain of requeued jobs. A SIGTERM (``scontrol requeue``, a
+preemption without warning, ``scancel``) makes the child write its state and stop too; the job then ends, and
+its group continues where it stopped when the job runs again or is resubmitted. Without checkpoints, the
+warning records the running group's tasks as timeout and requeues only the groups not started.
+
+A job trains a group only while it holds the group's lock: a second job (a resubmitted one beside a requeued
+one) leaves a group that a live job trains to it.
 """
 
 import contextlib
@@ -26,9 +37,11 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.compute as pc
 import submitit
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
+from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info, remove_checkpoint
 from nsl_hpc.studies import study_named
+from nsl_hpc.sweep.checkpoints import GroupLock, checkpoint_path
 from nsl_hpc.sweep.directory import process_alive
 from nsl_hpc.sweep.failures import failure_path, record_failure, task_log_path
 from nsl_hpc.sweep.manifest import read_base_config, read_launch_config, read_manifest
@@ -38,6 +51,7 @@ from nsl_hpc.sweep.task import describe, run_tasks
 
 POLL_SECONDS = 0.2
 PR_SET_PDEATHSIG = 1  # prctl(2)
+EXIT_STOPPED = 75  # a child's exit status after it wrote its checkpoint and stopped, as asked (EX_TEMPFAIL)
 
 
 def manifest_rows(sweep_dir: Path, task_ids: Sequence[str]) -> list[dict[str, Any]]:
@@ -62,6 +76,11 @@ def task_sizes(cfg: DictConfig, task: Mapping[str, Any]) -> dict[str, Any]:
     return study_named(cfg.study.name).sizes_in(task)
 
 
+def checkpoint_seconds(launch: DictConfig) -> float:
+    """How often (s of training) a group writes its checkpoint; 0: never (a sweep from before checkpoints)."""
+    return 60.0 * OmegaConf.select(launch, "checkpoint.every_minutes", default=0)
+
+
 def die_with_parent() -> None:
     """Have the kernel kill this process when its parent ends (Linux), so no worker outlives a killed
     launcher and no task outlives its job runner; exit now if the parent is already gone."""
@@ -72,20 +91,27 @@ def die_with_parent() -> None:
         os._exit(1)
 
 
-def leave_warnings_to_the_runner() -> None:
-    """In a forked task process: ignore SLURM's warning (SIGUSR2 reaches every process of the job step) and
-    take the default SIGTERM / SIGCONT. The fork inherits submitit's handlers; a child running them checkpoints
-    and requeues the job too, racing the runner's own checkpoint ("A temporary saved file already exists": the
-    job fails and its unstarted groups are lost). The runner handles the warning and kills the child."""
+def leave_warnings_to_the_runner(checkpoint: Checkpointer | None) -> None:
+    """In a forked task process: ignore SLURM's warning (SIGUSR2 reaches every process of the job step), take
+    the default SIGCONT, and on SIGUSR1 (the runner's request) or SIGTERM write the ``checkpoint`` and stop
+    (without one: SIGTERM ends the process). The fork inherits submitit's handlers; a child running them
+    checkpoints and requeues the job too, racing the runner's own checkpoint ("A temporary saved file already
+    exists": the job fails and its unstarted groups are lost)."""
     signal.signal(signal.SIGUSR2, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     signal.signal(signal.SIGCONT, signal.SIG_DFL)
+    stop = signal.SIG_DFL if checkpoint is None else checkpoint.ask_to_stop
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGUSR1, signal.SIG_IGN if checkpoint is None else stop)
 
 
-def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], cfgs: Sequence[DictConfig], heartbeat) -> None:
+def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], cfgs: Sequence[DictConfig], heartbeat,
+              every_s: float) -> None:
     """Child process body: output to the first task's log, train the group (manifest rows ``group`` with their
-    configs ``cfgs``); exit status 1 on an exception."""
-    leave_warnings_to_the_runner()
+    configs ``cfgs``) from its checkpoint, writing one every ``every_s`` seconds (0: none); exit status 1 on an
+    exception, EXIT_STOPPED once stopped as asked."""
+    ids = [task["task_id"] for task in group]
+    checkpoint = Checkpointer(checkpoint_path(sweep_dir, ids), every_s, ids) if every_s > 0 else None
+    leave_warnings_to_the_runner(checkpoint)
     die_with_parent()
     log = task_log_path(sweep_dir, cfgs[0].task_id)
     log.parent.mkdir(parents=True, exist_ok=True)
@@ -96,8 +122,11 @@ def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], cfgs: Sequenc
     sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
     try:
         sizes = [task_sizes(cfg, task) for cfg, task in zip(cfgs, group, strict=True)]
-        for result in run_tasks(cfgs, lambda: setattr(heartbeat, "value", time.time()), sizes):
+        for result in run_tasks(cfgs, lambda: setattr(heartbeat, "value", time.time()), sizes, checkpoint):
             print(describe(result.row) if result.row else f"skipped: {result.path} exists")
+    except TrainingStopped:
+        print(f"stopped as asked; checkpoint written ({checkpoint.path.name})", flush=True)
+        os._exit(EXIT_STOPPED)
     except BaseException:
         traceback.print_exc()
         sys.stderr.flush()
@@ -114,17 +143,21 @@ class JobRunner:
 
     def __init__(self, launcher_pid: int | None = None) -> None:
         self.launcher_pid = launcher_pid
-        self.running: tuple[Path, list[str], multiprocessing.Process] | None = None
+        self.running: tuple[Path, Group, list[str], multiprocessing.Process] | None = None
         self.started: set[Group] = set()
+        self.checkpointing, self.stop_wait_s = False, 30.0
 
     def launcher_gone(self) -> bool:
         return self.launcher_pid is not None and not process_alive(self.launcher_pid)
 
     def __call__(self, sweep_dir: str, groups: Sequence[Group]) -> dict[str, int]:
         """Run the tasks of each group that have no valid row yet (a corrupt one is moved aside first) together;
-        returns counts by outcome (per task)."""
+        returns counts by outcome (per task): ok, skipped (a row exists), failed, frozen, busy (another job
+        trains the group), stopped (asked to stop; the job ends)."""
         sweep = Path(sweep_dir)
         launch = read_launch_config(sweep)
+        self.checkpointing = checkpoint_seconds(launch) > 0
+        self.stop_wait_s = launch.launcher.get("signal_delay_s", 60) / 2
         rows = manifest_rows(sweep, [task_id for group in groups for task_id in group.task_ids])
         by_id = {task["task_id"]: task for task in rows}
         counts: Counter[str] = Counter()
@@ -142,30 +175,45 @@ class JobRunner:
                 if state == "corrupt":
                     set_aside(path)
                 todo.append(by_id[task_id])
-            if todo:
-                counts[self.run_watched(sweep, todo, group.seconds, launch)] += len(todo)
+            if not todo:
+                continue
+            lock = GroupLock(sweep, [task["task_id"] for task in todo])
+            holder = lock.acquire()
+            if holder is not None:
+                print(f"a group of {len(todo)} tasks is trained by {holder}: left to it", flush=True)
+                counts["busy"] += len(todo)
+                continue
+            try:
+                outcome = self.run_watched(sweep, group, todo, launch, lock)
+            finally:
+                lock.release()
+            counts[outcome] += len(todo)
+            if outcome == "stopped":
+                break
         return dict(counts)
 
-    def run_watched(self, sweep: Path, group: Sequence[Mapping[str, Any]], predicted: float, launch: DictConfig
-                    ) -> str:
-        """Run the tasks (manifest rows) of one lockstep group, predicted to take ``predicted`` seconds, in a
-        child process under the watchdog (``launch.watchdog``); returns ok, failed or frozen (the outcome of
-        each of its tasks)."""
+    def run_watched(self, sweep: Path, planned: Group, group: Sequence[Mapping[str, Any]], launch: DictConfig,
+                    lock: GroupLock) -> str:
+        """Run the tasks (manifest rows) ``group`` of the planned group ``planned`` in a child process under the
+        watchdog (``launch.watchdog``), renewing ``lock``; returns ok, failed, frozen (the outcome of each of
+        its tasks) or stopped."""
         cfgs = [task_config(sweep, task) for task in group]
         for cfg in cfgs:
             if cfg.fault.once and failure_path(sweep, cfg.task_id).exists():
                 cfg.fault.kind = None  # test-only faults strike a task's first attempt only
-        watchdog = launch.watchdog
+        watchdog, predicted = launch.watchdog, planned.seconds
         ids = [task["task_id"] for task in group]
         context = multiprocessing.get_context("fork")
         heartbeat = context.Value("d", time.time(), lock=False)
-        child = context.Process(target=run_child, args=(sweep, group, cfgs, heartbeat), daemon=True)
+        every_s = checkpoint_seconds(launch)
+        child = context.Process(target=run_child, args=(sweep, group, cfgs, heartbeat, every_s), daemon=True)
         started = time.time()
         child.start()
-        self.running = (sweep, ids, child)
+        self.running = (sweep, planned, ids, child)
         try:
             while child.is_alive():
                 child.join(POLL_SECONDS)
+                lock.renew()
                 if self.launcher_gone():  # its task dies with it (die_with_parent)
                     os._exit(1)
                 silent, elapsed = time.time() - heartbeat.value, time.time() - started
@@ -181,10 +229,14 @@ class JobRunner:
             log.unlink(missing_ok=True)
             with contextlib.suppress(OSError):  # the bucket directory, once empty
                 log.parent.rmdir()
+            remove_checkpoint(checkpoint_path(sweep, ids))
             return "ok"
+        if child.exitcode == EXIT_STOPPED:
+            return "stopped"
         reason = (f"exit status {child.exitcode}" if child.exitcode >= 0
                   else f"killed by signal {signal.Signals(-child.exitcode).name}")
-        record_group_failure(sweep, ids, "failed", reason)
+        record_group_failure(sweep, ids, "failed", f"{reason}; {lost_work(checkpoint_path(sweep, ids), started)}"
+                             if every_s else reason)
         return "failed"
 
     @staticmethod
@@ -195,17 +247,36 @@ class JobRunner:
         return "frozen"
 
     def checkpoint(self, sweep_dir: str, groups: Sequence[Group]) -> submitit.helpers.DelayedSubmission | None:
-        """On SLURM's warning signal: record the running group's tasks as timeout, requeue the groups not
-        started (none left: no requeue, which SLURM would delay by minutes for nothing)."""
+        """On SLURM's warning signal (time limit or preemption): with checkpoints, have the running group write
+        its state and stop, and requeue it with the groups not started; without, record its tasks as timeout
+        and requeue the groups not started (none left: no requeue, which SLURM would delay by minutes for
+        nothing)."""
+        resumed = []
         if self.running is not None:
-            sweep, ids, child = self.running
+            sweep, group, ids, child = self.running
+            if self.checkpointing:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(child.pid, signal.SIGUSR1)
+                child.join(self.stop_wait_s)
+                resumed = [group]
             with contextlib.suppress(ProcessLookupError):
                 child.kill()
-            record_group_failure(sweep, ids, "timeout", "the job reached its time limit while this task ran")
-        remaining = [group for group in groups if group not in self.started]
+            if not self.checkpointing:
+                record_group_failure(sweep, ids, "timeout", "the job reached its time limit while this task ran")
+        remaining = resumed + [group for group in groups if group not in self.started]
         if not remaining:
             return None
         return submitit.helpers.DelayedSubmission(JobRunner(self.launcher_pid), sweep_dir, remaining)
+
+
+def lost_work(path: Path, started: float) -> str:
+    """How much training a group that started at ``started`` (s since the epoch) lost when it ended now, given
+    its checkpoint at ``path``."""
+    info, now = read_info(path), time.time()
+    if info is None or info["saved"] < started:
+        return f"no checkpoint since it started: {now - started:.0f} s of training lost"
+    return (f"{now - info['saved']:.0f} s of training lost since its last checkpoint (step {info['step']:,} of "
+            f"{info['total_steps']:,}); it continues from there when run again")
 
 
 def record_group_failure(sweep: Path, ids: Sequence[str], status: str, reason: str) -> None:

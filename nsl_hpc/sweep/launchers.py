@@ -39,7 +39,9 @@ class SlurmLauncher:
     qos: str | None = None  # --qos
     mem: str = "2G"  # --mem of one array element (the largest task needs < 1 GB)
     array_parallelism: int = 512  # --array=0-N%K: at most K elements of one array run at once
-    signal_delay_s: int = 120  # --signal: warn a job this long before its time limit (records `timeout`)
+    signal_delay_s: int = 120  # --signal: warn a job this long before its time limit (checkpoint and requeue)
+    max_time_minutes: int | None = None  # the site's cap on a job's time limit (e.g. 1440): a group predicted
+    #   longer runs as a chain of jobs (the job is requeued, each run continuing from the checkpoint)
     max_array_size: int | None = None  # None = MaxArraySize from `scontrol show config`
     max_job_count: int | None = None  # None = MaxJobCount from `scontrol show config`
     max_submit_jobs: int | None = None  # None = the user's MaxSubmitJobs from sacctmgr (no limit when none is set)

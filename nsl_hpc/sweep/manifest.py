@@ -6,8 +6,8 @@
 - ``configs/<system>__<arch>.yaml``: the resolved task config shared by those tasks; a task's own config is that
   with its manifest row's values set.
 - ``launch.yaml``: the launch's whole config (grid, sweep seed, study, ...), written by the first launch.
-- ``run.yaml``: the settings jobs run by (launcher, packing, cost, watchdog, lockstep), written at every launch or
-  resubmit that dispatches work: resubmit starts from the last ones.
+- ``run.yaml``: the settings jobs run by (launcher, packing, cost, watchdog, lockstep, checkpoint), written at
+  every launch or resubmit that dispatches work: resubmit starts from the last ones.
 Paths inside the sweep directory are stored relative to it (``nsl_hpc.sweep.directory.portable_paths``), so a sweep can
 be moved and its commands run from anywhere; a damaged file is a one-line error naming it.
 """
@@ -29,7 +29,7 @@ from nsl_hpc.sweep.directory import portable_paths
 MANIFEST_FILE = "manifest.parquet"
 LAUNCH_CONFIG_FILE = "launch.yaml"
 RUN_SETTINGS_FILE = "run.yaml"
-RUN_SETTINGS = ("launcher", "packing", "cost", "watchdog", "lockstep")  # what a resubmit may change
+RUN_SETTINGS = ("launcher", "packing", "cost", "watchdog", "lockstep", "checkpoint")  # what a resubmit may change
 
 
 def manifest_path(sweep_dir: Path) -> Path:
@@ -100,7 +100,8 @@ def read_launch_config(sweep_dir: Path) -> DictConfig:
     if run_file.exists():
         run = read_yaml(run_file, sweep_dir)
         for key in RUN_SETTINGS:  # each group replaced whole: a slurm launcher is no local one plus keys
-            launch[key] = run[key]
+            if key in run:  # a sweep from before checkpoints has none
+                launch[key] = run[key]
     return launch
 
 

@@ -105,6 +105,7 @@ class Pack:
     groups: tuple[Group, ...]
     seconds: float
     time_limit_min: int
+    chain: int = 1  # jobs it runs as: more than one when longer than launcher.max_time_minutes (requeued)
 
     @property
     def task_ids(self) -> tuple[str, ...]:
@@ -127,12 +128,17 @@ def planned_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, An
     return [part for group in lockstep_groups(tasks, lockstep) for part in fitting(group)]
 
 
-def time_limit_minutes(seconds: float, packing: Mapping[str, Any]) -> int:
-    """The smallest time class that holds ``time_safety`` times the predicted ``seconds``."""
+def job_time(seconds: float, packing: Mapping[str, Any]) -> tuple[int, int]:
+    """(time limit in minutes, jobs in its chain) of a job predicted at ``seconds``: the smallest time class that
+    holds ``time_safety`` times that, or, beyond the largest with a site cap (``max_time_minutes``), that cap and
+    as many jobs as hold it, each continuing from the last one's checkpoint."""
     needed = seconds * packing["time_safety"] / 60
     for limit in packing["time_classes_minutes"]:
         if needed <= limit:
-            return int(limit)
+            return int(limit), 1
+    cap = packing.get("max_time_minutes")
+    if cap:
+        return int(cap), math.ceil(needed / cap)
     raise ConfigError(f"a job predicted at {seconds / 3600:.1f} h needs {needed / 60:.1f} h with time_safety="
                       f"{packing['time_safety']}, more than the largest of packing.time_classes_minutes="
                       f"{list(packing['time_classes_minutes'])}; add a larger class or lower the safety factor")
@@ -155,7 +161,8 @@ def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def check_run_settings(launch: Mapping[str, Any]) -> None:
-    """Raise ConfigError for run settings (launcher, packing, cost, watchdog, lockstep) no job can run with."""
+    """Raise ConfigError for run settings (launcher, packing, cost, watchdog, lockstep, checkpoint) no job can
+    run with."""
     def positive(key: str, value: Any) -> None:
         if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
             raise ConfigError(f"{key}={value!r} must be a positive number")
@@ -177,8 +184,18 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
     for key in ("step_seconds", "params_per_overhead", "lockstep_extra"):
         for arch, value in launch["cost"][key].items():
             positive(f"cost.{key}.{arch}", value)
+    every = launch["checkpoint"]["every_minutes"]
+    if isinstance(every, bool) or not isinstance(every, int | float) or every < 0:
+        raise ConfigError(f"checkpoint.every_minutes={every!r} must be a number of at least 0 (0: no checkpoints)")
     if isinstance(launcher, SlurmLauncher):
-        check_signal_delay(launcher.signal_delay_s, launch["packing"]["time_classes_minutes"])
+        cap = launcher.max_time_minutes
+        if cap is not None:
+            require_positive_int("launcher.max_time_minutes", cap)
+            if not every:
+                raise ConfigError(f"launcher.max_time_minutes={cap} needs checkpoints (checkpoint.every_minutes > 0): "
+                                  "a group longer than the cap continues in its next job from its checkpoint")
+        check_signal_delay(launcher.signal_delay_s, packing_for(launch["packing"], launch["launcher"])
+                           ["time_classes_minutes"])
 
 
 def check_signal_delay(signal_delay_s: int, time_classes_minutes: Sequence[float]) -> None:
@@ -194,9 +211,16 @@ def check_signal_delay(signal_delay_s: int, time_classes_minutes: Sequence[float
 
 def packing_for(packing: Mapping[str, Any], launcher: Mapping[str, Any], time_factor: float = 1.0) -> dict[str, Any]:
     """The packing settings a launcher uses: packing is for the scheduler (local workers balance single
-    tasks), and ``time_factor`` stretches the time limits (resubmission after timeouts)."""
-    return {**packing, "enabled": packing["enabled"] and isinstance(launcher_from(launcher), SlurmLauncher),
-            "time_safety": packing["time_safety"] * time_factor}
+    tasks), ``time_factor`` stretches the time limits (resubmission after timeouts), and a site cap
+    (``launcher.max_time_minutes``) bounds the time classes."""
+    chosen = launcher_from(launcher)
+    cap = getattr(chosen, "max_time_minutes", None)
+    classes = list(packing["time_classes_minutes"])
+    if cap:
+        classes = [limit for limit in classes if limit < cap] + [cap]
+    return {**packing, "enabled": packing["enabled"] and isinstance(chosen, SlurmLauncher),
+            "time_safety": packing["time_safety"] * time_factor, "time_classes_minutes": classes,
+            "max_time_minutes": cap}
 
 
 def make_packs(groups: Sequence[Group], packing: Mapping[str, Any]) -> list[Pack]:
@@ -207,7 +231,7 @@ def make_packs(groups: Sequence[Group], packing: Mapping[str, Any]) -> list[Pack
     packs, current, total = [], [], 0.0
 
     def close(members: list[Group], seconds: float) -> None:
-        packs.append(Pack(tuple(members), seconds, time_limit_minutes(seconds, packing)))
+        packs.append(Pack(tuple(members), seconds, *job_time(seconds, packing)))
 
     for group in sorted(groups, key=lambda group: group.seconds):  # stable: equal times keep their order
         if group.seconds >= short_limit:
@@ -223,14 +247,26 @@ def make_packs(groups: Sequence[Group], packing: Mapping[str, Any]) -> list[Pack
     return packs
 
 
-def plan_jobs(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, time_factor: float = 1.0) -> list[Pack]:
+def plan_jobs(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, time_factor: float = 1.0,
+              saved: Sequence[Sequence[str]] = ()) -> list[Pack]:
     """The jobs that run ``tasks`` (manifest rows) with a sweep's run settings ``launch``: lockstep groups
-    with predicted times, packed for the launcher; ``time_factor`` stretches the time limits."""
-    return make_packs(sweep_groups(tasks, launch), packing_for(launch.packing, launch.launcher, time_factor))
+    with predicted times, packed for the launcher; ``time_factor`` stretches the time limits. ``saved``: the
+    task ids (training order) of groups with a checkpoint: those among ``tasks`` stay one group, so that it
+    continues from there."""
+    packing = packing_for(launch.packing, launch.launcher, time_factor)
+    return make_packs(sweep_groups(tasks, launch, packing, saved), packing)
 
 
-def sweep_groups(tasks: Sequence[Mapping[str, Any]], launch: DictConfig) -> list[Group]:
-    """The lockstep groups of ``tasks`` (manifest rows) with the sweep's lockstep and cost settings, none
-    predicted to outlast the largest time class when it can be split."""
-    longest_s = 60 * max(launch.packing.time_classes_minutes) / launch.packing.time_safety
-    return planned_groups(tasks, lockstep_settings(launch), OmegaConf.to_container(launch.cost), longest_s)
+def sweep_groups(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, packing: Mapping[str, Any],
+                 saved: Sequence[Sequence[str]] = ()) -> list[Group]:
+    """The lockstep groups of ``tasks`` (manifest rows) with the sweep's lockstep and cost settings: first the
+    checkpointed groups ``saved`` whose tasks are all among them, then the others, none predicted to outlast
+    the largest time class when it can be split (unless a site cap makes long groups chains of jobs)."""
+    lockstep, cost = lockstep_settings(launch), OmegaConf.to_container(launch.cost)
+    by_id = {task["task_id"]: task for task in tasks}
+    kept = [list(ids) for ids in saved if all(task_id in by_id for task_id in ids)]
+    taken = {task_id for ids in kept for task_id in ids}
+    longest_s = math.inf if packing["max_time_minutes"] else \
+        60 * max(packing["time_classes_minutes"]) / packing["time_safety"]
+    return ([Group(tuple(ids), group_seconds([by_id[task_id] for task_id in ids], cost, lockstep)) for ids in kept]
+            + planned_groups([task for task in tasks if task["task_id"] not in taken], lockstep, cost, longest_s))

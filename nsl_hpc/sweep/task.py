@@ -17,6 +17,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 import nsl_hpc
+from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.errors import ConfigError, require_non_negative_int, require_positive_int
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_of
@@ -118,10 +119,12 @@ def run_task(cfg: DictConfig, on_progress: Callable[[], None] = lambda: None) ->
 
 
 def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lambda: None,
-              sizes: Sequence[Mapping[str, Any]] | None = None) -> list[TaskResult]:
+              sizes: Sequence[Mapping[str, Any]] | None = None, checkpoint: Checkpointer | None = None
+              ) -> list[TaskResult]:
     """Train and score tasks of one study and shape together (in lockstep where the study can) and write
     one row per task, each the row the task would have alone; tasks whose row exists are skipped.
-    ``sizes``: each task's drawn sizes (``resolve_task``), drawn here when None."""
+    ``sizes``: each task's drawn sizes (``resolve_task``), drawn here when None. ``checkpoint`` (of all of
+    ``cfgs``'s tasks, used when none is skipped): training continues from it and writes it as it goes."""
     started = time.perf_counter()
     tasks = [resolve_task(cfg, None if sizes is None else sizes[i]) for i, cfg in enumerate(cfgs)]
     paths = [row_path(Path(cfg.out_dir), cfg.task_id or task_id(cfg)) for cfg in cfgs]
@@ -135,7 +138,8 @@ def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lamb
     for i in todo:
         inject_fault(cfgs[i].fault, cfgs[i].seed)
     outcomes = tasks[todo[0]].study.train_and_score_pack(
-        [(cfgs[i], {**tasks[i].coordinates, "task_id": paths[i].stem}, tasks[i].sizes) for i in todo], on_progress)
+        [(cfgs[i], {**tasks[i].coordinates, "task_id": paths[i].stem}, tasks[i].sizes) for i in todo], on_progress,
+        checkpoint if len(todo) == len(cfgs) else None)
     for i, outcome in zip(todo, outcomes, strict=True):
         finite = outcome.pop("finite") and all(math.isfinite(outcome[key]) for key in ("nmae", "nmse"))
         row = {

@@ -26,11 +26,12 @@ import torch
 from torch import nn
 from torch.nn import functional
 
+from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.models.blocks import LAYER_NORM_EPS, masked_layer_norm
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.studies.input_output.data import Signals
 from nsl_hpc.studies.input_output.training import SignalScaling
-from nsl_hpc.studies.training import Adam, TrainingOutcome, learning_rate_at
+from nsl_hpc.studies.training import Adam, BatchOrder, TrainingOutcome, learning_rate_at
 
 BLOCK_STEPS = 16  # iterations whose batch orders and learning rates are prepared at once (a heartbeat each)
 # SUBNET's h runs on the states of this many (K, B, n_h) values at once: all T steps of a small pack, while a
@@ -230,7 +231,7 @@ class Windows:
         return ((simulated - target).square().sum(dim=1) * weights).sum(dim=1)
 
 
-class WindowOrder:
+class WindowOrder(BatchOrder):
     """The windows one member trains on, iteration after iteration: each pass a fresh ``torch.randperm`` of its
     ``windows`` (its own generator) cut into windows // b batches of b = min(B, windows); -1 pads a batch to
     ``width`` and fills the iterations after its last."""
@@ -268,11 +269,12 @@ def settle(losses: np.ndarray, start: int, iterations: int, per_pass: int) -> Tr
 
 
 def train_packed(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon: int,
-                 on_progress: Callable[[], None] = lambda: None
+                 on_progress: Callable[[], None] = lambda: None, checkpoint: Checkpointer | None = None
                  ) -> tuple[PackedMLPs, torch.Tensor, list[TrainingOutcome]]:
     """Train every member as if alone (``cfg`` is the ``train`` group; ``horizon``: SUBNET's T); returns the
     pack, each member's trained parameters (K, P) (rows of its ``theta`` layout) and outcomes. ``on_progress``
-    is called after every block of ``BLOCK_STEPS`` iterations (a heartbeat)."""
+    is called after every block of ``BLOCK_STEPS`` iterations (a heartbeat); ``checkpoint`` continues from its
+    state, if any, and gets the state after each block (a resumed run gives the same outcomes, bit for bit)."""
     dtype = getattr(torch, cfg["dtype"])
     nets = PackedMLPs([member.model for member in members], dtype)
     optimizer = Adam(nets.theta, cfg["grad_clip_norm"])
@@ -285,10 +287,18 @@ def train_packed(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon: i
     final = nets.theta.detach().clone()
     outcomes: list[TrainingOutcome | None] = [None if total else TrainingOutcome(0, math.nan, finite=True)
                                               for total in totals]
+    start, total = 0, int(totals.max(initial=0))
+    saved = checkpoint.load() if checkpoint is not None else None
+    if saved is not None:
+        start, final = saved["start"], saved["final"]
+        outcomes = [TrainingOutcome.from_state(outcome) for outcome in saved["outcomes"]]
+        for order, order_state in zip(orders, saved["orders"], strict=True):
+            order.load_state(order_state)
     live = [k for k, outcome in enumerate(outcomes) if outcome is None]
     if len(live) < len(members):
         leave(nets, optimizer, windows, live)
-    start, total = 0, int(totals.max(initial=0))
+    if saved is not None:
+        optimizer.load_state(saved["adam"])
     while live:
         size = min(BLOCK_STEPS, total - start)
         starts = torch.stack([orders[k].take(size) for k in live], dim=1)  # (L, K', width)
@@ -311,6 +321,11 @@ def train_packed(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon: i
             leave(nets, optimizer, windows, still)
         start += size
         on_progress()
+        if checkpoint is not None and live:
+            checkpoint.block_done(lambda start=start: {
+                "start": start, "final": final, "adam": optimizer.state(),
+                "orders": [order.state() for order in orders],
+                "outcomes": [None if outcome is None else outcome.as_state() for outcome in outcomes]}, start, total)
     return nets, final, outcomes
 
 

@@ -20,6 +20,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
 from nsl_hpc.cache import ArrayCache
+from nsl_hpc.checkpoint import Checkpointer, trained_before
 from nsl_hpc.errors import ConfigError, require_member
 from nsl_hpc.models.blocks import require_block
 from nsl_hpc.models.narx import NARX
@@ -128,18 +129,21 @@ class InputOutput(Study):
         return self.train_and_score_pack([(cfg, task, sizes)], on_progress)[0]
 
     def train_and_score_pack(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
-                             on_progress: Callable[[], None]) -> list[dict[str, Any]]:
+                             on_progress: Callable[[], None], checkpoint: Checkpointer | None = None
+                             ) -> list[dict[str, Any]]:
         """Train the items' models packed (they share system, arch and depth) and score each on every test
         record: nmae, nmse and rmse_mv are the free-run scores on ``system.score_on``, the others extra columns
-        (``scoring``). train_seconds is the training time divided among the items."""
+        (``scoring``). train_seconds is the training time (over every resume from ``checkpoint``) divided among the
+        items."""
         cfg = items[0][0]
         system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
         benchmark = load_benchmark(system_cfg, ArrayCache(cfg.cache_dir))
         members = [self.member(item_cfg, task, sizes, system_cfg, benchmark) for item_cfg, task, sizes in items]
         started = time.perf_counter()
         base = {"system": system_cfg, "arch": OmegaConf.to_container(cfg.arch)}
-        nets, theta, outcomes = train_packed(members, OmegaConf.to_container(cfg.train), horizon(base), on_progress)
-        train_seconds = (time.perf_counter() - started) / len(items)
+        nets, theta, outcomes = train_packed(members, OmegaConf.to_container(cfg.train), horizon(base), on_progress,
+                                             checkpoint)
+        train_seconds = (time.perf_counter() - started + trained_before(checkpoint)) / len(items)
         on_progress()
         scores = score_records(members[0].model, numpy_mlps(nets, theta), [member.scaling for member in members],
                                benchmark.tests, system_cfg["init_samples"], system_cfg["mv_per_unit"])

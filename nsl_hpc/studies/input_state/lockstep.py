@@ -23,9 +23,10 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.studies.input_state.data import Dataset
 from nsl_hpc.studies.input_state.stacked import StackedModels
-from nsl_hpc.studies.training import Adam, Scaling, TrainingOutcome, batch_bounds, learning_rate_at
+from nsl_hpc.studies.training import Adam, BatchOrder, Scaling, TrainingOutcome, batch_bounds, learning_rate_at
 
 BLOCK_STEPS = 32  # steps prepared at once: (K, BLOCK_STEPS, batch) rows of data in memory
 
@@ -54,8 +55,15 @@ class Snapshot:
     outcome: TrainingOutcome
     theta: torch.Tensor
 
+    def as_state(self) -> list:
+        return [self.epochs, self.outcome.as_state(), self.theta]
 
-class BatchPlan:
+    @classmethod
+    def from_state(cls, state: list) -> "Snapshot":
+        return cls(state[0], TrainingOutcome.from_state(state[1]), state[2])
+
+
+class BatchPlan(BatchOrder):
     """The mini-batches of one member, step after step: each epoch a new permutation of its samples
     (``torch.randperm`` on its own generator) cut into ``batch_bounds`` slices, padded to ``width`` rows
     with the index ``pad``; once its ``steps`` are taken, only padding."""
@@ -149,6 +157,19 @@ class Lockstep:
                                    for mb, plan in zip(members, self.plans, strict=True)])
         self.member = list(range(len(members)))
 
+    def state(self) -> dict[str, Any]:
+        """What a checkpoint keeps: the members still training, their parameters, Adam's state, batch orders."""
+        return {"member": list(self.member), "adam": self.optimizer.state(),
+                "plans": [plan.state() for plan in self.plans]}
+
+    def restore(self, state: Mapping[str, Any]) -> None:
+        """Continue from ``state`` (of a Lockstep of the same members)."""
+        if len(state["member"]) < len(self.member):
+            self.keep(state["member"])
+        self.optimizer.load_state(state["adam"])
+        for plan, plan_state in zip(self.plans, state["plans"], strict=True):
+            plan.load_state(plan_state)
+
     def keep(self, rows: list[int]) -> None:
         """Train only these rows from now on (the others have finished)."""
         index = torch.tensor(rows, dtype=torch.long)
@@ -184,12 +205,13 @@ class Lockstep:
         return losses
 
 
-def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progress: Callable[[], None] = lambda: None
-                   ) -> tuple[StackedModels, list[list[Snapshot]]]:
+def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progress: Callable[[], None] = lambda: None,
+                   checkpoint: Checkpointer | None = None) -> tuple[StackedModels, list[list[Snapshot]]]:
     """Train every member as if alone (``cfg`` is the ``train`` group); returns the stack and each member's
     snapshots, by epochs (the last after its ``epochs``). Models that have finished leave the stack at the
     end of a block, so the stack holds the models that trained longest. ``on_progress`` is called after
-    every block of ``BLOCK_STEPS`` steps (a heartbeat)."""
+    every block of ``BLOCK_STEPS`` steps (a heartbeat); ``checkpoint`` continues from its state, if any, and
+    gets the state after each block (a resumed run gives the same snapshots, bit for bit)."""
     run = Lockstep(members, cfg)
     pending = [sorted({*member.milestones, member.epochs}) for member in members]  # epochs not yet kept, per member
     due: dict[int, list[tuple[int, int]]] = {}  # step index -> (member, epochs) kept after it
@@ -199,6 +221,18 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progres
     snapshots: list[list[Snapshot]] = [[] for _ in members]
     outcomes: list[TrainingOutcome | None] = [None if plan.steps else TrainingOutcome(0, math.nan, finite=True)
                                               for plan in run.plans]
+    first = 0
+    saved = checkpoint.load() if checkpoint is not None else None
+    if saved is not None:
+        first, pending = saved["start"], saved["pending"]
+        snapshots = [[Snapshot.from_state(snapshot) for snapshot in member] for member in saved["snapshots"]]
+        outcomes = [TrainingOutcome.from_state(outcome) for outcome in saved["outcomes"]]
+        run.restore(saved["run"])
+
+    def state(start: int) -> dict[str, Any]:
+        return {"start": start, "pending": pending, "run": run.state(),
+                "snapshots": [[snapshot.as_state() for snapshot in member] for member in snapshots],
+                "outcomes": [None if outcome is None else outcome.as_state() for outcome in outcomes]}
 
     def take_snapshots(step: int, losses: torch.Tensor) -> None:
         for k, epochs in due.get(step, ()):
@@ -211,8 +245,9 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progres
             pending[k].remove(epochs)
 
     total = int(run.totals.max(initial=0))
-    with tqdm(total=total, desc="steps", unit="step", disable=None, leave=False, mininterval=1.0) as bar:
-        for start in range(0, total, BLOCK_STEPS):
+    with tqdm(total=total, initial=first, desc="steps", unit="step", disable=None, leave=False,
+              mininterval=1.0) as bar:
+        for start in range(first, total, BLOCK_STEPS):
             size = min(BLOCK_STEPS, total - start)
             active = [min(size, plan.remaining) for plan in run.plans]  # steps of each row in this block
             losses = run.train_block(start, size, take_snapshots)
@@ -231,6 +266,8 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progres
                 run.keep(training)
             bar.update(size)
             on_progress()
+            if checkpoint is not None and start + size < total:
+                checkpoint.block_done(lambda start=start + size: state(start), start + size, total)
     return run.stack, [[with_divergence(snapshot, outcome) for snapshot in member_snapshots]
                        for member_snapshots, outcome in zip(snapshots, outcomes, strict=True)]
 

@@ -16,6 +16,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.cache import ArrayCache
+from nsl_hpc.checkpoint import Checkpointer, trained_before
 from nsl_hpc.errors import ConfigError, require_member, require_positive_int
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
@@ -88,18 +89,20 @@ class InputState(Study):
         return self.train_and_score_pack([(cfg, task, sizes)], on_progress)[0]
 
     def train_and_score_pack(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
-                             on_progress: Callable[[], None]) -> list[dict[str, Any]]:
+                             on_progress: Callable[[], None], checkpoint: Checkpointer | None = None
+                             ) -> list[dict[str, Any]]:
         """Train the items' models in lockstep (they share system, arch and depth) and score each on the
         system's test set; with epoch milestones (train.schedule_epochs), items that differ only in epochs are
-        one model, scored after each one's epochs. train_seconds is the training time divided among the items."""
+        one model, scored after each one's epochs. train_seconds is the training time (over every resume from
+        ``checkpoint``) divided among the items."""
         runs: dict[tuple, list[int]] = {}
         for i, (cfg, task, _) in enumerate(items):
             runs.setdefault(model_of(task, self.model_keys(cfg)), []).append(i)
         members = [self.member(*items[run[0]], epochs=[items[i][1]["epochs"] for i in run]) for run in runs.values()]
         cfg = items[0][0]
         started = time.perf_counter()
-        stack, snapshots = train_lockstep(members, OmegaConf.to_container(cfg.train), on_progress)
-        train_seconds = (time.perf_counter() - started) / len(items)
+        stack, snapshots = train_lockstep(members, OmegaConf.to_container(cfg.train), on_progress, checkpoint)
+        train_seconds = (time.perf_counter() - started + trained_before(checkpoint)) / len(items)
         kept: list[tuple[int, Snapshot]] = [None] * len(items)  # per item: its run's member index, its snapshot
         for k, (run, member_snapshots) in enumerate(zip(runs.values(), snapshots, strict=True)):
             by_epochs = {snapshot.epochs: snapshot for snapshot in member_snapshots}

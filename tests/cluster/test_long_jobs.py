@@ -1,0 +1,171 @@
+"""Long jobs on the real cluster: a group longer than the site's time cap runs as a chain of requeued jobs, a
+preempted job, a killed training process and a `scontrol requeue` all continue from the group's training
+checkpoint, and every time the rows are those of the same group trained uninterrupted (bit for bit).
+
+SLURM holds a requeued job for about two minutes (BeginTime) before it may start again; the tests release it
+at once (``scontrol update StartTime=now``) to stay short: the wait is SLURM's, not nsl_hpc's.
+"""
+
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+
+from nsl_hpc.sweep.checkpoints import saved_groups
+from tests.sweeps import TINY_GRID, nsl, row_files
+
+pytestmark = pytest.mark.slurm
+
+# One lockstep group of two models that trains ~40 s on one core (input-affine, ~150 points, a step per epoch).
+GROUP = [*TINY_GRID, "sweep.grid.seed=[0,1]", "sweep.grid.epochs=[30000]"]
+OUTCOME = ("nmae", "nmse", "final_loss", "steps", "params", "flops", "train_points", "width")
+
+
+def outcome_rows(sweep_dir: Path) -> dict[str, tuple]:
+    rows = [pq.read_table(path).to_pylist()[0] for path in row_files(sweep_dir)]
+    return {row["task_id"]: tuple(row[key] for key in OUTCOME) for row in rows}
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """The group trained uninterrupted by the local launcher, started at once (it runs beside the cluster's
+    job on the other core); call it for its rows."""
+    sweep_dir = tmp_path_factory.mktemp("uninterrupted") / "sweep"
+    process = subprocess.Popen([sys.executable, "-m", "nsl_hpc.launch", *GROUP, "launcher=local", "launcher.workers=1",
+                                f"sweep_dir={sweep_dir}"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                               text=True)
+
+    def rows() -> dict[str, tuple]:
+        output, _ = process.communicate(timeout=600)
+        assert process.returncode == 0 and "finished: 2 ok" in output, output
+        return outcome_rows(sweep_dir)
+
+    yield rows
+    process.kill()
+
+
+def jobs(name: str) -> list[tuple[str, str, str]]:
+    """(job id, state, reason) of the queued jobs named ``name``."""
+    out = subprocess.run(["squeue", "-h", "-n", name, "-o", "%i %T %r"], capture_output=True, text=True,
+                         check=True).stdout
+    return [tuple(line.split(maxsplit=2)) for line in out.splitlines()]
+
+
+def launch(sweep_dir: Path, name: str, *extra: str) -> str:
+    result = nsl("launch", *GROUP, "launcher=slurm", f"sweep_dir={sweep_dir}", f"sweep.name={name}", *extra)
+    assert result.returncode == 0 and "submitted 1 jobs" in result.stdout, result.stdout + result.stderr
+    return result.stdout
+
+
+def wait_until(condition, name: str, timeout_s: float = 420) -> dict:
+    """Poll until ``condition()`` holds, releasing the requeued jobs named ``nsl-<name>`` SLURM holds back;
+    returns what was seen: the most resumes of the group's checkpoint."""
+    seen = {"resumes": 0, "releases": 0}
+    deadline = time.time() + timeout_s
+    while time.time() < deadline:
+        for job_id, state, reason in jobs(f"nsl-{name}"):
+            if state == "PENDING" and reason == "BeginTime":
+                subprocess.run(["scontrol", "update", f"JobId={job_id}", "StartTime=now"], check=False)
+                seen["releases"] += 1
+        if condition(seen):
+            return seen
+        time.sleep(1)
+    subprocess.run(["scancel", "-n", f"nsl-{name}"], check=False)
+    pytest.fail(f"not done within {timeout_s} s: {seen}, queue {jobs(f'nsl-{name}')}")
+
+
+def group_finished(sweep_dir: Path, name: str):
+    def check(seen: dict) -> bool:
+        for saved in saved_groups(sweep_dir):
+            seen["resumes"] = max(seen["resumes"], saved.resumes)
+        return len(row_files(sweep_dir)) == 2 and not jobs(f"nsl-{name}")
+    return check
+
+
+def running_with_checkpoint(sweep_dir: Path, name: str, min_step: int = 1):
+    def check(seen: dict) -> bool:
+        states = [state for _, state, _ in jobs(f"nsl-{name}")]
+        steps = [saved.step for saved in saved_groups(sweep_dir)]
+        return states == ["RUNNING"] and bool(steps) and max(steps) >= min_step
+    return check
+
+
+def running_for(name: str, seconds: float):
+    started = {}
+
+    def check(seen: dict) -> bool:
+        if [state for _, state, _ in jobs(f"nsl-{name}")] == ["RUNNING"]:
+            started.setdefault("at", time.time())
+            return time.time() - started["at"] >= seconds
+        return False
+    return check
+
+
+def test_a_group_longer_than_the_time_cap_runs_as_a_chain_of_jobs(slurm_cluster, uninterrupted, tmp_path):
+    sweep_dir = tmp_path / "cap" / "sweep"
+    plan = launch(sweep_dir, "cap", "launcher.max_time_minutes=1", "launcher.signal_delay_s=20",
+                  "checkpoint.every_minutes=5")
+    chain = re.search(r"run as chains of (\d+)", plan)
+    assert chain and int(chain.group(1)) >= 2, plan
+    started = time.time()
+    seen = wait_until(group_finished(sweep_dir, "cap"), "cap")
+    print(f"\ncap of 1 minute: {seen['releases']} requeues, resumed {seen['resumes']}+ times, "
+          f"{time.time() - started:.0f} s")
+    assert seen["releases"] >= 1 and seen["resumes"] >= 1
+    assert outcome_rows(sweep_dir) == uninterrupted()
+    assert not list(saved_groups(sweep_dir))  # a finished group's checkpoint is deleted
+
+
+def test_a_preempted_job_continues_from_its_checkpoint(slurm_cluster, uninterrupted, tmp_path):
+    sweep_dir = tmp_path / "preempted" / "sweep"
+    launch(sweep_dir, "preempted", "checkpoint.every_minutes=30")  # only the preemption's warning writes one
+    wait_until(running_for("preempted", 12), "preempted")
+    high = subprocess.run(["sbatch", "--parsable", "-p", "high", "-c", str(os.cpu_count()), "-o", "/dev/null",
+                           "--wrap", "sleep 3"], capture_output=True, text=True, check=True).stdout.strip()
+    seen = wait_until(group_finished(sweep_dir, "preempted"), "preempted")
+    state = subprocess.run(["sacct", "-n", "-X", "-j", high, "-o", "State"], capture_output=True, text=True).stdout
+    assert "COMPLETED" in state or "RUNNING" in state, state
+    assert seen["resumes"] >= 1 and seen["releases"] >= 1
+    assert outcome_rows(sweep_dir) == uninterrupted()
+
+
+def test_a_killed_training_process_loses_at_most_the_checkpoint_interval_and_resubmit_finishes(
+        slurm_cluster, uninterrupted, tmp_path):
+    sweep_dir = tmp_path / "killed" / "sweep"
+    launch(sweep_dir, "killed", "checkpoint.every_minutes=0.1")  # every 6 s
+    wait_until(running_with_checkpoint(sweep_dir, "killed", min_step=5000), "killed")
+    (lock,) = (sweep_dir / "checkpoints").glob("*/*.lock")
+    runner = json.loads(lock.read_text())["pid"]
+    (child,) = subprocess.run(["pgrep", "-P", str(runner)], capture_output=True, text=True).stdout.split()
+    os.kill(int(child), 9)  # as a node loss would
+    wait_until(lambda seen: not jobs("nsl-killed"), "killed")
+    status = nsl("status", f"sweep_dir={sweep_dir}").stdout
+    assert "failed 2" in status and "killed by signal SIGKILL" in status, status
+    lost = float(re.search(r"(\d+) s of training lost since its last checkpoint", status).group(1))
+    print(f"\nkill -9: {lost:.0f} s of training lost (checkpoint every 6 s)")
+    assert lost <= 6 + 2
+    assert "failed (resumed 0 times): 2 tasks in a group at step" in status
+    resubmitted = nsl("resubmit", f"sweep_dir={sweep_dir}")
+    assert "resubmitting 2 tasks" in resubmitted.stdout, resubmitted.stdout + resubmitted.stderr
+    seen = wait_until(group_finished(sweep_dir, "killed"), "killed")
+    assert seen["resumes"] >= 1
+    assert outcome_rows(sweep_dir) == uninterrupted()
+
+
+def test_scontrol_requeue_continues_from_the_checkpoint_without_duplicate_rows(slurm_cluster, uninterrupted,
+                                                                              tmp_path):
+    sweep_dir = tmp_path / "requeued" / "sweep"
+    launch(sweep_dir, "requeued", "checkpoint.every_minutes=30")  # only the requeue's SIGTERM writes one
+    wait_until(running_for("requeued", 12), "requeued")
+    ((job_id, _, _),) = jobs("nsl-requeued")
+    subprocess.run(["scontrol", "requeue", job_id], check=True)
+    seen = wait_until(group_finished(sweep_dir, "requeued"), "requeued")
+    assert seen["resumes"] >= 1
+    assert len(row_files(sweep_dir)) == 2
+    assert outcome_rows(sweep_dir) == uninterrupted()

@@ -1,0 +1,148 @@
+"""Training checkpoints: a group stopped and resumed (twice) trains exactly as it does uninterrupted, for the
+input-state lockstep loop and the input-output packed loop; a group's lock keeps a second job off it; a site
+time cap makes a long group a chain of jobs."""
+
+import copy
+import math
+import os
+import signal
+import socket
+import subprocess
+import time
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info
+from nsl_hpc.config import compose_config
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.models import build_model
+from nsl_hpc.studies.input_output.packed import train_packed
+from nsl_hpc.studies.input_output.study import horizon
+from nsl_hpc.studies.input_state.data import build_training_set
+from nsl_hpc.studies.input_state.lockstep import Member, train_lockstep
+from nsl_hpc.studies.training import Scaling
+from nsl_hpc.sweep.checkpoints import GroupLock
+from nsl_hpc.sweep.plan import Group, check_run_settings, make_packs, packing_for
+from tests.test_io_packed import members_of
+
+
+def stopping(checkpoint: Checkpointer, after_blocks: int):
+    """An on_progress that asks ``checkpoint`` to stop after that many blocks."""
+    calls = []
+
+    def on_progress() -> None:
+        calls.append(1)
+        if len(calls) == after_blocks:
+            checkpoint.ask_to_stop()
+    return on_progress
+
+
+def interrupted(train, path, stops=(1, 1)):
+    """``train(on_progress, checkpoint)`` stopped after each of ``stops`` blocks and resumed, then to the end;
+    returns its result and the last checkpointer."""
+    for after in stops:
+        checkpoint = Checkpointer(path, every_s=3600, task_ids=["a", "b", "c"])
+        with pytest.raises(TrainingStopped):
+            train(stopping(checkpoint, after), checkpoint)
+        assert read_info(path)["step"] > 0
+    checkpoint = Checkpointer(path, every_s=3600, task_ids=["a", "b", "c"])
+    return train(lambda: None, checkpoint), checkpoint
+
+
+def test_a_lockstep_group_stopped_and_resumed_gives_its_snapshots_bit_for_bit(compose, cache, tmp_path):
+    """3 port-Hamiltonian models (6 batches per epoch: 72, 42 and 60 steps, blocks of 32, one kept after 4 epochs
+    too), stopped after the first block, resumed, stopped after the next (a model has left), resumed to the end."""
+    cfg = compose("system=spring", "arch=port_hamiltonian")
+    system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+    members = []
+    for seed, (epochs, width, milestones) in enumerate([(12, 6, (4,)), (7, 3, ()), (10, 6, ())]):
+        data = build_training_set(system_cfg, seed, 1.3, cache)
+        torch.manual_seed(seed)
+        model = build_model(cfg.arch, 4, 2, width=width, depth=2)
+        members.append(Member(model, data, Scaling.fit(data, rescale_targets=False), epochs, 10 + seed, milestones))
+    train_cfg = OmegaConf.to_container(cfg.train)
+
+    def train(on_progress, checkpoint=None):
+        return train_lockstep(copy.deepcopy(members), train_cfg, on_progress, checkpoint)[1]
+
+    expected = train(lambda: None)
+    (resumed, checkpoint) = interrupted(train, tmp_path / "group.pt")
+    assert checkpoint.resumes == 2
+    assert [[s.epochs for s in member] for member in resumed] == [[4, 12], [7], [10]]
+    for member_expected, member_resumed in zip(expected, resumed, strict=True):
+        for snapshot, again in zip(member_expected, member_resumed, strict=True):
+            assert snapshot.outcome == again.outcome
+            assert torch.equal(snapshot.theta, again.theta)
+
+
+@pytest.mark.parametrize("arch", ["narx", "subnet"])
+def test_a_packed_input_output_group_stopped_and_resumed_gives_its_models_bit_for_bit(arch, compose, cache,
+                                                                                     tmp_path):
+    """3 models of 40, 20 and 35 iterations (blocks of 16), stopped after the first block, then after the
+    second (one model has finished), then to the end."""
+    cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}")
+    base = {"system": OmegaConf.to_container(cfg.system, resolve=True), "arch": OmegaConf.to_container(cfg.arch)}
+    members = members_of(cfg, cache, [(700, 40, 4, 0), (400, 20, 3, 1), (1300, 35, 5, 2)])
+    train_cfg = OmegaConf.to_container(cfg.train)
+
+    def train(on_progress, checkpoint=None):
+        return train_packed(copy.deepcopy(members), train_cfg, horizon(base), on_progress, checkpoint)[1:]
+
+    final, outcomes = train(lambda: None)
+    (final_resumed, outcomes_resumed), _ = interrupted(train, tmp_path / "group.pt")
+    assert outcomes_resumed == outcomes and [outcome.steps for outcome in outcomes] == [40, 20, 35]
+    assert torch.equal(final_resumed, final)
+
+
+def test_a_checkpoint_of_other_tasks_or_damaged_is_not_used(tmp_path):
+    path = tmp_path / "group.pt"
+    Checkpointer(path, 60, ["a"]).save({"x": torch.ones(2)}, 1, 4)
+    assert Checkpointer(path, 60, ["a"]).load()["x"].sum() == 2
+    assert Checkpointer(path, 60, ["b"]).load() is None
+    path.write_bytes(b"not a checkpoint")
+    assert Checkpointer(path, 60, ["a"]).load() is None
+    assert path.with_suffix(".unreadable").exists() and not path.exists()  # kept aside, not deleted
+
+
+def test_a_live_jobs_lock_keeps_a_second_job_off_the_group_and_a_dead_ones_is_taken_over(tmp_path):
+    holder = subprocess.Popen(["sleep", "60"])
+    lock = GroupLock(tmp_path, ["a", "b"])
+    lock.path.parent.mkdir(parents=True)
+    lock.path.write_text(f'{{"job": "7_1", "host": "{socket.gethostname()}", "pid": {holder.pid}, "time": 0}}')
+    try:
+        assert GroupLock(tmp_path, ["a", "b"]).acquire() == f"job 7_1 on {socket.gethostname()}"
+        assert GroupLock(tmp_path, ["b", "a"]).acquire() is None  # another group (order is training order)
+    finally:
+        os.kill(holder.pid, signal.SIGKILL)
+        holder.wait()
+    second = GroupLock(tmp_path, ["a", "b"])
+    assert second.acquire() is None  # its holder is gone
+    assert GroupLock(tmp_path, ["a", "b"]).acquire() == f"job {os.getpid()} on {socket.gethostname()}"
+    second.release()
+    assert not second.path.exists()
+
+
+def test_a_site_time_cap_makes_a_long_group_a_chain_of_jobs_and_needs_checkpoints():
+    launch = compose_config(["+sweep=demo", "launcher=slurm", "launcher.max_time_minutes=60"], "launch")
+    check_run_settings(launch)
+    packing = packing_for(launch.packing, launch.launcher)
+    assert packing["time_classes_minutes"] == [20, 60]
+    (short, long) = make_packs([Group(("a",), 10 * 60), Group(("b",), 3 * 3600)], packing)
+    assert (short.time_limit_min, short.chain) == (60, 1)  # 30 min with the safety factor 3
+    assert (long.time_limit_min, long.chain) == (60, math.ceil(3 * 3 * 60 / 60))
+    launch.checkpoint.every_minutes = 0
+    with pytest.raises(ConfigError, match=r"launcher\.max_time_minutes=60 needs checkpoints"):
+        check_run_settings(launch)
+
+
+def test_time_is_measured_over_resumes(tmp_path):
+    """A resumed run's training time counts the time trained before it (the row's train_seconds)."""
+    path = tmp_path / "group.pt"
+    first = Checkpointer(path, 60, ["a"])
+    time.sleep(0.05)
+    first.save({}, 1, 2)
+    second = Checkpointer(path, 60, ["a"])
+    second.load()
+    assert second.trained_before_s >= 0.05
