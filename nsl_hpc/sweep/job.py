@@ -143,7 +143,8 @@ class JobRunner:
 
     def __init__(self, launcher_pid: int | None = None) -> None:
         self.launcher_pid = launcher_pid
-        self.running: tuple[Path, Group, list[str], multiprocessing.Process] | None = None
+        self.running: tuple[Path, list[str], multiprocessing.Process] | None = None
+        self.current: Group | None = None  # the group being run (from before its process starts to its end)
         self.started: set[Group] = set()
         self.checkpointing, self.stop_wait_s = False, 30.0
 
@@ -165,6 +166,7 @@ class JobRunner:
             if self.launcher_gone():
                 os._exit(1)
             self.started.add(group)
+            self.current = group
             todo = []
             for task_id in group.task_ids:
                 path = row_path(sweep, task_id)
@@ -184,24 +186,25 @@ class JobRunner:
                 counts["busy"] += len(todo)
                 continue
             try:
-                outcome = self.run_watched(sweep, group, todo, launch, lock)
+                outcome = self.run_watched(sweep, todo, group.seconds, launch, lock)
             finally:
                 lock.release()
             counts[outcome] += len(todo)
             if outcome == "stopped":
                 break
+        self.current = None
         return dict(counts)
 
-    def run_watched(self, sweep: Path, planned: Group, group: Sequence[Mapping[str, Any]], launch: DictConfig,
+    def run_watched(self, sweep: Path, group: Sequence[Mapping[str, Any]], predicted: float, launch: DictConfig,
                     lock: GroupLock) -> str:
-        """Run the tasks (manifest rows) ``group`` of the planned group ``planned`` in a child process under the
-        watchdog (``launch.watchdog``), renewing ``lock``; returns ok, failed, frozen (the outcome of each of
-        its tasks) or stopped."""
+        """Run the tasks (manifest rows) of one lockstep group, predicted to take ``predicted`` seconds, in a
+        child process under the watchdog (``launch.watchdog``), renewing ``lock``; returns ok, failed, frozen
+        (the outcome of each of its tasks) or stopped."""
         cfgs = [task_config(sweep, task) for task in group]
         for cfg in cfgs:
             if cfg.fault.once and failure_path(sweep, cfg.task_id).exists():
                 cfg.fault.kind = None  # test-only faults strike a task's first attempt only
-        watchdog, predicted = launch.watchdog, planned.seconds
+        watchdog = launch.watchdog
         ids = [task["task_id"] for task in group]
         context = multiprocessing.get_context("fork")
         heartbeat = context.Value("d", time.time(), lock=False)
@@ -209,7 +212,7 @@ class JobRunner:
         child = context.Process(target=run_child, args=(sweep, group, cfgs, heartbeat, every_s), daemon=True)
         started = time.time()
         child.start()
-        self.running = (sweep, planned, ids, child)
+        self.running = (sweep, ids, child)
         try:
             while child.is_alive():
                 child.join(POLL_SECONDS)
@@ -251,18 +254,17 @@ class JobRunner:
         its state and stop, and requeue it with the groups not started; without, record its tasks as timeout
         and requeue the groups not started (none left: no requeue, which SLURM would delay by minutes for
         nothing)."""
-        resumed = []
         if self.running is not None:
-            sweep, group, ids, child = self.running
+            sweep, ids, child = self.running
             if self.checkpointing:
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(child.pid, signal.SIGUSR1)
                 child.join(self.stop_wait_s)
-                resumed = [group]
             with contextlib.suppress(ProcessLookupError):
                 child.kill()
             if not self.checkpointing:
                 record_group_failure(sweep, ids, "timeout", "the job reached its time limit while this task ran")
+        resumed = [self.current] if self.checkpointing and self.current is not None else []
         remaining = resumed + [group for group in groups if group not in self.started]
         if not remaining:
             return None

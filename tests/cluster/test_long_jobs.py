@@ -140,6 +140,7 @@ def test_a_killed_training_process_loses_at_most_the_checkpoint_interval_and_res
     sweep_dir = tmp_path / "killed" / "sweep"
     launch(sweep_dir, "killed", "checkpoint.every_minutes=0.1")  # every 6 s
     wait_until(running_with_checkpoint(sweep_dir, "killed", min_step=5000), "killed")
+    time.sleep(4)  # between two checkpoints
     (lock,) = (sweep_dir / "checkpoints").glob("*/*.lock")
     runner = json.loads(lock.read_text())["pid"]
     (child,) = subprocess.run(["pgrep", "-P", str(runner)], capture_output=True, text=True).stdout.split()
