@@ -1,8 +1,13 @@
 """clean: what finished tasks no longer need goes; rows and the records of failures stay."""
 
+import os
+import time
+
 import pytest
 
-from tests.sweeps import ALONE, TINY_GRID, nsl, row_files
+from nsl_hpc.checkpoint import Checkpointer, info_path
+from nsl_hpc.sweep.checkpoints import GroupLock, checkpoint_path
+from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
 
 pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
 
@@ -38,3 +43,21 @@ def test_clean_keeps_rows_and_failures_then_removes_them_once_resolved(tmp_path)
 def test_clean_without_a_sweep_is_a_one_line_error(tmp_path):
     result = nsl("clean", f"sweep_dir={tmp_path}")
     assert result.returncode == 2 and result.stderr.strip().count("\n") == 0 and "no manifest.parquet" in result.stderr
+
+
+def test_clean_removes_checkpoints_of_finished_groups_and_locks_no_job_renews(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "fault.kind=raise", "fault.seed=2", ALONE)
+    done = sorted(path.stem for path in row_files(sweep_dir))
+    (failed,) = set(manifest_ids(sweep_dir)) - set(done)
+    finished, unfinished = (Checkpointer(checkpoint_path(sweep_dir, ids), 60, ids) for ids in (done, [failed]))
+    finished.save({}, 5, 10)
+    unfinished.save({}, 3, 10)
+    abandoned, held = GroupLock(sweep_dir, ["gone"]), GroupLock(sweep_dir, [failed])
+    assert abandoned.acquire() is None and held.acquire() is None
+    os.utime(abandoned.path, (time.time() - 3600, time.time() - 3600))
+    status = nsl("status", f"sweep_dir={sweep_dir}").stdout
+    assert "failed (resumed 0 times): 1 task in a group at step 3 of 10" in status, status
+    assert nsl("clean", f"sweep_dir={sweep_dir}").returncode == 0
+    assert not finished.path.exists() and not info_path(finished.path).exists() and not abandoned.path.exists()
+    assert unfinished.path.exists() and info_path(unfinished.path).exists() and held.path.exists()

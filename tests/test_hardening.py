@@ -328,7 +328,7 @@ def test_a_full_disk_during_a_sweep_and_during_merge_is_one_line_and_keeps_the_r
 
 def warned_child(ready, leave: bool) -> None:
     if leave:
-        leave_warnings_to_the_runner()
+        leave_warnings_to_the_runner(checkpoint=None)
     ready.set()
     time.sleep(2)
     os._exit(0)

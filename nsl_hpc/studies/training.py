@@ -108,20 +108,47 @@ class TrainingOutcome:
 
 
 class BatchOrder:
-    """What the per-model batch orders of the packed loops share: a shuffle ``generator``, the batches of the
-    current pass not yet taken (``pending``) and the steps still to take (``remaining``): the state a checkpoint
-    keeps."""
+    """The batches one model of a packed loop takes, step after step: each pass (epoch) a fresh permutation on
+    its own ``generator`` (``next_pass``: the pass's batches, (batches, width) indices), then, once its
+    ``remaining`` steps are taken, rows of ``fill`` (padding). Its ``state`` is what a checkpoint keeps: the
+    generator's state before the current pass and how many of its batches are still to take (the pass is drawn
+    again on ``load_state``), not the batches themselves."""
 
     generator: torch.Generator
-    pending: torch.Tensor
     remaining: int
+    fill: int
+    width: int
+
+    def start(self, seed: int) -> None:
+        self.generator = torch.Generator().manual_seed(seed)
+        self.pass_start: torch.Tensor | None = None  # the generator's state before the current pass
+        self.pending = torch.empty(0, self.width, dtype=torch.long)  # the current pass's batches not yet taken
+
+    def next_pass(self) -> torch.Tensor:
+        raise NotImplementedError
+
+    def take(self, count: int) -> torch.Tensor:
+        """Indices (count, width) of the next ``count`` steps' batches."""
+        wanted = min(count, self.remaining)
+        parts, available = [self.pending], len(self.pending)
+        while available < wanted:
+            self.pass_start = self.generator.get_state()
+            parts.append(self.next_pass())
+            available += len(parts[-1])
+        rows = torch.cat(parts)
+        self.pending, self.remaining = rows[wanted:], self.remaining - wanted  # a tail of the current pass
+        return torch.cat([rows[:wanted], rows.new_full((count - wanted, self.width), self.fill)])
 
     def state(self) -> dict:
-        return {"generator": self.generator.get_state(), "pending": self.pending.clone(), "remaining": self.remaining}
+        return {"pass_start": self.pass_start, "pending": len(self.pending), "remaining": self.remaining}
 
     def load_state(self, state: dict) -> None:
-        self.generator.set_state(state["generator"])
-        self.pending, self.remaining = state["pending"], state["remaining"]
+        self.remaining = state["remaining"]
+        if state["pass_start"] is not None:
+            self.pass_start = state["pass_start"]
+            self.generator.set_state(self.pass_start)
+            batches = self.next_pass()
+            self.pending = batches[len(batches) - state["pending"]:]
 
 
 class Adam:

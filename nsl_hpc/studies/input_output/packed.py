@@ -237,23 +237,13 @@ class WindowOrder(BatchOrder):
     ``width`` and fills the iterations after its last."""
 
     def __init__(self, windows: int, batch: int, iterations: int, seed: int, width: int):
-        self.windows, self.batch, self.width = windows, batch, width
+        self.windows, self.batch, self.width, self.fill = windows, batch, width, -1
         self.per_pass, self.remaining = windows // batch, iterations
-        self.generator = torch.Generator().manual_seed(seed)
-        self.pending = torch.empty(0, width, dtype=torch.long)
+        self.start(seed)
 
-    def take(self, count: int) -> torch.Tensor:
-        """Window indices (count, width) of the next ``count`` iterations."""
-        wanted = min(count, self.remaining)
-        parts, available = [self.pending], len(self.pending)
-        while available < wanted:
-            order = torch.randperm(self.windows, generator=self.generator)[:self.per_pass * self.batch]
-            parts.append(nn.functional.pad(order.view(self.per_pass, self.batch), (0, self.width - self.batch),
-                                           value=-1))
-            available += self.per_pass
-        rows = torch.cat(parts)
-        self.pending, self.remaining = rows[wanted:], self.remaining - wanted
-        return torch.cat([rows[:wanted], rows.new_full((count - wanted, self.width), -1)])
+    def next_pass(self) -> torch.Tensor:
+        order = torch.randperm(self.windows, generator=self.generator)[:self.per_pass * self.batch]
+        return nn.functional.pad(order.view(self.per_pass, self.batch), (0, self.width - self.batch), value=-1)
 
 
 def settle(losses: np.ndarray, start: int, iterations: int, per_pass: int) -> TrainingOutcome | None:

@@ -70,26 +70,16 @@ class BatchPlan(BatchOrder):
 
     def __init__(self, samples: int, batch_size: int, epochs: int, seed: int, width: int, pad: int):
         bounds = batch_bounds(samples, batch_size)
-        self.samples, self.pad, self.steps, self.remaining = samples, pad, epochs * len(bounds), epochs * len(bounds)
-        self.generator = torch.Generator().manual_seed(seed)
+        self.samples, self.fill, self.width = samples, pad, width
+        self.steps = self.remaining = epochs * len(bounds)
         self.slots = torch.full((len(bounds), width), samples)  # position in the permutation; `samples`: padding
         for j, (start, stop) in enumerate(bounds):
             self.slots[j, :stop - start] = torch.arange(start, stop)
-        self.pending = torch.empty(0, width, dtype=torch.long)  # this epoch's batches not yet taken
+        self.start(seed)
 
-    def take(self, count: int) -> torch.Tensor:
-        """Row indices (count, width) of the next ``count`` steps' batches."""
-        wanted = min(count, self.remaining)
-        parts = [self.pending]
-        available = len(self.pending)
-        while available < wanted:
-            order = torch.randperm(self.samples, generator=self.generator)
-            parts.append(torch.cat([order, order.new_tensor([self.pad])])[self.slots])
-            available += len(self.slots)
-        rows = torch.cat(parts)
-        self.pending, self.remaining = rows[wanted:], self.remaining - wanted
-        padding = rows.new_full((count - wanted, rows.shape[1]), self.pad)
-        return torch.cat([rows[:wanted], padding])
+    def next_pass(self) -> torch.Tensor:
+        order = torch.randperm(self.samples, generator=self.generator)
+        return torch.cat([order, order.new_tensor([self.fill])])[self.slots]
 
     def stop(self) -> None:
         """Take no more batches (the model diverged)."""
