@@ -24,7 +24,10 @@ from nsl_hpc.studies.input_state.data import build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, train_lockstep
 from nsl_hpc.studies.training import Scaling
 from nsl_hpc.sweep.checkpoints import GroupLock
-from nsl_hpc.sweep.plan import Group, check_run_settings, make_packs, packing_for
+from nsl_hpc.sweep.job import JobRunner
+from nsl_hpc.sweep.manifest import read_launch_config, read_manifest
+from nsl_hpc.sweep.plan import Group, check_run_settings, make_packs, packing_for, plan_jobs
+from tests.sweeps import TINY_GRID, nsl, row_files
 from tests.test_io_packed import members_of
 
 
@@ -106,11 +109,17 @@ def test_a_checkpoint_of_other_tasks_or_damaged_is_not_used(tmp_path):
     assert path.with_suffix(".unreadable").exists() and not path.exists()  # kept aside, not deleted
 
 
-def test_a_live_jobs_lock_keeps_a_second_job_off_the_group_and_a_dead_ones_is_taken_over(tmp_path):
+def held_lock(sweep_dir, task_ids) -> subprocess.Popen:
+    """A live process (returned) holding the lock of the group of ``task_ids`` as job 7_1 on this host."""
     holder = subprocess.Popen(["sleep", "60"])
-    lock = GroupLock(tmp_path, ["a", "b"])
+    lock = GroupLock(sweep_dir, task_ids)
     lock.path.parent.mkdir(parents=True)
     lock.path.write_text(f'{{"job": "7_1", "host": "{socket.gethostname()}", "pid": {holder.pid}, "time": 0}}')
+    return holder
+
+
+def test_a_live_jobs_lock_keeps_a_second_job_off_the_group_and_a_dead_ones_is_taken_over(tmp_path):
+    holder = held_lock(tmp_path, ["a", "b"])
     try:
         assert GroupLock(tmp_path, ["a", "b"]).acquire() == f"job 7_1 on {socket.gethostname()}"
         assert GroupLock(tmp_path, ["b", "a"]).acquire() is None  # another group (order is training order)
@@ -122,6 +131,23 @@ def test_a_live_jobs_lock_keeps_a_second_job_off_the_group_and_a_dead_ones_is_ta
     assert GroupLock(tmp_path, ["a", "b"]).acquire() == f"job {os.getpid()} on {socket.gethostname()}"
     second.release()
     assert not second.path.exists()
+
+
+def test_a_job_runner_leaves_a_group_that_a_live_job_trains_then_trains_it_once_that_job_is_gone(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    assert nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0
+    groups = [group for pack in plan_jobs(read_manifest(sweep_dir).to_pylist(), read_launch_config(sweep_dir))
+              for group in pack.groups]
+    held, others = len(groups[0].task_ids), 4 - len(groups[0].task_ids)
+    holder = held_lock(sweep_dir, groups[0].task_ids)
+    try:
+        assert JobRunner()(str(sweep_dir), groups) == {"busy": held, **({"ok": others} if others else {})}
+        assert len(row_files(sweep_dir)) == others
+    finally:
+        os.kill(holder.pid, signal.SIGKILL)
+        holder.wait()
+    assert JobRunner()(str(sweep_dir), groups) == {"ok": held, **({"skipped": others} if others else {})}
+    assert len(row_files(sweep_dir)) == 4 and not list((sweep_dir / "checkpoints").rglob("*.*"))
 
 
 def test_a_site_time_cap_makes_a_long_group_a_chain_of_jobs_and_needs_checkpoints():
