@@ -13,8 +13,9 @@ signal (a time limit ahead or a preemption; submitit calls ``checkpoint``) the r
 its state and stop (SIGUSR1), and the job is requeued with the running group and those it has not started: a
 group longer than a job's time limit runs as a chain of requeued jobs. A SIGTERM (``scontrol requeue``, a
 preemption without warning, ``scancel``) makes the child write its state and stop too; the job then ends, and
-its group continues where it stopped when the job runs again or is resubmitted. Without checkpoints, the
-warning records the running group's tasks as timeout and requeues only the groups not started.
+its group continues where it stopped when the job runs again or is resubmitted. A group that does not stop
+that way (it hangs, or it is scoring after training), and any group without checkpoints, is recorded as
+timeout at the warning and the job is requeued with the groups it has not started.
 
 A job trains a group only while it holds the group's lock: a second job (a resubmitted one beside a requeued
 one) leaves a group that a live job trains to it.
@@ -251,9 +252,10 @@ class JobRunner:
 
     def checkpoint(self, sweep_dir: str, groups: Sequence[Group]) -> submitit.helpers.DelayedSubmission | None:
         """On SLURM's warning signal (time limit or preemption): with checkpoints, have the running group write
-        its state and stop, and requeue it with the groups not started; without, record its tasks as timeout
-        and requeue the groups not started (none left: no requeue, which SLURM would delay by minutes for
-        nothing)."""
+        its state and stop, and requeue it with the groups not started; a group that does not stop so (no
+        checkpoint: it hangs, or it is scoring after training), and any without checkpoints, is recorded as
+        timeout and not requeued (none left: no requeue, which SLURM would delay by minutes for nothing)."""
+        resumed = [self.current] if self.current is not None else []  # stopped, or not started yet
         if self.running is not None:
             sweep, ids, child = self.running
             if self.checkpointing:
@@ -262,9 +264,12 @@ class JobRunner:
                 child.join(self.stop_wait_s)
             with contextlib.suppress(ProcessLookupError):
                 child.kill()
-            if not self.checkpointing:
-                record_group_failure(sweep, ids, "timeout", "the job reached its time limit while this task ran")
-        resumed = [self.current] if self.checkpointing and self.current is not None else []
+            child.join()
+            if child.exitcode != EXIT_STOPPED:
+                resumed = []
+                record_group_failure(sweep, ids, "timeout", "the job reached its time limit while this task ran"
+                                     + ("; its checkpoint, if any, is kept: resubmit continues from it"
+                                        if self.checkpointing else ""))
         remaining = resumed + [group for group in groups if group not in self.started]
         if not remaining:
             return None
