@@ -21,7 +21,7 @@ from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.checkpoint import info_path
-from nsl_hpc.sweep.checkpoints import STALE_S, saved_groups
+from nsl_hpc.sweep.checkpoints import STALE_S, lock_path, saved_groups
 from nsl_hpc.sweep.directory import process_alive, sweep_lock
 from nsl_hpc.sweep.failures import failure_path, task_log_path
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
@@ -68,10 +68,11 @@ def stale_checkpoint_files(sweep_dir: Path, done: set[str], known: set[str]) -> 
     finished = [saved.path for saved in saved_groups(sweep_dir)
                 if all(task_id in done or task_id not in known for task_id in saved.task_ids)]
     for path in finished:
-        yield from (path, info_path(path), path.with_suffix(".lock"))
+        yield from (path, info_path(path), lock_path(path))
+    finished_locks = {lock_path(path) for path in finished}
     for lock in (sweep_dir / "checkpoints").glob("*/*.lock"):
         with contextlib.suppress(FileNotFoundError):
-            if lock.with_suffix(".pt") not in finished and time.time() - lock.stat().st_mtime > STALE_S:
+            if lock not in finished_locks and time.time() - lock.stat().st_mtime > STALE_S:
                 yield lock
 
 

@@ -38,6 +38,11 @@ def checkpoint_path(sweep_dir: Path, task_ids: Sequence[str]) -> Path:
     return Path(sweep_dir) / "checkpoints" / key[:2] / f"{key}.pt"
 
 
+def lock_path(checkpoint: Path) -> Path:
+    """The lock of the group whose checkpoint is ``checkpoint``."""
+    return checkpoint.with_suffix(".lock")
+
+
 def this_job() -> str:
     """The SLURM job (array element) this process runs in, or '' outside SLURM."""
     array, index = os.environ.get("SLURM_ARRAY_JOB_ID"), os.environ.get("SLURM_ARRAY_TASK_ID")
@@ -69,7 +74,7 @@ class GroupLock:
     """The lock of the group of ``task_ids``: held by at most one job at a time."""
 
     def __init__(self, sweep_dir: Path, task_ids: Sequence[str]):
-        self.path = checkpoint_path(sweep_dir, task_ids).with_suffix(".lock")
+        self.path = lock_path(checkpoint_path(sweep_dir, task_ids))
         self.record = {"job": this_job(), "host": socket.gethostname(), "pid": os.getpid()}
         self.renewed = 0.0
 
