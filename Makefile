@@ -4,6 +4,9 @@
 #   make test   start the local SLURM cluster (cluster/up.sh) and run the test suite
 #   make test-fast  the tests that need no cluster and run no command end to end (< 2 min)
 #   make demo-io  the input-output demo (io_demo, 60 tasks on the simulated stand-ins), merge ... report.html
+#   make repro  the reduced-scale reproduction (docs/reproduction.md): the repro and repro_io sweeps (~1.9 predicted
+#               core-hours, about an hour on 2 cores) into runs/repro/{input_state,input_output}, each with its
+#               report. REPRO_DIR=... REPRO_ARGS="sweep_seed=1 repro.seeds=[0]": the cheaper check run.
 #   make data   copy the measured Silverbox / Wiener-Hammerstein files from DATA_SOURCE into data/
 PYTHON ?= python3
 VENV ?= .venv
@@ -12,8 +15,10 @@ INSTALLED := $(VENV)/.installed
 DEMO_DIR ?= runs/demo
 IO_DEMO_DIR ?= runs/io_demo
 DATA_SOURCE ?= ../shared/data
+REPRO_DIR ?= runs/repro
+REPRO_ARGS ?=
 
-.PHONY: install demo demo-io data test test-fast lint
+.PHONY: install demo demo-io repro data test test-fast lint
 
 install: $(INSTALLED)
 
@@ -31,6 +36,12 @@ demo: $(INSTALLED)
 demo-io: $(INSTALLED)
 	$(PY) -m nsl_hpc.launch +sweep=io_demo sweep_dir=$(IO_DEMO_DIR)
 	$(PY) -m nsl_hpc.report sweep_dir=$(IO_DEMO_DIR)
+
+repro: data
+	$(PY) -m nsl_hpc.launch +sweep=repro sweep_dir=$(REPRO_DIR)/input_state $(REPRO_ARGS)
+	$(PY) -m nsl_hpc.report sweep_dir=$(REPRO_DIR)/input_state
+	$(PY) -m nsl_hpc.launch +sweep=repro_io sweep_dir=$(REPRO_DIR)/input_output $(REPRO_ARGS)
+	$(PY) -m nsl_hpc.report sweep_dir=$(REPRO_DIR)/input_output
 
 data: $(INSTALLED)
 	$(PY) -m nsl_hpc.place_data source=$(DATA_SOURCE) data_dir=data

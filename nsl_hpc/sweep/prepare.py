@@ -45,8 +45,14 @@ def validate_launch(cfg: DictConfig, overrides: Sequence[str]) -> Study:
         if override_key(override) in study.axes:
             raise ConfigError(f"{override_key(override)} is a grid axis of the sweep; set "
                               f"sweep.grid.{override_key(override)}=[...] instead of {override}")
-    validate_grid(OmegaConf.to_container(cfg.sweep.grid), study)
+    validate_grid(sweep_grid(cfg), study)
     return study
+
+
+def sweep_grid(cfg: DictConfig) -> Grid:
+    """The launch config's ``sweep.grid`` as plain data, interpolations resolved (a preset may share one list
+    between its sub-grids: ``seed: ${repro.seeds}``)."""
+    return OmegaConf.to_container(cfg.sweep.grid, resolve=True)
 
 
 def validate_grid_values(grid: Grid, study: Study, configs: Mapping[tuple[str, str], Mapping[str, Any]]) -> None:
@@ -62,7 +68,7 @@ def validate_grid_values(grid: Grid, study: Study, configs: Mapping[tuple[str, s
 
 def pair_configs(cfg: DictConfig, overrides: Sequence[str], study: Study) -> dict[tuple[str, str], dict]:
     """The resolved plain config of every (system, arch) of the grid, with the launch's overrides."""
-    pairs = {(system, arch) for part in sub_grids(OmegaConf.to_container(cfg.sweep.grid))
+    pairs = {(system, arch) for part in sub_grids(sweep_grid(cfg))
              for system in part["system"] for arch in part["arch"]}
     configs = {}
     for system, arch in sorted(pairs):
@@ -95,7 +101,7 @@ class PreparedSweep:
 def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
     """Validate everything a launch depends on and expand its grid; writes nothing."""
     study = validate_launch(cfg, overrides)
-    grid = OmegaConf.to_container(cfg.sweep.grid)
+    grid = sweep_grid(cfg)
     configs = pair_configs(cfg, overrides, study)
     validate_grid_values(grid, study, configs)
     for values in configs.values():
