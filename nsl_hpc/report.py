@@ -1,5 +1,6 @@
 """Post-process a sweep in one go: merge the rows, fit every NSL, draw the figures, write the
-self-contained ``<sweep_dir>/report.html`` and log it all to MLflow.
+self-contained ``<sweep_dir>/report.html`` (and its comparison with the published laws as Markdown,
+``comparison.md``) and log it all to MLflow.
 
     python -m nsl_hpc.report sweep_dir=runs/demo
     python -m nsl_hpc.report sweep_dir=runs/demo mlflow.tracking_uri=http://mlflow.example:5000
@@ -25,7 +26,13 @@ from nsl_hpc.analysis.fitting import (
 from nsl_hpc.analysis.merge import merge_sweep, results_path
 from nsl_hpc.analysis.mlflow_runs import log_to_mlflow, tracking_uri
 from nsl_hpc.analysis.prediction import what_it_takes
-from nsl_hpc.analysis.report import REPORT_FILE, report_html, what_it_takes_html
+from nsl_hpc.analysis.report import (
+    COMPARISON_FILE,
+    REPORT_FILE,
+    comparison_markdown,
+    report_html,
+    what_it_takes_html,
+)
 from nsl_hpc.atomic import write_text
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 
@@ -48,9 +55,11 @@ def main(cfg: DictConfig) -> int:
     section = what_it_takes_html(entries, wanted, nsl["resources"][wanted["resource"]]["symbol"])
     report = sweep_dir / REPORT_FILE
     write_text(report_html(sweep_dir, launch, summary, rows, figures, section), report)
+    write_text(comparison_markdown(rows), sweep_dir / COMPARISON_FILE)
     if cfg.mlflow.enabled:
         by_key = {nsl_key(row): figure_stem(sweep_dir, row).with_suffix(".png") for row in rows}
         artifacts = [results_path(sweep_dir), fits_path(sweep_dir), sweep_dir / FITS_TEXT_FILE, report,
+                     sweep_dir / COMPARISON_FILE,
                      *(path for path in figures["overview"])]
         run = log_to_mlflow(sweep_dir, cfg.mlflow, launch, summary, rows,
                             {key: path for key, path in by_key.items() if path.exists()}, artifacts)

@@ -1,6 +1,7 @@
 """Post-processing a real (small) sweep: merge with corrupt, duplicate and missing shards, NSL fits,
 figures, report and MLflow runs that are updated, not duplicated."""
 
+import json
 import shutil
 
 import matplotlib.image
@@ -80,6 +81,7 @@ def test_fit_writes_one_row_per_nsl_and_reports_excluded_outcomes(sweep_copy):
         assert fit["L_at_max_lo"] <= fit["L_at_max_hi"] and fit["r_max"] > 0
     published = next(f for f in fits if (f["resource"], f["metric"]) == ("data", "nmae"))
     assert (published["paper_b"], published["paper_margin"]) == (2, 0.07) and published["paper_margin_on_ours"] > 0
+    assert json.loads(published["paper_range"]) == [100, 51165] and published["r_min"] < published["r_max"]
     assert all(f["paper_b"] is None for f in fits if f is not published)
 
 
@@ -107,6 +109,9 @@ def test_report_figures_and_mlflow_runs_are_updated_not_duplicated(sweep_copy):
     assert report.count("data:image/png;base64,") == NSLS + NSLS  # every NSL and the 6 overview grids
     assert "0 of 24 tasks (0.0%) dropped" in report and report.count("<td><code>L(") == NSLS
     assert "Against the published laws" in report and "Section 5.2, Figure fig:data-nmae-aff-spring" in report
+    comparison = (sweep_copy / "comparison.md").read_text().splitlines()
+    assert len(comparison) == 3 and comparison[2].startswith("| spring / input_affine / data / nmae | 2 / ")
+    assert "| 1e+02-5.1e+04 / " in comparison[2] and comparison[2].endswith("fig:data-nmae-aff-spring |")
     assert "What it takes" in report and "c needed [90%]" in report
     for png in (sweep_copy / "figures").rglob("*.png"):
         image = matplotlib.image.imread(png)

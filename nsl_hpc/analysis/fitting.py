@@ -108,7 +108,8 @@ def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, ns
     padded = fit.breaks + [(None, None, None)] * (slots - fit.b)
     row.update(b=fit.b, alpha=fit.alpha, beta=fit.beta, delta0=fit.delta0, margin=fit.margin,
                fit_margin=fit.fit_margin, envelope=fit.envelope, formula=fit.formula(symbol),
-               margins_by_b=json.dumps(fit.margins), objective=fit.objective, r_max=float(r.max()))
+               margins_by_b=json.dumps(fit.margins), objective=fit.objective, r_min=float(r.min()),
+               r_max=float(r.max()))
     for i, (sigma, phi, delta) in enumerate(padded, start=1):
         row.update({f"sigma_{i}": sigma, f"phi_{i}": phi, f"delta_{i}": delta})
     thetas = bootstrap_thetas(fit, r, e, nsl["bootstrap"], stable_seed("bootstrap", *key.values()), nsl["K"],

@@ -58,11 +58,11 @@ def published_margins_by_b() -> dict[tuple[str, ...], dict[int, float]]:
 
 def comparison(key: tuple[str, ...], resources: np.ndarray, errors: np.ndarray, K: int) -> dict[str, Any]:
     """The paper_* columns of one NSL: the published law's b, M, last slope, breaks (JSON list of sigma_i),
-    place, and its margin on our Definition 1 envelope (``paper_margin_on_ours``); None where the paper
-    publishes none."""
+    resource range of the study's grid (JSON [low, high]), place, and its margin on our Definition 1 envelope
+    (``paper_margin_on_ours``); None where the paper publishes none."""
     columns: dict[str, Any] = {"paper_b": None, "paper_margin": None, "paper_last_slope": None,
                                "paper_breaks": None, "paper_margin_on_ours": None, "paper_where": None,
-                               "paper_margins_by_b": None}
+                               "paper_margins_by_b": None, "paper_range": None}
     if key in published_margins_by_b():
         columns["paper_margins_by_b"] = json.dumps(published_margins_by_b()[key])
     published = published_laws().get(key)
@@ -73,4 +73,5 @@ def comparison(key: tuple[str, ...], resources: np.ndarray, errors: np.ndarray, 
     return columns | {"paper_b": published.b, "paper_margin": published.margin,
                       "paper_last_slope": published.last_slope,
                       "paper_breaks": json.dumps([sigma for sigma, _, _ in published.law.breaks]),
-                      "paper_margin_on_ours": on_ours, "paper_where": published.where}
+                      "paper_margin_on_ours": on_ours, "paper_where": published.where,
+                      "paper_range": json.dumps(list(published.resource_range))}

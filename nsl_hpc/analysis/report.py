@@ -20,6 +20,7 @@ from nsl_hpc.sweep.grid import sub_grids
 from nsl_hpc.sweep.manifest import read_base_config
 
 REPORT_FILE = "report.html"
+COMPARISON_FILE = "comparison.md"  # the comparison with the published laws, as Markdown
 STYLE = """body{font-family:system-ui,sans-serif;margin:2em auto;max-width:1200px;color:#222}
 table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 6px;text-align:left}
 th{background:#f2f2f2}code{font-size:12px}img{max-width:100%}pre{background:#f7f7f7;padding:.6em}"""
@@ -57,32 +58,52 @@ def nsl_table(rows: Sequence[Mapping[str, Any]]) -> str:
     return f"<table>{head}{''.join(body)}</table>"
 
 
-def comparison_table(rows: Sequence[Mapping[str, Any]]) -> str:
-    """Paper vs ours for every fitted NSL the study publishes a law (or margins) for."""
-    head = ("<tr><th>NSL</th><th>b paper / ours</th><th>M paper / ours</th><th>published law's M on our envelope"
-            "</th><th>last slope paper / ours [90%]</th><th>breaks paper</th><th>breaks ours [90%]</th>"
-            "<th>in the paper</th></tr>")
-    body = []
+COMPARISON_HEAD = ("NSL", "b paper / ours", "M paper / ours", "published law's M on our envelope",
+                   "last slope paper / ours [90%]", "breaks paper", "breaks ours [90%]", "resources paper / ours",
+                   "in the paper")
+
+
+def comparison_rows(rows: Sequence[Mapping[str, Any]]) -> list[tuple[str, ...]]:
+    """The cells (COMPARISON_HEAD) of paper vs ours for every fitted NSL the study publishes a law (or margins)
+    for; resources: the study grid's range, ours the range of the fitted outcomes."""
+    table = []
     for row in rows:
         if row["error"] is not None or (row.get("paper_b") is None and row.get("paper_margins_by_b") is None):
             continue
         ours_breaks = ", ".join(interval(row, f"sigma_{i}", ".2g") for i in range(1, row["b"] + 1)) or "none"
         name = " / ".join(row[k] for k in ("system", "arch", "resource", "metric"))
+        ours_range = f"{row['r_min']:.2g}-{row['r_max']:.2g}"
         if row.get("paper_b") is None:  # margins only (the appendix on choosing b)
             published = json.loads(row["paper_margins_by_b"])
             ours = json.loads(row["margins_by_b"])
             margins = "; ".join(f"b={b}: {m:.2g} / {ours[b]:.2g}" for b, m in published.items() if b in ours)
-            body.append("<tr>" + cells((name, f"1-4 / {row['b']}", margins, "", f"/ {interval(row, 'last_slope')}",
-                                        "", ours_breaks, "Appendix (margins by b; ours: fitted envelope)")) + "</tr>")
+            table.append((name, f"1-4 / {row['b']}", margins, "", f"/ {interval(row, 'last_slope')}", "",
+                          ours_breaks, f"/ {ours_range}", "Appendix (margins by b; ours: fitted envelope)"))
             continue
         paper_breaks = ", ".join(f"{sigma:.2g}" for sigma in json.loads(row["paper_breaks"])) or "none"
-        body.append("<tr>" + cells((
+        low, high = json.loads(row["paper_range"])
+        table.append((
             name, f"{row['paper_b']} / {row['b']}", f"{row['paper_margin']:.2g} / {row['margin']:.2g}",
             f"{row['paper_margin_on_ours']:.2g}", f"{row['paper_last_slope']:.2f} / {interval(row, 'last_slope')}",
-            paper_breaks, ours_breaks, row["paper_where"])) + "</tr>")
+            paper_breaks, ours_breaks, f"{low:.2g}-{high:.2g} / {ours_range}", row["paper_where"]))
+    return table
+
+
+def comparison_table(rows: Sequence[Mapping[str, Any]]) -> str:
+    """Paper vs ours (``comparison_rows``) as an HTML table."""
+    body = "".join(f"<tr>{cells(row)}</tr>" for row in comparison_rows(rows))
     if not body:
         return "<p>The study publishes no law for the NSLs of this sweep.</p>"
-    return f"<table>{head}{''.join(body)}</table>"
+    return f"<table><tr>{''.join(f'<th>{html.escape(name)}</th>' for name in COMPARISON_HEAD)}</tr>{body}</table>"
+
+
+def comparison_markdown(rows: Sequence[Mapping[str, Any]]) -> str:
+    """Paper vs ours (``comparison_rows``) as a Markdown table (``<sweep_dir>/comparison.md``)."""
+    lines = ["| " + " | ".join(COMPARISON_HEAD) + " |", "|" + "---|" * len(COMPARISON_HEAD)]
+    lines += ["| " + " | ".join(cell.replace("|", "\\|") for cell in row) + " |" for row in comparison_rows(rows)]
+    if len(lines) == 2:
+        return "The study publishes no law for the NSLs of this sweep.\n"
+    return "\n".join(lines) + "\n"
 
 
 def what_it_takes_html(entries: Sequence[Mapping[str, Any]], settings: Mapping[str, Any], symbol: str) -> str:
