@@ -14,6 +14,7 @@ from nsl_hpc.sweep.task import task_id
 
 INPUT_STATE = study_named("input_state")
 INPUT_OUTPUT = study_named("input_output")
+INPUT_STATE_TIERS = [2**k for k in range(1, 10)]
 
 
 def input_state_grid():
@@ -125,6 +126,26 @@ def test_input_output_grid_has_42120_tasks_in_its_four_sub_grids():
                    for arch in ("narx", "subnet")}
     assert multipliers == {"narx": [1, *range(2, 31, 2)], "subnet": list(range(1, 13))}
     assert len({tuple(task.values()) for task in tasks}) == 42_120
+
+
+def test_repro_presets_slice_both_studies_as_documented():
+    """conf/sweep/repro.yaml: the 4 pairs of the published input-state laws, every data / width / depth tier,
+    n_e * data_tier <= 16,384 or n_e <= 128; `repro.seeds` (interpolated into every sub-grid) sets the seeds."""
+    pairs = {("ball", "input_affine"), ("ball", "port_hamiltonian"), ("spring", "input_affine"),
+             ("motor", "unstructured")}
+    for seeds, total in (("[0,1]", 5_376), ("[0]", 2_688)):
+        grid = OmegaConf.to_container(compose_config(["+sweep=repro", f"repro.seeds={seeds}"], "launch").sweep.grid,
+                                      resolve=True)
+        tasks = list(expand_grid(grid, INPUT_STATE))
+        assert len(tasks) == len({tuple(task.values()) for task in tasks}) == total
+        assert {(task["system"], task["arch"]) for task in tasks} == pairs
+        assert len({task["seed"] for task in tasks}) == len(seeds.split(","))
+        kept = {(task["data_tier"], task["epochs"]) for task in tasks}
+        assert kept == {(d, e) for d in INPUT_STATE_TIERS for e in (2**k for k in range(1, 15))
+                        if d * e <= 16_384 or e <= 128}
+    io = OmegaConf.to_container(compose_config(["+sweep=repro_io"], "launch").sweep.grid, resolve=True)
+    per_pair = Counter((task["arch"], task["system"]) for task in expand_grid(io, INPUT_OUTPUT))
+    assert per_pair == {("narx", "silverbox"): 2 * 9 * 6 * 2, ("narx", "wiener_hammerstein"): 7 * 6 * 3}
 
 
 def test_input_output_manifest_sizes_follow_the_draw_rules_and_the_single_task_path():
