@@ -5,7 +5,7 @@
 #   make test-fast  the tests that need no cluster and run no command end to end (< 2 min)
 #   make demo-io  the input-output demo (io_demo, 60 tasks on the simulated stand-ins), merge ... report.html
 #   make repro  the reduced-scale reproduction (docs/reproduction.md): the repro and repro_io sweeps (~1.9 predicted
-#               core-hours, about an hour on 2 cores) into runs/repro/{input_state,input_output}, each with its
+#               core-hours, 77 min on 2 cores) into runs/repro/{input_state,input_output}, each with its
 #               report. REPRO_DIR=... REPRO_ARGS="sweep_seed=1 repro.seeds=[0]": the cheaper check run.
 #   make data   copy the measured Silverbox / Wiener-Hammerstein files from DATA_SOURCE into data/
 PYTHON ?= python3
