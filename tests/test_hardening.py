@@ -177,11 +177,13 @@ def test_killing_the_local_launcher_stops_its_workers_and_a_relaunch_runs_the_re
 
 # 7. resubmit uses the launcher the user names (default: the last one used) and new watchdog and time settings.
 def test_resubmit_runs_on_the_last_launcher_with_the_settings_it_is_given(tmp_path):
-    sweep_dir, longer = tmp_path / "sweep", "sweep.grid.epochs=[400]"  # tasks of ~1 s: longer than a watchdog poll
-    assert nsl("launch", *LOCAL, longer, f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0  # ran nothing
+    # tasks of 13 heartbeats slowed to >= 1.3 s on any machine: longer than a watchdog poll (0.2 s), every attempt
+    sweep_dir, longer = tmp_path / "sweep", ["sweep.grid.epochs=[400]", "fault.kind=slow", "fault.heartbeat_s=0.1",
+                                             "fault.once=false"]
+    assert nsl("launch", *LOCAL, *longer, f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0  # ran nothing
     too_tight = ["launcher=debug", "watchdog.overrun_factor=1", "cost.startup_s=0.001", "lockstep.enabled=false",
                  "cost.step_seconds.input_affine=1e-9"]
-    frozen = nsl("launch", *TINY_GRID, longer, f"sweep_dir={sweep_dir}", *too_tight)
+    frozen = nsl("launch", *TINY_GRID, *longer, f"sweep_dir={sweep_dir}", *too_tight)
     assert frozen.returncode == 1 and "4 frozen" in frozen.stdout, frozen.stderr
     again = nsl("resubmit", f"sweep_dir={sweep_dir}")  # the debug launcher and the same tight watchdog
     assert again.returncode == 1 and "(debug)" in again.stdout and "4 frozen" in again.stdout

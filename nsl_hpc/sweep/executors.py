@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import submitit
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from nsl_hpc.errors import RunError
@@ -173,10 +173,19 @@ def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Launcher, name: s
     return 0 if set(counts) <= {"ok", "skipped"} else 1
 
 
+def limit_threads(threads: int) -> None:
+    """Hold the OpenMP and BLAS pools of every job this process starts (local workers inherit its environment,
+    SLURM jobs too: sbatch exports it) at ``threads``: a task's torch uses ``threads`` intra-op threads, and numpy
+    would otherwise start one per core of the node, oversubscribing the job's single CPU."""
+    for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[variable] = str(threads)
+
+
 def run_jobs(sweep_dir: Path, launch: DictConfig, packs: Sequence[Pack], tasks: Sequence[Mapping[str, Any]],
              configs: Mapping[tuple[str, str], Mapping[str, Any]]) -> int:
     """Run the planned ``packs`` of ``tasks`` (manifest rows) with the run settings ``launch``: the data they
     share first, the settings recorded in run.yaml, then ``dispatch``; returns its exit status."""
     prepare_shared_data(tasks, configs, study_named(launch.study.name))
     write_run_settings(sweep_dir, launch)
+    limit_threads(OmegaConf.select(launch, "threads", default=1))
     return dispatch(sweep_dir, packs, launcher_from(launch.launcher), launch.sweep.name)

@@ -96,18 +96,30 @@ class TaskResult:
     skipped: bool
 
 
-def inject_fault(fault: Mapping[str, Any], seed: int) -> None:
-    """Test-only fault injection: ``fault.kind`` 'raise' fails the task, 'hang' freezes it (no heartbeat),
-    for tasks of seed ``fault.seed`` (every task when it is null). ``fault.once`` is applied by the job
-    runner, which clears the fault for a task that already failed once."""
+def inject_fault(fault: Mapping[str, Any], seed: int) -> float:
+    """Test-only fault injection, for tasks of seed ``fault.seed`` (every task when it is null): ``fault.kind``
+    'raise' fails the task, 'hang' freezes it (no heartbeat), 'slow' returns ``fault.heartbeat_s``, the seconds
+    to sleep at every heartbeat, so that training lasts at least that times its heartbeats on any machine (the
+    outcome is unchanged); 0 otherwise. ``fault.once`` is applied by the job runner, which clears the fault for a
+    task that already failed once."""
     if fault["kind"] is None or fault["seed"] not in (None, seed):
-        return
+        return 0.0
     if fault["kind"] == "raise":
         raise RuntimeError(f"injected fault (fault.kind=raise, seed {seed})")
     if fault["kind"] == "hang":
         while True:
             time.sleep(3600)
-    raise ConfigError(f"fault.kind={fault['kind']!r}; allowed: null, raise, hang")
+    if fault["kind"] == "slow":
+        return float(fault["heartbeat_s"])
+    raise ConfigError(f"fault.kind={fault['kind']!r}; allowed: null, raise, hang, slow")
+
+
+def slowed(on_progress: Callable[[], None], seconds: float) -> Callable[[], None]:
+    """``on_progress`` followed by a sleep of ``seconds`` (``fault.kind=slow``)."""
+    def heartbeat() -> None:
+        on_progress()
+        time.sleep(seconds)
+    return heartbeat
 
 
 def run_task(cfg: DictConfig, on_progress: Callable[[], None] = lambda: None) -> TaskResult:
@@ -135,8 +147,9 @@ def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lamb
     for i in todo:
         ensure_writable_dir(Path(cfgs[i].out_dir))
     torch.set_num_threads(cfgs[todo[0]].threads)
-    for i in todo:
-        inject_fault(cfgs[i].fault, cfgs[i].seed)
+    delay = max(inject_fault(cfgs[i].fault, cfgs[i].seed) for i in todo)
+    if delay > 0:
+        on_progress = slowed(on_progress, delay)
     outcomes = tasks[todo[0]].study.train_and_score_pack(
         [(cfgs[i], {**tasks[i].coordinates, "task_id": paths[i].stem}, tasks[i].sizes) for i in todo], on_progress,
         checkpoint if len(todo) == len(cfgs) else None)

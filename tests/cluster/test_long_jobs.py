@@ -4,6 +4,10 @@ checkpoint, and every time the rows are those of the same group trained uninterr
 
 SLURM holds a requeued job for about two minutes (BeginTime) before it may start again; the tests release it
 at once (``scontrol update StartTime=now``) to stay short: the wait is SLURM's, not nsl_hpc's.
+
+Each test needs the group to train longer than something (the cap, the time to preempt it): ``fault.kind=slow``
+sleeps at every heartbeat, so the group lasts at least ``SLOW`` seconds on any machine, however fast, and its
+rows stay those of the group trained at full speed.
 """
 
 import json
@@ -22,8 +26,15 @@ from tests.sweeps import TINY_GRID, nsl, row_files
 
 pytestmark = pytest.mark.slurm
 
-# One lockstep group of two models that trains ~40 s on one core (input-affine, ~150 points, a step per epoch).
-GROUP = [*TINY_GRID, "sweep.grid.seed=[0,1]", "sweep.grid.epochs=[30000]"]
+# One lockstep group of two models that trains ~10 s on one core (input-affine, ~150 points, a step per epoch:
+# 200 heartbeats of 32 steps).
+GROUP = [*TINY_GRID, "sweep.grid.seed=[0,1]", "sweep.grid.epochs=[6400]"]
+HEARTBEATS = 6400 // 32
+
+
+def slow(seconds: float) -> list[str]:
+    """Overrides that make the group train for at least ``seconds`` on any machine."""
+    return ["fault.kind=slow", f"fault.heartbeat_s={seconds / HEARTBEATS}"]
 OUTCOME = ("nmae", "nmse", "final_loss", "steps", "params", "flops", "train_points", "width")
 
 
@@ -110,42 +121,43 @@ def running_for(name: str, seconds: float):
 def test_a_group_longer_than_the_time_cap_runs_as_a_chain_of_jobs(slurm_cluster, uninterrupted, tmp_path):
     sweep_dir = tmp_path / "cap" / "sweep"
     plan = launch(sweep_dir, "cap", "launcher.max_time_minutes=1", "launcher.signal_delay_s=20",
-                  "checkpoint.every_minutes=5")
+                  "checkpoint.every_minutes=5", *slow(90))  # 1.5 x the cap at the least
     chain = re.search(r"run as chains of (\d+)", plan)
     assert chain and int(chain.group(1)) >= 2, plan
     started = time.time()
     seen = wait_until(group_finished(sweep_dir, "cap"), "cap")
     print(f"\ncap of 1 minute: {seen['releases']} requeues, resumed {seen['resumes']}+ times, "
           f"{time.time() - started:.0f} s")
-    assert seen["releases"] >= 1 and seen["resumes"] >= 1
+    assert seen["releases"] >= 1 and seen["resumes"] >= 1, f"the group needed a single job: {seen}"
     assert outcome_rows(sweep_dir) == uninterrupted()
     assert not list(saved_groups(sweep_dir))  # a finished group's checkpoint is deleted
 
 
 def test_a_preempted_job_continues_from_its_checkpoint(slurm_cluster, uninterrupted, tmp_path):
     sweep_dir = tmp_path / "preempted" / "sweep"
-    launch(sweep_dir, "preempted", "checkpoint.every_minutes=30")  # only the preemption's warning writes one
+    launch(sweep_dir, "preempted", "checkpoint.every_minutes=30", *slow(60))  # only the preemption's warning writes one
     wait_until(running_for("preempted", 12), "preempted")
     high = subprocess.run(["sbatch", "--parsable", "-p", "high", "-c", str(os.cpu_count()), "-o", "/dev/null",
                            "--wrap", "sleep 3"], capture_output=True, text=True, check=True).stdout.strip()
     seen = wait_until(group_finished(sweep_dir, "preempted"), "preempted")
     state = subprocess.run(["sacct", "-n", "-X", "-j", high, "-o", "State"], capture_output=True, text=True).stdout
     assert "COMPLETED" in state or "RUNNING" in state, state
-    assert seen["resumes"] >= 1 and seen["releases"] >= 1
+    assert seen["resumes"] >= 1 and seen["releases"] >= 1, f"the group was not preempted while training: {seen}"
     assert outcome_rows(sweep_dir) == uninterrupted()
 
 
 def test_a_killed_training_process_loses_at_most_the_checkpoint_interval_and_resubmit_finishes(
         slurm_cluster, uninterrupted, tmp_path):
     sweep_dir = tmp_path / "killed" / "sweep"
-    launch(sweep_dir, "killed", "checkpoint.every_minutes=0.1")  # every 6 s
-    wait_until(running_with_checkpoint(sweep_dir, "killed", min_step=5000), "killed")
+    launch(sweep_dir, "killed", "checkpoint.every_minutes=0.1", *slow(60))  # every 6 s
+    wait_until(running_with_checkpoint(sweep_dir, "killed", min_step=2000), "killed")
     time.sleep(4)  # between two checkpoints
     (lock,) = (sweep_dir / "checkpoints").glob("*/*.lock")
     runner = json.loads(lock.read_text())["pid"]
     (child,) = subprocess.run(["pgrep", "-P", str(runner)], capture_output=True, text=True).stdout.split()
     os.kill(int(child), 9)  # as a node loss would
     wait_until(lambda seen: not jobs("nsl-killed"), "killed")
+    assert len(row_files(sweep_dir)) == 0, "the group finished before it was killed"
     status = nsl("status", f"sweep_dir={sweep_dir}").stdout
     assert "failed 2" in status and "killed by signal SIGKILL" in status, status
     lost = float(re.search(r"(\d+) s of training lost since its last checkpoint", status).group(1))
@@ -155,18 +167,18 @@ def test_a_killed_training_process_loses_at_most_the_checkpoint_interval_and_res
     resubmitted = nsl("resubmit", f"sweep_dir={sweep_dir}")
     assert "resubmitting 2 tasks" in resubmitted.stdout, resubmitted.stdout + resubmitted.stderr
     seen = wait_until(group_finished(sweep_dir, "killed"), "killed")
-    assert seen["resumes"] >= 1
+    assert seen["resumes"] >= 1, f"resubmit trained the group from scratch: {seen}"
     assert outcome_rows(sweep_dir) == uninterrupted()
 
 
 def test_scontrol_requeue_continues_from_the_checkpoint_without_duplicate_rows(slurm_cluster, uninterrupted,
                                                                               tmp_path):
     sweep_dir = tmp_path / "requeued" / "sweep"
-    launch(sweep_dir, "requeued", "checkpoint.every_minutes=30")  # only the requeue's SIGTERM writes one
+    launch(sweep_dir, "requeued", "checkpoint.every_minutes=30", *slow(60))  # only the requeue's SIGTERM writes one
     wait_until(running_for("requeued", 12), "requeued")
     ((job_id, _, _),) = jobs("nsl-requeued")
     subprocess.run(["scontrol", "requeue", job_id], check=True)
     seen = wait_until(group_finished(sweep_dir, "requeued"), "requeued")
-    assert seen["resumes"] >= 1
+    assert seen["resumes"] >= 1, f"the group was not requeued while training: {seen}"
     assert len(row_files(sweep_dir)) == 2
     assert outcome_rows(sweep_dir) == uninterrupted()
