@@ -5,7 +5,8 @@ renews. Rows, the manifest, the sweep's configs, the checkpoints of groups still
 records and logs of tasks without a row are kept, as are the files of jobs still pending or running, whatever
 the paths are set to. The simulated-data cache's entries go once every task has a row.
 
-    python -m nsl_hpc.clean sweep_dir=runs/input_state [dry_run=true]
+    python -m nsl_hpc.clean sweep_dir=runs/input_state dry_run=true    # list what would go
+    python -m nsl_hpc.clean sweep_dir=runs/input_state
 
 The dry run lists every path the real run removes (a folder with a trailing /: it goes with its content).
 """

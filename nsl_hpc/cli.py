@@ -7,20 +7,34 @@ import errno
 import sys
 from collections.abc import Callable, Sequence
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 
-from nsl_hpc.config import compose_config, config_groups
+from nsl_hpc.config import ConfigDoc, compose_config, config_dir, config_groups, documented_config
 from nsl_hpc.errors import ConfigError, RunError
 
 
-def usage(doc: str, cfg: DictConfig | None) -> str:
-    groups = "\n".join(f"  {name}: {', '.join(options)}" for name, options in config_groups().items())
-    text = f"{doc.strip()}\n\nConfig groups (choose with group=option):\n{groups}\n"
-    text += "\nAny value can be overridden with key=value (nested: train.lr=3e-4). "
-    text += "--cfg prints the composed config and exits.\n"
-    if cfg is not None:
-        text += f"\nCurrent config:\n{OmegaConf.to_yaml(cfg)}"
-    return text
+def usage(doc: str, config_name: str) -> str:
+    """A command's --help: what it does (its module docstring, with examples), then every key it reads with its
+    default and one line (from the comments of ``conf/<config_name>.yaml`` and what it includes) and the config
+    groups it selects."""
+    lines, seen, groups = [doc.strip(), ""], set(), config_groups()
+
+    def describe(config: ConfigDoc) -> None:
+        shown = [(key, default, comment) for key, default, comment in config.keys if key not in seen]
+        if shown:
+            lines.append(f"Keys (key=value) from {config.path.relative_to(config_dir())}:")
+        for key, default, comment in shown:
+            seen.add(key)
+            left = f"{key}={default}" if default else f"{key}.*"
+            lines.append(f"  {left if len(left) <= 52 else left[:49] + '...':<52} {comment}".rstrip())
+        for group in config.groups:
+            lines.append(f"  {group}=<{'|'.join(groups.get(group, []))}>  (config group)")
+        for included in config.included:
+            describe(included)
+
+    describe(documented_config(config_name))
+    lines += ["", "--cfg prints the composed config with every value and exits."]
+    return "\n".join(lines) + "\n"
 
 
 def run(main: Callable[..., int | None], doc: str, argv: Sequence[str] | None = None,
@@ -36,11 +50,7 @@ def run(main: Callable[..., int | None], doc: str, argv: Sequence[str] | None = 
             raise ConfigError(f"unknown option {sorted(unknown)[0]}; options are --help and --cfg, "
                               "everything else is key=value")
         if flags & {"-h", "--help"}:
-            try:
-                cfg = compose_config(overrides, config_name)
-            except ConfigError:
-                cfg = None
-            print(usage(doc, cfg))
+            print(usage(doc, config_name), end="")
             sys.exit(0)
         cfg = compose_config(overrides, config_name)
         if "--cfg" in flags:

@@ -1,7 +1,11 @@
 """The configs in ``conf/``: where they are, and composing one with ``key=value`` overrides (Hydra)."""
 
+import difflib
+import re
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from hydra import compose, initialize_config_dir
 from hydra.errors import HydraException, MissingConfigException
@@ -21,8 +25,53 @@ def config_dir() -> Path:
     raise ConfigError(f"no conf/config.yaml next to {PACKAGE_DIR}; reinstall nsl_hpc")
 
 
+# Mappings whose keys are the user's to add with +key=value (any sbatch flag); elsewhere + only selects a config
+# group (+sweep=<name>): a key added anywhere else is one no command reads, so it is refused.
+OPEN_MAPPINGS = ("launcher.extra_sbatch",)
+UNKNOWN_KEY = re.compile(r"Could not override '([^']+)'.*is not in struct")
+
+
 def compose_config(overrides: Sequence[str], config_name: str = "config") -> DictConfig:
-    """The config ``config_name`` from ``conf/`` with Hydra ``overrides`` applied, in struct mode."""
+    """The config ``config_name`` from ``conf/`` with Hydra ``overrides`` applied, in struct mode. A key the
+    config does not have (a typo, or a ``+key`` no command reads) is a ConfigError naming the closest key."""
+    for override in overrides:
+        key = override.split("=", 1)[0]
+        if key.startswith("+") and not key.startswith("++") and key[1:] not in config_groups() \
+                and key[1:].rpartition(".")[0] not in OPEN_MAPPINGS:
+            raise ConfigError(unknown_key(key[1:], [o for o in overrides if o != override], config_name)
+                              + f"; + only selects a config group (+sweep=<name>) or adds a {OPEN_MAPPINGS[0]} flag")
+    try:
+        return composed(overrides, config_name)
+    except ConfigError as error:
+        unknown = UNKNOWN_KEY.search(str(error))
+        if unknown is None:
+            raise
+        key = unknown.group(1)
+        raise ConfigError(unknown_key(key, [o for o in overrides if o.split("=", 1)[0] != key], config_name)) \
+            from None
+
+
+def unknown_key(key: str, overrides: Sequence[str], config_name: str) -> str:
+    """"unknown key 'wiat' (did you mean 'wait'?)": the closest key of the config composed with ``overrides``,
+    or config group."""
+    try:
+        keys = [*config_groups(), *dotted_keys(OmegaConf.to_container(composed(overrides, config_name)))]
+    except ConfigError:
+        keys = list(config_groups())
+    close = difflib.get_close_matches(key, keys, n=1, cutoff=0.6)
+    return f"unknown key '{key}' ({f'did you mean {close[0]!r}?' if close else '--help lists the keys'})"
+
+
+def dotted_keys(node: Any, prefix: str = "") -> list[str]:
+    """Every key of a nested mapping, dotted (``train``, ``train.lr``, ...)."""
+    if not isinstance(node, dict):
+        return []
+    return [name for key, value in node.items()
+            for name in (f"{prefix}{key}", *dotted_keys(value, f"{prefix}{key}."))]
+
+
+def composed(overrides: Sequence[str], config_name: str) -> DictConfig:
+    """``compose_config`` without the check of unknown keys."""
     from nsl_hpc.sweep.launchers import register_launchers  # the launcher group's schemas
 
     register_launchers()
@@ -63,3 +112,76 @@ def config_groups() -> dict[str, list[str]]:
               for group in config_dir().iterdir() if group.is_dir() and group.name != "local"}
     groups["launcher"] = sorted(LAUNCHERS)
     return dict(sorted(groups.items()))
+
+
+KEY_LINE = re.compile(r"^(?P<indent> *)(?P<key>[A-Za-z_]\w*):(?P<value>[^#]*?)\s*(?:#\s?(?P<comment>.*))?$")
+DEFAULT_LINE = re.compile(r"^\s+-\s+(?:optional\s+)?(?P<entry>[\w/]+)(?::\s*(?P<option>\w+))?")
+
+
+@dataclass
+class ConfigDoc:
+    """What a config file of conf/ documents: its keys (dotted key, default, comment; a section's own line has no
+    default), the config groups it selects, and the configs it includes."""
+
+    path: Path
+    keys: list[tuple[str, str, str]] = field(default_factory=list)
+    groups: list[str] = field(default_factory=list)
+    included: list["ConfigDoc"] = field(default_factory=list)
+
+
+def documented_config(name: str, prefix: str = "", top: bool = True) -> ConfigDoc:
+    """The ``ConfigDoc`` of ``conf/<name>.yaml``, read from its text (comments included), keys under ``prefix``.
+    Its defaults list is followed: a plain config (``- config``) and a group option placed at the top level
+    (``# @package _global_``, e.g. ``study: input_state``) are included, and at the ``top`` the options of its
+    own groups too (``nsl: default`` as ``nsl.*``)."""
+    path = config_dir() / f"{name}.yaml"
+    doc, sections, in_defaults, comment, value = ConfigDoc(path), [], False, "", ""
+    for line in path.read_text().splitlines():
+        if value:  # a flow mapping or list continued on this line
+            doc.keys[-1] = (doc.keys[-1][0], f"{value} {line.split('#')[0].strip()}", doc.keys[-1][2])
+            value = doc.keys[-1][1] if doc.keys[-1][1].count("{") + doc.keys[-1][1].count("[") > \
+                doc.keys[-1][1].count("}") + doc.keys[-1][1].count("]") else ""
+            continue
+        if line.startswith("#"):
+            if "@package" not in line:
+                comment = comment or line.lstrip("# ")
+            continue
+        if not line.strip():
+            comment = ""
+            continue
+        default = DEFAULT_LINE.match(line) if in_defaults else None
+        if default:
+            doc_of(default["entry"], default["option"], doc, top)
+            continue
+        match = KEY_LINE.match(line)
+        if not match:
+            continue
+        depth = len(match["indent"]) // 2
+        in_defaults = depth == 0 and match["key"] == "defaults"
+        if in_defaults:
+            continue
+        sections[depth:] = [match["key"]]
+        key, text = prefix + ".".join(sections), match["value"].strip()
+        doc.keys.append((key, text, (match["comment"] or ("" if text else comment)).strip()))
+        value = text if text.count("{") + text.count("[") > text.count("}") + text.count("]") else ""
+        comment = ""
+    return doc
+
+
+def doc_of(entry: str, option: str | None, doc: ConfigDoc, top: bool) -> None:
+    """Add a defaults-list entry (``entry`` or ``entry: option``) to ``doc``: a group to ``doc.groups``, what
+    ``documented_config`` includes to ``doc.included``."""
+    if option is None:
+        if entry != "_self_" and (config_dir() / f"{entry}.yaml").is_file():
+            doc.included.append(documented_config(entry, top=False))
+        return
+    if entry == "local":
+        return
+    doc.groups.append(entry)
+    option_file = config_dir() / entry / f"{option}.yaml"  # launcher's options are schemas, not files
+    if not option_file.is_file():
+        return
+    if option_file.read_text().startswith("# @package _global_"):
+        doc.included.append(documented_config(f"{entry}/{option}", top=False))
+    elif top:
+        doc.included.append(documented_config(f"{entry}/{option}", f"{entry}.", top=False))

@@ -2,6 +2,7 @@
 manifest; tasks without a row are dropped and accounted for (frozen, failed, timeout, missing).
 
     python -m nsl_hpc.merge sweep_dir=runs/demo
+    python -m nsl_hpc.merge sweep_dir=runs/input_state      # again while it runs: reads only the new shards
 
 Corrupt or half-written shards are reported and skipped; duplicate rows of a task and rows of tasks
 outside the manifest are reported and ignored. Merging twice gives the same table. The counts are also

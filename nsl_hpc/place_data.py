@@ -1,6 +1,7 @@
 """Copy measured benchmark files into the layout the ``nonlinear_benchmarks`` loaders read offline.
 
-    python -m nsl_hpc.place_data source=../shared/data [data_dir=data]
+    python -m nsl_hpc.place_data source=../shared/data
+    python -m nsl_hpc.place_data source=~/downloads data_dir=/scratch/nsl/data 'systems=[silverbox]'
 
 For each measured system (conf/system/<name>.yaml, ``source.files``) the files are found by name anywhere
 under ``source`` and copied to ``data_dir/<file>``; a ``.zip`` the loader only checks for (Silverbox's

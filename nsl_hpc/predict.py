@@ -1,6 +1,7 @@
 """What it takes to reach a target error, from a sweep's fitted laws and their bootstrap intervals.
 
     python -m nsl_hpc.predict sweep_dir=runs/demo target=0.05 [metric=nmae] [resource=compute]
+    python -m nsl_hpc.predict sweep_dir=runs/demo target=0.01 metric=nmse resource=data nsl.predict.decades=3
 
 For every (system, arch): the resource its law needs to reach ``target`` (90% interval from the bootstrap
 refits), "not reachable within the law" where the law stays above the target, how many decades beyond the

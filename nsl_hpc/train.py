@@ -2,6 +2,7 @@
 
     python -m nsl_hpc.train system=ball arch=port_hamiltonian epochs=64 data_tier=8 width_tier=8 \\
         depth_tier=2 seed=3 out_dir=runs/demo
+    python -m nsl_hpc.train study=input_output system=silverbox_sim arch=narx iter_multiplier=1 data_tier=250
 
 The row lands in <out_dir>/rows/<id[:2]>/<id>.parquet. A task whose row exists is skipped (force=true
 recomputes it). Bad input gets one line on stderr and exit status 2 before any work starts.

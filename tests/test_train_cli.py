@@ -124,5 +124,5 @@ def test_unwritable_output_dir_fails_before_work(tmp_path, cache_dir):
 def test_help_lists_groups_and_keys():
     result = subprocess.run([sys.executable, "-m", "nsl_hpc.train", "--help"], capture_output=True, text=True)
     assert result.returncode == 0
-    for text in ("python -m nsl_hpc.train", "system: ball, motor, silverbox", "epochs: 64", "data_tier"):
+    for text in ("python -m nsl_hpc.train", "system=<ball|motor|silverbox", "epochs=64", "data_tier=8"):
         assert text in result.stdout

@@ -178,7 +178,8 @@ class JobRunner:
                 if state == "corrupt":
                     set_aside(path)
                 todo.append(by_id[task_id])
-            if not todo:
+            if not todo:  # a job stopped between its rows and removing its checkpoint leaves one behind
+                remove_checkpoint(checkpoint_path(sweep, list(group.task_ids)))
                 continue
             lock = GroupLock(sweep, [task["task_id"] for task in todo])
             holder = lock.acquire()

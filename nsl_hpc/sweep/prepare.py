@@ -18,10 +18,12 @@ from nsl_hpc.studies import study_named, study_of
 from nsl_hpc.studies.base import Study
 from nsl_hpc.sweep.grid import Grid, build_manifest, sub_grids, validate_grid
 from nsl_hpc.sweep.manifest import (
+    LAUNCH_CONFIG_FILE,
     base_config_path,
     manifest_path,
     read_launch_config,
     read_manifest,
+    read_yaml,
     write_sweep,
     write_yaml,
 )
@@ -117,9 +119,10 @@ def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Prepar
     if manifest_path(sweep_dir).exists():
         existing = read_manifest(sweep_dir, columns=["task_id"])["task_id"]
         if existing.to_pylist() != manifest["task_id"].to_pylist():
+            changed = changed_settings(read_yaml(sweep_dir / LAUNCH_CONFIG_FILE, sweep_dir), cfg, built.study)
             raise ConfigError(f"sweep_dir={str(sweep_dir)!r} holds a different grid ({len(existing):,} tasks, "
-                              f"this one has {len(manifest):,} or other settings); choose another "
-                              "sweep_dir or launch with the same sweep and overrides")
+                              f"this one has {len(manifest):,}; {'; '.join(changed) or 'other draws'}): choose "
+                              "another sweep_dir or launch with the same sweep and overrides")
         for (system, arch), values in built.configs.items():  # a deleted one is restored: it is the same
             if not base_config_path(sweep_dir, system, arch).exists():
                 write_yaml(values, base_config_path(sweep_dir, system, arch), sweep_dir)
@@ -132,6 +135,24 @@ def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Prepar
     infeasible = infeasible_tasks(todo, built.study, built.configs)
     runnable = pc.invert(pc.is_in(todo["task_id"], value_set=pa.array(list(infeasible), type=pa.string())))
     return PreparedSweep(sweep_dir, manifest, todo.filter(runnable), infeasible, built.configs, len(queued), aside)
+
+
+def changed_settings(stored: DictConfig, cfg: DictConfig, study: Study, shown: int = 4) -> list[str]:
+    """'train.lr 0.001 -> 0.01': the outcome-changing settings (the grid, the sweep seed and the study's shared
+    keys) in which the launch config ``cfg`` differs from the ``stored`` one, the first ``shown`` of them."""
+    keys = ("sweep", "sweep_seed", *study.shared_keys)
+    old, new = (OmegaConf.to_container(config, resolve=True) for config in (stored, cfg))
+    changes = [f"{key} {before!r} -> {after!r}" for key, before, after in
+               leaf_differences({k: old.get(k) for k in keys}, {k: new.get(k) for k in keys})]
+    return changes[:shown] + ([f"{len(changes) - shown} more"] if len(changes) > shown else [])
+
+
+def leaf_differences(old: Any, new: Any, prefix: str = "") -> list[tuple[str, Any, Any]]:
+    """(dotted key, old value, new value) of every leaf where two nested mappings differ."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        return [change for key in sorted(old.keys() | new.keys(), key=str)
+                for change in leaf_differences(old.get(key), new.get(key), f"{prefix}{key}.")]
+    return [] if old == new else [(prefix.rstrip("."), old, new)]
 
 
 def queued_tasks(sweep_dir: Path) -> set[str]:

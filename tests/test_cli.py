@@ -1,0 +1,54 @@
+"""The command-line surface every ``python -m nsl_hpc.<verb>`` shares: --help per command, and misspelt keys."""
+
+import importlib
+
+import pytest
+
+from nsl_hpc.cli import usage
+from nsl_hpc.config import compose_config
+from nsl_hpc.errors import ConfigError
+
+# verb, its config, keys its help must name (its own ones, not every key of every config)
+COMMANDS = [
+    ("launch", "launch", ["dry_run=false", "launcher=<debug|local|slurm>", "lockstep.size=32", "epochs=64"]),
+    ("train", "one_task", ["seed=0", "epochs=64", "system=<ball|", "force=false"]),
+    ("status", "status", ["wait=false", "interval_s=10", "show_failures=10"]),
+    ("predict", "predict", ["target=???", "metric=nmae", "resource=compute", "nsl.predict.decades=6"]),
+    ("fit", "fit", ["metrics=null", "nsl.max_breaks=4", "nsl.envelope=interpolated"]),
+    ("report", "report", ["mlflow.tracking_uri=null", "nsl.bootstrap=200", "figures."]),
+    ("resubmit", "resubmit", ["states=[failed, frozen, timeout, missing, corrupt]", "time_factor=1.0"]),
+    ("merge", "merge", ["sweep_dir=???"]),
+    ("clean", "clean", ["dry_run=false"]),
+    ("place_data", "place_data", ["source=???", "systems=[silverbox, wiener_hammerstein]"]),
+]
+
+
+@pytest.mark.parametrize(("verb", "config_name", "keys"), COMMANDS, ids=[c[0] for c in COMMANDS])
+def test_help_says_what_the_command_does_with_two_examples_and_its_own_keys(verb, config_name, keys):
+    text = usage(importlib.import_module(f"nsl_hpc.{verb}").__doc__, config_name)
+    assert text.count(f"python -m nsl_hpc.{verb} ") >= 2, text  # two examples
+    for key in keys:
+        assert key in text, (key, text)
+    assert "Current config" not in text and "_target_" not in text
+    if verb in ("status", "predict", "fit"):
+        assert "system=<" not in text and "launcher=<" not in text  # groups the command does not read
+
+
+@pytest.mark.parametrize(("overrides", "config_name", "message"), [
+    (["sweep_dir=x", "wiat=true"], "status", "unknown key 'wiat' (did you mean 'wait'?)"),
+    (["train.lrr=0.01"], "one_task", "unknown key 'train.lrr' (did you mean 'train.lr'?)"),
+    (["+train.lrr=0.01"], "one_task", "unknown key 'train.lrr' (did you mean 'train.lr'?); + only selects"),
+    (["+swep=demo"], "launch", "unknown key 'swep' (did you mean 'sweep'?)"),
+    (["systm=ball"], "one_task", "unknown key 'systm' (did you mean 'system'?)"),
+    (["nothing.like.it=1"], "one_task", "unknown key 'nothing.like.it' (--help lists the keys)"),
+])
+def test_a_misspelt_key_names_the_closest_one_and_never_suggests_plus(overrides, config_name, message):
+    with pytest.raises(ConfigError) as error:
+        compose_config(overrides, config_name)
+    assert str(error.value).startswith(message), str(error.value)
+    assert "+wiat" not in str(error.value) and "To append" not in str(error.value)
+
+
+def test_plus_still_selects_a_group_and_adds_sbatch_flags():
+    cfg = compose_config(["+sweep=demo", "launcher=slurm", "+launcher.extra_sbatch.hold=true"], "launch")
+    assert cfg.sweep.name == "demo" and cfg.launcher.extra_sbatch.hold is True
