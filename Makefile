@@ -22,11 +22,18 @@ REPRO_ARGS ?=
 
 install: $(INSTALLED)
 
-# torch first, pinned: its CPU wheel; an unpinned torch (or one pulled in by a dependency) is a CUDA build.
+# torch first, pinned, and the CPU build: from what pip has without an index (its local wheels or cache, no wait on
+# an index it cannot reach), else from TORCH_INDEX, PyTorch's CPU wheel index (about 200 MB; PyPI's Linux torch is
+# the CUDA build, gigabytes of GPU libraries). GPU nodes: TORCH_INDEX=https://download.pytorch.org/whl/cu126.
+# torch's own dependencies come from PyPI with the package's.
+TORCH := torch==2.13.0
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
+PIP := $(PY) -m pip install --quiet --disable-pip-version-check
+
 $(INSTALLED): pyproject.toml
-	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --disable-pip-version-check torch==2.13.0
-	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[test]'
+	$(PYTHON) -m venv $(VENV) || { echo "error: $(PYTHON) -m venv failed; on Debian/Ubuntu: apt-get install python3-venv"; exit 1; }
+	$(PIP) --no-deps --no-index $(TORCH) 2>/dev/null || $(PIP) --no-deps --index-url $(TORCH_INDEX) $(TORCH)
+	$(PIP) -e '.[test]'
 	touch $@
 
 demo: $(INSTALLED)

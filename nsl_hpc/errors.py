@@ -1,6 +1,8 @@
 """The exceptions a command turns into one line on stderr (a user's mistake, or the machine's), and the checks
 of single values that raise them."""
 
+import math
+from collections.abc import Collection
 from typing import Any
 
 
@@ -36,3 +38,24 @@ def require_positive_int(key: str, value: Any) -> None:
 def require_non_negative_int(key: str, value: Any) -> None:
     if isinstance(value, bool) or not isinstance(value, int) or value < 0:
         raise ConfigError(f"{key}={value!r} must be a non-negative integer")
+
+
+def require_number(key: str, value: Any, low: float, high: float = math.inf, low_open: bool = False,
+                   high_open: bool = False) -> None:
+    """A finite number in [low, high] (an open end excludes it), or a ConfigError naming ``key`` and the range."""
+    number = not isinstance(value, bool) and isinstance(value, int | float) and math.isfinite(value)
+    if not number or value < low or value > high or (low_open and value == low) or (high_open and value == high):
+        left, right = "(" if low_open else "[", ")" if high_open or high == math.inf else "]"
+        raise ConfigError(f"{key}={value!r} must be a finite number in {left}{low:g}, {high:g}{right}")
+
+
+def require_int(key: str, value: Any, low: int, high: int | None = None) -> None:
+    """An integer in [low, high] (no upper end when None), or a ConfigError naming ``key`` and the range."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < low or (high is not None and value > high):
+        raise ConfigError(f"{key}={value!r} must be an integer from {low}" + (f" to {high}" if high is not None
+                                                                            else " up"))
+
+
+def require_choice(key: str, value: Any, allowed: Collection[Any]) -> None:
+    if value not in allowed:
+        raise ConfigError(f"{key}={value!r}; choose one of: {', '.join(map(str, allowed))}")

@@ -13,17 +13,28 @@ scores (``<metric>_<mode>_<record>``).
 
 from pathlib import Path
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
-from nsl_hpc.analysis.fitting import FITS_TEXT_FILE, choose_metrics, fit_sweep, fits_path, read_results, write_fits
+from nsl_hpc.analysis.fitting import (
+    FITS_TEXT_FILE,
+    choose_metrics,
+    fit_sweep,
+    fits_path,
+    read_results,
+    require_some_fit,
+    write_fits,
+)
+from nsl_hpc.analysis.settings import check_nsl
 from nsl_hpc.sweep.manifest import require_sweep
 
 
 def main(cfg: DictConfig) -> int:
+    check_nsl(OmegaConf.to_container(cfg.nsl, resolve=True))
     sweep_dir = require_sweep(cfg.sweep_dir)
     results = read_results(sweep_dir)
     rows = fit_sweep(results, choose_metrics(cfg.nsl, cfg.metrics, results), cfg.workers)
+    require_some_fit(rows, fits_path(sweep_dir))
     write_fits(sweep_dir, rows)
     failed = sum(row["error"] is not None for row in rows)
     print(f"{len(rows) - failed} NSLs fitted ({failed} not fittable) -> {fits_path(sweep_dir)}, "

@@ -16,19 +16,16 @@ from omegaconf import DictConfig, OmegaConf
 from nsl_hpc import cli
 from nsl_hpc.analysis.fitting import fits_path, read_results
 from nsl_hpc.analysis.prediction import describe_need, what_it_takes
+from nsl_hpc.analysis.settings import check_nsl, check_target
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.sweep.manifest import require_sweep
 
 
 def main(cfg: DictConfig) -> int:
-    sweep_dir = require_sweep(cfg.sweep_dir)
     nsl = OmegaConf.to_container(cfg.nsl, resolve=True)
-    if cfg.metric not in nsl["metrics"]:
-        raise ConfigError(f"metric={cfg.metric!r}; choose one of {', '.join(nsl['metrics'])}")
-    if cfg.resource not in nsl["resources"]:
-        raise ConfigError(f"resource={cfg.resource!r}; choose one of {', '.join(nsl['resources'])}")
-    if isinstance(cfg.target, bool) or not isinstance(cfg.target, int | float) or not cfg.target > 0:
-        raise ConfigError(f"target={cfg.target!r} must be a positive error")
+    check_nsl(nsl)
+    check_target(cfg.target, cfg.metric, cfg.resource, nsl)
+    sweep_dir = require_sweep(cfg.sweep_dir)
     if not fits_path(sweep_dir).exists():
         raise ConfigError(f"{fits_path(sweep_dir)} does not exist; run python -m nsl_hpc.fit sweep_dir={sweep_dir}")
     fits = pq.read_table(fits_path(sweep_dir)).to_pylist()

@@ -21,6 +21,7 @@ from nsl_hpc.analysis.fitting import (
     fits_path,
     nsl_key,
     read_results,
+    require_some_fit,
     write_fits,
 )
 from nsl_hpc.analysis.merge import merge_sweep, results_path
@@ -33,11 +34,14 @@ from nsl_hpc.analysis.report import (
     report_html,
     what_it_takes_html,
 )
+from nsl_hpc.analysis.settings import check_figures, check_nsl
 from nsl_hpc.atomic import write_text
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 
 
 def main(cfg: DictConfig) -> int:
+    check_nsl(OmegaConf.to_container(cfg.nsl, resolve=True))
+    check_figures(OmegaConf.to_container(cfg.figures, resolve=True), cfg.nsl.resources)
     sweep_dir = require_sweep(cfg.sweep_dir)
     launch = OmegaConf.to_container(read_launch_config(sweep_dir), resolve=True)
     summary = merge_sweep(sweep_dir)
@@ -45,6 +49,7 @@ def main(cfg: DictConfig) -> int:
     results = read_results(sweep_dir)
     chosen = choose_metrics(cfg.nsl, cfg.metrics, results)
     rows = fit_sweep(results, chosen, cfg.workers)
+    require_some_fit(rows, fits_path(sweep_dir))
     write_fits(sweep_dir, rows)
     print(f"{sum(row['error'] is None for row in rows)} of {len(rows)} NSLs fitted -> {fits_path(sweep_dir)}")
     nsl, figure_settings = OmegaConf.to_container(chosen, resolve=True), OmegaConf.to_container(cfg.figures)

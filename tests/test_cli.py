@@ -1,9 +1,13 @@
 """The command-line surface every ``python -m nsl_hpc.<verb>`` shares: --help per command, and misspelt keys."""
 
 import importlib
+import importlib.util
+import re
+from pathlib import Path
 
 import pytest
 
+import nsl_hpc
 from nsl_hpc.cli import usage
 from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
@@ -52,3 +56,15 @@ def test_a_misspelt_key_names_the_closest_one_and_never_suggests_plus(overrides,
 def test_plus_still_selects_a_group_and_adds_sbatch_flags():
     cfg = compose_config(["+sweep=demo", "launcher=slurm", "+launcher.extra_sbatch.hold=true"], "launch")
     assert cfg.sweep.name == "demo" and cfg.launcher.extra_sbatch.hold is True
+
+
+def test_every_command_a_message_or_doc_names_exists():
+    """Each ``python -m nsl_hpc.<module>`` the code prints or documents is a command (it runs its main)."""
+    package = Path(nsl_hpc.__file__).parent
+    named = {match for path in package.rglob("*.py")
+             for match in re.findall(r"python -m (nsl_hpc(?:\.\w+)+)", path.read_text())}
+    assert "nsl_hpc.merge" in named
+    for module in sorted(named):
+        spec = importlib.util.find_spec(module)
+        assert spec is not None and spec.origin, module
+        assert 'if __name__ == "__main__":' in Path(spec.origin).read_text(), f"{module} is no command"

@@ -172,3 +172,43 @@ def test_merge_again_reads_only_new_or_rewritten_shards_and_matches_a_fresh_merg
     (sweep_copy / ".merge_cache.parquet").unlink()
     assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
     assert pq.read_table(sweep_copy / "results.parquet").equals(results)
+
+
+@pytest.mark.parametrize(("verb", "override", "message"), [
+    ("fit", "nsl.envelope=foo", "nsl.envelope='foo'; choose one of: step, interpolated"),
+    ("fit", "nsl.max_breaks=-1", "nsl.max_breaks=-1 must be an integer from 0 to 9"),
+    ("fit", "nsl.breaks=99", "nsl.breaks=99 must be an integer from 0 to 4"),
+    ("fit", "nsl.bootstrap=-5", "nsl.bootstrap=-5 must be an integer from 0 up"),
+    ("predict", "nsl.predict.decades=0", "nsl.predict.decades=0 must be a finite number in (0, inf)"),
+    ("predict", "target=inf", "target=inf must be a finite number in (0, inf)"),
+    ("predict", "nsl.bootstrap_level=2", "nsl.bootstrap_level=2 must be a finite number in (0, 1)"),
+    ("report", "nsl.predict.report.metric=foo", "nsl.predict.report.metric='foo'; choose one of: nmae, nmse"),
+    ("report", "figures.dpi=0", "figures.dpi=0 must be an integer from 10 to 2400"),
+    ("report", "figures.formats=[pngg]", "figures.formats value='pngg'; choose one of:"),
+])
+def test_a_bad_setting_is_one_line_before_any_work_and_keeps_the_fits(sweep_copy, verb, override, message):
+    assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
+    assert nsl("fit", f"sweep_dir={sweep_copy}", "nsl.bootstrap=0").returncode == 0
+    fits = (sweep_copy / "nsl_fits.parquet").read_bytes()
+    extra = ["target=0.05"] if verb == "predict" and not override.startswith("target") else []
+    result = nsl(verb, f"sweep_dir={sweep_copy}", override, *extra)
+    assert result.returncode == 2 and result.stderr == f"error: {result.stderr[7:]}", result.stderr
+    assert message in result.stderr and len(result.stderr.splitlines()) == 1, result.stderr
+    assert (sweep_copy / "nsl_fits.parquet").read_bytes() == fits
+
+
+def test_a_fit_where_no_law_can_be_fitted_keeps_the_fits_it_would_replace(sweep_copy):
+    assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
+    assert nsl("fit", f"sweep_dir={sweep_copy}", "nsl.bootstrap=0").returncode == 0
+    fits = (sweep_copy / "nsl_fits.parquet").read_bytes()
+    results = pq.read_table(sweep_copy / "results.parquet")
+    pq.write_table(results.slice(0, 1), sweep_copy / "results.parquet")  # one outcome: no law can be fitted
+    result = nsl("fit", f"sweep_dir={sweep_copy}", "nsl.bootstrap=0")
+    assert result.returncode == 1 and "none of the 6 NSLs could be fitted" in result.stderr, result.stderr
+    assert "nsl_fits.parquet is left as it was" in result.stderr
+    assert (sweep_copy / "nsl_fits.parquet").read_bytes() == fits
+
+
+def test_fit_without_merged_results_names_the_merge_command_that_makes_them(sweep_copy):
+    result = nsl("fit", f"sweep_dir={sweep_copy}")
+    assert result.returncode == 2 and f"python -m nsl_hpc.merge sweep_dir={sweep_copy}" in result.stderr

@@ -15,7 +15,7 @@ import pyarrow as pa
 from matplotlib.axes import Axes
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
-from matplotlib.ticker import LogLocator, NullFormatter
+from matplotlib.ticker import LogFormatterSciNotation, LogLocator, NullFormatter
 from tqdm import tqdm
 
 from nsl_hpc.analysis.bootstrap import band, thetas_of
@@ -26,6 +26,7 @@ from nsl_hpc.analysis.published import published_laws
 from nsl_hpc.atomic import replacing
 
 FIGURES_DIR = "figures"
+MAX_DECADES_BELOW = 1e3  # a published law further below the outcomes than this factor is named, not drawn in view
 
 
 def figure_stem(sweep_dir: Path, row: Mapping[str, Any]) -> Path:
@@ -72,10 +73,13 @@ def draw_nsl(ax: Axes, data: Mapping[str, np.ndarray], row: Mapping[str, Any], n
     points = ax.scatter(data["r"], data["e"], c=data["c"], s=marker_sizes(data["s"], figures["marker_size"]),
                         norm=norm, cmap="viridis", alpha=0.6, linewidths=0, rasterized=True)
     grid_r, grid_e = lower_envelope(data["r"], data["e"], nsl["K"])
-    ax.step(grid_r, grid_e, where="post", color="black", lw=1.2, label=f"envelope (K={nsl['K']})")
+    ax.step(grid_r, grid_e, where="post", color="black", lw=1.2, label=f"envelope (K={nsl['K']}, Definition 1)")
     dense = np.geomspace(grid_r[0], grid_r[-1], 400)
     if row["error"] is None:
         fit = fit_from_row(row)
+        if row.get("envelope") == "interpolated":  # why the law may run below the steps
+            ax.plot(*lower_envelope(data["r"], data["e"], nsl["K"], "interpolated"), color="grey", lw=0.9,
+                    label="interpolated envelope (the fitted one: the law may run below the steps)")
         formula = "\n".join(textwrap.wrap(row["formula"], figures["formula_width"]))
         ax.plot(dense, fit.predict(dense), color="crimson", lw=1.8, label=f"{formula}\nM = {row['margin']:.2g}")
         thetas = thetas_of(row)
@@ -85,28 +89,37 @@ def draw_nsl(ax: Axes, data: Mapping[str, np.ndarray], row: Mapping[str, Any], n
                             label=f"{nsl['bootstrap_level']:.0%} band ({len(thetas)} resamples)")
         for i, (sigma, _, _) in enumerate(fit.breaks):
             ax.axvline(sigma, color="crimson", ls=":", lw=1, label="breaks" if i == 0 else None)
+    low, high = data["e"].min() / 2, data["e"].max() * 2  # a band far off stays out of the way
     published = published_laws().get(tuple(row[k] for k in PUBLISHED_KEY))
     if published is not None:
-        on_ours = row.get("paper_margin_on_ours")
-        ax.plot(dense, published.law.predict(dense), color="darkorange", ls="--", lw=1.8,
+        on_ours, law = row.get("paper_margin_on_ours"), published.law.predict(dense)
+        below = law.max() < low / MAX_DECADES_BELOW
+        if not below:
+            low = min(low, law.min() / 1.5)
+        ax.plot(dense, law, color="darkorange", ls="--", lw=1.8,
                 label=f"published (b={published.b}, M={published.margin:.2g}"
-                      + ("" if on_ours is None else f"; M on ours {on_ours:.2g}") + ")")
-    ax.set_ylim(data["e"].min() / 2, data["e"].max() * 2)  # a band or a published law far off stays in view
+                      + ("" if on_ours is None else f"; M on ours {on_ours:.2g}")
+                      + (f"; below the plotted range, at {law.min():.2g}-{law.max():.2g}" if below else "") + ")")
+    ax.set_ylim(low, high)
     ax.set_xscale("log")
     ax.set_yscale("log")
-    for axis, values in ((ax.xaxis, data["r"]), (ax.yaxis, data["e"])):
-        log_ticks(axis, values)
+    for axis, limits in ((ax.xaxis, (data["r"].min(), data["r"].max())), (ax.yaxis, (low, high))):
+        log_ticks(axis, *limits)
     ax.grid(True, which="major", alpha=0.3)
     if legend:
         ax.figure.legend(loc="outside lower center", fontsize=8, ncols=2)
     return points
 
 
-def log_ticks(axis, values: np.ndarray) -> None:
-    """Label a log axis at 1, 2, 5 x 10^k when the values span less than 3 decades, else at 10^k only,
-    and never on minor ticks (their labels collide)."""
-    if np.log10(values.max() / values.min()) < 3:
-        axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+def log_ticks(axis, low: float, high: float) -> None:
+    """Enough labels on a log axis from ``low`` to ``high``: at every 1..9 x 10^k under half a decade, at 1, 2, 3,
+    5, 7 x 10^k under one, at 1, 2, 5 x 10^k under 3, else at 10^k only; never on minor ticks (they collide)."""
+    decades = np.log10(high / low)
+    if decades < 3:
+        subs = ((1.0, 2.0, 5.0) if decades >= 1 else (1.0, 2.0, 3.0, 5.0, 7.0) if decades >= 0.5
+                else tuple(float(k) for k in range(1, 10)))
+        axis.set_major_locator(LogLocator(base=10, subs=subs))
+        axis.set_major_formatter(LogFormatterSciNotation(labelOnlyBase=False, minor_thresholds=(np.inf, np.inf)))
     axis.set_minor_formatter(NullFormatter())
 
 
@@ -149,7 +162,22 @@ def overview_figure(sweep_dir: Path, results: pa.Table, rows: list[Mapping[str, 
         ax.set_ylabel(nsl["metrics"][metric], fontsize=8)
     if points is not None:
         fig.colorbar(points, ax=axes, label=nsl["resources"][figures["colour"][resource]]["label"], shrink=0.8)
+    fig.legend(*overview_legend(axes), loc="outside lower center", fontsize=8, ncols=4)
     return save(fig, overview_stem(sweep_dir, resource, metric), figures)
+
+
+def overview_legend(axes: np.ndarray) -> tuple[list, list[str]]:
+    """One legend entry per kind of line in the panels (envelope, law, band, breaks, published law): the first
+    panel's of each; the formulas differ per panel and are in each panel's own figure."""
+    kinds = {"interpolated": "interpolated envelope (fitted)", "envelope": "lower envelope", "band": None,
+             "breaks": "breaks", "published": "published law", "M = ": "fitted law"}
+    handles: dict[str, Any] = {}
+    for ax in axes.flat:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            kind = next((kind for kind in kinds if kind in label), None)
+            if kind is not None and kind not in handles:
+                handles[kind] = (handle, kinds[kind] or label.split("(")[0].strip())
+    return [handle for handle, _ in handles.values()], [label for _, label in handles.values()]
 
 
 def draw_figures(sweep_dir: Path, results: pa.Table, rows: list[dict[str, Any]], nsl: Mapping[str, Any],

@@ -20,7 +20,7 @@ from nsl_hpc.analysis.broken_law import FitSettings, NSLFit, NSLFitError, backte
 from nsl_hpc.analysis.merge import results_path
 from nsl_hpc.analysis.published import comparison
 from nsl_hpc.atomic import write_parquet, write_text
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.errors import ConfigError, RunError
 from nsl_hpc.seeding import stable_seed
 
 FITS_FILE = "nsl_fits.parquet"
@@ -68,11 +68,18 @@ def choose_metrics(nsl: DictConfig, metrics: Sequence[str] | None, results: pa.T
     return OmegaConf.create(chosen)
 
 
+def require_some_fit(rows: Sequence[Mapping[str, Any]], path: Path) -> None:
+    """Raise RunError, before ``path`` is replaced, when not one NSL of ``rows`` could be fitted."""
+    if rows and all(row["error"] is not None for row in rows):
+        raise RunError(f"none of the {len(rows)} NSLs could be fitted ({nsl_key(rows[0])}: {rows[0]['error']}); "
+                       f"{path.name} is left as it was")
+
+
 def read_results(sweep_dir: Path) -> pa.Table:
     """The merged outcomes, refused with a one-line error when there are none."""
     path = results_path(sweep_dir)
     if not path.exists():
-        raise ConfigError(f"{path} does not exist; run python -m nsl_hpc.analysis.merge sweep_dir={sweep_dir} first")
+        raise ConfigError(f"{path} does not exist; run python -m nsl_hpc.merge sweep_dir={sweep_dir} first")
     results = pq.read_table(path)
     if results.num_rows == 0:
         raise ConfigError(f"{path} holds no outcomes: no task of the sweep has finished")

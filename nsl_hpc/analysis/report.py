@@ -59,33 +59,41 @@ def nsl_table(rows: Sequence[Mapping[str, Any]]) -> str:
 
 
 COMPARISON_HEAD = ("NSL", "b paper / ours", "M paper / ours", "published law's M on our envelope",
-                   "last slope paper / ours [90%]", "breaks paper", "breaks ours [90%]", "resources paper / ours",
-                   "in the paper")
+                   "M by b paper / ours (fitted envelope)", "last slope paper / ours [90%]", "breaks paper",
+                   "breaks ours [90%]", "resources paper / ours", "in the paper")
+MISSING = "—"
+
+
+def number(value: Any, digits: str) -> str:
+    return MISSING if value is None else format(value, digits)
 
 
 def comparison_rows(rows: Sequence[Mapping[str, Any]]) -> list[tuple[str, ...]]:
-    """The cells (COMPARISON_HEAD) of paper vs ours for every fitted NSL the study publishes a law (or margins)
-    for; resources: the study grid's range, ours the range of the fitted outcomes."""
+    """The cells (COMPARISON_HEAD) of paper vs ours for every fitted NSL the study publishes a law (or only
+    margins by b) for, one meaning per column, MISSING where a side has no value; resources: the study grid's
+    range, ours the range of the fitted outcomes."""
     table = []
     for row in rows:
         if row["error"] is not None or (row.get("paper_b") is None and row.get("paper_margins_by_b") is None):
             continue
-        ours_breaks = ", ".join(interval(row, f"sigma_{i}", ".2g") for i in range(1, row["b"] + 1)) or "none"
-        name = " / ".join(row[k] for k in ("system", "arch", "resource", "metric"))
-        ours_range = f"{row['r_min']:.2g}-{row['r_max']:.2g}"
-        if row.get("paper_b") is None:  # margins only (the appendix on choosing b)
-            published = json.loads(row["paper_margins_by_b"])
-            ours = json.loads(row["margins_by_b"])
-            margins = "; ".join(f"b={b}: {m:.2g} / {ours[b]:.2g}" for b, m in published.items() if b in ours)
-            table.append((name, f"1-4 / {row['b']}", margins, "", f"/ {interval(row, 'last_slope')}", "",
-                          ours_breaks, f"/ {ours_range}", "Appendix (margins by b; ours: fitted envelope)"))
-            continue
-        paper_breaks = ", ".join(f"{sigma:.2g}" for sigma in json.loads(row["paper_breaks"])) or "none"
-        low, high = json.loads(row["paper_range"])
+        paper_breaks = json.loads(row["paper_breaks"]) if row.get("paper_breaks") else None
+        paper_range = json.loads(row["paper_range"]) if row.get("paper_range") else None
+        by_b = MISSING
+        if row.get("paper_margins_by_b") is not None:
+            published, ours = json.loads(row["paper_margins_by_b"]), json.loads(row["margins_by_b"])
+            by_b = "; ".join(f"b={b}: {m:.2g} / {number(ours.get(b), '.2g')}" for b, m in published.items())
         table.append((
-            name, f"{row['paper_b']} / {row['b']}", f"{row['paper_margin']:.2g} / {row['margin']:.2g}",
-            f"{row['paper_margin_on_ours']:.2g}", f"{row['paper_last_slope']:.2f} / {interval(row, 'last_slope')}",
-            paper_breaks, ours_breaks, f"{low:.2g}-{high:.2g} / {ours_range}", row["paper_where"]))
+            " / ".join(row[k] for k in ("system", "arch", "resource", "metric")),
+            f"{number(row.get('paper_b'), 'd')} / {row['b']}",
+            f"{number(row.get('paper_margin'), '.2g')} / {row['margin']:.2g}",
+            number(row.get("paper_margin_on_ours"), ".2g"),
+            by_b,
+            f"{number(row.get('paper_last_slope'), '.2f')} / {interval(row, 'last_slope') or MISSING}",
+            MISSING if paper_breaks is None else ", ".join(f"{sigma:.2g}" for sigma in paper_breaks) or "none",
+            ", ".join(interval(row, f"sigma_{i}", ".2g") for i in range(1, row["b"] + 1)) or "none",
+            f"{MISSING if paper_range is None else f'{paper_range[0]:.2g}-{paper_range[1]:.2g}'} / "
+            f"{row['r_min']:.2g}-{row['r_max']:.2g}",
+            row.get("paper_where") or "Appendix (margins by b)"))
     return table
 
 
