@@ -28,6 +28,7 @@ SWEEP_ID_TAG = "nsl_hpc.sweep_id"  # a hash of it, for searches (a path may hold
 NSL_TAG = "nsl_hpc.analysis.broken_law"
 PARENT_TAG = "mlflow.parentRunId"
 LAW_COLUMNS = ("b", "alpha", "beta", "delta0")
+EXPERIMENT_KIND_TAG, MODEL_DEVELOPMENT = "mlflow.experimentKind", "custom_model_development"
 
 
 def now_ms() -> int:
@@ -40,11 +41,17 @@ def tracking_uri(sweep_dir: Path, configured: str | None) -> str:
 
 
 def experiment_id(client: MlflowClient, name: str, sweep_dir: Path, default_store: bool) -> str:
+    """The experiment ``name`` (created when missing), marked as model development: MLflow 3's UI then opens
+    it on its runs, not on an empty GenAI overview."""
     experiment = client.get_experiment_by_name(name)
-    if experiment is not None:
-        return experiment.experiment_id
-    location = (Path(sweep_dir).resolve() / "mlartifacts").as_uri() if default_store else None
-    return client.create_experiment(name, artifact_location=location)
+    if experiment is None:
+        location = (Path(sweep_dir).resolve() / "mlartifacts").as_uri() if default_store else None
+        found = client.create_experiment(name, artifact_location=location)
+    else:
+        found = experiment.experiment_id
+    if experiment is None or experiment.tags.get(EXPERIMENT_KIND_TAG) != MODEL_DEVELOPMENT:
+        client.set_experiment_tag(found, EXPERIMENT_KIND_TAG, MODEL_DEVELOPMENT)
+    return found
 
 
 def flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, str]:

@@ -146,7 +146,7 @@ def test_a_group_longer_than_the_time_cap_runs_as_a_chain_of_jobs(slurm_cluster,
 
 def test_a_preempted_job_continues_from_its_checkpoint(slurm_cluster, uninterrupted, tmp_path):
     sweep_dir = tmp_path / "preempted" / "sweep"
-    launch(sweep_dir, "preempted", "checkpoint.every_minutes=30", *slow(60))  # only the preemption's warning writes one
+    launch(sweep_dir, "preempted", "checkpoint.every_minutes=30", *slow(40))  # only the preemption's warning writes one
     wait_until(running_for("preempted", 12), "preempted")
     high = subprocess.run(["sbatch", "--parsable", "-p", "high", "-c", str(os.cpu_count()), "-o", "/dev/null",
                            "--wrap", "sleep 3"], capture_output=True, text=True, check=True).stdout.strip()
@@ -160,7 +160,7 @@ def test_a_preempted_job_continues_from_its_checkpoint(slurm_cluster, uninterrup
 def test_a_killed_training_process_loses_at_most_the_checkpoint_interval_and_resubmit_finishes(
         slurm_cluster, uninterrupted, tmp_path):
     sweep_dir = tmp_path / "killed" / "sweep"
-    launch(sweep_dir, "killed", "checkpoint.every_minutes=0.1", *slow(60))  # every 6 s
+    launch(sweep_dir, "killed", "checkpoint.every_minutes=0.1", *slow(40))  # every 6 s
     wait_until(running_with_checkpoint(sweep_dir, "killed", min_step=2000), "killed")
     time.sleep(4)  # between two checkpoints
     (lock,) = (sweep_dir / "checkpoints").glob("*/*.lock")
@@ -185,7 +185,7 @@ def test_a_killed_training_process_loses_at_most_the_checkpoint_interval_and_res
 def test_scontrol_requeue_continues_from_the_checkpoint_without_duplicate_rows(slurm_cluster, uninterrupted,
                                                                               tmp_path):
     sweep_dir = tmp_path / "requeued" / "sweep"
-    launch(sweep_dir, "requeued", "checkpoint.every_minutes=30", *slow(60))  # only the requeue's SIGTERM writes one
+    launch(sweep_dir, "requeued", "checkpoint.every_minutes=30", *slow(40))  # only the requeue's SIGTERM writes one
     wait_until(running_for("requeued", 12), "requeued")
     ((job_id, _, _),) = jobs("nsl-requeued")
     subprocess.run(["scontrol", "requeue", job_id], check=True)
