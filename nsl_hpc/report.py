@@ -66,9 +66,11 @@ def main(cfg: DictConfig) -> int:
         artifacts = [results_path(sweep_dir), fits_path(sweep_dir), sweep_dir / FITS_TEXT_FILE, report,
                      sweep_dir / COMPARISON_FILE,
                      *(path for path in figures["overview"])]
-        run = log_to_mlflow(sweep_dir, cfg.mlflow, launch, summary, rows,
-                            {key: path for key, path in by_key.items() if path.exists()}, artifacts)
-        print(f"MLflow: run {run} in {tracking_uri(sweep_dir, cfg.mlflow.tracking_uri)}")
+        experiment, run = log_to_mlflow(sweep_dir, cfg.mlflow, launch, summary, rows,
+                                        {key: path for key, path in by_key.items() if path.exists()}, artifacts)
+        uri = tracking_uri(sweep_dir, cfg.mlflow.tracking_uri)
+        print(f"MLflow: run {run} in {uri}; browse with `mlflow ui --backend-store-uri {uri}` at "
+              f"#/experiments/{experiment}/runs (MLflow 3 opens on its GenAI overview)")
     print(f"report: {report.resolve()}")
     return 0
 

@@ -28,7 +28,6 @@ SWEEP_ID_TAG = "nsl_hpc.sweep_id"  # a hash of it, for searches (a path may hold
 NSL_TAG = "nsl_hpc.analysis.broken_law"
 PARENT_TAG = "mlflow.parentRunId"
 LAW_COLUMNS = ("b", "alpha", "beta", "delta0")
-EXPERIMENT_KIND_TAG, MODEL_DEVELOPMENT = "mlflow.experimentKind", "custom_model_development"
 
 
 def now_ms() -> int:
@@ -41,17 +40,11 @@ def tracking_uri(sweep_dir: Path, configured: str | None) -> str:
 
 
 def experiment_id(client: MlflowClient, name: str, sweep_dir: Path, default_store: bool) -> str:
-    """The experiment ``name`` (created when missing), marked as model development: MLflow 3's UI then opens
-    it on its runs, not on an empty GenAI overview."""
     experiment = client.get_experiment_by_name(name)
-    if experiment is None:
-        location = (Path(sweep_dir).resolve() / "mlartifacts").as_uri() if default_store else None
-        found = client.create_experiment(name, artifact_location=location)
-    else:
-        found = experiment.experiment_id
-    if experiment is None or experiment.tags.get(EXPERIMENT_KIND_TAG) != MODEL_DEVELOPMENT:
-        client.set_experiment_tag(found, EXPERIMENT_KIND_TAG, MODEL_DEVELOPMENT)
-    return found
+    if experiment is not None:
+        return experiment.experiment_id
+    location = (Path(sweep_dir).resolve() / "mlartifacts").as_uri() if default_store else None
+    return client.create_experiment(name, artifact_location=location)
 
 
 def flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
@@ -125,8 +118,8 @@ def log_nsl_runs(client: MlflowClient, experiment: str, parent: str, rows: Seque
 
 def log_to_mlflow(sweep_dir: Path, settings: Mapping[str, Any], launch_config: Mapping[str, Any],
                   summary: MergeSummary, rows: Sequence[Mapping[str, Any]], figures: Mapping[str, Path],
-                  artifacts: Sequence[Path]) -> str:
-    """Log (or update) the sweep's runs; returns the parent run id."""
+                  artifacts: Sequence[Path]) -> tuple[str, str]:
+    """Log (or update) the sweep's runs; returns the experiment's id and the parent run's."""
     client = MlflowClient(tracking_uri(sweep_dir, settings["tracking_uri"]))
     experiment = experiment_id(client, settings["experiment"], sweep_dir, settings["tracking_uri"] is None)
     study = study_named(launch_config["study"]["name"])
@@ -144,4 +137,4 @@ def log_to_mlflow(sweep_dir: Path, settings: Mapping[str, Any], launch_config: M
             client.log_artifact(parent, str(path))
     log_nsl_runs(client, experiment, parent, rows, figures)
     client.set_terminated(parent)
-    return parent
+    return experiment, parent
