@@ -31,7 +31,7 @@ def describe_lockstep(tasks: Sequence[Mapping[str, Any]], packs: Sequence[Pack],
     """How the tasks to run train: as how many models, in how many lockstep groups."""
     models = len({model_of(task, lockstep["model_keys"]) for task in tasks})
     groups = sum(len(pack.groups) for pack in packs)
-    return (f"  lockstep: {len(tasks):,} tasks as {models:,} models in {groups:,} groups of up to "
+    return (f"  lockstep: {len(tasks):,} tasks as {models:,} models in {groups:,} group{'s' * (groups != 1)} of up to "
             f"{lockstep['size']} models" + (" (epoch milestones: a row per task after its epochs)"
                                             if lockstep["model_keys"] else ""))
 
@@ -73,6 +73,9 @@ def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> int:
     lockstep, tasks = lockstep_settings(cfg), prepared.todo.to_pylist()
     packs = plan_jobs(tasks, cfg, saved=[saved.task_ids for saved in saved_groups(prepared.sweep_dir)])
     print(describe_plan(prepared, packs, cfg.launcher.name))
+    if built.above_max_flops:
+        print(f"  sweep.max_flops={cfg.sweep.max_flops:g}: {built.above_max_flops:,} tasks of the grid above it "
+              "are not part of the sweep")
     if tasks and (lockstep["size"] > 1 or lockstep["model_keys"]):
         print(describe_lockstep(tasks, packs, lockstep))
     if prepared.infeasible:

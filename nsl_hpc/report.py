@@ -32,6 +32,7 @@ from nsl_hpc.analysis.report import (
     REPORT_FILE,
     comparison_markdown,
     report_html,
+    scores_note,
     what_it_takes_html,
 )
 from nsl_hpc.analysis.settings import check_figures, check_nsl
@@ -60,7 +61,7 @@ def main(cfg: DictConfig) -> int:
     section = what_it_takes_html(entries, wanted, nsl["resources"][wanted["resource"]]["symbol"])
     report = sweep_dir / REPORT_FILE
     write_text(report_html(sweep_dir, launch, summary, rows, figures, section), report)
-    write_text(comparison_markdown(rows), sweep_dir / COMPARISON_FILE)
+    write_text(comparison_markdown(rows, scores_note(launch)), sweep_dir / COMPARISON_FILE)
     if cfg.mlflow.enabled:
         by_key = {nsl_key(row): figure_stem(sweep_dir, row).with_suffix(".png") for row in rows}
         artifacts = [results_path(sweep_dir), fits_path(sweep_dir), sweep_dir / FITS_TEXT_FILE, report,

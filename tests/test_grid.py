@@ -9,7 +9,7 @@ from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.grid import build_manifest, expand_grid, grid_size
-from nsl_hpc.sweep.prepare import pair_configs
+from nsl_hpc.sweep.prepare import build_sweep, pair_configs
 from nsl_hpc.sweep.task import task_id
 
 INPUT_STATE = study_named("input_state")
@@ -166,3 +166,18 @@ def test_input_output_manifest_sizes_follow_the_draw_rules_and_the_single_task_p
     for row in rows[::11]:
         task = compose_config(["study=input_output", *(f"{key}={row[key]}" for key in INPUT_OUTPUT.axes)])
         assert task_id(task) == row["task_id"]
+
+
+def test_the_plateau_preset_holds_every_task_of_the_grid_below_its_compute_cap():
+    """conf/sweep/plateau.yaml: ball / input-affine, seeds 0-1, the study's grid cut at sweep.max_flops = 3e7: the
+    tasks kept are exactly those of the uncut grid below the cap."""
+    cut = build_sweep(compose_config(["+sweep=plateau"], "launch"), ["+sweep=plateau"])
+    whole = build_sweep(compose_config(["+sweep=plateau", "sweep.max_flops=null"], "launch"), ["+sweep=plateau"])
+    assert whole.manifest.num_rows == 14 * 9 * 4 * 2 * 2 and whole.above_max_flops == 0
+    below = {row["task_id"] for row in whole.manifest.to_pylist() if row["flops"] < 3e7}
+    assert set(cut.manifest["task_id"].to_pylist()) == below
+    assert cut.above_max_flops == whole.manifest.num_rows - len(below) > 0
+    with pytest.raises(ConfigError, match=r"sweep.max_flops=1 leaves no task of the grid"):
+        build_sweep(compose_config(["+sweep=plateau", "sweep.max_flops=1"], "launch"), [])
+    with pytest.raises(ConfigError, match=r"sweep.max_flops=-1 must be a finite number"):
+        build_sweep(compose_config(["+sweep=plateau", "sweep.max_flops=-1"], "launch"), [])

@@ -22,6 +22,7 @@ from nsl_hpc.analysis.published import comparison
 from nsl_hpc.atomic import write_parquet, write_text
 from nsl_hpc.errors import ConfigError, RunError
 from nsl_hpc.seeding import stable_seed
+from nsl_hpc.studies.metrics import NORMALIZATIONS
 
 FITS_FILE = "nsl_fits.parquet"
 FITS_TEXT_FILE = "nsl_fits.txt"
@@ -43,6 +44,10 @@ def metric_label(column: str, labels: Mapping[str, str]) -> str:
     arrow_full)."""
     if column in labels:
         return labels[column]
+    for metric, label in labels.items():
+        for way in NORMALIZATIONS:
+            if column == f"{metric}_{way}":
+                return f"{label} ({way.replace('_', ' ')})"
     for metric, label in {**labels, "rmse_mv": "RMSE [mV]"}.items():
         for mode in ("free_run", "one_step"):
             if column.startswith(f"{metric}_{mode}_"):

@@ -97,6 +97,24 @@ def comparison_rows(rows: Sequence[Mapping[str, Any]]) -> list[tuple[str, ...]]:
     return table
 
 
+NORMALIZATION_NOTES = {
+    "scalar": "nMAE and nMSE divide every dx/dt column by one spread of the whole test matrix (the authors' code)",
+    "per_column": "nMAE and nMSE divide each dx/dt column by its own spread (the paper's formula)",
+}
+
+
+def scores_note(launch: Mapping[str, Any]) -> str:
+    """Which normalisation the sweep's nmae / nmse columns (and so the comparison) use; '' for the input-output
+    study, whose scores are of one output column (both normalisations agree)."""
+    if launch["study"]["name"] != "input_state":
+        return ""
+    normalization = (launch.get("metric") or {}).get("normalization")
+    if normalization is None:
+        return "Scores: nMAE and nMSE per dx/dt column (a sweep from before metric.normalization)."
+    return (f"Scores: {NORMALIZATION_NOTES[normalization]} (metric.normalization={normalization}); every row also "
+            "holds the other pair (nmae_per_column, nmae_scalar, ...: fit metrics=[...] fits them).")
+
+
 def comparison_table(rows: Sequence[Mapping[str, Any]]) -> str:
     """Paper vs ours (``comparison_rows``) as an HTML table."""
     body = "".join(f"<tr>{cells(row)}</tr>" for row in comparison_rows(rows))
@@ -105,13 +123,14 @@ def comparison_table(rows: Sequence[Mapping[str, Any]]) -> str:
     return f"<table><tr>{''.join(f'<th>{html.escape(name)}</th>' for name in COMPARISON_HEAD)}</tr>{body}</table>"
 
 
-def comparison_markdown(rows: Sequence[Mapping[str, Any]]) -> str:
-    """Paper vs ours (``comparison_rows``) as a Markdown table (``<sweep_dir>/comparison.md``)."""
+def comparison_markdown(rows: Sequence[Mapping[str, Any]], note: str) -> str:
+    """Paper vs ours (``comparison_rows``) as a Markdown table (``<sweep_dir>/comparison.md``), ``note`` (which
+    scores) after it."""
     lines = ["| " + " | ".join(COMPARISON_HEAD) + " |", "|" + "---|" * len(COMPARISON_HEAD)]
     lines += ["| " + " | ".join(cell.replace("|", "\\|") for cell in row) + " |" for row in comparison_rows(rows)]
     if len(lines) == 2:
         return "The study publishes no law for the NSLs of this sweep.\n"
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines) + (f"\n\n{note}\n" if note else "\n")
 
 
 def what_it_takes_html(entries: Sequence[Mapping[str, Any]], settings: Mapping[str, Any], symbol: str) -> str:
@@ -196,7 +215,7 @@ the law fitted below the middle of the log resource range, scored above it.</p>
 <h2>Against the published laws</h2>
 <p>The study's laws (<code>conf/published_laws.yaml</code>) beside ours where it publishes one: a published M and
 ours are each on their own outcomes; the published law's M on our envelope says how well it describes ours. Break
-positions are &sigma;<sub>i</sub>; ours with their 90% intervals.</p>
+positions are &sigma;<sub>i</sub>; ours with their 90% intervals. {html.escape(scores_note(launch))}</p>
 {comparison_table(rows)}
 <h2>What it takes</h2>{what_it_takes}
 <h2>Overview</h2>{overviews}

@@ -13,7 +13,7 @@ import pyarrow.compute as pc
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.config import compose_config
-from nsl_hpc.errors import ConfigError, require_non_negative_int
+from nsl_hpc.errors import ConfigError, require_non_negative_int, require_number
 from nsl_hpc.studies import study_named, study_of
 from nsl_hpc.studies.base import Study
 from nsl_hpc.sweep.grid import Grid, build_manifest, sub_grids, validate_grid
@@ -87,6 +87,7 @@ class BuiltSweep:
     manifest: pa.Table
     configs: dict[tuple[str, str], dict]  # the plain config of each (system, arch)
     study: Study
+    above_max_flops: int = 0  # tasks of the grid left out by sweep.max_flops
 
 
 @dataclass(frozen=True)
@@ -109,7 +110,17 @@ def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
     for values in configs.values():
         check_settings(values)
     check_run_settings(cfg)
-    return BuiltSweep(build_manifest(grid, study, configs, cfg.sweep_seed), configs, study)
+    max_flops = OmegaConf.select(cfg, "sweep.max_flops", default=None)
+    if max_flops is not None:
+        require_number("sweep.max_flops", max_flops, 0, low_open=True)
+    manifest = build_manifest(grid, study, configs, cfg.sweep_seed)
+    if max_flops is None:
+        return BuiltSweep(manifest, configs, study)
+    kept = manifest.filter(pc.less(manifest["flops"], max_flops))
+    if kept.num_rows == 0:
+        raise ConfigError(f"sweep.max_flops={max_flops:g} leaves no task of the grid (its least compute is "
+                          f"{pc.min(manifest['flops']).as_py():.3g} flops)")
+    return BuiltSweep(kept, configs, study, manifest.num_rows - kept.num_rows)
 
 
 def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> PreparedSweep:

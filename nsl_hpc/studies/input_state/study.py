@@ -17,13 +17,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.checkpoint import Checkpointer, trained_before
-from nsl_hpc.errors import ConfigError, require_member, require_positive_int
+from nsl_hpc.errors import ConfigError, require_choice, require_member, require_positive_int
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
 from nsl_hpc.studies.base import Study, draw_tier, model_of
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set, points_per_trajectory, training_points
 from nsl_hpc.studies.input_state.lockstep import LOSSES, Member, Snapshot, predict_derivatives, train_lockstep
-from nsl_hpc.studies.metrics import normalized_errors
+from nsl_hpc.studies.metrics import NORMALIZATIONS, scores_both_ways
 from nsl_hpc.studies.training import SCHEDULES, Scaling, batch_count
 from nsl_hpc.systems import SYSTEMS
 
@@ -42,13 +42,14 @@ class InputState(Study):
     name = "input_state"
     axes = ("system", "arch", "seed", "epochs", "data_tier", "width_tier", "depth_tier")
     length_axis = "epochs"
-    shared_keys = ("system", "arch", "train", "data_per_trajectory", "draws")
+    shared_keys = ("system", "arch", "train", "data_per_trajectory", "draws", "metric")
     lockstep = True
 
     def check_size(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
         if key in TIER_OF:
             require_member(label, value, list(base["tiers"][TIER_OF[key]]))
         if key == self.length_axis:
+            require_choice("metric.normalization", base["metric"]["normalization"], NORMALIZATIONS)
             train = base["train"]
             for setting, allowed in (("schedule", SCHEDULES), ("loss", LOSSES)):
                 if train[setting] not in allowed:
@@ -113,7 +114,8 @@ class InputState(Study):
         theta = torch.stack([snapshot.theta for _, snapshot in kept])
         predictions = predict_derivatives(stack, test_data, [members[k].scaling for k, _ in kept],
                                           getattr(torch, cfg.train.dtype), theta, [k for k, _ in kept], on_progress)
-        return [{**normalized_errors(test_data.dx, predicted), "steps": snapshot.outcome.steps,
+        normalization = cfg.metric.normalization
+        return [{**scores_both_ways(test_data.dx, predicted, normalization), "steps": snapshot.outcome.steps,
                  "final_loss": snapshot.outcome.final_loss, "finite": snapshot.outcome.finite,
                  "train_seconds": train_seconds, "milestone": cfg.train.schedule_epochs is not None}
                 for predicted, (_, snapshot) in zip(predictions, kept, strict=True)]
