@@ -44,10 +44,18 @@ def test_test_set_is_fixed_and_sized_by_config(cache, tmp_path):
     cfg = system_config("ball")
     first = build_test_set(cfg, cache)
     again = build_test_set(cfg, ArrayCache(tmp_path / "fresh"))  # recomputed from scratch
-    assert len(first) == cfg["test_set"]["trajectories"] * 1000
+    assert len(first) == cfg["test_set"]["trajectories"] * 1000  # 10 s at 0.01 s
     np.testing.assert_array_equal(first.x, again.x)
     train = build_training_set(cfg, seed=cfg["test_set"]["seed"], n_traj=1.0, cache=cache)
     assert not np.allclose(train.x, first.x[:1000])  # test and train pools never coincide
+
+
+def test_the_test_set_length_is_a_setting(cache):
+    cfg = system_config("ball")
+    short = build_test_set({**cfg, "test_set": {"trajectories": 2, "duration_s": 10.0, "seed": 5}}, cache)
+    long = build_test_set({**cfg, "test_set": {"trajectories": 2, "duration_s": 100.0, "seed": 5}}, cache)
+    assert (len(short), len(long)) == (2 * 1000, 2 * 10_000)
+    assert np.all(np.isfinite(long.dx)) and not np.allclose(long.x[:1000], short.x[:1000])  # a test set of its own
 
 
 def test_cache_hit_returns_stored_arrays_without_recomputing(tmp_path):

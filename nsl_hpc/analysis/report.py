@@ -169,7 +169,8 @@ def configuration_html(settings: Mapping[tuple[str, str], Mapping[str, tuple[str
     """The settings a sweep trained with: its draws, MLP block, architecture options, loss and training, and
     every value that differs from the study's configuration (README, Fidelity)."""
     first = next(iter(settings.values()))
-    shown = [key for key in first if key.split(".")[0] in ("draws", "train") or key == "system.test_set.trajectories"]
+    shown = [key for key in first
+             if key.split(".")[0] in ("draws", "train", "metric") or key.startswith("system.test_set.")]
     rows = "".join(f"<tr><th>{html.escape(key)}</th><td>{html.escape(first[key][0])}</td></tr>" for key in shown)
     rows += "".join(f"<tr><th>{html.escape(arch)}</th><td>" + html.escape(", ".join(
         f"{key.removeprefix('arch.')}={value}" for key, (value, _) in pair.items()

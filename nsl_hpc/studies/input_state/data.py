@@ -1,9 +1,9 @@
 """Training and test sets of a simulated system, assembled from cached trajectories.
 
 Trajectory i of seed s is the same wherever it is used: a task with n_t trajectories takes a prefix of
-the pool (system, s), so tasks of one seed share cached simulations. The test set (``system.test_set``:
-100 trajectories in the study) has a seed of its own, is simulated in one go and is the same for every task
-of a system.
+the pool (system, s), so tasks of one seed share cached simulations. The test set (``system.test_set``, chosen
+with ``test_set=100x10s|100x100s|1000x10s``) has a seed of its own, is simulated in one go and is the same for
+every task of a system.
 """
 
 import math
@@ -102,13 +102,15 @@ def build_training_set(system_cfg: Mapping[str, Any], seed: int, n_traj: float, 
 
 
 def build_test_set(system_cfg: Mapping[str, Any], cache: ArrayCache) -> Dataset:
-    """The fixed test set of a system (``test_set.trajectories`` experiments of its own seed, simulated
-    together once), shared by every task of that system: N = trajectories x points rows."""
+    """The fixed test set of a system (``test_set``: ``trajectories`` experiments of ``duration_s`` each from a
+    seed of its own, simulated together once), shared by every task of that system: N = trajectories x
+    duration_s / dt rows."""
     spec = system_cfg["test_set"]
-    key = simulation_key(system_cfg, split="test", seed=spec["seed"], trajectories=spec["trajectories"])
+    simulated = {**system_cfg, "simulation": {**system_cfg["simulation"], "duration_s": spec["duration_s"]}}
+    key = simulation_key(simulated, split="test", seed=spec["seed"], trajectories=spec["trajectories"])
 
     def create() -> dict[str, np.ndarray]:
-        trajectories = simulate_experiments(system_cfg, stable_seed("test set", key), spec["trajectories"])
+        trajectories = simulate_experiments(simulated, stable_seed("test set", key), spec["trajectories"])
         return {field: np.concatenate([getattr(t, field) for t in trajectories]) for field in FIELDS}
 
     stored = cache.get_or_create(key, create)
