@@ -72,6 +72,12 @@ def test_multisine_has_the_configured_harmonics():
     np.testing.assert_allclose(spectrum[1:41], 0.4, rtol=1e-9)
     assert spectrum[41:].max() < 1e-9
     assert not np.allclose(u[:, 0], u[:, 1])  # independent phases per channel
+    authors = draw_multisine(np.random.default_rng(0), 1, 2, amplitude=0.4, f0_hz=0.1, harmonics=40,
+                             first_harmonic=0)(t)[:, 0]  # k = 0..39: a constant a sin(phi_0) and 39 sines
+    spectrum = np.abs(np.fft.rfft(authors, axis=0)) / (len(t) / 2)
+    np.testing.assert_allclose(spectrum[1:40], 0.4, rtol=1e-9)
+    assert spectrum[40:].max() < 1e-9
+    np.testing.assert_allclose(authors.mean(axis=0), 0.4 * np.sin(excitation.phases[0, :, 0]), rtol=1e-9)
 
 
 @pytest.mark.parametrize("name", SYSTEM_NAMES)
@@ -86,6 +92,7 @@ def test_experiments_simulated_together_match_each_simulated_alone(name):
     together = simulate(system, x0, excitation, **cfg["simulation"])
     for e in (0, 5):
         (alone,) = simulate(system, x0[e:e + 1], Multisine(excitation.amplitude, excitation.f0_hz,
-                                                            excitation.phases[e:e + 1]), **cfg["simulation"])
+                                                            excitation.phases[e:e + 1], excitation.first_harmonic),
+                            **cfg["simulation"])
         np.testing.assert_allclose(together[e].x, alone.x, rtol=0, atol=1e-6 * np.abs(alone.x).max())
         np.testing.assert_array_equal(together[e].u, alone.u)

@@ -10,15 +10,17 @@ from nsl_hpc.systems.port_hamiltonian import PortHamiltonianSystem
 
 @dataclass(frozen=True)
 class Multisine:
-    """u_{e,c}(t) = sum_{k=1..N} a sin(2 pi k f0 t + phi_{e,c,k}) for input channel c of experiment e."""
+    """u_{e,c}(t) = sum_{k=k0..k0+N-1} a sin(2 pi k f0 t + phi_{e,c,k}) for input channel c of experiment e;
+    k0 = ``first_harmonic`` (1: the paper; 0: the authors' code, whose first term is a constant a sin(phi))."""
 
     amplitude: float
     f0_hz: float
     phases: np.ndarray  # (E, m, N) radians
+    first_harmonic: int = 1
 
     def __call__(self, t: np.ndarray) -> np.ndarray:
         """Inputs at times t (T,) in seconds, (T, E, m)."""
-        harmonics = np.arange(1, self.phases.shape[-1] + 1)
+        harmonics = np.arange(self.first_harmonic, self.first_harmonic + self.phases.shape[-1])
         angle = 2 * np.pi * self.f0_hz * np.multiply.outer(np.atleast_1d(t), harmonics)  # (T, N)
         return self.amplitude * np.sin(angle[:, None, None, :] + self.phases).sum(axis=-1)
 
@@ -39,9 +41,10 @@ class Trajectory:
 
 
 def draw_multisine(rng: np.random.Generator, experiments: int, channels: int, amplitude: float, f0_hz: float,
-                   harmonics: int) -> Multisine:
+                   harmonics: int, first_harmonic: int = 1) -> Multisine:
     """Multisines with phases drawn uniformly in [0, 2 pi), independently per experiment, channel and harmonic."""
-    return Multisine(amplitude, f0_hz, rng.uniform(0.0, 2 * np.pi, size=(experiments, channels, harmonics)))
+    return Multisine(amplitude, f0_hz, rng.uniform(0.0, 2 * np.pi, size=(experiments, channels, harmonics)),
+                     first_harmonic)
 
 
 def simulate(system: PortHamiltonianSystem, x0: np.ndarray, excitation: Multisine, duration_s: float,

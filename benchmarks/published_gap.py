@@ -1,0 +1,58 @@
+"""How far a sweep's step envelope (Definition 1's: the least error of any outcome at or below a resource) lies
+above a published law, at chosen resources, for each score column; prints a table, asserts nothing. The
+controlled experiments of docs/reproduction.md ("What each change moved") read it.
+
+    python benchmarks/published_gap.py runs/exp/plateau_10s [more sweep dirs] \
+        [--law ball/input_affine/compute/nmae] [--at 3e4 1e5 3e5 1e6 3e6 1e7 2e7] \
+        [--columns nmae_scalar nmae_per_column]
+
+Each sweep must be merged (results.parquet). The published law is the one of ``--law`` in
+conf/published_laws.yaml; ``--columns`` are results columns of the same metric (default: every column whose
+name starts with the law's metric). A cell is envelope / law at that resource; "-" where no outcome lies at or
+below it.
+"""
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+
+from nsl_hpc.analysis.published import published_laws
+
+RESOURCE_COLUMNS = {"compute": "flops", "data": "train_points", "model": "params"}
+
+
+def step_envelope_at(resources: np.ndarray, errors: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """E(r) = min { e_i : r_i <= r } at each ``at`` (NaN where no outcome is at or below)."""
+    order = np.argsort(resources)
+    running = np.minimum.accumulate(errors[order])
+    index = np.searchsorted(resources[order], at, side="right") - 1
+    return np.where(index >= 0, running[np.maximum(index, 0)], np.nan)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("sweeps", nargs="+", type=Path)
+    parser.add_argument("--law", default="ball/input_affine/compute/nmae")
+    parser.add_argument("--at", nargs="+", type=float, default=[3e4, 1e5, 3e5, 1e6, 3e6, 1e7, 2e7])
+    parser.add_argument("--columns", nargs="*")
+    args = parser.parse_args()
+    system, arch, resource, metric = args.law.split("/")
+    law = published_laws()[system, arch, resource, metric].law
+    at = np.asarray(args.at)
+    print(f"step envelope / published law ({args.law}) at {resource} = " + ", ".join(f"{r:.0e}" for r in at))
+    for sweep in args.sweeps:
+        results = pq.read_table(sweep / "results.parquet").to_pylist()
+        rows = [row for row in results if row["system"] == system and row["arch"] == arch and row["status"] == "ok"]
+        columns = args.columns or sorted(key for key in rows[0] if key.startswith(metric))
+        r = np.array([row[RESOURCE_COLUMNS[resource]] for row in rows], dtype=float)
+        for column in columns:
+            e = np.array([row.get(column, np.nan) for row in rows], dtype=float)
+            ratios = step_envelope_at(r, e, at) / law.predict(at)
+            cells = " | ".join("-" if np.isnan(x) else f"{x:.2f}" for x in ratios)
+            print(f"| {sweep.name} | {column} | {len(rows)} | {cells} |")
+
+
+if __name__ == "__main__":
+    main()
