@@ -4,6 +4,7 @@ time cap makes a long group a chain of jobs."""
 
 import copy
 import math
+import multiprocessing
 import os
 import signal
 import socket
@@ -23,7 +24,7 @@ from nsl_hpc.studies.input_output.study import horizon
 from nsl_hpc.studies.input_state.data import build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, train_lockstep
 from nsl_hpc.studies.training import Scaling
-from nsl_hpc.sweep.checkpoints import GroupLock
+from nsl_hpc.sweep.checkpoints import GroupLock, checkpoint_path
 from nsl_hpc.sweep.job import JobRunner
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import Group, check_run_settings, make_packs, packing_for, plan_jobs
@@ -148,6 +149,26 @@ def test_a_job_runner_leaves_a_group_that_a_live_job_trains_then_trains_it_once_
         holder.wait()
     assert JobRunner()(str(sweep_dir), groups) == {"ok": held, **({"skipped": others} if others else {})}
     assert len(row_files(sweep_dir)) == 4 and not list((sweep_dir / "checkpoints").rglob("*.*"))
+
+
+def test_a_finished_groups_checkpoint_goes_whether_its_job_was_stopped_after_the_rows_or_warned(tmp_path):
+    """A job can stop between a group's rows and removing its checkpoint (its time ran out, or SLURM's warning
+    came as the group finished): the checkpoint must not outlive the rows (status and clean would show it)."""
+    sweep_dir = tmp_path / "sweep"
+    assert nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}").returncode == 0
+    groups = [group for pack in plan_jobs(read_manifest(sweep_dir).to_pylist(), read_launch_config(sweep_dir))
+              for group in pack.groups]
+    ids = list(groups[0].task_ids)
+    path = checkpoint_path(sweep_dir, ids)
+    Checkpointer(path, 60, ids).save({"x": torch.ones(1)}, 1, 4)
+    assert JobRunner()(str(sweep_dir), groups)["skipped"] == 4 and not path.exists()  # a job finds the rows
+
+    Checkpointer(path, 60, ids).save({"x": torch.ones(1)}, 1, 4)
+    runner, finished = JobRunner(), multiprocessing.get_context("fork").Process(target=lambda: None)
+    finished.start()
+    finished.join()
+    runner.checkpointing, runner.running, runner.started = True, (sweep_dir, ids, finished), set(groups)
+    assert runner.checkpoint(str(sweep_dir), groups) is None and not path.exists()  # warned as it finished
 
 
 def test_a_site_time_cap_makes_a_long_group_a_chain_of_jobs_and_needs_checkpoints():

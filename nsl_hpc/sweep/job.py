@@ -268,6 +268,8 @@ class JobRunner:
             child.join()
             if child.exitcode != EXIT_STOPPED:
                 resumed = []
+                if all(row_state(row_path(sweep, task_id)) == "done" for task_id in ids):
+                    remove_checkpoint(checkpoint_path(sweep, ids))  # it finished as the warning came
                 record_group_failure(sweep, ids, "timeout", "the job reached its time limit while this task ran"
                                      + ("; its checkpoint, if any, is kept: resubmit continues from it"
                                         if self.checkpointing else ""))
