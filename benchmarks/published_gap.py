@@ -4,12 +4,13 @@ controlled experiments of docs/reproduction.md ("What each change moved") read i
 
     python benchmarks/published_gap.py runs/exp/plateau_10s [more sweep dirs] \
         [--law ball/input_affine/compute/nmae] [--at 3e4 1e5 3e5 1e6 3e6 1e7 2e7] \
-        [--columns nmae_scalar nmae_per_column]
+        [--columns nmae_scalar nmae_per_column] [--below 0.25]
 
 Each sweep must be merged (results.parquet). The published law is the one of ``--law`` in
 conf/published_laws.yaml; ``--columns`` are results columns of the same metric (default: every column whose
 name starts with the law's metric). A cell is envelope / law at that resource; "-" where no outcome lies at or
-below it.
+below it. The last column is the least resource at which the envelope is below ``--below`` (the published law's
+in the header).
 """
 
 import argparse
@@ -37,11 +38,15 @@ def main() -> None:
     parser.add_argument("--law", default="ball/input_affine/compute/nmae")
     parser.add_argument("--at", nargs="+", type=float, default=[3e4, 1e5, 3e5, 1e6, 3e6, 1e7, 2e7])
     parser.add_argument("--columns", nargs="*")
+    parser.add_argument("--below", type=float, default=0.25)
     args = parser.parse_args()
     system, arch, resource, metric = args.law.split("/")
     law = published_laws()[system, arch, resource, metric].law
     at = np.asarray(args.at)
-    print(f"step envelope / published law ({args.law}) at {resource} = " + ", ".join(f"{r:.0e}" for r in at))
+    dense = np.geomspace(1e2, 1e13, 4000)
+    crossing = dense[np.argmax(law.predict(dense) < args.below)] if np.any(law.predict(dense) < args.below) else None
+    print(f"step envelope / published law ({args.law}) at {resource} = " + ", ".join(f"{r:.0e}" for r in at)
+          + f"; first below {args.below:g} (published: {'-' if crossing is None else f'{crossing:.2g}'})")
     for sweep in args.sweeps:
         results = pq.read_table(sweep / "results.parquet").to_pylist()
         rows = [row for row in results if row["system"] == system and row["arch"] == arch and row["status"] == "ok"]
@@ -51,7 +56,9 @@ def main() -> None:
             e = np.array([row.get(column, np.nan) for row in rows], dtype=float)
             ratios = step_envelope_at(r, e, at) / law.predict(at)
             cells = " | ".join("-" if np.isnan(x) else f"{x:.2f}" for x in ratios)
-            print(f"| {sweep.name} | {column} | {len(rows)} | {cells} |")
+            below = r[e < args.below]
+            first = f"{below.min():.2g}" if len(below) else f"> {r.max():.2g}"
+            print(f"| {sweep.name} | {column} | {len(rows)} | {cells} | {first} |")
 
 
 if __name__ == "__main__":
