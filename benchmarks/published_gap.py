@@ -50,6 +50,9 @@ def main() -> None:
     for sweep in args.sweeps:
         results = pq.read_table(sweep / "results.parquet").to_pylist()
         rows = [row for row in results if row["system"] == system and row["arch"] == arch and row["status"] == "ok"]
+        if not rows:
+            print(f"| {sweep.name} | no {system} / {arch} outcomes |")
+            continue
         columns = args.columns or sorted(key for key in rows[0] if key.startswith(metric))
         r = np.array([row[RESOURCE_COLUMNS[resource]] for row in rows], dtype=float)
         for column in columns:

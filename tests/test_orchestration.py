@@ -119,6 +119,15 @@ def test_group_seconds_charge_the_extra_share_while_more_models_train():
     assert group_seconds(tasks, COST, lockstep()) == pytest.approx(expected)
 
 
+def test_group_seconds_charge_scoring_each_task_on_its_test_set():
+    """A test set of 1e6 samples costs each task of 100 parameters 0.1 s at 1e-9 s per sample and parameter (the
+    100x100s test set froze 81 of 779 small tasks when the planner left scoring out)."""
+    tasks = [{**task("a", steps=100), "test_points": 1_000_000}, {**task("b", steps=300), "test_points": 1_000_000}]
+    unscored = group_seconds([task("a", steps=100), task("b", steps=300)], COST, lockstep())
+    assert group_seconds(tasks, {**COST, "score_seconds": 1e-9}, lockstep()) == pytest.approx(unscored + 2 * 0.1)
+    assert group_seconds(tasks, COST, lockstep()) == pytest.approx(unscored)  # a run.yaml from before
+
+
 def test_packs_carry_whole_groups_short_ones_fill_packs_long_ones_run_alone():
     groups = [Group((f"s{i}a", f"s{i}b"), 60.0) for i in range(50)] + [Group(("long",), 10 * 60.0)]
     packs = make_packs(groups, PACKING)
@@ -223,6 +232,9 @@ def test_every_config_file_composes_with_the_root_config_that_uses_it(group, opt
     path = config_dir() / group / f"{option}.yaml"
     study = OmegaConf.load(path).get("study") if path.exists() and group in ("system", "arch") else None
     cfg = compose_config([override, *extra, *([f"study={study}"] if study else [])], root)
+    if group == "test_set":  # placed in system.test_set
+        assert cfg.system.test_set == OmegaConf.load(path)
+        return
     chosen = cfg.sweep if group == "sweep" else cfg[group]
     if "name" in chosen:
         assert chosen.name == option

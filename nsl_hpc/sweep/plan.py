@@ -8,7 +8,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from nsl_hpc.errors import ConfigError, require_positive_int
+from nsl_hpc.errors import ConfigError, require_number, require_positive_int
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import model_of
 from nsl_hpc.sweep.launchers import SlurmLauncher, launcher_from
@@ -81,12 +81,15 @@ def training_segments(group: Sequence[Mapping[str, Any]], lockstep: Mapping[str,
 
 def group_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any], lockstep: Mapping[str, Any]) -> float:
     """Predicted wall time (s) of a lockstep group: a step of its largest member costs what it costs alone,
-    plus ``cost.lockstep_extra[arch]`` of that for each further model still training (finished ones leave)."""
+    plus ``cost.lockstep_extra[arch]`` of that for each further model still training (finished ones leave);
+    then each task is scored, ``cost.score_seconds`` per test sample and parameter (its ``test_points``: none
+    for a study, or a sweep from before, whose manifest has no such column)."""
     largest = max(group, key=lambda task: task["params"])
     per_step = predicted_seconds(largest["arch"], 1, largest["params"], cost) - cost["startup_s"]
     extra = cost["lockstep_extra"][largest["arch"]]
-    return cost["startup_s"] + sum(steps * per_step * (1 + (models - 1) * extra)
-                                   for steps, models in training_segments(group, lockstep))
+    scoring = cost.get("score_seconds", 0.0) * sum(task.get("test_points", 0) * task["params"] for task in group)
+    return cost["startup_s"] + scoring + sum(steps * per_step * (1 + (models - 1) * extra)
+                                             for steps, models in training_segments(group, lockstep))
 
 
 @dataclass(frozen=True)
@@ -184,6 +187,7 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
     for key in ("step_seconds", "params_per_overhead", "lockstep_extra"):
         for arch, value in launch["cost"][key].items():
             positive(f"cost.{key}.{arch}", value)
+    require_number("cost.score_seconds", launch["cost"].get("score_seconds", 0.0), 0)
     every = launch["checkpoint"]["every_minutes"]
     if isinstance(every, bool) or not isinstance(every, int | float) or every < 0:
         raise ConfigError(f"checkpoint.every_minutes={every!r} must be a number of at least 0 (0: no checkpoints)")

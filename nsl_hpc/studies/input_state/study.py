@@ -81,9 +81,11 @@ class InputState(Study):
 
     def training_length(self, task: Mapping[str, Any], drawn: Mapping[str, Any],
                         base: Mapping[str, Any]) -> dict[str, Any]:
-        points = drawn["train_points"]
+        points, test_set = drawn["train_points"], base["system"]["test_set"]
         return {"steps": task["epochs"] * batch_count(points, base["train"]["batch_size"]),
-                "flops": float(drawn["params"]) * task["epochs"] * points}
+                "flops": float(drawn["params"]) * task["epochs"] * points,
+                "test_points": test_set["trajectories"] * round(test_set["duration_s"]
+                                                                / base["system"]["simulation"]["dt_s"])}
 
     def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
                         on_progress: Callable[[], None]) -> dict[str, Any]:
