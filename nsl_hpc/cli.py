@@ -38,9 +38,10 @@ def usage(doc: str, config_name: str) -> str:
 
 
 def run(main: Callable[..., int | None], doc: str, argv: Sequence[str] | None = None,
-        config_name: str = "config", pass_overrides: bool = False) -> None:
+        config_name: str = "config", pass_overrides: bool = False, per_pair: Sequence[str] = ()) -> None:
     """Parse ``argv`` (default ``sys.argv[1:]``), compose the config, call ``main(cfg)`` (or
-    ``main(cfg, overrides)``) and exit with its status."""
+    ``main(cfg, overrides)``) and exit with its status. Overrides of keys under ``per_pair`` (e.g. ``arch.``: a
+    sweep's (system, arch) pairs each compose their own) are left out of this config and reach only ``main``."""
     args = list(sys.argv[1:] if argv is None else argv)
     flags = {a for a in args if a.startswith("-")}
     overrides = [a for a in args if not a.startswith("-")]
@@ -52,7 +53,7 @@ def run(main: Callable[..., int | None], doc: str, argv: Sequence[str] | None = 
         if flags & {"-h", "--help"}:
             print(usage(doc, config_name), end="")
             sys.exit(0)
-        cfg = compose_config(overrides, config_name)
+        cfg = compose_config([o for o in overrides if not o.lstrip("+~").startswith(tuple(per_pair))], config_name)
         if "--cfg" in flags:
             print(OmegaConf.to_yaml(cfg), end="")
             sys.exit(0)

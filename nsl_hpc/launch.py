@@ -24,7 +24,7 @@ from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lo
 from nsl_hpc.sweep.executors import run_jobs
 from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.plan import Pack, lockstep_settings, plan_jobs
-from nsl_hpc.sweep.prepare import BuiltSweep, PreparedSweep, build_sweep, prepare_sweep
+from nsl_hpc.sweep.prepare import PAIR_KEYS, BuiltSweep, PreparedSweep, build_sweep, prepare_sweep
 
 
 def describe_lockstep(tasks: Sequence[Mapping[str, Any]], packs: Sequence[Pack], lockstep: Mapping[str, Any]) -> str:
@@ -94,4 +94,4 @@ def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> int:
 
 
 if __name__ == "__main__":
-    cli.run(main, __doc__, config_name="launch", pass_overrides=True)
+    cli.run(main, __doc__, config_name="launch", pass_overrides=True, per_pair=PAIR_KEYS)

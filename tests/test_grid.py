@@ -9,7 +9,7 @@ from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.grid import build_manifest, expand_grid, grid_size
-from nsl_hpc.sweep.prepare import build_sweep, pair_configs
+from nsl_hpc.sweep.prepare import build_sweep, pair_configs, prepare_sweep
 from nsl_hpc.sweep.task import task_id
 
 INPUT_STATE = study_named("input_state")
@@ -181,3 +181,19 @@ def test_the_plateau_preset_holds_every_task_of_the_grid_below_its_compute_cap()
         build_sweep(compose_config(["+sweep=plateau", "sweep.max_flops=1"], "launch"), [])
     with pytest.raises(ConfigError, match=r"sweep.max_flops=-1 must be a finite number"):
         build_sweep(compose_config(["+sweep=plateau", "sweep.max_flops=-1"], "launch"), [])
+
+
+def test_an_arch_option_applies_to_the_pairs_that_have_it_and_a_relaunch_with_it_names_it(tmp_path):
+    """arch.feedthrough=true on a grid of three architectures sets the input-affine pairs' option only; a key no
+    pair has is refused with the closest; relaunching into the sweep without it names the difference."""
+    cfg = compose_config(["+sweep=demo"], "launch")
+    built = build_sweep(cfg, ["+sweep=demo", "arch.feedthrough=true"])
+    assert built.configs["ball", "input_affine"]["arch"]["feedthrough"] is True
+    assert "feedthrough" not in built.configs["ball", "port_hamiltonian"]["arch"]
+    with pytest.raises(ConfigError, match=r"unknown key 'arch.feedthruogh' \(did you mean 'arch.feedthrough'\?\); "
+                                          r"no \(system, arch\) of the grid has it"):
+        build_sweep(cfg, ["+sweep=demo", "arch.feedthruogh=true"])
+    prepare_sweep(cfg, build_sweep(cfg, ["+sweep=demo"]), tmp_path)
+    with pytest.raises(ConfigError, match=r"holds a different grid \(216 tasks, this one has 216; "
+                                          r"arch.feedthrough False -> True\)"):
+        prepare_sweep(cfg, built, tmp_path)

@@ -12,7 +12,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 from omegaconf import DictConfig, OmegaConf
 
-from nsl_hpc.config import compose_config
+from nsl_hpc.config import compose_config, unknown_key
 from nsl_hpc.errors import ConfigError, require_non_negative_int, require_number
 from nsl_hpc.studies import study_named, study_of
 from nsl_hpc.studies.base import Study
@@ -31,6 +31,8 @@ from nsl_hpc.sweep.plan import check_run_settings
 from nsl_hpc.sweep.rows import row_path, row_state, set_aside
 from nsl_hpc.sweep.task import check_settings
 from nsl_hpc.sweep.task_states import read_sweep_state
+
+MISSING = object()
 
 
 def override_key(override: str) -> str:
@@ -68,15 +70,33 @@ def validate_grid_values(grid: Grid, study: Study, configs: Mapping[tuple[str, s
                     study.check_coordinate(f"sweep.grid.{axis} value", axis, value, configs[system, arch])
 
 
+# Keys whose overrides apply to the grid's (system, arch) pairs that have them: arch.feedthrough=true sets the
+# input-affine pairs' option and leaves the others alone; a key no pair has is refused.
+PAIR_KEYS = ("arch.", "system.")
+
+
 def pair_configs(cfg: DictConfig, overrides: Sequence[str], study: Study) -> dict[tuple[str, str], dict]:
-    """The resolved plain config of every (system, arch) of the grid, with the launch's overrides."""
+    """The resolved plain config of every (system, arch) of the grid, with the launch's overrides (those of
+    ``PAIR_KEYS`` where the pair has the key)."""
     pairs = {(system, arch) for part in sub_grids(sweep_grid(cfg))
              for system in part["system"] for arch in part["arch"]}
-    configs = {}
+    scoped = [o for o in overrides if o.lstrip("+~").startswith(PAIR_KEYS)]
+    common = [o for o in overrides if o not in scoped]
+    configs, used = {}, set()
     for system, arch in sorted(pairs):
-        configs[system, arch] = OmegaConf.to_container(
-            compose_config([*overrides, f"system={system}", f"arch={arch}"], "launch"), resolve=True)
+        selection = [*common, f"system={system}", f"arch={arch}"]
+        plain = compose_config(selection, "launch")
+        applicable = [o for o in scoped if OmegaConf.select(plain, override_key(o), default=MISSING) is not MISSING]
+        used.update(applicable)
+        configs[system, arch] = OmegaConf.to_container(compose_config([*applicable, *selection], "launch"),
+                                                       resolve=True)
         study_of(configs[system, arch]).check_pair(configs[system, arch])
+    for override in scoped:
+        if override not in used:
+            first = sorted(pairs)[0]
+            raise ConfigError(unknown_key(override_key(override), [*common, f"system={first[0]}",
+                                                                   f"arch={first[1]}"], "launch")
+                              + "; no (system, arch) of the grid has it")
     return configs
 
 
@@ -130,7 +150,10 @@ def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Prepar
     if manifest_path(sweep_dir).exists():
         existing = read_manifest(sweep_dir, columns=["task_id"])["task_id"]
         if existing.to_pylist() != manifest["task_id"].to_pylist():
-            changed = changed_settings(read_yaml(sweep_dir / LAUNCH_CONFIG_FILE, sweep_dir), cfg, built.study)
+            stored = {pair: read_yaml(base_config_path(sweep_dir, *pair), sweep_dir) for pair in built.configs
+                      if base_config_path(sweep_dir, *pair).exists()}
+            changed = changed_settings(read_yaml(sweep_dir / LAUNCH_CONFIG_FILE, sweep_dir), cfg, built.study,
+                                       {pair: (stored[pair], built.configs[pair]) for pair in stored})
             raise ConfigError(f"sweep_dir={str(sweep_dir)!r} holds a different grid ({len(existing):,} tasks, "
                               f"this one has {len(manifest):,}; {'; '.join(changed) or 'other draws'}): choose "
                               "another sweep_dir or launch with the same sweep and overrides")
@@ -148,13 +171,21 @@ def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Prepar
     return PreparedSweep(sweep_dir, manifest, todo.filter(runnable), infeasible, built.configs, len(queued), aside)
 
 
-def changed_settings(stored: DictConfig, cfg: DictConfig, study: Study, shown: int = 4) -> list[str]:
+def changed_settings(stored: DictConfig, cfg: DictConfig, study: Study,
+                     pairs: Mapping[tuple[str, str], tuple[DictConfig, Mapping[str, Any]]], shown: int = 4
+                     ) -> list[str]:
     """'train.lr 0.001 -> 0.01': the outcome-changing settings (the grid, the sweep seed and the study's shared
-    keys) in which the launch config ``cfg`` differs from the ``stored`` one, the first ``shown`` of them."""
+    keys) in which the launch config ``cfg`` differs from the ``stored`` one, or a (system, arch)'s config from
+    its stored one (``pairs``: stored, new), the first ``shown`` of them."""
     keys = ("sweep", "sweep_seed", *study.shared_keys)
-    old, new = (OmegaConf.to_container(config, resolve=True) for config in (stored, cfg))
-    changes = [f"{key} {before!r} -> {after!r}" for key, before, after in
-               leaf_differences({k: old.get(k) for k in keys}, {k: new.get(k) for k in keys})]
+    compared = [(stored, cfg), *pairs.values()]
+    changes: list[str] = []
+    for before_cfg, after_cfg in compared:
+        old, new = (OmegaConf.to_container(c, resolve=True) if OmegaConf.is_config(c) else c
+                    for c in (before_cfg, after_cfg))
+        changes += [change for key, before, after in
+                    leaf_differences({k: old.get(k) for k in keys}, {k: new.get(k) for k in keys})
+                    if (change := f"{key} {before!r} -> {after!r}") not in changes]
     return changes[:shown] + ([f"{len(changes) - shown} more"] if len(changes) > shown else [])
 
 
