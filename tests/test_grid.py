@@ -177,6 +177,9 @@ def test_the_plateau_preset_holds_every_task_of_the_grid_below_its_compute_cap()
     below = {row["task_id"] for row in whole.manifest.to_pylist() if row["flops"] < 3e7}
     assert set(cut.manifest["task_id"].to_pylist()) == below
     assert cut.above_max_flops == whole.manifest.num_rows - len(below) > 0
+    for row in cut.manifest.to_pylist():  # the paper's parameter count, 4 n_d n_h^2, in a compute column of its own
+        assert row["flops_paper"] == 4 * row["depth"] * row["width"] ** 2 * row["epochs"] * row["train_points"]
+        assert row["test_points"] == 100 * 1000  # test_set 100x10s
     with pytest.raises(ConfigError, match=r"sweep.max_flops=1 leaves no task of the grid"):
         build_sweep(compose_config(["+sweep=plateau", "sweep.max_flops=1"], "launch"), [])
     with pytest.raises(ConfigError, match=r"sweep.max_flops=-1 must be a finite number"):

@@ -2,8 +2,8 @@
 preempted job, a killed training process and a `scontrol requeue` all continue from the group's training
 checkpoint, and every time the rows are those of the same group trained uninterrupted (bit for bit).
 
-SLURM holds a requeued job for about two minutes (BeginTime) before it may start again; the tests release it
-at once (``scontrol update StartTime=now``) to stay short: the wait is SLURM's, not nsl_hpc's.
+SLURM holds a requeued job for about two minutes before it may start again; the tests release it after a few
+seconds (``tests.cluster.requeues``).
 
 Each test needs the group to train longer than something (the cap, the time to preempt it): ``fault.kind=slow``
 sleeps at every heartbeat, so the group lasts at least ``SLOW`` seconds on any machine, however fast, and its
@@ -22,6 +22,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from nsl_hpc.sweep.checkpoints import saved_groups
+from tests.cluster.requeues import Releaser, jobs
 from tests.sweeps import TINY_GRID, nsl, row_files
 
 pytestmark = pytest.mark.slurm
@@ -30,11 +31,6 @@ pytestmark = pytest.mark.slurm
 # core (input-affine, ~150 points, a step per epoch: 200 heartbeats of 32 steps).
 STEPS = 6400
 GROUP = [*TINY_GRID, "sweep.grid.seed=[0,3]", f"sweep.grid.epochs=[{STEPS}]"]
-
-
-# A requeued job released at once can be allocated while SLURM still revokes its last run's credential, and then
-# fails ("Killing non-startable batch job: Job credential revoked", seen here): release it after a few seconds.
-RELEASE_AFTER_S = 5
 
 
 def slow(seconds: float) -> list[str]:
@@ -68,13 +64,6 @@ def uninterrupted(tmp_path_factory):
     process.kill()
 
 
-def jobs(name: str) -> list[tuple[str, str, str]]:
-    """(job id, state, reason) of the queued jobs named ``name``."""
-    out = subprocess.run(["squeue", "-h", "-n", name, "-o", "%i %T %r"], capture_output=True, text=True,
-                         check=True).stdout
-    return [tuple(line.split(maxsplit=2)) for line in out.splitlines()]
-
-
 def launch(sweep_dir: Path, name: str, *extra: str) -> str:
     result = nsl("launch", *GROUP, "launcher=slurm", f"sweep_dir={sweep_dir}", f"sweep.name={name}", *extra)
     assert result.returncode == 0 and "submitted 1 jobs" in result.stdout, result.stdout + result.stderr
@@ -84,17 +73,11 @@ def launch(sweep_dir: Path, name: str, *extra: str) -> str:
 def wait_until(condition, name: str, timeout_s: float = 420) -> dict:
     """Poll until ``condition()`` holds, releasing the requeued jobs named ``nsl-<name>`` SLURM holds back;
     returns what was seen: the most resumes of the group's checkpoint."""
-    seen = {"resumes": 0, "releases": 0}
-    held_since: dict[str, float] = {}
+    seen, releaser = {"resumes": 0, "releases": 0}, Releaser(f"nsl-{name}")
     deadline = time.time() + timeout_s
     while time.time() < deadline:
-        for job_id, state, reason in jobs(f"nsl-{name}"):
-            if state != "PENDING" or reason != "BeginTime":
-                held_since.pop(job_id, None)
-            elif time.time() - held_since.setdefault(job_id, time.time()) >= RELEASE_AFTER_S:
-                subprocess.run(["scontrol", "update", f"JobId={job_id}", "StartTime=now"], check=False)
-                held_since.pop(job_id)
-                seen["releases"] += 1
+        releaser.poll()
+        seen["releases"] = releaser.releases
         if condition(seen):
             return seen
         time.sleep(1)

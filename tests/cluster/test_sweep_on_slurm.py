@@ -9,6 +9,7 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
+from tests.cluster.requeues import releasing
 from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
 
 REPO = Path(__file__).resolve().parents[2]
@@ -97,8 +98,10 @@ def test_time_limit_records_timeout_requeues_unstarted_tasks_and_resubmit_finish
                    "watchdog.overrun_factor=1000")
     assert launched.returncode == 0, launched.stderr
     assert len(submitted_arrays(launched.stdout)) == 1 and "submitted 1 jobs" in launched.stdout
-    status = wait_for_sweep(sweep_dir)
+    with releasing("nsl-demo") as releaser:  # the job requeued with the second task
+        status = wait_for_sweep(sweep_dir)
     assert "timeout 2 |" in status, status
+    assert releaser.releases >= 1, "the job was not requeued with its second task"
     assert "reached its time limit" in status
 
     resubmitted = nsl("resubmit", f"sweep_dir={sweep_dir}", "states=[timeout]", "time_factor=2")

@@ -84,6 +84,8 @@ class InputState(Study):
         points, test_set = drawn["train_points"], base["system"]["test_set"]
         return {"steps": task["epochs"] * batch_count(points, base["train"]["batch_size"]),
                 "flops": float(drawn["params"]) * task["epochs"] * points,
+                # the same with the paper's "approximately 4 n_d n_h^2" parameters (docs/reproduction.md)
+                "flops_paper": 4.0 * drawn["depth"] * drawn["width"] ** 2 * task["epochs"] * points,
                 "test_points": test_set["trajectories"] * round(test_set["duration_s"]
                                                                 / base["system"]["simulation"]["dt_s"])}
 

@@ -1,0 +1,55 @@
+"""Releasing the requeued jobs SLURM holds back. SLURM holds a requeued job for about two minutes (BeginTime)
+before it may start again; the cluster tests release it (``scontrol update StartTime=now``) to stay short: the
+wait is SLURM's, not nsl_hpc's. A job released at once can be allocated while SLURM still revokes its last run's
+credential, and then fails ("Killing non-startable batch job: Job credential revoked", seen here): it is
+released after a few seconds."""
+
+import contextlib
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+
+RELEASE_AFTER_S = 5
+
+
+def jobs(name: str) -> list[tuple[str, str, str]]:
+    """(job id, state, reason) of the queued jobs named ``name``."""
+    out = subprocess.run(["squeue", "-h", "-n", name, "-o", "%i %T %r"], capture_output=True, text=True,
+                         check=True).stdout
+    return [tuple(line.split(maxsplit=2)) for line in out.splitlines()]
+
+
+class Releaser:
+    """Releases the held requeued jobs named ``name``, each ``RELEASE_AFTER_S`` after it was first seen held;
+    ``releases`` counts them."""
+
+    def __init__(self, name: str) -> None:
+        self.name, self.releases, self.held_since = name, 0, {}
+
+    def poll(self) -> None:
+        for job_id, state, reason in jobs(self.name):
+            if state != "PENDING" or reason != "BeginTime":
+                self.held_since.pop(job_id, None)
+            elif time.time() - self.held_since.setdefault(job_id, time.time()) >= RELEASE_AFTER_S:
+                subprocess.run(["scontrol", "update", f"JobId={job_id}", "StartTime=now"], check=False)
+                self.held_since.pop(job_id)
+                self.releases += 1
+
+
+@contextlib.contextmanager
+def releasing(name: str) -> Iterator[Releaser]:
+    """Release the held requeued jobs named ``name`` every second in the background while the block runs."""
+    releaser, done = Releaser(name), threading.Event()
+
+    def loop() -> None:
+        while not done.wait(1.0):
+            releaser.poll()
+
+    thread = threading.Thread(target=loop, daemon=True)
+    thread.start()
+    try:
+        yield releaser
+    finally:
+        done.set()
+        thread.join()
