@@ -30,6 +30,15 @@ def finished_sweep(tmp_path_factory):
     return sweep_dir
 
 
+@pytest.fixture(scope="module")
+def fitted_sweep(finished_sweep, tmp_path_factory):
+    """A copy of the finished sweep, merged and fitted (no bootstrap); tests that change it copy it first."""
+    sweep_dir = shutil.copytree(finished_sweep, tmp_path_factory.mktemp("fitted") / "sweep")
+    assert nsl("merge", f"sweep_dir={sweep_dir}").returncode == 0
+    assert nsl("fit", f"sweep_dir={sweep_dir}", "nsl.bootstrap=0").returncode == 0
+    return sweep_dir
+
+
 @pytest.fixture
 def sweep_copy(finished_sweep, tmp_path):
     return shutil.copytree(finished_sweep, tmp_path / "sweep")
@@ -187,20 +196,17 @@ def test_merge_again_reads_only_new_or_rewritten_shards_and_matches_a_fresh_merg
     ("report", "figures.dpi=0", "figures.dpi=0 must be an integer from 10 to 2400"),
     ("report", "figures.formats=[pngg]", "figures.formats value='pngg'; choose one of:"),
 ])
-def test_a_bad_setting_is_one_line_before_any_work_and_keeps_the_fits(sweep_copy, verb, override, message):
-    assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
-    assert nsl("fit", f"sweep_dir={sweep_copy}", "nsl.bootstrap=0").returncode == 0
-    fits = (sweep_copy / "nsl_fits.parquet").read_bytes()
+def test_a_bad_setting_is_one_line_before_any_work_and_keeps_the_fits(fitted_sweep, verb, override, message):
+    fits = (fitted_sweep / "nsl_fits.parquet").read_bytes()
     extra = ["target=0.05"] if verb == "predict" and not override.startswith("target") else []
-    result = nsl(verb, f"sweep_dir={sweep_copy}", override, *extra)
+    result = nsl(verb, f"sweep_dir={fitted_sweep}", override, *extra)
     assert result.returncode == 2 and result.stderr == f"error: {result.stderr[7:]}", result.stderr
     assert message in result.stderr and len(result.stderr.splitlines()) == 1, result.stderr
-    assert (sweep_copy / "nsl_fits.parquet").read_bytes() == fits
+    assert (fitted_sweep / "nsl_fits.parquet").read_bytes() == fits
 
 
-def test_a_fit_where_no_law_can_be_fitted_keeps_the_fits_it_would_replace(sweep_copy):
-    assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
-    assert nsl("fit", f"sweep_dir={sweep_copy}", "nsl.bootstrap=0").returncode == 0
+def test_a_fit_where_no_law_can_be_fitted_keeps_the_fits_it_would_replace(fitted_sweep, tmp_path):
+    sweep_copy = shutil.copytree(fitted_sweep, tmp_path / "sweep")
     fits = (sweep_copy / "nsl_fits.parquet").read_bytes()
     results = pq.read_table(sweep_copy / "results.parquet")
     pq.write_table(results.slice(0, 1), sweep_copy / "results.parquet")  # one outcome: no law can be fitted
