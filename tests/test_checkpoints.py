@@ -151,6 +151,7 @@ def test_a_job_runner_leaves_a_group_that_a_live_job_trains_then_trains_it_once_
     assert len(row_files(sweep_dir)) == 4 and not list((sweep_dir / "checkpoints").rglob("*.*"))
 
 
+@pytest.mark.e2e  # launches a sweep
 def test_a_finished_groups_checkpoint_goes_whether_its_job_was_stopped_after_the_rows_or_warned(tmp_path):
     """A job can stop between a group's rows and removing its checkpoint (its time ran out, or SLURM's warning
     came as the group finished): the checkpoint must not outlive the rows (status and clean would show it)."""
