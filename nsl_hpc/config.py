@@ -151,7 +151,7 @@ def documented_config(name: str, prefix: str = "", top: bool = True) -> ConfigDo
             continue
         default = DEFAULT_LINE.match(line) if in_defaults else None
         if default:
-            doc_of(default["entry"], default["option"], doc, top)
+            doc_of(default["entry"].lstrip("/"), default["option"], doc, top)  # /test_set: a group from the root
             continue
         match = KEY_LINE.match(line)
         if not match:

@@ -15,7 +15,7 @@ from nsl_hpc.errors import ConfigError
 # verb, its config, keys its help must name (its own ones, not every key of every config)
 COMMANDS = [
     ("launch", "launch", ["dry_run=false", "launcher=<debug|local|slurm>", "lockstep.size=32", "epochs=64"]),
-    ("train", "one_task", ["seed=0", "epochs=64", "system=<ball|", "force=false"]),
+    ("train", "one_task", ["seed=0", "epochs=64", "system=<ball|", "force=false", "test_set=<1000x10s|100x100s|"]),
     ("status", "status", ["wait=false", "interval_s=10", "show_failures=10"]),
     ("predict", "predict", ["target=???", "metric=nmae", "resource=compute", "nsl.predict.decades=6"]),
     ("fit", "fit", ["metrics=null", "nsl.max_breaks=4", "nsl.envelope=interpolated"]),
