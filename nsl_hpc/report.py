@@ -31,6 +31,7 @@ from nsl_hpc.analysis.report import (
     COMPARISON_FILE,
     REPORT_FILE,
     comparison_markdown,
+    fit_note,
     report_html,
     scores_note,
     what_it_takes_html,
@@ -60,8 +61,9 @@ def main(cfg: DictConfig) -> int:
                             lambda best: [factor * best for factor in wanted["factors"]], nsl)
     section = what_it_takes_html(entries, wanted, nsl["resources"][wanted["resource"]]["symbol"])
     report = sweep_dir / REPORT_FILE
-    write_text(report_html(sweep_dir, launch, summary, rows, figures, section), report)
-    write_text(comparison_markdown(rows, scores_note(launch)), sweep_dir / COMPARISON_FILE)
+    write_text(report_html(sweep_dir, launch, summary, rows, figures, section, nsl), report)
+    notes = " ".join(note for note in (scores_note(launch), fit_note(nsl)) if note)
+    write_text(comparison_markdown(rows, notes), sweep_dir / COMPARISON_FILE)
     if cfg.mlflow.enabled:
         by_key = {nsl_key(row): figure_stem(sweep_dir, row).with_suffix(".png") for row in rows}
         artifacts = [results_path(sweep_dir), fits_path(sweep_dir), sweep_dir / FITS_TEXT_FILE, report,

@@ -13,8 +13,9 @@ Everything is evaluated in log space, ln L = logaddexp(ln alpha, ln beta + delta
 down to 1e-8 neither overflow nor underflow. The law is piecewise linear in log-log space with smooth
 corners: the fit starts from piecewise-linear least-squares fits of the envelope with corners at every
 combination of candidate positions on the log grid and at the best segmentation of the grid, plus a few
-random starts, refines them with bounded least squares on the log residuals (which minimises M directly),
-and picks the number of breaks b by a penalised margin among the laws whose slopes stay inside their bound.
+random starts (and, when b is chosen, the law with one break fewer plus a flat break), refines them with
+bounded least squares on the log residuals (which minimises M directly), and picks the number of breaks b by a
+penalised margin that leaves out the envelope points the law fits worst (choose_breaks).
 """
 
 import itertools
@@ -292,15 +293,26 @@ def refine(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, b: int, settings
     return refine_margin(theta, x, log_e, bounds, evaluations)
 
 
-def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings") -> np.ndarray:
-    """The best theta with b breaks from the top ``settings.starts`` piecewise-linear starts and
-    ``settings.random_starts`` random ones (seeded: a fit depends only on its outcomes and settings), by the
-    settings' objective: each refined briefly (the study's Adam: ranked as they start), the best two to the
-    end."""
+def with_flat_break(theta: np.ndarray, x: np.ndarray, positions: int, phi_min: float) -> list[np.ndarray]:
+    """theta with one more break of zero slope change at each of ``positions`` even inner points of the log
+    grid: the same law, so a search from them can only improve on the law with one break fewer."""
+    phi = max(phi_min, 0.03 * (x[-1] - x[0]))
+    even = x[0] + (x[-1] - x[0]) * np.arange(1, positions + 1) / (positions + 1)
+    return [np.concatenate([theta, [position, phi, 0.0]]) for position in even]
+
+
+def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings",
+               fewer: np.ndarray | None = None) -> np.ndarray:
+    """The best theta with b breaks from the top ``settings.starts`` piecewise-linear starts,
+    ``settings.random_starts`` random ones (seeded: a fit depends only on its outcomes and settings) and, given
+    ``fewer`` (the best theta with b - 1 breaks), that law with a flat break added, by the settings' objective:
+    each refined briefly (the study's Adam: ranked as they start), the best ``settings.finalists`` to the end."""
     starts = piecewise_linear_starts(x, log_e, b, settings.positions, settings.alpha_shares, settings.phi_min)
     bounds = Bounds.for_grid(x, log_e, b, settings.max_slope, settings.edge, settings.phi_min)
     chosen = [theta for _, theta in starts[:settings.starts]]
     chosen += random_starts(x, log_e, b, settings.random_starts, bounds, seed=b)
+    if fewer is not None:
+        chosen += [bounds.clip(theta) for theta in with_flat_break(fewer, x, 3, settings.phi_min)]
 
     def objective(theta: np.ndarray) -> float:
         if settings.objective == "study":
@@ -309,8 +321,8 @@ def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings"
 
     if settings.objective == "margin":  # a short refinement of every start ...
         chosen = [refine(theta, x, log_e, b, settings, evaluations=30) for theta in chosen]
-    refined = [refine(theta, x, log_e, b, settings) for theta in sorted(chosen, key=objective)[:2]]
-    return min(refined, key=objective)  # ... the best two to the end
+    refined = [refine(theta, x, log_e, b, settings) for theta in sorted(chosen, key=objective)[:settings.finalists]]
+    return min(refined, key=objective)  # ... the best to the end
 
 
 @dataclass(frozen=True)
@@ -323,11 +335,13 @@ class FitSettings:
     positions: int
     starts: int
     random_starts: int
+    finalists: int
     alpha_shares: tuple[float, ...]
     max_slope: float
     edge: float
     phi_min: float
     min_gain: float
+    choice_trim: float
     margin_floor: float
     study_beta: float
     study_phi: float | None
@@ -352,18 +366,19 @@ class FitSettings:
             raise NSLFitError(f"envelope={self.envelope!r}; choose from {', '.join(ENVELOPES)}")
 
 
-def at_slope_bound(theta: np.ndarray, max_slope: float) -> bool:
-    """Whether a slope of theta sits at the |delta| bound: the data did not resolve that break (the envelope
-    drops faster than any bounded law can follow, e.g. a step made by one lucky outcome, or two breaks
-    collapsed onto one position with opposite slopes)."""
-    slopes = np.concatenate([[theta[2]], theta[5::3]])
-    return bool(np.any(np.abs(slopes) >= max_slope * (1 - 1e-3)))
+def trimmed_margin(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, trim: float) -> float:
+    """The margin without the ``trim`` share of envelope points that the law fits worst (at least one when
+    trim > 0): what is left once a lone outcome that makes the envelope's first point or one of its steps no
+    longer counts."""
+    squared = np.sort((log_law(theta, x) - log_e) ** 2)
+    drop = math.ceil(trim * len(squared)) if trim > 0 else 0
+    return float(np.mean(squared[:len(squared) - drop]))
 
 
 def choose_breaks(margins: dict[int, float], min_gain: float, margin_floor: float) -> int:
     """b minimising ln max(M_b, floor) + b ln(1 / (1 - min_gain)), the smallest on ties: each break must
-    cut the margin by at least ``min_gain`` (and not merely below the floor) to be worth it. ``margins``
-    holds the candidates (fit_broken_law leaves out laws at the slope bound)."""
+    cut the margin by at least ``min_gain`` (and not merely below the floor) to be worth it. ``margins``:
+    the trimmed margins (trimmed_margin) of the best law for each b."""
     penalty = math.log(1 / (1 - min_gain))
     score = {b: math.log(max(m, margin_floor)) + b * penalty for b, m in margins.items()}
     return min(score, key=lambda b: (round(score[b], 12), b))
@@ -433,11 +448,16 @@ def fit_broken_law(resources: Sequence[float], errors: Sequence[float], breaks: 
     grid_r, grid_e = lower_envelope(r, e, K, settings.fitted_envelope)
     x, log_e = np.log(grid_r), np.log(grid_e)
     middle = (x[0] + x[-1]) / 2
-    choices = [breaks] if breaks is not None else range(max_breaks + 1)
-    thetas = {b: uncentred(fit_breaks(x - middle, log_e, b, settings), middle) for b in choices}
+    if breaks is not None:
+        theta = uncentred(fit_breaks(x - middle, log_e, breaks, settings), middle)
+        return law_of(theta, r, e, grid_r, grid_e, settings, {breaks: margin_of(theta, x, log_e)})
+    centred_thetas: list[np.ndarray] = []
+    for b in range(max_breaks + 1):
+        centred_thetas.append(fit_breaks(x - middle, log_e, b, settings, centred_thetas[-1] if b else None))
+    thetas = {b: uncentred(theta, middle) for b, theta in enumerate(centred_thetas)}
     margins = {b: margin_of(theta, x, log_e) for b, theta in thetas.items()}
-    resolved = {b: m for b, m in margins.items() if b == 0 or not at_slope_bound(thetas[b], settings.max_slope)}
-    chosen = breaks if breaks is not None else choose_breaks(resolved, settings.min_gain, settings.margin_floor)
+    trimmed = {b: trimmed_margin(theta, x, log_e, settings.choice_trim) for b, theta in thetas.items()}
+    chosen = choose_breaks(trimmed, settings.min_gain, settings.margin_floor)
     return law_of(thetas[chosen], r, e, grid_r, grid_e, settings, margins)
 
 

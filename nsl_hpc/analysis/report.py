@@ -115,6 +115,23 @@ def scores_note(launch: Mapping[str, Any]) -> str:
             "holds the other pair (nmae_per_column, nmae_scalar, ...: fit metrics=[...] fits them).")
 
 
+def fit_note(nsl: Mapping[str, Any]) -> str:
+    """How the sweep's laws were fitted: the envelope, the objective and what chose b."""
+    if nsl["objective"] == "study":
+        how = "Section 4.3's loss by Adam on Definition 1's step envelope (nsl.objective=study)"
+    else:
+        envelope = ("Definition 1's step envelope" if nsl["envelope"] == "step"
+                    else "the envelope interpolated between its outcomes (M still on Definition 1's)")
+        how = f"least squares of the log residuals on {envelope} (nsl.envelope={nsl['envelope']})"
+    if nsl["breaks"] is not None:
+        chosen = f"b fixed at {nsl['breaks']} (nsl.breaks)"
+    else:
+        chosen = (f"b chosen in 0..{nsl['max_breaks']}: each break must cut the margin by {nsl['min_gain']:.0%}, "
+                  f"not counting the {nsl['choice_trim']:.0%} of envelope points the law fits worst "
+                  "(nsl.min_gain, nsl.choice_trim)")
+    return f"Fits: {how}; {chosen}."
+
+
 def comparison_table(rows: Sequence[Mapping[str, Any]]) -> str:
     """Paper vs ours (``comparison_rows``) as an HTML table."""
     body = "".join(f"<tr>{cells(row)}</tr>" for row in comparison_rows(rows))
@@ -184,8 +201,8 @@ def configuration_html(settings: Mapping[tuple[str, str], Mapping[str, tuple[str
     return f"<table>{rows}</table>{verdict}"
 
 
-def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummary,
-                rows: Sequence[Mapping[str, Any]], figures: Mapping[str, list[Path]], what_it_takes: str) -> str:
+def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummary, rows: Sequence[Mapping[str, Any]],
+                figures: Mapping[str, list[Path]], what_it_takes: str, nsl: Mapping[str, Any]) -> str:
     grid = launch["sweep"]["grid"]
     parts = sub_grids(grid)
     axes = "".join((f"<tr><th colspan='2'>sub-grid {index + 1} of {len(parts)}</th></tr>" if len(parts) > 1 else "")
@@ -211,12 +228,13 @@ def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummar
 fitted to the lower envelope of the outcomes; M = mean<sub>k</sub>
 (ln L(r~<sub>k</sub>) &minus; ln E(r~<sub>k</sub>))<sup>2</sup> on Definition 1's envelope; last slope =
 &delta;0 + &Sigma; &delta;<sub>i</sub> with its 90% interval from refits on resampled tasks (given b); backtest M:
-the law fitted below the middle of the log resource range, scored above it.</p>
+the law fitted below the middle of the log resource range, scored above it. {html.escape(fit_note(nsl))}</p>
 {nsl_table(rows)}
 <h2>Against the published laws</h2>
 <p>The study's laws (<code>conf/published_laws.yaml</code>) beside ours where it publishes one: a published M and
 ours are each on their own outcomes; the published law's M on our envelope says how well it describes ours. Break
-positions are &sigma;<sub>i</sub>; ours with their 90% intervals. {html.escape(scores_note(launch))}</p>
+positions are &sigma;<sub>i</sub>; ours with their 90% intervals. {html.escape(scores_note(launch))}
+{html.escape(fit_note(nsl))}</p>
 {comparison_table(rows)}
 <h2>What it takes</h2>{what_it_takes}
 <h2>Overview</h2>{overviews}

@@ -26,12 +26,14 @@ def check_nsl(nsl: Mapping[str, Any]) -> None:
     require_choice("nsl.envelope", nsl["envelope"], ENVELOPES)
     require_int("nsl.starts", nsl["starts"], 1)
     require_int("nsl.random_starts", nsl["random_starts"], 0)
+    require_int("nsl.finalists", nsl["finalists"], 1)
     for share in nsl["alpha_shares"]:
         require_number("nsl.alpha_shares value", share, 0, 1, high_open=True)
     require_number("nsl.max_slope", nsl["max_slope"], 0, low_open=True)
     require_number("nsl.edge", nsl["edge"], 0, 0.5, high_open=True)
     require_number("nsl.phi_min", nsl["phi_min"], 0, low_open=True)
     require_number("nsl.min_gain", nsl["min_gain"], 0, 1, high_open=True)
+    require_number("nsl.choice_trim", nsl["choice_trim"], 0, 1, high_open=True)
     require_number("nsl.margin_floor", nsl["margin_floor"], 0)
     require_number("nsl.study_beta", nsl["study_beta"], 0)
     if nsl["study_phi"] is not None:
