@@ -4,7 +4,7 @@ controlled experiments of docs/reproduction.md ("What each change moved") read i
 
     python benchmarks/published_gap.py runs/exp/plateau_10s [more sweep dirs] \
         [--law ball/input_affine/compute/nmae] [--at 3e4 1e5 3e5 1e6 3e6 1e7 2e7] \
-        [--columns nmae_scalar nmae_per_column] [--below 0.25]
+        [--columns nmae_scalar nmae_per_column] [--below 0.25] [--resource-column flops_paper]
 
 Each sweep must be merged (results.parquet). The published law is the one of ``--law`` in
 conf/published_laws.yaml; ``--columns`` are results columns of the same metric (default: every column whose
@@ -39,6 +39,8 @@ def main() -> None:
     parser.add_argument("--at", nargs="+", type=float, default=[3e4, 1e5, 3e5, 1e6, 3e6, 1e7, 2e7])
     parser.add_argument("--columns", nargs="*")
     parser.add_argument("--below", type=float, default=0.25)
+    parser.add_argument("--resource-column", help="results column of the resource (default: flops, train_points "
+                        "or params); e.g. flops_paper, the compute on the paper's 4 n_d n_h^2 parameters")
     args = parser.parse_args()
     system, arch, resource, metric = args.law.split("/")
     law = published_laws()[system, arch, resource, metric].law
@@ -54,7 +56,7 @@ def main() -> None:
             print(f"| {sweep.name} | no {system} / {arch} outcomes |")
             continue
         columns = args.columns or sorted(key for key in rows[0] if key.startswith(metric))
-        r = np.array([row[RESOURCE_COLUMNS[resource]] for row in rows], dtype=float)
+        r = np.array([row[args.resource_column or RESOURCE_COLUMNS[resource]] for row in rows], dtype=float)
         for column in columns:
             e = np.array([row.get(column, np.nan) for row in rows], dtype=float)
             ratios = step_envelope_at(r, e, at) / law.predict(at)

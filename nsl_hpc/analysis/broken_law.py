@@ -13,7 +13,7 @@ Everything is evaluated in log space, ln L = logaddexp(ln alpha, ln beta + delta
 down to 1e-8 neither overflow nor underflow. The law is piecewise linear in log-log space with smooth
 corners: the fit starts from piecewise-linear least-squares fits of the envelope with corners at every
 combination of candidate positions on the log grid and at the best segmentation of the grid, plus a few
-random starts (and, when b is chosen, the law with one break fewer plus a flat break), refines them with
+random starts and the best law with one break fewer plus a flat break (b = 0, 1, ... in turn), refines them with
 bounded least squares on the log residuals (which minimises M directly), and picks the number of breaks b by a
 penalised margin that leaves out the envelope points the law fits worst (choose_breaks).
 """
@@ -448,14 +448,13 @@ def fit_broken_law(resources: Sequence[float], errors: Sequence[float], breaks: 
     grid_r, grid_e = lower_envelope(r, e, K, settings.fitted_envelope)
     x, log_e = np.log(grid_r), np.log(grid_e)
     middle = (x[0] + x[-1]) / 2
-    if breaks is not None:
-        theta = uncentred(fit_breaks(x - middle, log_e, breaks, settings), middle)
-        return law_of(theta, r, e, grid_r, grid_e, settings, {breaks: margin_of(theta, x, log_e)})
-    centred_thetas: list[np.ndarray] = []
-    for b in range(max_breaks + 1):
+    centred_thetas: list[np.ndarray] = []  # b = 0, 1, ...: each search also starts from the last law
+    for b in range((breaks if breaks is not None else max_breaks) + 1):
         centred_thetas.append(fit_breaks(x - middle, log_e, b, settings, centred_thetas[-1] if b else None))
     thetas = {b: uncentred(theta, middle) for b, theta in enumerate(centred_thetas)}
     margins = {b: margin_of(theta, x, log_e) for b, theta in thetas.items()}
+    if breaks is not None:
+        return law_of(thetas[breaks], r, e, grid_r, grid_e, settings, {breaks: margins[breaks]})
     trimmed = {b: trimmed_margin(theta, x, log_e, settings.choice_trim) for b, theta in thetas.items()}
     chosen = choose_breaks(trimmed, settings.min_gain, settings.margin_floor)
     return law_of(thetas[chosen], r, e, grid_r, grid_e, settings, margins)
