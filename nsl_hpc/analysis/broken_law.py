@@ -428,7 +428,7 @@ def law_of(theta: np.ndarray, r: np.ndarray, e: np.ndarray, grid_r: np.ndarray, 
             margin_of(theta, x, np.log(grid_e)) * (1 + 1e-9):
         alpha = 0.0  # a negligible alpha is reported as none
     return NSLFit(alpha=alpha, beta=float(np.exp(theta[1])), delta0=float(theta[2]),
-                  breaks=[(float(np.exp(s)), float(p), float(d)) for s, p, d in theta[3:].reshape(-1, 3)],
+                  breaks=sorted((float(np.exp(s)), float(p), float(d)) for s, p, d in theta[3:].reshape(-1, 3)),
                   margin=margin_of(theta, x, np.log(step_e)), envelope_r=grid_r, envelope_e=grid_e,
                   margins=margins, objective=settings.objective, envelope=settings.fitted_envelope,
                   fit_margin=margin_of(theta, x, np.log(grid_e)))
