@@ -18,7 +18,7 @@ COMMANDS = [
     ("train", "one_task", ["seed=0", "epochs=64", "system=<ball|", "force=false", "test_set=<1000x10s|100x100s|"]),
     ("status", "status", ["wait=false", "interval_s=10", "show_failures=10"]),
     ("predict", "predict", ["target=???", "metric=nmae", "resource=compute", "nsl.predict.decades=6"]),
-    ("fit", "fit", ["metrics=null", "nsl.max_breaks=4", "nsl.envelope=interpolated"]),
+    ("fit", "fit", ["metrics=null", "nsl.max_breaks=4", "nsl.envelope=step"]),
     ("report", "report", ["mlflow.tracking_uri=null", "nsl.bootstrap=200", "figures."]),
     ("resubmit", "resubmit", ["states=[failed, frozen, timeout, missing, corrupt]", "time_factor=1.0"]),
     ("merge", "merge", ["sweep_dir=???"]),
