@@ -6,18 +6,29 @@ A training loop hands ``block_done`` a function that returns its state (plain di
 warning before a time limit or a preemption, a requeue's SIGTERM); after that write training stops with
 ``TrainingStopped``. ``<name>.json`` beside the file says what it holds (tasks, progress, resumes, write time)
 without loading it: the planner, ``status`` and ``clean`` read that.
+
+A checkpoint is only used for what it was made for: its file starts with a line holding the SHA-256 of the rest
+(``torch.load`` does not check its zip's CRCs, so a flipped byte would resume silently from wrong numbers), and it
+records its format and the layout of the run that wrote it (tensor shapes the training loop names; the task ids
+hash every outcome-changing config value). A checkpoint that fails either check is set aside (``<name>.unreadable``
+or ``<name>.mismatched``, never deleted), the task log says why, and the group trains from the start.
 """
 
+import hashlib
+import io
 import json
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from nsl_hpc.atomic import replacing, write_text
+
+FORMAT = 2  # 1: torch.save's bytes alone; 2: a header line with their SHA-256 first, and the run's layout inside
+HEADER = b"nsl_hpc checkpoint sha256="
 
 
 class TrainingStopped(Exception):
@@ -42,6 +53,25 @@ def trained_before(checkpoint: "Checkpointer | None") -> float:
     return 0.0 if checkpoint is None else checkpoint.trained_before_s
 
 
+def encoded(payload: dict[str, Any]) -> bytes:
+    """``payload`` as a checkpoint file's bytes: the header line with the SHA-256 of torch.save's bytes, then them."""
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    body = buffer.getvalue()
+    return HEADER + hashlib.sha256(body).hexdigest().encode() + b"\n" + body
+
+
+def decoded(raw: bytes) -> dict[str, Any]:
+    """The payload of a checkpoint file's bytes ``raw``; ValueError when its checksum does not match (or it has
+    none: another format)."""
+    header, _, body = raw.partition(b"\n")
+    if not header.startswith(HEADER):
+        raise ValueError("no checksum header (not a checkpoint of this format)")
+    if hashlib.sha256(body).hexdigest().encode() != header[len(HEADER):]:
+        raise ValueError("checksum mismatch: the file was changed after it was written")
+    return torch.load(io.BytesIO(body), weights_only=True)
+
+
 def remove_checkpoint(path: Path) -> None:
     """Delete checkpoint ``path`` and its description (its group has its rows)."""
     path.unlink(missing_ok=True)
@@ -61,27 +91,40 @@ class Checkpointer:
         self.trained_before_s = 0.0  # training time of the runs this one continues (s)
         self.resumes = 0
         self.writes, self.write_seconds = 0, 0.0
+        self.made_for: dict[str, Any] = {"format": FORMAT}
 
     def ask_to_stop(self, *_: Any) -> None:
         """Write a checkpoint at the next block boundary and stop (a signal handler)."""
         self.stop_asked = True
 
-    def load(self) -> dict[str, Any] | None:
-        """The state saved for these tasks, or None (train from the start). Counts the resume in the description.
-        A file that cannot be read is kept aside as ``<name>.unreadable`` and training starts afresh."""
+    def load(self, layout: Mapping[str, Any]) -> dict[str, Any] | None:
+        """The state saved for these tasks by a run of this ``layout`` (what the training loop's state is made of:
+        names to tensor shapes and sizes, plain data), or None (train from the start). Counts the resume in the
+        description. A damaged file or one of another format or layout is set aside and training starts afresh."""
+        self.made_for = {"format": FORMAT, **json.loads(json.dumps(layout))}
         try:
-            saved = torch.load(self.path, weights_only=True)
+            raw = self.path.read_bytes()
         except FileNotFoundError:
             return None
-        except Exception as error:  # a damaged file, or one from an incompatible torch
-            os.replace(self.path, self.path.with_suffix(".unreadable"))
-            print(f"checkpoint {self.path.name} unreadable ({type(error).__name__}): kept aside, training afresh")
+        try:
+            saved = decoded(raw)
+        except Exception as error:  # a damaged file, another format, or one from an incompatible torch
+            self.set_aside("unreadable", f"{type(error).__name__}: {error}")
             return None
         if saved["task_ids"] != self.task_ids:
+            return None
+        if saved["made_for"] != self.made_for:
+            self.set_aside("mismatched", f"made for {saved['made_for']}, this run is {self.made_for}")
             return None
         self.resumes, self.trained_before_s = saved["resumes"] + 1, saved["trained_s"]
         self.describe(saved["step"], saved["total_steps"], saved["saved"])
         return saved["state"]
+
+    def set_aside(self, why: str, detail: str) -> None:
+        """Move the checkpoint to ``<name>.<why>`` (not deleted: it may be inspected) and say so in the log."""
+        os.replace(self.path, self.path.with_suffix(f".{why}"))
+        print(f"checkpoint {self.path.name} {why} ({detail}): set aside as {self.path.with_suffix(f'.{why}').name}, "
+              "training from the start", flush=True)
 
     def block_done(self, state: Callable[[], dict[str, Any]], step: int, total_steps: int) -> None:
         """After a block of training (``step`` of ``total_steps`` of the longest member): write ``state()`` when
@@ -95,10 +138,11 @@ class Checkpointer:
         """Write ``state`` atomically, then its description."""
         started = time.perf_counter()
         saved = time.time()
+        raw = encoded({"task_ids": self.task_ids, "made_for": self.made_for, "resumes": self.resumes, "step": step,
+                       "total_steps": total_steps, "saved": saved, "state": state,
+                       "trained_s": self.trained_before_s + time.monotonic() - self.started})
         with replacing(self.path) as temporary:
-            torch.save({"task_ids": self.task_ids, "resumes": self.resumes, "step": step,
-                        "total_steps": total_steps, "saved": saved, "state": state,
-                        "trained_s": self.trained_before_s + time.monotonic() - self.started}, temporary)
+            temporary.write_bytes(raw)
         self.writes += 1
         self.write_seconds += time.perf_counter() - started
         self.last_write = time.monotonic()

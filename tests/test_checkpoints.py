@@ -55,30 +55,77 @@ def interrupted(train, path, stops=(1, 1)):
     return train(lambda: None, checkpoint), checkpoint
 
 
-def test_a_lockstep_group_stopped_and_resumed_gives_its_snapshots_bit_for_bit(compose, cache, tmp_path):
-    """3 port-Hamiltonian models (6 batches per epoch: 72, 42 and 60 steps, blocks of 32, one kept after 4 epochs
-    too), stopped after the first block, resumed, stopped after the next (a model has left), resumed to the end."""
+def ph_members(compose, cache, specs) -> tuple[list[Member], dict]:
+    """Spring port-Hamiltonian lockstep members of (epochs, width, milestones) each, and the train config."""
     cfg = compose("system=spring", "arch=port_hamiltonian")
     system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
     members = []
-    for seed, (epochs, width, milestones) in enumerate([(12, 6, (4,)), (7, 3, ()), (10, 6, ())]):
+    for seed, (epochs, width, milestones) in enumerate(specs):
         data = build_training_set(system_cfg, seed, 1.3, cache)
         torch.manual_seed(seed)
         model = build_model(cfg.arch, 4, 2, width=width, depth=2)
         members.append(Member(model, data, Scaling.fit(data, rescale_targets=False), epochs, 10 + seed, milestones))
-    train_cfg = OmegaConf.to_container(cfg.train)
+    return members, OmegaConf.to_container(cfg.train)
 
+
+def lockstep_trainer(members, train_cfg):
+    """``train(on_progress, checkpoint)``: the snapshots of the members trained in lockstep (a fresh copy each)."""
     def train(on_progress, checkpoint=None):
         return train_lockstep(copy.deepcopy(members), train_cfg, on_progress, checkpoint)[1]
+    return train
 
+
+def assert_same_snapshots(expected, got):
+    for member_expected, member_got in zip(expected, got, strict=True):
+        for snapshot, again in zip(member_expected, member_got, strict=True):
+            assert snapshot.outcome == again.outcome
+            assert torch.equal(snapshot.theta, again.theta)
+
+
+def test_a_lockstep_group_stopped_and_resumed_gives_its_snapshots_bit_for_bit(compose, cache, tmp_path):
+    """3 port-Hamiltonian models (6 batches per epoch: 72, 42 and 60 steps, blocks of 32, one kept after 4 epochs
+    too), stopped after the first block, resumed, stopped after the next (a model has left), resumed to the end."""
+    train = lockstep_trainer(*ph_members(compose, cache, [(12, 6, (4,)), (7, 3, ()), (10, 6, ())]))
     expected = train(lambda: None)
     (resumed, checkpoint) = interrupted(train, tmp_path / "group.pt")
     assert checkpoint.resumes == 2
     assert [[s.epochs for s in member] for member in resumed] == [[4, 12], [7], [10]]
-    for member_expected, member_resumed in zip(expected, resumed, strict=True):
-        for snapshot, again in zip(member_expected, member_resumed, strict=True):
-            assert snapshot.outcome == again.outcome
-            assert torch.equal(snapshot.theta, again.theta)
+    assert_same_snapshots(expected, resumed)
+
+
+def stopped_once(train, path) -> None:
+    """Train until the first block's checkpoint is written, then stop."""
+    checkpoint = Checkpointer(path, every_s=3600, task_ids=["a", "b", "c"])
+    with pytest.raises(TrainingStopped):
+        train(stopping(checkpoint, 1), checkpoint)
+
+
+def test_a_checkpoint_with_flipped_bytes_is_set_aside_and_the_group_trains_afresh(compose, cache, tmp_path, capsys):
+    """64 bytes flipped at 55% of the file (torch.load alone would not notice): the resume gives the
+    uninterrupted result, not one from damaged numbers, and the damaged file is kept aside."""
+    train = lockstep_trainer(*ph_members(compose, cache, [(12, 6, ()), (7, 3, ()), (10, 6, ())]))
+    path = tmp_path / "group.pt"
+    stopped_once(train, path)
+    raw = bytearray(path.read_bytes())
+    at = int(0.55 * len(raw))
+    raw[at:at + 64] = bytes(b ^ 0xFF for b in raw[at:at + 64])
+    path.write_bytes(raw)
+    checkpoint = Checkpointer(path, every_s=3600, task_ids=["a", "b", "c"])
+    assert_same_snapshots(train(lambda: None), train(lambda: None, checkpoint))
+    assert checkpoint.resumes == 0 and path.with_suffix(".unreadable").read_bytes() == raw
+    assert "group.pt unreadable (ValueError: checksum mismatch" in capsys.readouterr().out
+
+
+def test_a_checkpoint_of_another_layout_is_set_aside_and_the_group_trains_afresh(compose, cache, tmp_path, capsys):
+    """The same task ids trained by models of another width (a code change between resubmits): the checkpoint
+    loads but does not fit; it is set aside once, with a line, and the group trains to its own result."""
+    path = tmp_path / "group.pt"
+    stopped_once(lockstep_trainer(*ph_members(compose, cache, [(12, 6, ()), (7, 3, ()), (10, 6, ())])), path)
+    train = lockstep_trainer(*ph_members(compose, cache, [(12, 8, ()), (7, 3, ()), (10, 6, ())]))
+    checkpoint = Checkpointer(path, every_s=3600, task_ids=["a", "b", "c"])
+    assert_same_snapshots(train(lambda: None), train(lambda: None, checkpoint))
+    assert checkpoint.resumes == 0 and path.with_suffix(".mismatched").exists()
+    assert "group.pt mismatched (made for {'format': 2, 'theta': [3, " in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("arch", ["narx", "subnet"])
@@ -103,10 +150,10 @@ def test_a_packed_input_output_group_stopped_and_resumed_gives_its_models_bit_fo
 def test_a_checkpoint_of_other_tasks_or_damaged_is_not_used(tmp_path):
     path = tmp_path / "group.pt"
     Checkpointer(path, 60, ["a"]).save({"x": torch.ones(2)}, 1, 4)
-    assert Checkpointer(path, 60, ["a"]).load()["x"].sum() == 2
-    assert Checkpointer(path, 60, ["b"]).load() is None
+    assert Checkpointer(path, 60, ["a"]).load({})["x"].sum() == 2
+    assert Checkpointer(path, 60, ["b"]).load({}) is None
     path.write_bytes(b"not a checkpoint")
-    assert Checkpointer(path, 60, ["a"]).load() is None
+    assert Checkpointer(path, 60, ["a"]).load({}) is None
     assert path.with_suffix(".unreadable").exists() and not path.exists()  # kept aside, not deleted
 
 
@@ -192,5 +239,5 @@ def test_time_is_measured_over_resumes(tmp_path):
     time.sleep(0.05)
     first.save({}, 1, 2)
     second = Checkpointer(path, 60, ["a"])
-    second.load()
+    second.load({})
     assert second.trained_before_s >= 0.05

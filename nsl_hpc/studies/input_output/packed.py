@@ -278,7 +278,8 @@ def train_packed(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon: i
     outcomes: list[TrainingOutcome | None] = [None if total else TrainingOutcome(0, math.nan, finite=True)
                                               for total in totals]
     start, total = 0, int(totals.max(initial=0))
-    saved = checkpoint.load() if checkpoint is not None else None
+    layout = {"theta": list(nets.theta.shape), "windows": windows.counts}
+    saved = checkpoint.load(layout) if checkpoint is not None else None
     if saved is not None:
         start, final = saved["start"], saved["final"]
         outcomes = [TrainingOutcome.from_state(outcome) for outcome in saved["outcomes"]]

@@ -212,7 +212,8 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progres
     outcomes: list[TrainingOutcome | None] = [None if plan.steps else TrainingOutcome(0, math.nan, finite=True)
                                               for plan in run.plans]
     first = 0
-    saved = checkpoint.load() if checkpoint is not None else None
+    layout = {"theta": list(run.stack.theta.shape), "data": list(run.data.shape)}
+    saved = checkpoint.load(layout) if checkpoint is not None else None
     if saved is not None:
         first, pending = saved["start"], saved["pending"]
         snapshots = [[Snapshot.from_state(snapshot) for snapshot in member] for member in saved["snapshots"]]
