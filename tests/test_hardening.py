@@ -215,11 +215,11 @@ def test_control_files_others_can_write_are_refused_and_written_private(tmp_path
     ("sweep.grid.epochs=4", "sweep.grid.epochs=4 must be a list of values"),
     ("sweep.grid.epochs=null", "sweep.grid.epochs=None must be a list of values"),
     ("sweep.grid=[]", "Error merging override sweep.grid=[]"),
-    ("launcher.workers=-1", "launcher.workers=-1 must be a positive integer"),
+    ("launcher.workers=-1", "launcher.workers=-1 must be an integer from 1 to"),
     ("launcher.workers=abc", "launcher.workers=abc: Value 'abc' of type 'str' could not be converted to Integer"),
     ("train.lr=-1", "train.lr=-1 must be a positive number"),
-    ("watchdog.heartbeat_timeout_s=-1", "watchdog.heartbeat_timeout_s=-1 must be a positive number"),
-    ("watchdog.overrun_factor=0.5", "watchdog.overrun_factor=0.5 must be a number of at least 1"),
+    ("watchdog.heartbeat_timeout_s=-1", "watchdog.heartbeat_timeout_s=-1 must be a finite number in (0, 86400]"),
+    ("watchdog.overrun_factor=nan", "watchdog.overrun_factor=nan must be a finite number in [1, 1000]"),
 ])
 def test_bad_launch_settings_are_one_line_before_anything_is_written(override, message, tmp_path):
     sweep_dir = tmp_path / "sweep"

@@ -2,16 +2,20 @@
 groups, time classes, and SLURM limits."""
 
 import math
+import os
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from nsl_hpc.errors import ConfigError, require_number, require_positive_int
+from nsl_hpc.errors import ConfigError, require_int, require_number, require_positive_int
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import model_of
 from nsl_hpc.sweep.launchers import SlurmLauncher, launcher_from
+
+SBATCH_MEMORY = re.compile(r"[1-9][0-9]*[KMGT]?")  # sbatch --mem: megabytes, or with a unit
 
 
 def predicted_seconds(arch: str, steps: int, params: int, cost: Mapping[str, Any]) -> float:
@@ -155,9 +159,7 @@ def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
     require_positive_int("lockstep.size", settings["size"])
     for width in settings["width_buckets"]:
         require_positive_int("lockstep.width_buckets value", width)
-    if isinstance(settings["memory_mb"], bool) or not isinstance(settings["memory_mb"], int | float) \
-            or not settings["memory_mb"] > 0:
-        raise ConfigError(f"lockstep.memory_mb={settings['memory_mb']!r} must be a positive number")
+    require_number("lockstep.memory_mb", settings["memory_mb"], 0, 100000, low_open=True)
     return {"size": settings["size"] if settings["enabled"] and study.lockstep else 1,
             "width_buckets": list(settings["width_buckets"]), "memory_mb": settings["memory_mb"],
             "model_keys": list(study.model_keys(launch))}
@@ -165,41 +167,56 @@ def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
 
 def check_run_settings(launch: Mapping[str, Any]) -> None:
     """Raise ConfigError for run settings (launcher, packing, cost, watchdog, lockstep, checkpoint) no job can
-    run with."""
-    def positive(key: str, value: Any) -> None:
-        if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
-            raise ConfigError(f"{key}={value!r} must be a positive number")
-
+    run with, or that would switch a protection off: every number finite and in its range (NaN or inf would
+    silence the watchdog, 1e-9-minute checkpoints would write at every block)."""
     lockstep_settings(launch)
     launcher = launcher_from(launch["launcher"])
     workers = getattr(launcher, "workers", None)
     if workers is not None:
-        require_positive_int("launcher.workers", workers)
+        try:
+            require_int("launcher.workers", workers, 1, len(os.sched_getaffinity(0)))
+        except ConfigError as error:
+            raise ConfigError(f"{error}: one single-CPU task per CPU of this machine") from None
     watchdog = launch["watchdog"]
-    positive("watchdog.heartbeat_timeout_s", watchdog["heartbeat_timeout_s"])
-    if isinstance(watchdog["overrun_factor"], bool) or not isinstance(watchdog["overrun_factor"], int | float) \
-            or watchdog["overrun_factor"] < 1:
-        raise ConfigError(f"watchdog.overrun_factor={watchdog['overrun_factor']!r} must be a number of at least 1")
-    for key in ("short_task_minutes", "pack_minutes", "time_safety"):
-        positive(f"packing.{key}", launch["packing"][key])
+    require_number("watchdog.heartbeat_timeout_s", watchdog["heartbeat_timeout_s"], 0, 86400, low_open=True)
+    require_number("watchdog.overrun_factor", watchdog["overrun_factor"], 1, 1000)
+    for key in ("short_task_minutes", "pack_minutes"):
+        require_number(f"packing.{key}", launch["packing"][key], 0, 10080, low_open=True)
+    require_number("packing.time_safety", launch["packing"]["time_safety"], 1, 100)
+    if not launch["packing"]["time_classes_minutes"]:
+        raise ConfigError("packing.time_classes_minutes=[] needs at least one time limit (minutes)")
     for limit in launch["packing"]["time_classes_minutes"]:
-        positive("packing.time_classes_minutes value", limit)
-    for key in ("step_seconds", "params_per_overhead", "lockstep_extra"):
+        require_number("packing.time_classes_minutes value", limit, 0, 525600, low_open=True)
+    require_number("cost.startup_s", launch["cost"]["startup_s"], 0, 3600)
+    for key, high in (("step_seconds", 3600), ("params_per_overhead", 1e12), ("lockstep_extra", 100)):
         for arch, value in launch["cost"][key].items():
-            positive(f"cost.{key}.{arch}", value)
-    require_number("cost.score_seconds", launch["cost"].get("score_seconds", 0.0), 0)
+            require_number(f"cost.{key}.{arch}", value, 0, high, low_open=True)
+    require_number("cost.score_seconds", launch["cost"].get("score_seconds", 0.0), 0, 1)
     every = launch["checkpoint"]["every_minutes"]
-    if isinstance(every, bool) or not isinstance(every, int | float) or every < 0:
-        raise ConfigError(f"checkpoint.every_minutes={every!r} must be a number of at least 0 (0: no checkpoints)")
+    if every != 0:
+        try:
+            require_number("checkpoint.every_minutes", every, 0.1, 10080)
+        except ConfigError as error:
+            raise ConfigError(f"{error} (or 0: no checkpoints)") from None
     if isinstance(launcher, SlurmLauncher):
-        cap = launcher.max_time_minutes
-        if cap is not None:
-            require_positive_int("launcher.max_time_minutes", cap)
-            if not every:
-                raise ConfigError(f"launcher.max_time_minutes={cap} needs checkpoints (checkpoint.every_minutes > 0): "
-                                  "a group longer than the cap continues in its next job from its checkpoint")
+        check_slurm_settings(launcher, every)
         check_signal_delay(launcher.signal_delay_s, packing_for(launch["packing"], launch["launcher"])
                            ["time_classes_minutes"])
+
+
+def check_slurm_settings(launcher: SlurmLauncher, checkpoint_minutes: float) -> None:
+    """Raise ConfigError for SLURM settings sbatch would refuse or that would submit nothing."""
+    require_positive_int("launcher.array_parallelism", launcher.array_parallelism)
+    for key in ("max_array_size", "max_job_count", "max_submit_jobs", "max_time_minutes"):
+        if getattr(launcher, key) is not None:
+            require_positive_int(f"launcher.{key}", getattr(launcher, key))
+    if not SBATCH_MEMORY.fullmatch(launcher.mem):
+        raise ConfigError(f"launcher.mem={launcher.mem!r} is no sbatch --mem: a positive integer with an optional "
+                          "unit K, M, G or T (2G, 1500M)")
+    if launcher.max_time_minutes is not None and not checkpoint_minutes:
+        raise ConfigError(f"launcher.max_time_minutes={launcher.max_time_minutes} needs checkpoints "
+                          "(checkpoint.every_minutes > 0): a group longer than the cap continues in its next job "
+                          "from its checkpoint")
 
 
 def check_signal_delay(signal_delay_s: int, time_classes_minutes: Sequence[float]) -> None:
