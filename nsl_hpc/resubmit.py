@@ -9,7 +9,8 @@ duplicated; running and pending tasks are left alone.
 
 It runs with the sweep's last run settings (launcher, packing, cost, watchdog, lockstep, checkpoint:
 <sweep_dir>/run.yaml, written by every launch or resubmit that ran something), with those named on the command
-line instead. A group with a training checkpoint (its job crashed, was killed or lost its node) is run as that
+line instead (a key that would change the tasks, such as train.lr, is refused: other tasks are a new sweep).
+A group with a training checkpoint (its job crashed, was killed or lost its node) is run as that
 group again and continues from the checkpoint.
 """
 
@@ -29,6 +30,18 @@ from nsl_hpc.sweep.rows import row_path, set_aside
 from nsl_hpc.sweep.task_states import read_sweep_state
 
 RESUBMITTABLE = ("failed", "frozen", "timeout", "missing", "corrupt")
+OWN_KEYS = ("sweep_dir", "states", "time_factor", "allow_shared_sweep_dir")  # resubmit's own keys (conf/resubmit.yaml)
+
+
+def refuse_task_overrides(overrides: Sequence[str]) -> None:
+    """A ConfigError for an override resubmit cannot honour: the tasks are the sweep's, as launched (another
+    train.lr would be other tasks); only run settings and resubmit's own keys may be named."""
+    for override in overrides:
+        key = override_key(override)
+        if key.split(".")[0] not in (*RUN_SETTINGS, *OWN_KEYS):
+            raise ConfigError(f"{override} would change the tasks: resubmit runs them as launched and changes only "
+                              f"run settings ({', '.join(RUN_SETTINGS)}); launch other tasks as a new sweep "
+                              "(python -m nsl_hpc.launch ... sweep_dir=<new dir>)")
 
 
 def with_named_settings(launch: DictConfig, cfg: DictConfig, overrides: Sequence[str]) -> DictConfig:
@@ -45,6 +58,7 @@ def with_named_settings(launch: DictConfig, cfg: DictConfig, overrides: Sequence
 
 
 def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
+    refuse_task_overrides(overrides)
     sweep_dir = require_sweep(cfg.sweep_dir)
     bad = sorted(set(cfg.states) - set(RESUBMITTABLE))
     if bad:

@@ -2,11 +2,15 @@
 machine that expands them, overrides resubmit cannot honour, answers that were wrong with exit 0, and commands
 that hung. Checkpoints that lie are in tests/test_checkpoints.py."""
 
+import re
+
 import pytest
 
 from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
+from nsl_hpc.resubmit import refuse_task_overrides
 from nsl_hpc.sweep.plan import check_run_settings
+from tests.sweeps import nsl
 
 
 # 4. Every numeric run setting is finite and in its range, checked where the config is composed.
@@ -39,3 +43,23 @@ def test_settings_that_would_switch_a_protection_off_are_refused_in_one_line(ove
                                        ["launcher=slurm", "launcher.mem=1500M", "launcher.max_array_size=1001"]])
 def test_sane_run_settings_pass(overrides):
     check_run_settings(compose_config(["+sweep=demo", *overrides], "launch"))
+
+
+# 5. resubmit runs the sweep's tasks as launched: an override that would change them is refused, not ignored.
+@pytest.mark.parametrize("override", ["train.lr=0.5", "system=ball", "+sweep=demo", "sweep_seed=3", "epochs=8",
+                                      "test_set=100x100s", "cache_dir=/tmp/other"])
+def test_resubmit_refuses_an_override_that_would_change_the_tasks(override):
+    with pytest.raises(ConfigError, match=f"^{re.escape(override)} would change the tasks: resubmit runs them as"):
+        refuse_task_overrides([override])
+
+
+def test_resubmit_refuses_it_in_one_line_before_reading_the_sweep(tmp_path):
+    result = nsl("resubmit", f"sweep_dir={tmp_path}", "train.lr=0.5")
+    assert result.returncode == 2 and len(result.stderr.splitlines()) == 1 and "launch other tasks" in result.stderr
+
+
+def test_resubmit_still_takes_run_settings_and_its_own_keys():
+    refuse_task_overrides(["launcher=slurm", "launcher.partition=long", "watchdog.overrun_factor=50",
+                           "cost.startup_s=60", "packing.pack_minutes=60", "lockstep.size=16",
+                           "checkpoint.every_minutes=1", "states=[failed]", "time_factor=2", "sweep_dir=x",
+                           "allow_shared_sweep_dir=true", "+launcher.extra_sbatch.hold=true"])
