@@ -7,7 +7,8 @@ self-contained ``<sweep_dir>/report.html`` (and its comparison with the publishe
     python -m nsl_hpc.report sweep_dir=runs/io metrics=[nmae,nmae_one_step_test]   # other scores (README)
 
 Safe to re-run while a sweep is still going: every output is replaced atomically and MLflow runs are
-updated, not duplicated. The steps also run alone: ``python -m nsl_hpc.merge``, ``python -m nsl_hpc.fit``.
+updated, not duplicated. A tracking server (http, https) must answer within ``mlflow.timeout_s`` before anything
+is written. The steps also run alone: ``python -m nsl_hpc.merge``, ``python -m nsl_hpc.fit``.
 """
 
 from omegaconf import DictConfig, OmegaConf
@@ -25,7 +26,7 @@ from nsl_hpc.analysis.fitting import (
     write_fits,
 )
 from nsl_hpc.analysis.merge import merge_sweep, results_path
-from nsl_hpc.analysis.mlflow_runs import log_to_mlflow, tracking_uri
+from nsl_hpc.analysis.mlflow_runs import log_to_mlflow, require_server, tracking_uri
 from nsl_hpc.analysis.prediction import what_it_takes
 from nsl_hpc.analysis.report import (
     COMPARISON_FILE,
@@ -45,6 +46,7 @@ def main(cfg: DictConfig) -> int:
     check_nsl(OmegaConf.to_container(cfg.nsl, resolve=True))
     check_figures(OmegaConf.to_container(cfg.figures, resolve=True), cfg.nsl.resources)
     sweep_dir = require_sweep(cfg.sweep_dir)
+    require_server(cfg.mlflow)
     launch = OmegaConf.to_container(read_launch_config(sweep_dir), resolve=True)
     summary = merge_sweep(sweep_dir)
     print(f"merged {summary.merged:,} tasks into {results_path(sweep_dir)}\n{summary.describe()}")

@@ -3,6 +3,7 @@ machine that expands them, overrides resubmit cannot honour, answers that were w
 that hung. Checkpoints that lie are in tests/test_checkpoints.py."""
 
 import re
+import time
 
 import pytest
 
@@ -10,7 +11,7 @@ from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.resubmit import refuse_task_overrides
 from nsl_hpc.sweep.plan import check_run_settings
-from tests.sweeps import nsl
+from tests.sweeps import TINY_GRID, nsl
 
 
 # 4. Every numeric run setting is finite and in its range, checked where the config is composed.
@@ -63,3 +64,19 @@ def test_resubmit_still_takes_run_settings_and_its_own_keys():
                            "cost.startup_s=60", "packing.pack_minutes=60", "lockstep.size=16",
                            "checkpoint.every_minutes=1", "states=[failed]", "time_factor=2", "sweep_dir=x",
                            "allow_shared_sweep_dir=true", "+launcher.extra_sbatch.hold=true"])
+
+
+# 8. report with a tracking server that does not answer: one line within mlflow.timeout_s, nothing replaced.
+@pytest.mark.e2e
+@pytest.mark.parametrize("uri", ["http://127.0.0.1:9", "http://10.255.255.1:5000"])  # refused; unroutable
+def test_report_with_a_tracking_server_that_does_not_answer_stops_before_writing(uri, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    assert nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0
+    fits = sweep_dir / "nsl_fits.parquet"
+    fits.write_bytes(b"the fits of an earlier report")
+    started = time.monotonic()
+    result = nsl("report", f"sweep_dir={sweep_dir}", f"mlflow.tracking_uri={uri}", "mlflow.timeout_s=2")
+    assert time.monotonic() - started < 60
+    assert result.returncode == 1 and len(result.stderr.splitlines()) == 1, result.stderr
+    assert result.stderr.startswith(f"error: no MLflow tracking server answers at {uri} (mlflow.timeout_s=2; ")
+    assert fits.read_bytes() == b"the fits of an earlier report" and not (sweep_dir / "results.parquet").exists()
