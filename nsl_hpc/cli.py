@@ -4,6 +4,7 @@ line on stderr with exit status 2.
 """
 
 import errno
+import os
 import sys
 from collections.abc import Callable, Sequence
 
@@ -63,6 +64,9 @@ def run(main: Callable[..., int | None], doc: str, argv: Sequence[str] | None = 
         sys.exit(2)
     except RunError as error:
         print(f"error: {error}", file=sys.stderr)
+        sys.exit(1)
+    except BrokenPipeError:  # the reader went away (| head): stop quietly, as Unix tools do
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes
         sys.exit(1)
     except OSError as error:
         if error.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):

@@ -2,7 +2,11 @@
 machine that expands them, overrides resubmit cannot honour, answers that were wrong with exit 0, and commands
 that hung. Checkpoints that lie are in tests/test_checkpoints.py."""
 
+import os
 import re
+import shutil
+import subprocess
+import sys
 import time
 
 import pytest
@@ -11,6 +15,7 @@ from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.resubmit import refuse_task_overrides
 from nsl_hpc.sweep.plan import check_run_settings
+from nsl_hpc.sweep.rows import row_path, row_state, write_row_atomically
 from tests.sweeps import TINY_GRID, nsl
 
 
@@ -80,3 +85,38 @@ def test_report_with_a_tracking_server_that_does_not_answer_stops_before_writing
     assert result.returncode == 1 and len(result.stderr.splitlines()) == 1, result.stderr
     assert result.stderr.startswith(f"error: no MLflow tracking server answers at {uri} (mlflow.timeout_s=2; ")
     assert fits.read_bytes() == b"the fits of an earlier report" and not (sweep_dir / "results.parquet").exists()
+
+
+# 9. A reader that goes away (| head -1) ends a command quietly, not with a BrokenPipeError traceback.
+@pytest.mark.e2e
+def test_a_closed_pipe_ends_status_quietly(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    assert nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0
+    read, write = os.pipe()
+    os.close(read)
+    result = subprocess.run([sys.executable, "-m", "nsl_hpc.status", f"sweep_dir={sweep_dir}"], stdout=write,
+                            stderr=subprocess.PIPE, text=True)
+    os.close(write)
+    assert result.returncode == 1 and result.stderr == ""
+
+
+# 9. A row copied over another task's path is no row of that task: status and resubmit call it corrupt.
+def test_a_row_copied_over_another_tasks_path_is_corrupt_not_done(tmp_path):
+    mine, other = "0123456789abcdef", "fedcba9876543210"
+    write_row_atomically({"task_id": mine, "nmae": 0.1}, row_path(tmp_path, mine))
+    assert row_state(row_path(tmp_path, mine)) == "done"
+    assert row_state(row_path(tmp_path, other)) == "missing"
+    row_path(tmp_path, other).parent.mkdir(parents=True)
+    shutil.copy(row_path(tmp_path, mine), row_path(tmp_path, other))
+    assert row_state(row_path(tmp_path, other)) == "corrupt"
+
+
+# 3. A grid too large for the machine that expands it is refused before anything is written or expanded.
+@pytest.mark.e2e
+def test_a_grid_above_max_tasks_is_refused_before_anything_is_written(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    result = nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "dry_run=true", "max_tasks=3")
+    assert result.returncode == 2 and len(result.stderr.splitlines()) == 1
+    assert result.stderr.startswith("error: the grid has 4 tasks, more than max_tasks=3 (expanding it takes")
+    assert not sweep_dir.exists()
+    assert "max_tasks=250000" in nsl("launch", "--help").stdout  # the default, documented

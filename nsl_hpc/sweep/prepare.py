@@ -13,10 +13,10 @@ import pyarrow.compute as pc
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.config import compose_config, unknown_key
-from nsl_hpc.errors import ConfigError, require_non_negative_int, require_number
+from nsl_hpc.errors import ConfigError, require_non_negative_int, require_number, require_positive_int
 from nsl_hpc.studies import study_named, study_of
 from nsl_hpc.studies.base import Study
-from nsl_hpc.sweep.grid import Grid, build_manifest, sub_grids, validate_grid
+from nsl_hpc.sweep.grid import Grid, build_manifest, grid_size, sub_grids, validate_grid
 from nsl_hpc.sweep.manifest import (
     LAUNCH_CONFIG_FILE,
     base_config_path,
@@ -121,10 +121,20 @@ class PreparedSweep:
     set_aside: int  # corrupt rows moved to corrupt/ (their tasks run again)
 
 
+def require_tasks_at_most(tasks: int, cap: Any) -> None:
+    """Refuse, before the grid is expanded, a grid of more than ``cap`` tasks (``max_tasks``)."""
+    require_positive_int("max_tasks", cap)
+    if tasks > cap:
+        raise ConfigError(f"the grid has {tasks:,} tasks, more than max_tasks={cap:,} (expanding it takes about "
+                          f"{tasks * 3e3 / 2**30:.1f} GB of memory here): shrink sweep.grid, or raise max_tasks "
+                          "where that memory is yours")
+
+
 def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
     """Validate everything a launch depends on and expand its grid; writes nothing."""
     study = validate_launch(cfg, overrides)
     grid = sweep_grid(cfg)
+    require_tasks_at_most(grid_size(grid, study), cfg.max_tasks)
     configs = pair_configs(cfg, overrides, study)
     validate_grid_values(grid, study, configs)
     for values in configs.values():

@@ -35,19 +35,26 @@ def read_row(path: Path) -> dict[str, Any]:
 
 
 def row_state(path: Path) -> str:
-    """``done`` (a whole Parquet file: its magic bytes at both ends), ``missing`` or ``corrupt``; two small
-    reads, so a sweep's 63k rows are checked in about a second (a damaged file with intact ends is caught
-    by merge, which reads every row)."""
+    """``done`` (a whole Parquet file, its magic bytes at both ends, whose footer names the task of its path: the
+    statistics of its task_id column), ``missing`` or ``corrupt`` (truncated, overwritten, or another task's row
+    copied there). Three small reads, so a sweep's 63k rows are checked in seconds (a damaged file with intact
+    ends is caught by merge, which reads every row)."""
     try:
         with open(path, "rb") as handle:
             head = handle.read(4)
-            handle.seek(0, os.SEEK_END)
-            if handle.tell() < 12:
+            size = handle.seek(0, os.SEEK_END)
+            if size < 12:
                 return "corrupt"
-            handle.seek(-4, os.SEEK_END)
-            return "done" if head == handle.read(4) == PARQUET_MAGIC else "corrupt"
+            handle.seek(-8, os.SEEK_END)
+            tail = handle.read(8)
+            footer_size = int.from_bytes(tail[:4], "little")
+            if head != PARQUET_MAGIC or tail[4:] != PARQUET_MAGIC or footer_size > size - 12:
+                return "corrupt"
+            handle.seek(-8 - footer_size, os.SEEK_END)
+            footer = handle.read(footer_size)
     except FileNotFoundError:
         return "missing"
+    return "done" if path.stem.encode() in footer else "corrupt"
 
 
 def set_aside(path: Path) -> Path:
