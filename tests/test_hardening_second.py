@@ -5,6 +5,7 @@ that hung. Checkpoints that lie are in tests/test_checkpoints.py."""
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -14,6 +15,8 @@ import pytest
 from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.resubmit import refuse_task_overrides
+from nsl_hpc.sweep.checkpoints import held_locks
+from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.plan import check_run_settings
 from nsl_hpc.sweep.rows import row_path, row_state, write_row_atomically
 from tests.sweeps import TINY_GRID, nsl
@@ -120,3 +123,37 @@ def test_a_grid_above_max_tasks_is_refused_before_anything_is_written(tmp_path):
     assert result.stderr.startswith("error: the grid has 4 tasks, more than max_tasks=3 (expanding it takes")
     assert not sweep_dir.exists()
     assert "max_tasks=250000" in nsl("launch", "--help").stdout  # the default, documented
+
+
+# 6. A local worker killed or stopped: its group recorded, the other workers finish, the launch says what happened.
+@pytest.mark.e2e
+@pytest.mark.parametrize(("sent", "state", "reason"), [
+    (signal.SIGKILL, "failed", "died while training it (kill -9, the OOM killer?)"),
+    (signal.SIGSTOP, "frozen", "stopped answering: its group's lock was not renewed for"),
+])
+def test_a_local_worker_killed_or_stopped_is_recorded_and_the_others_finish(sent, state, reason, tmp_path):
+    """4 tasks on 2 workers, a task each at a time: the worker of the first group to take its lock gets ``sent``
+    (SIGSTOP: noticed after watchdog.worker_silence_s=30); its group is recorded, its other task is not run, the
+    other worker's two tasks finish."""
+    sweep_dir = tmp_path / "sweep"
+    launch = subprocess.Popen([sys.executable, "-m", "nsl_hpc.launch", *TINY_GRID, "sweep.grid.epochs=[4000]",
+                               "launcher=local", "launcher.workers=2", "lockstep.enabled=false",
+                               "watchdog.worker_silence_s=30", f"sweep_dir={sweep_dir}"],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    locks = []
+    while not locks:
+        assert launch.poll() is None, launch.stderr.read()
+        time.sleep(0.2)
+        locks = [lock for lock in held_locks(sweep_dir) if lock.task_ids]
+    os.kill(locks[0].pid, sent)
+    if sent == signal.SIGSTOP:  # 30 s before it is noticed: the sweep runs, and status and merge say so
+        status, merged = nsl("status", f"sweep_dir={sweep_dir}").stdout, nsl("merge", f"sweep_dir={sweep_dir}").stdout
+        assert re.search(r"running [12] \|", status) and "missing 0 |" in status, status
+        assert "0 of 4 tasks (0.0%) dropped" in merged and "still running or queued in a running launch" in merged
+    out, _ = launch.communicate(timeout=300)
+    assert launch.returncode == 1
+    assert f"finished: 1 {state}, 1 not run, 2 ok" in out and "the other workers go on" in out, out
+    failure = read_failures(sweep_dir)[locks[0].task_ids[0]]
+    assert failure["status"] == state and reason in failure["reason"]
+    status = nsl("status", f"sweep_dir={sweep_dir}").stdout
+    assert "done 2 |" in status and f"{state} 1 |" in status and "missing 1 |" in status

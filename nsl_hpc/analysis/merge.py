@@ -16,6 +16,8 @@ import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
 from nsl_hpc.atomic import write_parquet, write_text
+from nsl_hpc.sweep.checkpoints import running_task_ids
+from nsl_hpc.sweep.directory import sweep_lock_holder
 from nsl_hpc.sweep.failures import FAILURE_STATES, read_failures
 from nsl_hpc.sweep.manifest import read_manifest
 from nsl_hpc.sweep.rows import set_aside
@@ -40,16 +42,20 @@ class MergeSummary:
     corrupt_shards: list[str]
     duplicate_rows: int
     unknown_rows: int
+    running: int = 0  # without a row yet, but a job trains them now or a running launch will: not dropped
 
     @property
     def dropped(self) -> int:
-        return self.tasks - self.merged
+        return self.tasks - self.merged - self.running
 
     def describe(self) -> str:
         share = 100 * self.dropped / self.tasks if self.tasks else 0.0
         lines = [f"{self.dropped:,} of {self.tasks:,} tasks ({share:.1f}%) dropped: {self.frozen:,} frozen, "
                  f"{self.failed:,} failed, {self.missing:,} missing"
                  + (f", {self.timeout:,} timed out" if self.timeout else "")]
+        if self.running:
+            lines.append(f"{self.running:,} tasks still running or queued in a running launch: merge again once "
+                         "they finish")
         if self.diverged:
             lines.append(f"{self.diverged:,} merged tasks diverged (non-finite errors): kept, not fitted")
         if self.corrupt_shards:
@@ -156,11 +162,14 @@ def one_row_per_manifest_task(rows: pa.Table, task_ids: pa.ChunkedArray) -> tupl
 
 
 def dropped_counts(sweep_dir: Path, task_ids: pa.ChunkedArray, merged_ids: pa.ChunkedArray) -> dict[str, int]:
-    """Tasks without a merged row by their failure record's state (failed, frozen, timeout) or missing."""
-    failures = read_failures(sweep_dir)
+    """Tasks without a merged row: running (a live job holds their group's lock), by their failure record's
+    state (failed, frozen, timeout), running (queued in a launch or resubmit that runs now) or missing."""
+    failures, running = read_failures(sweep_dir), running_task_ids(sweep_dir)
+    launching = sweep_lock_holder(sweep_dir) in ("launch", "resubmit")
     merged = set(merged_ids.to_pylist())
-    states = [failures[t]["status"] if t in failures else "missing" for t in task_ids.to_pylist() if t not in merged]
-    return {state: states.count(state) for state in (*FAILURE_STATES, "missing")}
+    states = ["running" if t in running else failures[t]["status"] if t in failures else
+              "running" if launching else "missing" for t in task_ids.to_pylist() if t not in merged]
+    return {state: states.count(state) for state in (*FAILURE_STATES, "missing", "running")}
 
 
 def merge_sweep(sweep_dir: Path) -> MergeSummary:

@@ -2,7 +2,8 @@
 train a group.
 
 ``<sweep_dir>/checkpoints/<key[:2]>/<key>.pt`` (with ``<key>.json``, ``nsl_hpc.checkpoint``) holds the state of
-the group of the task ids whose hash is ``key``, in training order; ``<key>.lock`` says which job trains it now.
+the group of the task ids whose hash is ``key``, in training order; ``<key>.lock`` says which job trains it now
+(job, host, pid and the task ids: ``status`` and ``merge`` call them running).
 A job takes the lock before it trains a group and renews it as long as the group trains; a second job that finds
 a live lock leaves the group to its holder. A lock is stale (taken over) when its job runs no more: its process
 is gone (same host), it is an earlier run of the same SLURM job (requeued), or it was not renewed for
@@ -70,12 +71,47 @@ def saved_groups(sweep_dir: Path) -> Iterator[SavedGroup]:
                              info["saved"])
 
 
+@dataclass(frozen=True)
+class HeldLock:
+    """A group's lock as found on disk: who holds it, for which tasks, and how long since it was renewed (s)."""
+
+    path: Path
+    host: str
+    pid: int
+    task_ids: tuple[str, ...]
+    silent_s: float
+
+    @property
+    def live(self) -> bool:
+        """Renewed within STALE_S, by a process that still runs (as far as this host can tell)."""
+        return self.silent_s <= STALE_S and (self.host != socket.gethostname() or process_alive(self.pid))
+
+
+def held_locks(sweep_dir: Path) -> list[HeldLock]:
+    """Every readable group lock of a sweep (locks written before they named their tasks name none)."""
+    locks, now = [], time.time()
+    for path in (Path(sweep_dir) / "checkpoints").glob("*/*.lock"):
+        try:
+            record, renewed = json.loads(path.read_text()), path.stat().st_mtime
+            locks.append(HeldLock(path, record["host"], record["pid"], tuple(record.get("task_ids", ())),
+                                  now - renewed))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue  # removed meanwhile, or half-written
+    return locks
+
+
+def running_task_ids(sweep_dir: Path) -> set[str]:
+    """Tasks of the groups a live job trains now (its lock renewed within STALE_S)."""
+    return {task_id for lock in held_locks(sweep_dir) if lock.live for task_id in lock.task_ids}
+
+
 class GroupLock:
     """The lock of the group of ``task_ids``: held by at most one job at a time."""
 
     def __init__(self, sweep_dir: Path, task_ids: Sequence[str]):
         self.path = lock_path(checkpoint_path(sweep_dir, task_ids))
-        self.record = {"job": this_job(), "host": socket.gethostname(), "pid": os.getpid()}
+        self.record = {"job": this_job(), "host": socket.gethostname(), "pid": os.getpid(),
+                       "task_ids": list(task_ids)}
         self.renewed = 0.0
 
     def acquire(self) -> str | None:

@@ -15,6 +15,7 @@ import contextlib
 import copy
 import fcntl
 import os
+import re
 import socket
 import stat
 import time
@@ -68,6 +69,21 @@ def sweep_lock(sweep_dir: Path, command: str) -> Iterator[None]:
             os.ftruncate(descriptor, 0)
     finally:
         os.close(descriptor)  # releases the lock
+
+
+HOLDER = re.compile(r"^(?P<command>\S+) \(pid (?P<pid>\d+) on (?P<host>\S+), since")
+
+
+def sweep_lock_holder(sweep_dir: Path) -> str | None:
+    """The command that holds the sweep's lock now (``launch``, ``resubmit``, ``clean``), or None. Read from the
+    line its holder writes (and empties when it ends), without taking the lock: a peek never refuses a launch."""
+    try:
+        match = HOLDER.match((Path(sweep_dir) / LOCK_FILE).read_text())
+    except OSError:
+        return None
+    if match is None or (match["host"] == socket.gethostname() and not process_alive(int(match["pid"]))):
+        return None  # free, or its holder was killed before it could empty the line
+    return match["command"]
 
 
 def process_alive(pid: int) -> bool:

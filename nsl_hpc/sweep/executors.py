@@ -5,7 +5,10 @@ import contextlib
 import itertools
 import os
 import shutil
+import signal
+import socket
 import time
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +20,10 @@ from tqdm import tqdm
 
 from nsl_hpc.errors import RunError
 from nsl_hpc.studies import study_named
-from nsl_hpc.sweep.job import JobRunner
+from nsl_hpc.sweep.checkpoints import STALE_S, HeldLock, held_locks
+from nsl_hpc.sweep.directory import process_alive
+from nsl_hpc.sweep.failures import read_failures
+from nsl_hpc.sweep.job import JobRunner, record_group_failure
 from nsl_hpc.sweep.launchers import DebugLauncher, Launcher, LocalLauncher, SlurmLauncher, launcher_from
 from nsl_hpc.sweep.manifest import write_run_settings
 from nsl_hpc.sweep.plan import Group, Pack
@@ -101,9 +107,12 @@ def balance(packs: Sequence[Pack], workers: int) -> list[list[Group]]:
     return shares
 
 
-def run_locally(sweep_dir: Path, packs: Sequence[Pack], launcher: LocalLauncher | DebugLauncher) -> dict[str, int]:
+def run_locally(sweep_dir: Path, packs: Sequence[Pack], launcher: LocalLauncher | DebugLauncher,
+                silence_s: float) -> dict[str, int]:
     """Run ``packs`` on this machine (local: parallel processes; debug: in-process) and wait, with a progress
-    bar over tasks; returns counts by outcome."""
+    bar over tasks; returns counts by outcome. A local worker that stops answering (its group's lock not renewed
+    for ``silence_s``: a stopped process, one stuck in the kernel) is killed and its group recorded frozen; one
+    that dies has its group recorded failed; either way the other workers go on."""
     debug = isinstance(launcher, DebugLauncher)
     workers = launcher.workers or os.cpu_count() or 1
     shares = balance(packs, workers)
@@ -116,20 +125,18 @@ def run_locally(sweep_dir: Path, packs: Sequence[Pack], launcher: LocalLauncher 
         executor.update_parameters(timeout_min=int(sum(p.seconds for p in packs) * 10 / 60) + 60)
     runner = JobRunner(None if debug else os.getpid())  # workers die with this process
     jobs = executor.map_array(runner, [str(sweep_dir)] * len(shares), shares)
-    counts: dict[str, int] = {}
+    counts: Counter[str] = Counter()
     try:
         with tqdm(total=len(task_ids), desc="tasks", unit="task", disable=None) as bar:
-            pending = list(jobs)
+            pending = dict(zip(jobs, shares, strict=True))
             while pending:
-                if debug:
-                    finished = [pending.pop(0)]
-                else:
+                if not debug:
                     time.sleep(1.0)
-                    finished = [job for job in pending if job.done()]
-                    pending = [job for job in pending if not job.done()]
-                for job in finished:
-                    for outcome, n in job_result(job).items():
-                        counts[outcome] = counts.get(outcome, 0) + n
+                for job in list(pending):
+                    if not debug and stop_stalled_worker(sweep_dir, pending[job], silence_s):
+                        counts.update(unfinished_share(sweep_dir, pending.pop(job), "it stopped answering"))
+                    elif debug or job.done():
+                        counts.update(job_result(job, sweep_dir, pending.pop(job)))
                 bar.n = sum(row_state(row_path(sweep_dir, task_id)) == "done" for task_id in task_ids)
                 bar.refresh()
     except KeyboardInterrupt:
@@ -138,22 +145,68 @@ def run_locally(sweep_dir: Path, packs: Sequence[Pack], launcher: LocalLauncher 
                 job.cancel()
         raise RunError("interrupted: the running tasks were stopped, finished rows are kept; launch again to run "
                        "the rest") from None
-    return counts
+    return dict(counts)
 
 
-def job_result(job: submitit.Job) -> dict[str, int]:
-    """A local job's counts by outcome; a job that ended without a result (its process killed, a full disk) is a
-    one-line RunError."""
+def worker_locks(sweep_dir: Path, share: Sequence[Group]) -> list[HeldLock]:
+    """The locks of the groups of a local worker's ``share`` (the one it trains now; none between groups)."""
+    ids = {task_id for group in share for task_id in group.task_ids}
+    return [lock for lock in held_locks(sweep_dir)
+            if lock.host == socket.gethostname() and lock.task_ids and set(lock.task_ids) <= ids]
+
+
+def stop_stalled_worker(sweep_dir: Path, share: Sequence[Group], silence_s: float) -> bool:
+    """Kill the local worker of ``share`` if it stopped answering (its group's lock, renewed every RENEW_S, not
+    renewed for ``silence_s``; a SIGKILL reaches a stopped process, and its training process dies with it) and
+    record its group frozen; returns whether it did (the job is given up: a process stuck in the kernel may not
+    even die)."""
+    for lock in worker_locks(sweep_dir, share):
+        if lock.silent_s > silence_s and process_alive(lock.pid):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(lock.pid, signal.SIGKILL)
+            record_group_failure(sweep_dir, lock.task_ids, "frozen", f"its local worker (pid {lock.pid}) stopped "
+                                 f"answering: its group's lock was not renewed for {lock.silent_s:.0f} s (a stopped "
+                                 "process, or one stuck in the kernel); killed")
+            lock.path.unlink(missing_ok=True)
+            return True
+    return False
+
+
+def job_result(job: submitit.Job, sweep_dir: Path, share: Sequence[Group]) -> dict[str, int]:
+    """A finished local job's counts by outcome; one that ended without a result (its worker killed: kill -9, the
+    OOM killer) is accounted for by ``unfinished_share``."""
     try:
         return job.result()
-    except (submitit.core.utils.UncompletedJobError, submitit.core.utils.FailedJobError) as error:
-        disk = shutil.disk_usage(job.paths.folder)
-        raise RunError(f"a local job ended without its result ({' '.join(str(error).split())[:160]}); "
-                       f"{disk.free / 2**20:.0f} MiB free where it writes: free space if that is the cause, then "
-                       "launch again (finished rows are kept)") from None
+    except submitit.core.utils.UncompletedJobError:
+        reason = "it died without a result: kill -9, the OOM killer?"
+    except submitit.core.utils.FailedJobError as error:
+        reason = f"it raised {str(error).strip().splitlines()[-1][:160]}"
+    free = shutil.disk_usage(job.paths.folder).free
+    return unfinished_share(sweep_dir, share, reason + (f"; only {free / 2**20:.0f} MiB free where it writes"
+                                                        if free < 2**30 else ""))
 
 
-def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Launcher, name: str) -> int:
+def unfinished_share(sweep_dir: Path, share: Sequence[Group], reason: str) -> dict[str, int]:
+    """Counts by outcome of a local worker's ``share`` that it did not finish: the group a dead worker held
+    recorded failed (one it was killed in for not answering is recorded frozen already), the tasks without a row
+    and failure record ``not run`` (missing: resubmit runs them); a line says so."""
+    for lock in worker_locks(sweep_dir, share):
+        if not process_alive(lock.pid):
+            record_group_failure(sweep_dir, lock.task_ids, "failed", f"its local worker (pid {lock.pid}) died while "
+                                 "training it (kill -9, the OOM killer?); its checkpoint, if any, is kept: resubmit "
+                                 "continues from it")
+            lock.path.unlink(missing_ok=True)
+    failures, counts = read_failures(sweep_dir), Counter()
+    for task_id in (task_id for group in share for task_id in group.task_ids):
+        done = row_state(row_path(sweep_dir, task_id)) == "done"
+        counts["ok" if done else failures[task_id]["status"] if task_id in failures else "not run"] += 1
+    tqdm.write(f"a local worker did not finish its share ({reason}): {counts['ok']:,} tasks done, "
+               f"{counts['failed'] + counts['frozen']:,} recorded failed or frozen, {counts['not run']:,} not run "
+               "(resubmit runs them); the other workers go on")
+    return dict(counts)
+
+
+def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Launcher, name: str, silence_s: float) -> int:
     """Submit ``packs`` (launcher slurm) or run them here, print what happened; returns the exit status:
     1 when a task ran here and did not finish."""
     sweep_dir = Path(sweep_dir).resolve()  # jobs find it from anywhere
@@ -168,7 +221,7 @@ def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Launcher, name: s
                   f"({sum(len(p.task_ids) for p in submission.left):,} tasks) were not submitted; launch "
                   "again (or resubmit) once the queue has room")
         return 0
-    counts = run_locally(sweep_dir, packs, launcher)
+    counts = run_locally(sweep_dir, packs, launcher, silence_s)
     print("finished: " + ", ".join(f"{n:,} {outcome}" for outcome, n in sorted(counts.items())))
     return 0 if set(counts) <= {"ok", "skipped"} else 1
 
@@ -188,4 +241,5 @@ def run_jobs(sweep_dir: Path, launch: DictConfig, packs: Sequence[Pack], tasks: 
     prepare_shared_data(tasks, configs, study_named(launch.study.name))
     write_run_settings(sweep_dir, launch)
     limit_threads(OmegaConf.select(launch, "threads", default=1))
-    return dispatch(sweep_dir, packs, launcher_from(launch.launcher), launch.sweep.name)
+    silence_s = OmegaConf.select(launch, "watchdog.worker_silence_s", default=STALE_S)  # run.yaml of before it
+    return dispatch(sweep_dir, packs, launcher_from(launch.launcher), launch.sweep.name, silence_s)

@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 from nsl_hpc.errors import ConfigError, require_int, require_number, require_positive_int
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import model_of
+from nsl_hpc.sweep.checkpoints import RENEW_S, STALE_S
 from nsl_hpc.sweep.launchers import SlurmLauncher, launcher_from
 
 SBATCH_MEMORY = re.compile(r"[1-9][0-9]*[KMGT]?")  # sbatch --mem: megabytes, or with a unit
@@ -180,6 +181,7 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
     watchdog = launch["watchdog"]
     require_number("watchdog.heartbeat_timeout_s", watchdog["heartbeat_timeout_s"], 0, 86400, low_open=True)
     require_number("watchdog.overrun_factor", watchdog["overrun_factor"], 1, 1000)
+    require_number("watchdog.worker_silence_s", watchdog.get("worker_silence_s", STALE_S), 2 * RENEW_S, 86400)
     for key in ("short_task_minutes", "pack_minutes"):
         require_number(f"packing.{key}", launch["packing"][key], 0, 10080, low_open=True)
     require_number("packing.time_safety", launch["packing"]["time_safety"], 1, 100)

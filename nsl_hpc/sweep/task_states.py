@@ -8,6 +8,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from nsl_hpc.sweep.checkpoints import running_task_ids
+from nsl_hpc.sweep.directory import sweep_lock_holder
 from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.manifest import read_manifest
 from nsl_hpc.sweep.rows import row_path, row_state
@@ -35,9 +37,11 @@ class SweepState:
 
 
 def read_sweep_state(sweep_dir: Path) -> SweepState:
-    """Classify every task: a valid row means done; else its latest array element's state while that is active;
-    else its failure record written since that submission (failed, frozen, timeout); else missing. A file
-    where its row belongs that is no valid row makes it corrupt."""
+    """Classify every task: a valid row means done; else running while a live job holds its group's lock (local
+    workers included); else its latest array element's state while that is active; else its failure record
+    written since that submission (failed, frozen, timeout); else pending while a launch or resubmit holds the
+    sweep (a local one runs it later); else missing. A file where its row belongs that is no valid row makes it
+    corrupt."""
     sweep_dir = Path(sweep_dir)
     manifest = read_manifest(sweep_dir, columns=["task_id", "system", "arch", "seed", "width", "depth", "steps",
                                                  "params"])
@@ -50,10 +54,17 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
                 latest[task_id] = (element, record["submitted"])
     element_states = job_states(record["array_id"] for record in submissions) if submissions else {}
     now, states = time.time(), {}
+    running, launching = running_task_ids(sweep_dir), sweep_lock_holder(sweep_dir) in ("launch", "resubmit")
     for task_id in manifest["task_id"].to_pylist():
         element, submitted = latest.get(task_id, (None, 0.0))
-        states[task_id] = task_state(row_state(row_path(sweep_dir, task_id)), failures.get(task_id), element,
-                                     submitted, element_states.get(element), now)
+        row = row_state(row_path(sweep_dir, task_id))
+        if row == "missing" and task_id in running:
+            states[task_id] = "running"
+            continue
+        states[task_id] = task_state(row, failures.get(task_id), element, submitted, element_states.get(element),
+                                     now)
+        if states[task_id] == "missing" and launching:
+            states[task_id] = "pending"
     return SweepState(states, failures, manifest.to_pylist(), element_states)
 
 
