@@ -53,7 +53,7 @@ def test_clean_removes_checkpoints_of_finished_groups_and_locks_no_job_renews(tm
     finished, unfinished = (Checkpointer(checkpoint_path(sweep_dir, ids), 60, ids) for ids in (done, [failed]))
     finished.save({}, 5, 10)
     unfinished.save({}, 3, 10)
-    abandoned, held = GroupLock(sweep_dir, ["gone"]), GroupLock(sweep_dir, [failed])
+    abandoned, held = GroupLock(sweep_dir, ["gone"]), GroupLock(sweep_dir, ["trained", "now"])
     assert abandoned.acquire() is None and held.acquire() is None
     os.utime(abandoned.path, (time.time() - 3600, time.time() - 3600))
     status = nsl("status", f"sweep_dir={sweep_dir}").stdout
