@@ -22,9 +22,15 @@ from nsl_hpc.studies.base import model_of
 from nsl_hpc.sweep.checkpoints import saved_groups
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 from nsl_hpc.sweep.executors import run_jobs
-from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.plan import Pack, lockstep_settings, plan_jobs
-from nsl_hpc.sweep.prepare import PAIR_KEYS, BuiltSweep, PreparedSweep, build_sweep, prepare_sweep
+from nsl_hpc.sweep.prepare import (
+    PAIR_KEYS,
+    BuiltSweep,
+    PreparedSweep,
+    build_sweep,
+    describe_infeasible,
+    prepare_sweep,
+)
 
 
 def describe_lockstep(tasks: Sequence[Mapping[str, Any]], packs: Sequence[Pack], lockstep: Mapping[str, Any]) -> str:
@@ -79,13 +85,7 @@ def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> int:
     if tasks and (lockstep["size"] > 1 or lockstep["model_keys"]):
         print(describe_lockstep(tasks, packs, lockstep))
     if prepared.infeasible:
-        count = len(prepared.infeasible)
-        print(f"  {count:,} task{'s' if count > 1 else ''} cannot run as configured"
-              + (" (dry run: not recorded)" if cfg.dry_run else ": recorded as failed, not submitted")
-              + f"; e.g. {next(iter(prepared.infeasible.values()))}")
-        if not cfg.dry_run:
-            for task_id, reason in prepared.infeasible.items():
-                record_failure(prepared.sweep_dir, task_id, "failed", f"cannot run as configured: {reason}")
+        print(describe_infeasible(prepared.sweep_dir, prepared.infeasible, record=not cfg.dry_run))
     if cfg.dry_run or not packs:
         print("dry run: nothing submitted" if cfg.dry_run else "nothing to run: every task has a row"
               + (" or is queued" if prepared.queued else ""))

@@ -16,16 +16,19 @@ group again and continues from the checkpoint.
 
 from collections.abc import Sequence
 
+import pyarrow as pa
+import pyarrow.compute as pc
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.errors import ConfigError
+from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.checkpoints import saved_groups
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock
 from nsl_hpc.sweep.executors import run_jobs
-from nsl_hpc.sweep.manifest import RUN_SETTINGS, read_base_config, read_launch_config, require_sweep
+from nsl_hpc.sweep.manifest import RUN_SETTINGS, read_base_config, read_launch_config, read_manifest, require_sweep
 from nsl_hpc.sweep.plan import check_run_settings, plan_jobs
-from nsl_hpc.sweep.prepare import override_key
+from nsl_hpc.sweep.prepare import describe_infeasible, override_key, split_runnable
 from nsl_hpc.sweep.rows import row_path, set_aside
 from nsl_hpc.sweep.task_states import read_sweep_state
 
@@ -70,9 +73,17 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
         launch = with_named_settings(read_launch_config(sweep_dir), cfg, overrides)
         check_run_settings(launch)
         state = read_sweep_state(sweep_dir)
-        tasks = [task for task in state.manifest if state.states[task["task_id"]] in cfg.states]
+        wanted = [task["task_id"] for task in state.manifest if state.states[task["task_id"]] in cfg.states]
+        manifest = read_manifest(sweep_dir)
+        selected = manifest.filter(pc.is_in(manifest["task_id"], value_set=pa.array(wanted, type=pa.string())))
+        configs = {pair: OmegaConf.to_container(read_base_config(sweep_dir, *pair), resolve=True)
+                   for pair in set(zip(selected["system"].to_pylist(), selected["arch"].to_pylist(), strict=True))}
+        runnable, infeasible = split_runnable(selected, study_named(launch.study.name), configs)
+        if infeasible:
+            print(describe_infeasible(sweep_dir, infeasible, record=True))
+        tasks = runnable.to_pylist()
         if not tasks:
-            print(f"nothing to resubmit: no task is {' / '.join(cfg.states)}")
+            print(f"nothing to resubmit: no task that can run is {' / '.join(cfg.states)}")
             return 0
         for task in tasks:
             if state.states[task["task_id"]] == "corrupt":
@@ -80,8 +91,6 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
         packs = plan_jobs(tasks, launch, cfg.time_factor, [saved.task_ids for saved in saved_groups(sweep_dir)])
         print(f"resubmitting {len(tasks):,} tasks ({', '.join(cfg.states)}) in {len(packs):,} jobs "
               f"({launch.launcher.name})")
-        configs = {pair: OmegaConf.to_container(read_base_config(sweep_dir, *pair), resolve=True)
-                   for pair in {(task["system"], task["arch"]) for task in tasks}}
         return run_jobs(sweep_dir, launch, packs, tasks, configs)
 
 

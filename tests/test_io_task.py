@@ -127,3 +127,21 @@ def test_an_input_output_sweep_runs_merges_and_fits(tmp_path):
     assert one_step and all(fit["error"] is None for fit in one_step)
     bad = nsl("fit", f"sweep_dir={sweep_dir}", "metrics=[nmae_free_run_arrow]")
     assert bad.returncode != 0 and "nmae_free_run_arrow not among the sweep's scores; choose from: nmae" in bad.stderr
+
+
+def test_resubmit_leaves_out_tasks_that_cannot_run_and_runs_the_rest(tmp_path):
+    """NARX reading 250 past samples: data tier 250 (at most 250 samples) holds no window of 251, tier 500 does.
+    resubmit runs the tier-500 task whose row went missing, never the two that cannot run (before: they were
+    resubmitted, and failed again with every task of their group)."""
+    sweep_dir = tmp_path / "sweep"
+    settings = ["+sweep=io_demo", "sweep.grid=[{arch: [narx], system: [silverbox_sim], seed: [0, 1], "
+                "iter_multiplier: [1], data_tier: [250, 500], width_tier: [4], depth: [1]}]",
+                "arch.past_outputs=250", "arch.past_inputs=250", "system.init_samples=300", "train.batch_size=32"]
+    launched = nsl("launch", *settings, "launcher=local", f"sweep_dir={sweep_dir}")
+    assert launched.returncode == 0 and "2 tasks cannot run as configured: recorded as failed" in launched.stdout
+    next((sweep_dir / "rows").rglob("*.parquet")).unlink()
+    again = nsl("resubmit", f"sweep_dir={sweep_dir}")
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert "2 tasks cannot run as configured" in again.stdout and "resubmitting 1 tasks" in again.stdout
+    status = nsl("status", f"sweep_dir={sweep_dir}").stdout
+    assert "done 2 |" in status and "failed 2 |" in status and "shorter than one narx window" in status

@@ -75,14 +75,16 @@ HOLDER = re.compile(r"^(?P<command>\S+) \(pid (?P<pid>\d+) on (?P<host>\S+), sin
 
 
 def sweep_lock_holder(sweep_dir: Path) -> str | None:
-    """The command that holds the sweep's lock now (``launch``, ``resubmit``, ``clean``), or None. Read from the
-    line its holder writes (and empties when it ends), without taking the lock: a peek never refuses a launch."""
+    """The command that holds the sweep's lock now (``launch``, ``resubmit``, ``clean``; not this process), or
+    None. Read from the line its holder writes (and empties when it ends), without taking the lock: a peek never
+    refuses a launch."""
     try:
         match = HOLDER.match((Path(sweep_dir) / LOCK_FILE).read_text())
     except OSError:
         return None
-    if match is None or (match["host"] == socket.gethostname() and not process_alive(int(match["pid"]))):
-        return None  # free, or its holder was killed before it could empty the line
+    here = match is not None and match["host"] == socket.gethostname()
+    if match is None or (here and (int(match["pid"]) == os.getpid() or not process_alive(int(match["pid"])))):
+        return None  # free, held by this process, or its holder was killed before it could empty the line
     return match["command"]
 
 

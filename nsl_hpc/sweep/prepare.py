@@ -16,6 +16,7 @@ from nsl_hpc.config import compose_config, unknown_key
 from nsl_hpc.errors import ConfigError, require_non_negative_int, require_number, require_positive_int
 from nsl_hpc.studies import study_named, study_of
 from nsl_hpc.studies.base import Study
+from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.grid import Grid, build_manifest, grid_size, sub_grids, validate_grid
 from nsl_hpc.sweep.manifest import (
     LAUNCH_CONFIG_FILE,
@@ -176,9 +177,8 @@ def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Prepar
     todo, aside = tasks_without_row(sweep_dir, manifest)
     queued = queued_tasks(sweep_dir)
     todo = todo.filter(pc.invert(pc.is_in(todo["task_id"], value_set=pa.array(sorted(queued), type=pa.string()))))
-    infeasible = infeasible_tasks(todo, built.study, built.configs)
-    runnable = pc.invert(pc.is_in(todo["task_id"], value_set=pa.array(list(infeasible), type=pa.string())))
-    return PreparedSweep(sweep_dir, manifest, todo.filter(runnable), infeasible, built.configs, len(queued), aside)
+    runnable, infeasible = split_runnable(todo, built.study, built.configs)
+    return PreparedSweep(sweep_dir, manifest, runnable, infeasible, built.configs, len(queued), aside)
 
 
 def changed_settings(stored: DictConfig, cfg: DictConfig, study: Study,
@@ -241,6 +241,27 @@ def infeasible_tasks(tasks: pa.Table, study: Study,
         except ConfigError as error:
             reasons[task["task_id"]] = str(error)
     return reasons
+
+
+def split_runnable(tasks: pa.Table, study: Study, configs: Mapping[tuple[str, str], Mapping[str, Any]]
+                   ) -> tuple[pa.Table, dict[str, str]]:
+    """The manifest rows of ``tasks`` that can run as configured, and task id -> why for those that cannot:
+    the one filter launch and resubmit share (a task that cannot run would take its lockstep group down)."""
+    infeasible = infeasible_tasks(tasks, study, configs)
+    runnable = pc.invert(pc.is_in(tasks["task_id"], value_set=pa.array(list(infeasible), type=pa.string())))
+    return tasks.filter(runnable), infeasible
+
+
+def describe_infeasible(sweep_dir: Path, infeasible: Mapping[str, str], record: bool) -> str:
+    """The line that says how many tasks cannot run as configured, and why (one example); with ``record`` each is
+    recorded as failed with its reason (status shows it, merge counts it)."""
+    if record:
+        for task_id, reason in infeasible.items():
+            record_failure(sweep_dir, task_id, "failed", f"cannot run as configured: {reason}")
+    count = len(infeasible)
+    return (f"  {count:,} task{'s' if count > 1 else ''} cannot run as configured"
+            + (": recorded as failed, not submitted" if record else " (dry run: not recorded)")
+            + f"; e.g. {next(iter(infeasible.values()))}")
 
 
 def tasks_without_row(sweep_dir: Path, manifest: pa.Table) -> tuple[pa.Table, int]:
