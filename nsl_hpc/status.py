@@ -14,31 +14,42 @@ a requeue, a resubmit after a crash): `running (resumed 2 times)`.
 import time
 from collections import Counter
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.sweep.checkpoints import saved_groups
-from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
-from nsl_hpc.sweep.plan import predicted_seconds
+from nsl_hpc.sweep.checkpoints import held_locks, saved_groups
+from nsl_hpc.sweep.manifest import read_launch_config, read_manifest, require_sweep
+from nsl_hpc.sweep.plan import packing_for, sweep_groups
 from nsl_hpc.sweep.task_states import STATES, SweepState, read_sweep_state
 
 LOG_LINES = 5  # log lines shown per failed task
 
 
-def remaining_hours(state: SweepState, cost) -> float:
-    """Predicted core-hours of the tasks without a row."""
-    return sum(predicted_seconds(task["arch"], task["steps"], task["params"], cost)
-               for task in state.manifest if state.states[task["task_id"]] != "done") / 3600
+def remaining_seconds(sweep_dir, state: SweepState, launch: DictConfig) -> float:
+    """Predicted core-seconds of the tasks without a row, in the lockstep groups the planner makes of them (a
+    group with a checkpoint: the share of its steps still to train)."""
+    todo = [task for task in read_manifest(sweep_dir).to_pylist() if state.states[task["task_id"]] != "done"]
+    saved = {group.task_ids: group for group in saved_groups(sweep_dir)}
+    groups = sweep_groups(todo, launch, packing_for(launch.packing, launch.launcher), list(saved))
+    return sum(group.seconds * (1 - saved[group.task_ids].step / max(saved[group.task_ids].total_steps, 1)
+                                if group.task_ids in saved else 1) for group in groups)
 
 
-def summary(state: SweepState, cost) -> str:
+def running_cores(sweep_dir, state: SweepState) -> int:
+    """Cores training the sweep now: its running SLURM array elements, or the local workers holding a group."""
+    elements = sum(element_state == "RUNNING" for element_state in state.element_states.values())
+    return max(elements, len({(lock.host, lock.pid) for lock in held_locks(sweep_dir) if lock.live}))
+
+
+def summary(state: SweepState, seconds: float, cores: int) -> str:
+    """The counts by state, a progress bar and the time left: ``seconds`` of predicted work on ``cores``."""
     counts = state.counts()
     total = len(state.states)
     bar_width = 40
     filled = round(bar_width * counts["done"] / total)
-    running = counts["running"]
-    hours = remaining_hours(state, cost)
-    eta = f"ETA {hours / running:.1f} h at {running} running" if running else f"{hours:.1f} core-hours left"
+    hours = seconds / 3600
+    eta = (f"ETA {hours / cores:.1f} h on {cores} core{'s' * (cores != 1)} running" if cores
+           else f"{hours:.1f} core-hours left")
     line = " | ".join(f"{name} {counts[name]:,}" for name in STATES)
     return (f"{total:,} tasks: {line}\n[{'#' * filled}{'.' * (bar_width - filled)}] "
             f"{100 * counts['done'] / total:.1f}% done, {eta}")
@@ -75,11 +86,12 @@ def failure_report(state: SweepState, limit: int) -> str:
 
 def main(cfg: DictConfig) -> int:
     require_sweep(cfg.sweep_dir)
-    cost = OmegaConf.to_container(read_launch_config(cfg.sweep_dir).cost)
+    launch = read_launch_config(cfg.sweep_dir)
     interval, confirming = cfg.interval_s, False
     while True:
         state = read_sweep_state(cfg.sweep_dir)
-        print(summary(state, cost), flush=True)
+        print(summary(state, remaining_seconds(cfg.sweep_dir, state, launch), running_cores(cfg.sweep_dir, state)),
+              flush=True)
         active = state.counts()["running"] + state.counts()["pending"]
         if not cfg.wait or (not active and (confirming or not state.counts()["missing"])):
             break

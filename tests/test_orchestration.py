@@ -10,8 +10,11 @@ from omegaconf import OmegaConf
 
 from nsl_hpc.config import compose_config, config_dir, config_groups
 from nsl_hpc.errors import ConfigError
+from nsl_hpc.status import remaining_seconds, running_cores, summary
+from nsl_hpc.sweep.checkpoints import GroupLock
 from nsl_hpc.sweep.executors import array_chunks, balance, slurm_executor
 from nsl_hpc.sweep.launchers import DebugLauncher, SlurmLauncher, launcher_from
+from nsl_hpc.sweep.manifest import read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import (
     Group,
     Pack,
@@ -26,7 +29,8 @@ from nsl_hpc.sweep.plan import (
     predicted_seconds,
 )
 from nsl_hpc.sweep.slurm import expand_array_ids
-from nsl_hpc.sweep.task_states import ACCOUNTING_LAG_S, task_state
+from nsl_hpc.sweep.task_states import ACCOUNTING_LAG_S, read_sweep_state, task_state
+from tests.sweeps import TINY_GRID, nsl
 
 GOLDEN = Path(__file__).parent / "golden"
 COST = {"startup_s": 2.0, "step_seconds": {"unstructured": 1e-3}, "params_per_overhead": {"unstructured": 1000},
@@ -238,3 +242,28 @@ def test_every_config_file_composes_with_the_root_config_that_uses_it(group, opt
     chosen = cfg.sweep if group == "sweep" else cfg[group]
     if "name" in chosen:
         assert chosen.name == option
+
+
+def test_status_time_left_is_the_planned_groups_work_over_the_cores_training(tmp_path):
+    """3 models of one lockstep group (depth 1, widths 2-3 in one bucket), a step costing 1000 s alone and half of
+    that more per further model still training: by hand, 1000 s x (2 s1 + 1.5 (s2 - s1) + (s3 - s2)) for steps
+    s1 <= s2 <= s3; over the cores that train (a job per core), not over the tasks (before: each task's cost
+    alone, divided by the running tasks, ~32x too optimistic for a group of 32)."""
+    sweep_dir = tmp_path / "sweep"
+    cost = ["cost.startup_s=0", "cost.step_seconds.input_affine=1000", "cost.params_per_overhead.input_affine=1e12",
+            "cost.lockstep_extra.input_affine=0.5", "cost.score_seconds=0"]
+    grid = [*TINY_GRID, "sweep.grid.seed=[3]", "sweep.grid.epochs=[2,4,8]"]  # the later values win
+    assert nsl("launch", *grid, *cost, "lockstep.width_buckets=[4]", "launcher=debug", f"sweep_dir={sweep_dir}",
+               "dry_run=true").returncode == 0
+    manifest = read_manifest(sweep_dir)
+    assert set(manifest["depth"].to_pylist()) == {1} and max(manifest["width"].to_pylist()) <= 4  # one group
+    s1, s2, s3 = sorted(manifest["steps"].to_pylist())
+    by_hand = 1000 * (2 * s1 + 1.5 * (s2 - s1) + (s3 - s2))
+    state = read_sweep_state(sweep_dir)
+    assert remaining_seconds(sweep_dir, state, read_launch_config(sweep_dir)) == pytest.approx(by_hand, rel=1e-6)
+    assert running_cores(sweep_dir, state) == 0
+    lock = GroupLock(sweep_dir, ["a", "group", "trained", "now"])
+    assert lock.acquire() is None
+    assert running_cores(sweep_dir, state) == 1
+    assert f"ETA {by_hand / 3600 / 2:.1f} h on 2 cores running" in summary(state, by_hand, 2)
+    assert f"{by_hand / 3600:.1f} core-hours left" in summary(state, by_hand, 0)
