@@ -11,11 +11,14 @@ from tests.helpers import SYSTEM_NAMES, system_config
 
 # Largest |state| seen over 5 study trajectories: spring 3.2, ball 3.2, motor 3.7; bounds with margin.
 STATE_BOUND = {"spring": 8.0, "ball": 10.0, "motor": 10.0}
+# Each system, and the spring with the constants of the authors' code (inputs on the positions).
+VARIANTS = [(name, ()) for name in SYSTEM_NAMES] + [("spring", ("system.constants=authors",))]
+VARIANT_IDS = [*SYSTEM_NAMES, "spring-authors"]
 
 
-@pytest.mark.parametrize("name", SYSTEM_NAMES)
-def test_structure_matrices(name):
-    cfg = system_config(name)
+@pytest.mark.parametrize(("name", "overrides"), VARIANTS, ids=VARIANT_IDS)
+def test_structure_matrices(name, overrides):
+    cfg = system_config(name, *overrides)
     system = build_system(name, cfg["params"])
     x = np.random.default_rng(0).normal(size=(50, system.state_dim))
     J, R = system.interconnection(x), system.dissipation(x)
@@ -25,10 +28,10 @@ def test_structure_matrices(name):
     assert system.hamiltonian(x).min() >= 0
 
 
-@pytest.mark.parametrize("name", SYSTEM_NAMES)
-def test_power_balance_along_trajectories(name):
+@pytest.mark.parametrize(("name", "overrides"), VARIANTS, ids=VARIANT_IDS)
+def test_power_balance_along_trajectories(name, overrides):
     """dH/dt = -grad H^T R grad H + y^T u pointwise, and integrated along a simulated trajectory."""
-    cfg = system_config(name)
+    cfg = system_config(name, *overrides)
     system = build_system(name, cfg["params"])
     (trajectory,) = simulate_experiments(cfg, seed=7, count=1)
     pointwise = np.sum(system.grad_hamiltonian(trajectory.x) * trajectory.dx, axis=1)
@@ -53,14 +56,22 @@ def test_power_balance_along_trajectories(name):
     np.testing.assert_allclose(energy_change, solution[:, n], atol=1e-7 * scale)
 
 
-@pytest.mark.parametrize("name", SYSTEM_NAMES)
-def test_trajectories_finite_and_bounded(name):
-    cfg = system_config(name)
+@pytest.mark.parametrize(("name", "overrides"), VARIANTS, ids=VARIANT_IDS)
+def test_trajectories_finite_and_bounded(name, overrides):
+    cfg = system_config(name, *overrides)
     for trajectory in simulate_experiments(cfg, seed=0, count=5):
         assert trajectory.x.shape == (1000, len(cfg["initial_box"]))
         assert np.all(np.isfinite(trajectory.x)) and np.all(np.isfinite(trajectory.dx))
         assert np.abs(trajectory.x).max() < STATE_BOUND[name]
         np.testing.assert_allclose(trajectory.t[1] - trajectory.t[0], 0.01)
+
+
+def test_the_springs_inputs_drive_the_momenta_in_the_paper_and_the_positions_in_the_authors_code():
+    x = np.zeros((1, 4))
+    paper = build_system("spring", system_config("spring")["params"]).input_matrix(x)[0]
+    authors = build_system("spring", system_config("spring", "system.constants=authors")["params"]).input_matrix(x)[0]
+    np.testing.assert_array_equal(paper, [[0, 0], [1, 0], [0, 0], [0, 1]])  # x = (q1, p1, q2, p2)
+    np.testing.assert_array_equal(authors, [[1, 0], [0, 0], [0, 1], [0, 0]])
 
 
 def test_multisine_has_the_configured_harmonics():

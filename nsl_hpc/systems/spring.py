@@ -1,11 +1,13 @@
-"""Two masses coupled by springs with nonlinear (velocity-squared) damping; x = (q1, p1, q2, p2), u in R^2."""
+"""Two masses coupled by springs with nonlinear (velocity-squared) damping; x = (q1, p1, q2, p2), u in R^2 acting
+on the momenta (the paper's appendix) or on the positions (the authors' code)."""
 
 import numpy as np
 
+from nsl_hpc.errors import ConfigError
 from nsl_hpc.systems.port_hamiltonian import PortHamiltonianSystem, constant, diagonal
 
 J = [[0, 1, 0, 0], [-1, 0, 1, 0], [0, -1, 0, 1], [0, 0, -1, 0]]
-B = [[0, 0], [1, 0], [0, 0], [0, 1]]
+B = {"p": [[0, 0], [1, 0], [0, 0], [0, 1]], "q": [[1, 0], [0, 0], [0, 1], [0, 0]]}  # which rows the inputs drive
 
 
 class Spring(PortHamiltonianSystem):
@@ -14,7 +16,10 @@ class Spring(PortHamiltonianSystem):
     state_dim = 4
     input_dim = 2
 
-    def __init__(self, m1: float, m2: float, b1: float, b2: float, k1: float, k2: float):
+    def __init__(self, m1: float, m2: float, b1: float, b2: float, k1: float, k2: float, input_on: str = "p"):
+        if input_on not in B:
+            raise ConfigError(f"system.params.input_on={input_on!r}; choose one of: {', '.join(B)}")
+        self.input_rows = B[input_on]
         self.m = np.array([m1, m2])
         self.b = np.array([b1, b2])
         self.k = np.array([k1, k2])
@@ -38,4 +43,4 @@ class Spring(PortHamiltonianSystem):
         return diagonal(entries)
 
     def input_matrix(self, x: np.ndarray) -> np.ndarray:
-        return constant(B, len(x))
+        return constant(self.input_rows, len(x))
