@@ -32,6 +32,8 @@ from nsl_hpc.sweep.rows import row_path, row_state
 from nsl_hpc.sweep.slurm import queued_jobs, read_limits
 from nsl_hpc.sweep.submissions import record_submission
 
+FULL_DISK_BYTES = 64 * 2**20  # a local job that ended without its result with less free than this: the disk is full
+
 
 @dataclass(frozen=True)
 class Submission:
@@ -173,17 +175,21 @@ def stop_stalled_worker(sweep_dir: Path, share: Sequence[Group], silence_s: floa
 
 
 def job_result(job: submitit.Job, sweep_dir: Path, share: Sequence[Group]) -> dict[str, int]:
-    """A finished local job's counts by outcome; one that ended without a result (its worker killed: kill -9, the
-    OOM killer) is accounted for by ``unfinished_share``."""
+    """A finished local job's counts by outcome. One that ended without a result is accounted for by
+    ``unfinished_share`` (its worker killed: kill -9, the OOM killer), or, where the disk is (nearly) full, ends
+    the launch with a one-line RunError: every other worker would fail the same way."""
     try:
         return job.result()
-    except submitit.core.utils.UncompletedJobError:
-        reason = "it died without a result: kill -9, the OOM killer?"
-    except submitit.core.utils.FailedJobError as error:
-        reason = f"it raised {str(error).strip().splitlines()[-1][:160]}"
-    free = shutil.disk_usage(job.paths.folder).free
-    return unfinished_share(sweep_dir, share, reason + (f"; only {free / 2**20:.0f} MiB free where it writes"
-                                                        if free < 2**30 else ""))
+    except (submitit.core.utils.UncompletedJobError, submitit.core.utils.FailedJobError) as error:
+        free = shutil.disk_usage(job.paths.folder).free
+        if free < FULL_DISK_BYTES:
+            raise RunError(f"a local job ended without its result ({' '.join(str(error).split())[:160]}); "
+                           f"{free / 2**20:.0f} MiB free where it writes: free space, then launch again (finished "
+                           "rows are kept)") from None
+        reason = ("it died without a result: kill -9, the OOM killer?"
+                  if isinstance(error, submitit.core.utils.UncompletedJobError)
+                  else f"it raised {str(error).strip().splitlines()[-1][:160]}")
+    return unfinished_share(sweep_dir, share, reason)
 
 
 def unfinished_share(sweep_dir: Path, share: Sequence[Group], reason: str) -> dict[str, int]:
