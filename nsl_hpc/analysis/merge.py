@@ -17,7 +17,7 @@ import pyarrow.parquet as pq
 
 from nsl_hpc.atomic import write_parquet, write_text
 from nsl_hpc.sweep.checkpoints import running_task_ids
-from nsl_hpc.sweep.directory import sweep_lock_holder
+from nsl_hpc.sweep.directory import launch_running
 from nsl_hpc.sweep.failures import FAILURE_STATES, read_failures
 from nsl_hpc.sweep.manifest import read_manifest
 from nsl_hpc.sweep.rows import set_aside
@@ -165,7 +165,7 @@ def dropped_counts(sweep_dir: Path, task_ids: pa.ChunkedArray, merged_ids: pa.Ch
     """Tasks without a merged row: running (a live job holds their group's lock), by their failure record's
     state (failed, frozen, timeout), running (queued in a launch or resubmit that runs now) or missing."""
     failures, running = read_failures(sweep_dir), running_task_ids(sweep_dir)
-    launching = sweep_lock_holder(sweep_dir) in ("launch", "resubmit")
+    launching = launch_running(sweep_dir)
     merged = set(merged_ids.to_pylist())
     states = ["running" if t in running else failures[t]["status"] if t in failures else
               "running" if launching else "missing" for t in task_ids.to_pylist() if t not in merged]

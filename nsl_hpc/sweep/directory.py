@@ -88,6 +88,11 @@ def sweep_lock_holder(sweep_dir: Path) -> str | None:
     return match["command"]
 
 
+def launch_running(sweep_dir: Path) -> bool:
+    """Whether another process's launch or resubmit runs the sweep now (its tasks without a row run later)."""
+    return sweep_lock_holder(sweep_dir) in ("launch", "resubmit")
+
+
 def process_alive(pid: int) -> bool:
     """Whether a process of this id exists (on this machine)."""
     try:

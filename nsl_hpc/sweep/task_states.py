@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from nsl_hpc.sweep.checkpoints import running_task_ids
-from nsl_hpc.sweep.directory import sweep_lock_holder
+from nsl_hpc.sweep.directory import launch_running
 from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.manifest import read_manifest
 from nsl_hpc.sweep.rows import row_path, row_state
@@ -54,7 +54,7 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
                 latest[task_id] = (element, record["submitted"])
     element_states = job_states(record["array_id"] for record in submissions) if submissions else {}
     now, states = time.time(), {}
-    running, launching = running_task_ids(sweep_dir), sweep_lock_holder(sweep_dir) in ("launch", "resubmit")
+    running, launching = running_task_ids(sweep_dir), launch_running(sweep_dir)
     for task_id in manifest["task_id"].to_pylist():
         element, submitted = latest.get(task_id, (None, 0.0))
         row = row_state(row_path(sweep_dir, task_id))
