@@ -19,8 +19,8 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 from synthetic import fill_sweep
-from timing import timed
 
+from nsl_hpc.bench.measure import timed
 from nsl_hpc.config import compose_config
 from nsl_hpc.launch import main as launch
 from nsl_hpc.status import summary

@@ -23,7 +23,7 @@ from nsl_hpc.studies.input_output.packed import train_packed
 from nsl_hpc.studies.input_output.study import horizon
 from nsl_hpc.studies.input_state.data import build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, train_lockstep
-from nsl_hpc.studies.training import Scaling
+from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.sweep.checkpoints import GroupLock, checkpoint_path
 from nsl_hpc.sweep.job import JobRunner
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest

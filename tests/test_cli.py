@@ -67,4 +67,7 @@ def test_every_command_a_message_or_doc_names_exists():
     for module in sorted(named):
         spec = importlib.util.find_spec(module)
         assert spec is not None and spec.origin, module
+        if spec.submodule_search_locations:  # a package runs its __main__
+            spec = importlib.util.find_spec(f"{module}.__main__")
+            assert spec is not None and spec.origin, f"{module} has no __main__"
         assert 'if __name__ == "__main__":' in Path(spec.origin).read_text(), f"{module} is no command"

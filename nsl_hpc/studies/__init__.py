@@ -11,12 +11,11 @@ from typing import Any
 
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies.base import Study
+from nsl_hpc.studies.input_output.study import InputOutput
+from nsl_hpc.studies.input_state.study import InputState
 
 
 def studies() -> dict[str, Study]:
-    from nsl_hpc.studies.input_output.study import InputOutput
-    from nsl_hpc.studies.input_state.study import InputState
-
     return {study.name: study for study in (InputState(), InputOutput())}
 
 

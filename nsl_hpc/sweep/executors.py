@@ -18,13 +18,13 @@ import submitit
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from nsl_hpc.config.launchers import DebugLauncher, Launcher, LocalLauncher, SlurmLauncher, launcher_from
 from nsl_hpc.errors import RunError
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.checkpoints import STALE_S, HeldLock, held_locks
 from nsl_hpc.sweep.directory import process_alive
 from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.job import JobRunner, record_group_failure
-from nsl_hpc.sweep.launchers import DebugLauncher, Launcher, LocalLauncher, SlurmLauncher, launcher_from
 from nsl_hpc.sweep.manifest import write_run_settings
 from nsl_hpc.sweep.plan import Group, Pack
 from nsl_hpc.sweep.prepare import prepare_shared_data

@@ -7,8 +7,8 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 
+from nsl_hpc.config.launchers import SlurmLauncher
 from nsl_hpc.errors import ConfigError, SlurmError
-from nsl_hpc.sweep.launchers import SlurmLauncher
 
 
 def slurm_command(*args: str, retries: int = 3, backoff_s: float = 2.0) -> str:

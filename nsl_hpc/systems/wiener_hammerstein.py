@@ -2,7 +2,6 @@
 nonlinearity, LTI filter (like the benchmark's two third-order filters around a diode-resistor circuit)."""
 
 import numpy as np
-from scipy import signal
 
 
 def simulate_wiener_hammerstein(u: np.ndarray, fs_hz: float, order: int, first_cutoff_hz: float,
@@ -10,6 +9,8 @@ def simulate_wiener_hammerstein(u: np.ndarray, fs_hz: float, order: int, first_c
                                 saturation: float) -> np.ndarray:
     """Output y (N,) for the input u (N,) from rest: Chebyshev type I lowpass, then
     saturation * tanh(x / saturation), then Chebyshev type II lowpass."""
+    from scipy import signal  # ~1 s to import: only the tasks that simulate pay it, not every command
+
     first = signal.cheby1(order, first_ripple_db, first_cutoff_hz, fs=fs_hz)
     second = signal.cheby2(order, second_attenuation_db, second_cutoff_hz, fs=fs_hz)
     inner = signal.lfilter(*first, u)

@@ -25,8 +25,9 @@ from tqdm import tqdm
 
 from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.studies.input_state.data import Dataset
+from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.input_state.stacked import StackedModels
-from nsl_hpc.studies.training import Adam, BatchOrder, Scaling, TrainingOutcome, batch_bounds, learning_rate_at
+from nsl_hpc.studies.training import Adam, BatchOrder, TrainingOutcome, batch_bounds, learning_rate_at
 
 BLOCK_STEPS = 32  # steps prepared at once: (K, BLOCK_STEPS, batch) rows of data in memory
 

@@ -23,8 +23,9 @@ from nsl_hpc.models.blocks import parameter_count
 from nsl_hpc.studies.base import Study, draw_tier, model_of
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set, points_per_trajectory, training_points
 from nsl_hpc.studies.input_state.lockstep import LOSSES, Member, Snapshot, predict_derivatives, train_lockstep
+from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.metrics import NORMALIZATIONS, scores_both_ways
-from nsl_hpc.studies.training import SCHEDULES, Scaling, batch_count
+from nsl_hpc.studies.training import SCHEDULES, batch_count
 from nsl_hpc.systems import SYSTEMS
 
 TIER_OF = {"data_tier": "data", "width_tier": "width", "depth_tier": "depth"}

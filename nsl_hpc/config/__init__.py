@@ -12,9 +12,10 @@ from hydra.errors import HydraException, MissingConfigException
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from nsl_hpc.config.launchers import LAUNCHERS, register_launchers
 from nsl_hpc.errors import ConfigError
 
-PACKAGE_DIR = Path(__file__).resolve().parent
+PACKAGE_DIR = Path(__file__).resolve().parent.parent  # nsl_hpc/
 
 
 def config_dir() -> Path:
@@ -72,8 +73,6 @@ def dotted_keys(node: Any, prefix: str = "") -> list[str]:
 
 def composed(overrides: Sequence[str], config_name: str) -> DictConfig:
     """``compose_config`` without the check of unknown keys."""
-    from nsl_hpc.sweep.launchers import register_launchers  # the launcher group's schemas
-
     register_launchers()
     try:
         with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
@@ -106,8 +105,6 @@ def one_line(message: str) -> str:
 
 def config_groups() -> dict[str, list[str]]:
     """Selectable options of each config group, e.g. {'system': ['ball', 'motor', 'spring']}."""
-    from nsl_hpc.sweep.launchers import LAUNCHERS
-
     groups = {group.name: sorted(f.stem for f in group.glob("*.yaml"))
               for group in config_dir().iterdir() if group.is_dir() and group.name != "local"}
     groups["launcher"] = sorted(LAUNCHERS)

@@ -14,15 +14,18 @@ Everything on the simulated Silverbox stand-in (``io.system``), one thread.
 
 import copy
 import math
+import subprocess
+import sys
 from collections import defaultdict
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from nsl_hpc.bench import interpolate, planner_core_hours, study_manifest, timed
+from nsl_hpc.bench.measure import interpolate, planner_core_hours, study_manifest, timed
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
@@ -31,6 +34,7 @@ from nsl_hpc.studies.input_output.packed import IOMember, train_packed
 from nsl_hpc.studies.input_output.scoring import numpy_mlps, score_records
 from nsl_hpc.studies.input_output.study import build_io_model, horizon, training_memory_mb
 from nsl_hpc.studies.input_output.training import SignalScaling, train_io_model
+from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments
 
 
 class IOBench:
@@ -123,8 +127,6 @@ def projection(bench: IOBench, process_s: float) -> dict[str, Any]:
     """Core-hours of the input-output study: one process per task with the reference loop (``process_s``:
     interpreter and imports) against the planner's groups with ours, and the planner's own prediction, with
     the cost values fitted to the measurements."""
-    from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments
-
     io, grid = bench.io, bench.io.projection
     launch, manifest = study_manifest("input_output", f"data_dir={io.data_dir}")
     measured: dict[str, dict] = {}
@@ -210,3 +212,15 @@ def report(rows: list[dict[str, Any]], projected: Mapping[str, Any], io: DictCon
                   f"{fitted['params_per_overhead'][arch]:.3g}, lockstep_extra {fitted['lockstep_extra'][arch]:.3g}"
                   for arch in fitted["step_seconds"]) + "."]
     return "\n".join(lines)
+
+
+def input_output_part(cfg: DictConfig, root: Path) -> tuple[str, dict[str, Any]]:
+    """The input-output table and its headline figures."""
+    python = [sys.executable, "-c"]
+    _, process_s = timed(lambda: subprocess.run([*python, "import nsl_hpc.sweep.task"], check=True))
+    bench = IOBench(cfg, ArrayCache(root / "io-cache"))
+    rows = speed_rows(bench)
+    projected = projection(bench, process_s)
+    headline = {"io_single_speedup_min": min(row["single_ratio"] for row in rows),
+                "io_packed_speedup": min(row["packed_ratio"] for row in rows), **projected, "io_speeds": rows}
+    return report(rows, projected, cfg.io), headline

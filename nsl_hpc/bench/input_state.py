@@ -1,8 +1,6 @@
-"""Training-speed benchmark: plain PyTorch loops against ours, side by side in one process.
+"""The input-state part of ``python -m nsl_hpc.bench``: plain PyTorch loops against ours, side by side in one
+process.
 
-    python -m nsl_hpc.bench [parts=[input_state,input_output]] [out=bench.json] [readme=README.md] [steps=300]
-
-Prints (and with ``readme=`` writes between the README's markers of each part) the input-state part:
 1. per architecture at a small and a large size: samples/s of two reference loops on the modules, the plain
    loop (random mini-batch gather, forward, the study's loss, backward, Adam step, zero_grad) and the authors'
    loop (a shuffling DataLoader, forward, loss, backward, clip_grad_norm_, Adam step, LambdaLR step,
@@ -16,50 +14,35 @@ Prints (and with ``readme=`` writes between the README's markers of each part) t
    grid's step counts; ours with epoch milestones (one model per 14 tasks that differ only in epochs, shared
    draws); and the planner's own prediction (``cost.*``, for time limits);
 5. the peak memory of the largest input-state task.
-and the input-output part (``nsl_hpc.io_bench``). Everything runs on one thread. ``out=`` writes the headline
-figures as JSON.
 """
 
 import copy
-import json
 import math
 import resource
 import subprocess
 import sys
-import tempfile
-import time
 from collections import defaultdict
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
-from nsl_hpc import cli
-from nsl_hpc.atomic import write_text
+from nsl_hpc.bench.measure import interpolate, planner_core_hours, study_manifest, timed
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config
-from nsl_hpc.errors import ConfigError
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, predict_derivatives, train_lockstep
+from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.metrics import normalized_errors
-from nsl_hpc.studies.training import Scaling, batch_count, warmup_cosine
+from nsl_hpc.studies.training import batch_count, warmup_cosine
+from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments
 from nsl_hpc.sweep.rows import write_row_atomically
 from nsl_hpc.systems import SYSTEMS
-
-MARKERS = {"input_state": ("<!-- bench:start -->", "<!-- bench:end -->"),
-           "input_output": ("<!-- bench-io:start -->", "<!-- bench-io:end -->")}
-
-
-def timed(function: Callable[[], Any]) -> tuple[Any, float]:
-    started = time.perf_counter()
-    result = function()
-    return result, time.perf_counter() - started
 
 
 def normalised_mse(predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -195,45 +178,12 @@ def task_breakdown(bench: Bench, cfg: DictConfig, root: Path) -> dict[str, float
             "data (hit)": hit_s, "training": train_s, "scoring": score_s, "writing": write_s}
 
 
-def interpolate(table: Mapping[tuple[int, int], float], widths: list[int], depths: list[int], width: int,
-                depth: int) -> float:
-    """Bilinear interpolation (clamped) of per-step seconds measured on the (width, depth) grid."""
-    w = float(np.clip(width, widths[0], widths[-1]))
-    d = float(np.clip(depth, depths[0], depths[-1]))
-    at_depth = [np.interp(w, widths, [table[wi, dj] for wi in widths]) for dj in depths]
-    return float(np.interp(d, depths, at_depth))
-
-
-def study_manifest(sweep: str, *overrides: str) -> tuple[DictConfig, list[dict[str, Any]]]:
-    """The launch config and manifest rows of a study's sweep (``+sweep=<sweep>`` and ``overrides``)."""
-    from nsl_hpc.studies import study_named
-    from nsl_hpc.sweep.grid import build_manifest
-    from nsl_hpc.sweep.prepare import pair_configs
-
-    arguments = [f"+sweep={sweep}", *overrides]
-    launch = compose_config(arguments, "launch")
-    study = study_named(launch.study.name)
-    return launch, build_manifest(launch.sweep.grid, study, pair_configs(launch, arguments, study),
-                                  launch.sweep_seed).to_pylist()
-
-
-def planner_core_hours(launch: DictConfig, manifest: list[dict[str, Any]]) -> float:
-    """The core-hours ``launch +sweep=<its sweep> launcher=slurm dry_run=true`` predicts (``cost.*``)."""
-    from nsl_hpc.sweep.plan import make_packs, packing_for, sweep_groups
-
-    packing = packing_for(launch.packing, {"name": "slurm"})
-    packs = make_packs(sweep_groups(manifest, launch, packing), packing)
-    return sum(pack.seconds for pack in packs) / 3600
-
-
 def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, float]) -> dict[str, float]:
     """Core-hours of the input-state study: each reference loop (each task its own process: interpreter,
     imports, simulated data, its steps, scoring, writing) and ours (the launcher's lockstep groups of
     ``pack_size``: a step costs the step time of its widest member for the models still training, between the
     measured K = 1 and K = ``pack_size``; per task data from the cache, scoring and writing); ours with epoch
     milestones (shared draws); and the planner's prediction."""
-    from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments
-
     launch, manifest = study_manifest("input_state")
     grid = cfg.projection
     costs = {}
@@ -318,19 +268,6 @@ def report(speeds: list[dict], breakdown: Mapping[str, float], peak: float, proj
     return "\n".join(lines)
 
 
-def write_readme(path: Path, table: str, part: str) -> None:
-    """Replace the block between ``part``'s markers of ``path`` with ``table``."""
-    start, end = MARKERS[part]
-    text = path.read_text()
-    if start not in text or end not in text:
-        raise ValueError(f"{path} lacks the markers {start} ... {end}")
-    head, rest = text.split(start, 1)
-    write_text(f"{head}{start}\n{table}\n{end}{rest.split(end, 1)[1]}", path)
-
-
-PARTS = ("input_state", "input_output")
-
-
 def input_state_part(cfg: DictConfig, root: Path) -> tuple[str, dict[str, Any]]:
     """The input-state table (README's Performance) and its headline figures."""
     bench = Bench(cfg, ArrayCache(root / "cache"))
@@ -347,40 +284,3 @@ def input_state_part(cfg: DictConfig, root: Path) -> tuple[str, dict[str, Any]]:
                 "largest_task_peak_gib": memory, "matmul_peak_gflops": peak / 1e9, "speeds": speeds,
                 "task_seconds": breakdown}
     return report(speeds, breakdown, peak, projection, memory, cfg), headline
-
-
-def input_output_part(cfg: DictConfig, root: Path) -> tuple[str, dict[str, Any]]:
-    """The input-output table and its headline figures (``nsl_hpc.io_bench``)."""
-    from nsl_hpc import io_bench
-
-    python = [sys.executable, "-c"]
-    _, process_s = timed(lambda: subprocess.run([*python, "import nsl_hpc.sweep.task"], check=True))
-    bench = io_bench.IOBench(cfg, ArrayCache(root / "io-cache"))
-    rows = io_bench.speed_rows(bench)
-    projected = io_bench.projection(bench, process_s)
-    headline = {"io_single_speedup_min": min(row["single_ratio"] for row in rows),
-                "io_packed_speedup": min(row["packed_ratio"] for row in rows), **projected, "io_speeds": rows}
-    return io_bench.report(rows, projected, cfg.io), headline
-
-
-def main(cfg: DictConfig) -> int:
-    unknown = [part for part in cfg.parts if part not in PARTS]
-    if unknown:
-        raise ConfigError(f"parts={list(cfg.parts)} names unknown parts {unknown}; choose from: {', '.join(PARTS)}")
-    torch.set_num_threads(1)
-    headline = {}
-    with tempfile.TemporaryDirectory() as folder:
-        for part in cfg.parts:
-            table, figures = {"input_state": input_state_part, "input_output": input_output_part}[part](
-                cfg, Path(folder))
-            print(table, end="\n\n")
-            if cfg.readme:
-                write_readme(Path(cfg.readme), table, part)
-            headline.update(figures)
-    if cfg.out:
-        write_text(json.dumps(headline, indent=2), Path(cfg.out))
-    return 0
-
-
-if __name__ == "__main__":
-    cli.run(main, __doc__, config_name="bench")

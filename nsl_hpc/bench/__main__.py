@@ -1,0 +1,60 @@
+"""Training-speed benchmark: plain PyTorch loops against ours, side by side in one process.
+
+    python -m nsl_hpc.bench [parts=[input_state,input_output]] [out=bench.json] [readme=README.md] [steps=300]
+
+Prints (and with ``readme=`` writes between the README's markers of each part) the input-state part
+(``nsl_hpc.bench.input_state``) and the input-output part (``nsl_hpc.bench.input_output``). Everything runs on one
+thread. ``out=`` writes the headline figures as JSON.
+"""
+
+import json
+import tempfile
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+
+from nsl_hpc import cli
+from nsl_hpc.atomic import write_text
+from nsl_hpc.bench.input_output import input_output_part
+from nsl_hpc.bench.input_state import input_state_part
+from nsl_hpc.errors import ConfigError
+
+MARKERS = {"input_state": ("<!-- bench:start -->", "<!-- bench:end -->"),
+           "input_output": ("<!-- bench-io:start -->", "<!-- bench-io:end -->")}
+
+
+def write_readme(path: Path, table: str, part: str) -> None:
+    """Replace the block between ``part``'s markers of ``path`` with ``table``."""
+    start, end = MARKERS[part]
+    text = path.read_text()
+    if start not in text or end not in text:
+        raise ValueError(f"{path} lacks the markers {start} ... {end}")
+    head, rest = text.split(start, 1)
+    write_text(f"{head}{start}\n{table}\n{end}{rest.split(end, 1)[1]}", path)
+
+
+PARTS = ("input_state", "input_output")
+
+
+def main(cfg: DictConfig) -> int:
+    unknown = [part for part in cfg.parts if part not in PARTS]
+    if unknown:
+        raise ConfigError(f"parts={list(cfg.parts)} names unknown parts {unknown}; choose from: {', '.join(PARTS)}")
+    torch.set_num_threads(1)
+    headline = {}
+    with tempfile.TemporaryDirectory() as folder:
+        for part in cfg.parts:
+            table, figures = {"input_state": input_state_part, "input_output": input_output_part}[part](
+                cfg, Path(folder))
+            print(table, end="\n\n")
+            if cfg.readme:
+                write_readme(Path(cfg.readme), table, part)
+            headline.update(figures)
+    if cfg.out:
+        write_text(json.dumps(headline, indent=2), Path(cfg.out))
+    return 0
+
+
+if __name__ == "__main__":
+    cli.run(main, __doc__, config_name="bench")

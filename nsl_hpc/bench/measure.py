@@ -1,0 +1,47 @@
+"""What both parts of the benchmark use: a timer, the study's manifest and the planner's prediction of it,
+and interpolation of per-step costs measured on a (width, depth) grid."""
+
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig
+
+from nsl_hpc.config import compose_config
+from nsl_hpc.studies import study_named
+from nsl_hpc.sweep.grid import build_manifest
+from nsl_hpc.sweep.plan import make_packs, packing_for, sweep_groups
+from nsl_hpc.sweep.prepare import pair_configs
+
+
+def timed(function: Callable[..., Any], *args: Any) -> tuple[Any, float]:
+    """(function(*args), the wall-clock seconds it took)."""
+    started = time.perf_counter()
+    result = function(*args)
+    return result, time.perf_counter() - started
+
+
+def interpolate(table: Mapping[tuple[int, int], float], widths: list[int], depths: list[int], width: int,
+                depth: int) -> float:
+    """Bilinear interpolation (clamped) of per-step seconds measured on the (width, depth) grid."""
+    w = float(np.clip(width, widths[0], widths[-1]))
+    d = float(np.clip(depth, depths[0], depths[-1]))
+    at_depth = [np.interp(w, widths, [table[wi, dj] for wi in widths]) for dj in depths]
+    return float(np.interp(d, depths, at_depth))
+
+
+def study_manifest(sweep: str, *overrides: str) -> tuple[DictConfig, list[dict[str, Any]]]:
+    """The launch config and manifest rows of a study's sweep (``+sweep=<sweep>`` and ``overrides``)."""
+    arguments = [f"+sweep={sweep}", *overrides]
+    launch = compose_config(arguments, "launch")
+    study = study_named(launch.study.name)
+    return launch, build_manifest(launch.sweep.grid, study, pair_configs(launch, arguments, study),
+                                  launch.sweep_seed).to_pylist()
+
+
+def planner_core_hours(launch: DictConfig, manifest: list[dict[str, Any]]) -> float:
+    """The core-hours ``launch +sweep=<its sweep> launcher=slurm dry_run=true`` predicts (``cost.*``)."""
+    packing = packing_for(launch.packing, {"name": "slurm"})
+    packs = make_packs(sweep_groups(manifest, launch, packing), packing)
+    return sum(pack.seconds for pack in packs) / 3600
