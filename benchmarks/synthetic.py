@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from nsl_hpc.sweep.failures import record_failure
+from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.manifest import read_manifest
-from nsl_hpc.sweep.rows import row_path, write_row_atomically
+from nsl_hpc.sweep.rows import write_row_atomically
 
 
 def synthetic_row(task: dict, rng: np.random.Generator) -> dict:

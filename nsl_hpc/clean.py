@@ -22,23 +22,21 @@ from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.checkpoint import info_path
+from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.checkpoints import STALE_S, lock_path, saved_groups
 from nsl_hpc.sweep.directory import process_alive, sweep_lock
-from nsl_hpc.sweep.failures import failure_path, task_log_path
+from nsl_hpc.sweep.layout import failure_path, task_log_path
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 from nsl_hpc.sweep.submissions import read_submissions
 from nsl_hpc.sweep.task_states import ACTIVE_JOB_STATES, read_sweep_state
 
 ENTRY = re.compile(r"[0-9a-f]{32}\.npz")  # an ArrayCache entry's name
-KEPT = ("manifest.parquet", "launch.yaml", "run.yaml", "configs", "rows", "corrupt", "results.parquet",
-        "nsl_fits.parquet", "nsl_fits.txt", "report.html", "figures", "mlflow.db", "mlartifacts", "submissions",
-        ".lock")
 
 
 def finished_slurm_job_files(sweep_dir: Path, done: set[str], element_states: dict[str, str]) -> Iterator[Path]:
     """submitit's files of array elements that are no longer active and whose tasks all have a row."""
     for record in read_submissions(sweep_dir):
-        folder = sweep_dir / "submitit" / record["array_id"]
+        folder = sweep_dir / layout.SUBMITIT / record["array_id"]
         finished = [element for element, task_ids in zip(record["element_ids"], record["elements"], strict=True)
                     if element_states.get(element) not in ACTIVE_JOB_STATES and set(task_ids) <= done]
         if len(finished) == len(record["element_ids"]):
@@ -51,7 +49,7 @@ def finished_slurm_job_files(sweep_dir: Path, done: set[str], element_states: di
 def finished_local_job_files(sweep_dir: Path) -> Iterator[Path]:
     """Folders of local jobs whose process has ended (a local job's id is its pid) and of debug jobs
     (they ran inside a launch that has returned)."""
-    for folder in (sweep_dir / "submitit" / "local").glob("*"):
+    for folder in layout.local_jobs_folder(sweep_dir).glob("*"):
         if not (folder.name.isdigit() and process_alive(int(folder.name))):
             yield folder
 
@@ -71,7 +69,7 @@ def stale_checkpoint_files(sweep_dir: Path, done: set[str], known: set[str]) -> 
     for path in finished:
         yield from (path, info_path(path), lock_path(path))
     finished_locks = {lock_path(path) for path in finished}
-    for lock in (sweep_dir / "checkpoints").glob("*/*.lock"):
+    for lock in (sweep_dir / layout.CHECKPOINTS).glob("*/*.lock"):
         with contextlib.suppress(FileNotFoundError):
             if lock not in finished_locks and time.time() - lock.stat().st_mtime > STALE_S:
                 yield lock
@@ -94,12 +92,12 @@ def cache_entries(cache_dir: Path) -> Iterator[Path]:
 def protected(sweep_dir: Path, done: set[str]) -> Callable[[Path], bool]:
     """Whether removing a path would touch what clean must keep: rows, the manifest, configs, launch and run
     settings, results, reports, set-aside rows, and the failure records and logs of tasks without a row."""
-    kept = [sweep_dir / name for name in KEPT]
+    kept = [sweep_dir / name for name in layout.RECORDS]
 
     def check(path: Path) -> bool:
         if any(path == keep or keep.is_relative_to(path) or path.is_relative_to(keep) for keep in kept):
             return True
-        if path.parent.parent.name in ("failures", "logs") and path.parents[2] == sweep_dir:
+        if path.parent.parent.name in (layout.FAILURES, layout.LOGS) and path.parents[2] == sweep_dir:
             return path.stem not in done
         return False
 

@@ -17,7 +17,6 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.fitting import (
-    FITS_TEXT_FILE,
     choose_metrics,
     fit_sweep,
     fits_path,
@@ -26,6 +25,7 @@ from nsl_hpc.analysis.fitting import (
     write_fits,
 )
 from nsl_hpc.analysis.settings import check_nsl
+from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.manifest import require_sweep
 
 
@@ -38,7 +38,7 @@ def main(cfg: DictConfig) -> int:
     write_fits(sweep_dir, rows)
     failed = sum(row["error"] is not None for row in rows)
     print(f"{len(rows) - failed} NSLs fitted ({failed} not fittable) -> {fits_path(sweep_dir)}, "
-          f"{Path(sweep_dir) / FITS_TEXT_FILE}")
+          f"{Path(sweep_dir) / layout.FITS_TEXT}")
     return 0
 
 

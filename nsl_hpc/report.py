@@ -4,7 +4,7 @@ self-contained ``<sweep_dir>/report.html`` (and its comparison with the publishe
 
     python -m nsl_hpc.report sweep_dir=runs/demo
     python -m nsl_hpc.report sweep_dir=runs/demo mlflow.tracking_uri=http://mlflow.example:5000
-    python -m nsl_hpc.report sweep_dir=runs/io metrics=[nmae,nmae_one_step_test]   # other scores (README)
+    python -m nsl_hpc.report sweep_dir=runs/io metrics=[nmae,nmae_one_step_test]   # other scores (docs/science.md)
 
 Safe to re-run while a sweep is still going: every output is replaced atomically and MLflow runs are
 updated, not duplicated. A tracking server (http, https) must answer within ``mlflow.timeout_s`` before anything
@@ -16,7 +16,6 @@ from omegaconf import DictConfig, OmegaConf
 from nsl_hpc import cli
 from nsl_hpc.analysis.figures import draw_figures, figure_stem
 from nsl_hpc.analysis.fitting import (
-    FITS_TEXT_FILE,
     choose_metrics,
     fit_sweep,
     fits_path,
@@ -29,8 +28,6 @@ from nsl_hpc.analysis.merge import merge_sweep, results_path
 from nsl_hpc.analysis.mlflow_runs import log_to_mlflow, require_server, tracking_uri
 from nsl_hpc.analysis.prediction import what_it_takes
 from nsl_hpc.analysis.report import (
-    COMPARISON_FILE,
-    REPORT_FILE,
     comparison_markdown,
     fit_note,
     report_html,
@@ -39,6 +36,7 @@ from nsl_hpc.analysis.report import (
 )
 from nsl_hpc.analysis.settings import check_figures, check_nsl
 from nsl_hpc.atomic import write_text
+from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 
 
@@ -62,14 +60,14 @@ def main(cfg: DictConfig) -> int:
     entries = what_it_takes(results, rows, wanted["resource"], wanted["metric"],
                             lambda best: [factor * best for factor in wanted["factors"]], nsl)
     section = what_it_takes_html(entries, wanted, nsl["resources"][wanted["resource"]]["symbol"])
-    report = sweep_dir / REPORT_FILE
+    report = sweep_dir / layout.REPORT
     write_text(report_html(sweep_dir, launch, summary, rows, figures, section, nsl), report)
     notes = " ".join(note for note in (scores_note(launch), fit_note(nsl)) if note)
-    write_text(comparison_markdown(rows, notes), sweep_dir / COMPARISON_FILE)
+    write_text(comparison_markdown(rows, notes), sweep_dir / layout.COMPARISON)
     if cfg.mlflow.enabled:
         by_key = {nsl_key(row): figure_stem(sweep_dir, row).with_suffix(".png") for row in rows}
-        artifacts = [results_path(sweep_dir), fits_path(sweep_dir), sweep_dir / FITS_TEXT_FILE, report,
-                     sweep_dir / COMPARISON_FILE,
+        artifacts = [results_path(sweep_dir), fits_path(sweep_dir), sweep_dir / layout.FITS_TEXT, report,
+                     sweep_dir / layout.COMPARISON,
                      *(path for path in figures["overview"])]
         experiment, run = log_to_mlflow(sweep_dir, cfg.mlflow, launch, summary, rows,
                                         {key: path for key, path in by_key.items() if path.exists()}, artifacts)

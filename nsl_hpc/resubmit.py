@@ -26,10 +26,11 @@ from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.checkpoints import saved_groups
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock
 from nsl_hpc.sweep.executors import run_jobs
+from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.manifest import RUN_SETTINGS, read_base_config, read_launch_config, read_manifest, require_sweep
 from nsl_hpc.sweep.plan import check_run_settings, plan_jobs
 from nsl_hpc.sweep.prepare import describe_infeasible, override_key, split_runnable
-from nsl_hpc.sweep.rows import row_path, set_aside
+from nsl_hpc.sweep.rows import set_aside
 from nsl_hpc.sweep.task_states import read_sweep_state
 
 RESUBMITTABLE = ("failed", "frozen", "timeout", "missing", "corrupt")

@@ -5,7 +5,6 @@ import pyarrow.parquet as pq
 import pytest
 
 from nsl_hpc.config import compose_config
-from nsl_hpc.packs import PackRunner
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.input_state.study import model_parameters
 from nsl_hpc.sweep.rows import read_row
@@ -176,12 +175,3 @@ def test_the_manifest_is_what_trains_a_hand_edited_size_is_not_drawn_again(tmp_p
     assert rows[edited["task_id"]]["width"] == edited["width"]
     assert rows[edited["task_id"]]["params"] == edited["params"]
     assert all(rows[task["task_id"]]["width"] == task["width"] for task in manifest)
-
-
-def test_jobs_queued_by_version_0_1_still_run_through_the_old_runner_path(tmp_path):
-    """A 0.1 job unpickles nsl_hpc.packs.PackRunner and passes it task ids: they run, regrouped as 0.1 did."""
-    sweep_dir = tmp_path / "sweep"
-    assert nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0
-    ids = manifest_ids(sweep_dir)
-    assert PackRunner()(str(sweep_dir), ids) == {"ok": len(ids)}
-    assert sorted(path.stem for path in row_files(sweep_dir)) == sorted(ids)

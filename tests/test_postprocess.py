@@ -11,7 +11,8 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.sweep.failures import record_failure
-from nsl_hpc.sweep.rows import read_row, row_path, write_row_atomically
+from nsl_hpc.sweep.layout import row_path
+from nsl_hpc.sweep.rows import read_row, write_row_atomically
 from tests.sweeps import manifest_ids, nsl, row_files
 
 pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)

@@ -145,7 +145,7 @@ def test_epoch_milestones_with_a_constant_learning_rate_are_the_separate_runs(co
 
 def test_epoch_milestones_with_warmup_cosine_follow_the_longer_schedule(compose, cache):
     """After 2 of 6 scheduled epochs the learning rate is still high: not the model of a 2-epoch schedule,
-    which has decayed to 0 (README, "Epoch milestones", measures the difference in the errors)."""
+    which has decayed to 0 (docs/science.md, "Epoch milestones", measures the difference in the errors)."""
     first, _ = milestone_run(compose, cache, "warmup_cosine", 6, milestones=(2,), schedule_epochs=6)
     (alone,) = milestone_run(compose, cache, "warmup_cosine", 2)
     assert first.outcome.steps == alone.outcome.steps

@@ -24,17 +24,18 @@ from nsl_hpc.analysis.fitting import fit_from_row, fittable, pair_outcomes
 from nsl_hpc.analysis.published import KEY as PUBLISHED_KEY
 from nsl_hpc.analysis.published import published_laws
 from nsl_hpc.atomic import replacing
+from nsl_hpc.sweep import layout
 
-FIGURES_DIR = "figures"
 MAX_DECADES_BELOW = 1e3  # a published law further below the outcomes than this factor is named, not drawn in view
 
 
 def figure_stem(sweep_dir: Path, row: Mapping[str, Any]) -> Path:
-    return Path(sweep_dir) / FIGURES_DIR / "nsl" / f"{row['system']}__{row['arch']}__{row['resource']}__{row['metric']}"
+    name = f"{row['system']}__{row['arch']}__{row['resource']}__{row['metric']}"
+    return Path(sweep_dir) / layout.FIGURES / "nsl" / name
 
 
 def overview_stem(sweep_dir: Path, resource: str, metric: str) -> Path:
-    return Path(sweep_dir) / FIGURES_DIR / f"overview__{resource}__{metric}"
+    return Path(sweep_dir) / layout.FIGURES / f"overview__{resource}__{metric}"
 
 
 def save(fig: Figure, stem: Path, figures: Mapping[str, Any]) -> list[Path]:

@@ -23,9 +23,8 @@ from nsl_hpc.atomic import write_parquet, write_text
 from nsl_hpc.errors import ConfigError, RunError
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.studies.metrics import NORMALIZATIONS
+from nsl_hpc.sweep import layout
 
-FITS_FILE = "nsl_fits.parquet"
-FITS_TEXT_FILE = "nsl_fits.txt"
 KEY_COLUMNS = ("system", "arch", "resource", "metric")
 
 
@@ -35,7 +34,7 @@ def nsl_key(row: Mapping[str, Any]) -> str:
 
 
 def fits_path(sweep_dir: Path) -> Path:
-    return Path(sweep_dir) / FITS_FILE
+    return Path(sweep_dir) / layout.FITS
 
 
 def metric_label(column: str, labels: Mapping[str, str]) -> str:
@@ -203,4 +202,4 @@ def write_fits(sweep_dir: Path, rows: list[dict[str, Any]]) -> None:
     columns = dict.fromkeys(name for row in rows for name in row)  # rows not fitted lack the law's columns
     write_parquet(pa.Table.from_pylist([{name: row.get(name) for name in columns} for row in rows]),
                   fits_path(sweep_dir))
-    write_text("\n".join(describe_fit(row) for row in rows) + "\n", Path(sweep_dir) / FITS_TEXT_FILE)
+    write_text("\n".join(describe_fit(row) for row in rows) + "\n", Path(sweep_dir) / layout.FITS_TEXT)

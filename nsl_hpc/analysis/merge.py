@@ -16,15 +16,13 @@ import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
 from nsl_hpc.atomic import write_parquet, write_text
+from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.checkpoints import running_task_ids
 from nsl_hpc.sweep.directory import launch_running
 from nsl_hpc.sweep.failures import FAILURE_STATES, read_failures
 from nsl_hpc.sweep.manifest import read_manifest
 from nsl_hpc.sweep.rows import set_aside
 
-RESULTS_FILE = "results.parquet"
-SUMMARY_FILE = "merge_summary.json"
-CACHE_FILE = ".merge_cache.parquet"
 SHARD_KEY = ("shard", "size", "mtime_ns")  # a cached row stands while its shard keeps this key
 
 
@@ -70,7 +68,7 @@ class MergeSummary:
 
 
 def results_path(sweep_dir: Path) -> Path:
-    return Path(sweep_dir) / RESULTS_FILE
+    return Path(sweep_dir) / layout.RESULTS
 
 
 def read_shards(paths: list[str], skip: Sequence[str]) -> tuple[pa.Table, list[str]]:
@@ -107,9 +105,9 @@ def read_shards(paths: list[str], skip: Sequence[str]) -> tuple[pa.Table, list[s
 
 def list_shards(sweep_dir: Path) -> pa.Table:
     """Every row file of the sweep with its SHARD_KEY (shard: path relative to the sweep dir), sorted."""
-    entries = [entry for bucket in os.scandir(Path(sweep_dir) / "rows") if bucket.is_dir()
+    entries = [entry for bucket in os.scandir(Path(sweep_dir) / layout.ROWS) if bucket.is_dir()
                for entry in os.scandir(bucket.path) if entry.name.endswith(".parquet")] \
-        if (Path(sweep_dir) / "rows").is_dir() else []
+        if (Path(sweep_dir) / layout.ROWS).is_dir() else []
     stats = [entry.stat() for entry in entries]
     shards = [os.path.relpath(entry.path, sweep_dir) for entry in entries]
     table = pa.table({"shard": shards, "size": [s.st_size for s in stats],
@@ -121,7 +119,7 @@ def list_shards(sweep_dir: Path) -> pa.Table:
 def read_cache(sweep_dir: Path, shards: pa.Table) -> pa.Table | None:
     """Cached rows whose shard still has the same size and modification time (None without a cache)."""
     try:
-        cached = pq.read_table(Path(sweep_dir) / CACHE_FILE)
+        cached = pq.read_table(Path(sweep_dir) / layout.MERGE_CACHE)
     except (pa.ArrowException, OSError):
         return None
     return cached.join(shards, list(SHARD_KEY), join_type="left semi")
@@ -142,7 +140,7 @@ def read_rows(sweep_dir: Path, skip: Sequence[str]) -> tuple[pa.Table, list[str]
     new = new.join(shards, "shard", join_type="inner")  # add size and mtime_ns
     rows = new if cached is None else pa.concat_tables([cached, new], promote_options="permissive")
     rows = rows.combine_chunks().sort_by("shard")  # one chunk per shard would make every later step slow
-    write_parquet(rows, Path(sweep_dir) / CACHE_FILE)
+    write_parquet(rows, Path(sweep_dir) / layout.MERGE_CACHE)
     return rows, [relative[path] for path in corrupt]
 
 
@@ -191,5 +189,5 @@ def merge_sweep(sweep_dir: Path) -> MergeSummary:
                            diverged=diverged,
                            corrupt_shards=corrupt,
                            duplicate_rows=duplicates, unknown_rows=unknown)
-    write_text(json.dumps(asdict(summary), indent=1), sweep_dir / SUMMARY_FILE)
+    write_text(json.dumps(asdict(summary), indent=1), sweep_dir / layout.MERGE_SUMMARY)
     return summary

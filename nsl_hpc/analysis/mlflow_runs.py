@@ -26,6 +26,7 @@ from nsl_hpc.analysis.merge import MergeSummary
 from nsl_hpc.errors import RunError, require_number
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_named
+from nsl_hpc.sweep import layout
 
 SWEEP_TAG = "nsl_hpc.sweep.directory"  # the sweep directory, for people
 SWEEP_ID_TAG = "nsl_hpc.sweep_id"  # a hash of it, for searches (a path may hold quotes; a hash holds none)
@@ -40,7 +41,7 @@ def now_ms() -> int:
 
 
 def tracking_uri(sweep_dir: Path, configured: str | None) -> str:
-    return configured or f"sqlite:///{Path(sweep_dir).resolve() / 'mlflow.db'}"
+    return configured or f"sqlite:///{Path(sweep_dir).resolve() / layout.MLFLOW_DB}"
 
 
 def require_server(settings: Mapping[str, Any]) -> None:
@@ -72,7 +73,7 @@ def experiment_id(client: MlflowClient, name: str, sweep_dir: Path, default_stor
     experiment = client.get_experiment_by_name(name)
     if experiment is not None:
         return experiment.experiment_id
-    location = (Path(sweep_dir).resolve() / "mlartifacts").as_uri() if default_store else None
+    location = (Path(sweep_dir).resolve() / layout.MLFLOW_ARTIFACTS).as_uri() if default_store else None
     return client.create_experiment(name, artifact_location=location)
 
 

@@ -19,8 +19,6 @@ from nsl_hpc.studies.base import without_paths
 from nsl_hpc.sweep.grid import sub_grids
 from nsl_hpc.sweep.manifest import read_base_config
 
-REPORT_FILE = "report.html"
-COMPARISON_FILE = "comparison.md"  # the comparison with the published laws, as Markdown
 STYLE = """body{font-family:system-ui,sans-serif;margin:2em auto;max-width:1200px;color:#222}
 table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 6px;text-align:left}
 th{background:#f2f2f2}code{font-size:12px}img{max-width:100%}pre{background:#f7f7f7;padding:.6em}"""

@@ -1,8 +1,8 @@
 """Training-speed benchmark: plain PyTorch loops against ours, side by side in one process.
 
-    python -m nsl_hpc.bench [parts=[input_state,input_output]] [out=bench.json] [readme=README.md] [steps=300]
+    python -m nsl_hpc.bench [parts=[input_state,input_output]] [out=bench.json] [readme=docs/performance.md] [steps=300]
 
-Prints (and with ``readme=`` writes between the README's markers of each part) the input-state part
+Prints (and with ``readme=`` writes between that file's markers of each part) the input-state part
 (``nsl_hpc.bench.input_state``) and the input-output part (``nsl_hpc.bench.input_output``). Everything runs on one
 thread. ``out=`` writes the headline figures as JSON.
 """

@@ -233,7 +233,7 @@ def largest_task_peak_memory(cfg: DictConfig, root: Path) -> float:
 
 def report(speeds: list[dict], breakdown: Mapping[str, float], peak: float, projection: Mapping[str, float],
            memory_gib: float, cfg: DictConfig) -> str:
-    """The figures as markdown (the README's Performance table)."""
+    """The figures as markdown (docs/performance.md's table)."""
     lines = [f"Measured by `python -m nsl_hpc.bench` on one core ({torch.get_num_threads()} thread), "
              f"{cfg.steps} steps of batch {cfg.train.batch_size} on {cfg.system.name} (the fastest of {cfg.repeats} "
              f"interleaved runs), K = {cfg.pack_size} packed models.", "",
@@ -269,7 +269,7 @@ def report(speeds: list[dict], breakdown: Mapping[str, float], peak: float, proj
 
 
 def input_state_part(cfg: DictConfig, root: Path) -> tuple[str, dict[str, Any]]:
-    """The input-state table (README's Performance) and its headline figures."""
+    """The input-state table (docs/performance.md) and its headline figures."""
     bench = Bench(cfg, ArrayCache(root / "cache"))
     speeds = speed_table(bench, cfg)
     peak = matmul_peak_flops(cfg.matmul_size)

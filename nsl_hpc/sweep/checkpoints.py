@@ -23,6 +23,7 @@ from typing import Any
 from nsl_hpc.atomic import replacing
 from nsl_hpc.checkpoint import read_info
 from nsl_hpc.seeding import stable_hash
+from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.directory import process_alive
 
 RENEW_S = 15.0  # a running group's lock is renewed this often
@@ -35,8 +36,7 @@ def group_key(task_ids: Sequence[str]) -> str:
 
 
 def checkpoint_path(sweep_dir: Path, task_ids: Sequence[str]) -> Path:
-    key = group_key(task_ids)
-    return Path(sweep_dir) / "checkpoints" / key[:2] / f"{key}.pt"
+    return layout.checkpoint_file(sweep_dir, group_key(task_ids))
 
 
 def lock_path(checkpoint: Path) -> Path:
@@ -64,7 +64,7 @@ class SavedGroup:
 
 def saved_groups(sweep_dir: Path) -> Iterator[SavedGroup]:
     """Every readable checkpoint of a sweep."""
-    for path in sorted((Path(sweep_dir) / "checkpoints").glob("*/*.pt")):
+    for path in sorted((Path(sweep_dir) / layout.CHECKPOINTS).glob("*/*.pt")):
         info = read_info(path)
         if info is not None:
             yield SavedGroup(path, tuple(info["task_ids"]), info["step"], info["total_steps"], info["resumes"],
@@ -90,7 +90,7 @@ class HeldLock:
 def held_locks(sweep_dir: Path) -> list[HeldLock]:
     """Every readable group lock of a sweep (locks written before they named their tasks name none)."""
     locks, now = [], time.time()
-    for path in (Path(sweep_dir) / "checkpoints").glob("*/*.lock"):
+    for path in (Path(sweep_dir) / layout.CHECKPOINTS).glob("*/*.lock"):
         try:
             record, renewed = json.loads(path.read_text()), path.stat().st_mtime
             locks.append(HeldLock(path, record["host"], record["pid"], tuple(record.get("task_ids", ())),

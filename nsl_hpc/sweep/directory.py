@@ -24,9 +24,8 @@ from pathlib import Path
 from typing import Any
 
 from nsl_hpc.errors import ConfigError
+from nsl_hpc.sweep import layout
 
-LOCK_FILE = ".lock"
-CONTROL_PATHS = ("submitit", "launch.yaml", "run.yaml", "configs", "manifest.parquet")
 PATH_KEYS = (("out_dir",), ("cache_dir",), ("data_dir",), ("system", "source", "data_dir"))  # of a launch config
 SWEEP_DIR_REFERENCE = "${sweep_dir}"
 
@@ -51,7 +50,7 @@ def usable_sweep_dir(sweep_dir: str | os.PathLike) -> Path:
 def sweep_lock(sweep_dir: Path, command: str) -> Iterator[None]:
     """Hold the sweep's lock while ``command`` changes it; refuse with one line naming the holder when another
     command holds it."""
-    path = Path(sweep_dir) / LOCK_FILE
+    path = Path(sweep_dir) / layout.LOCK
     descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         try:
@@ -79,7 +78,7 @@ def sweep_lock_holder(sweep_dir: Path) -> str | None:
     None. Read from the line its holder writes (and empties when it ends), without taking the lock: a peek never
     refuses a launch."""
     try:
-        match = HOLDER.match((Path(sweep_dir) / LOCK_FILE).read_text())
+        match = HOLDER.match((Path(sweep_dir) / layout.LOCK).read_text())
     except OSError:
         return None
     here = match is not None and match["host"] == socket.gethostname()
@@ -130,7 +129,7 @@ def check_control_files(sweep_dir: Path, allow_shared: bool) -> None:
 def control_paths(sweep_dir: Path) -> Iterator[Path]:
     """The sweep directory, its control files and folders, and everything in those folders."""
     yield sweep_dir
-    for name in CONTROL_PATHS:
+    for name in layout.CONTROL:
         path = sweep_dir / name
         yield path
         if path.is_dir() and not path.is_symlink():

@@ -21,14 +21,16 @@ from tqdm import tqdm
 from nsl_hpc.config.launchers import DebugLauncher, Launcher, LocalLauncher, SlurmLauncher, launcher_from
 from nsl_hpc.errors import RunError
 from nsl_hpc.studies import study_named
+from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.checkpoints import STALE_S, HeldLock, held_locks
 from nsl_hpc.sweep.directory import process_alive
 from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.job import JobRunner, record_group_failure
+from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.manifest import write_run_settings
 from nsl_hpc.sweep.plan import Group, Pack
 from nsl_hpc.sweep.prepare import prepare_shared_data
-from nsl_hpc.sweep.rows import row_path, row_state
+from nsl_hpc.sweep.rows import row_state
 from nsl_hpc.sweep.slurm import queued_jobs, read_limits
 from nsl_hpc.sweep.submissions import record_submission
 
@@ -76,7 +78,7 @@ def slurm_executor(sweep_dir: Path, time_limit_min: int, launcher: SlurmLauncher
                    ) -> submitit.SlurmExecutor:
     """The submitit executor of one array: single-CPU elements of one time limit, warned before it, each
     requeued up to ``chain`` + 2 times at its time limit (a chain of ``chain`` jobs, and some slack)."""
-    executor = submitit.SlurmExecutor(folder=sweep_dir / "submitit" / "%A", max_num_timeout=chain + 2)
+    executor = submitit.SlurmExecutor(folder=sweep_dir / layout.SUBMITIT / "%A", max_num_timeout=chain + 2)
     executor.update_parameters(
         job_name=f"nsl-{name}", time=time_limit_min, cpus_per_task=1, ntasks_per_node=1, mem=launcher.mem,
         partition=launcher.partition, account=launcher.account, qos=launcher.qos,
@@ -119,7 +121,7 @@ def run_locally(sweep_dir: Path, packs: Sequence[Pack], launcher: LocalLauncher 
     workers = launcher.workers or os.cpu_count() or 1
     shares = balance(packs, workers)
     task_ids = [task_id for share in shares for group in share for task_id in group.task_ids]
-    folder = sweep_dir / "submitit" / "local" / "%j"
+    folder = layout.local_jobs_folder(sweep_dir) / "%j"
     if debug:
         executor = submitit.DebugExecutor(folder=folder)
     else:

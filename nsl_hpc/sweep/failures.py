@@ -13,16 +13,10 @@ from pathlib import Path
 from typing import Any
 
 from nsl_hpc.atomic import write_text
+from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.layout import failure_path, task_log_path
 
 FAILURE_STATES = ("failed", "frozen", "timeout")
-
-
-def failure_path(sweep_dir: Path, task_id: str) -> Path:
-    return Path(sweep_dir) / "failures" / task_id[:2] / f"{task_id}.json"
-
-
-def task_log_path(sweep_dir: Path, task_id: str) -> Path:
-    return Path(sweep_dir) / "logs" / task_id[:2] / f"{task_id}.log"
 
 
 def log_tail(path: Path, lines: int = 20) -> str:
@@ -45,7 +39,7 @@ def record_failure(sweep_dir: Path, task_id: str, status: str, reason: str) -> N
 def read_failures(sweep_dir: Path) -> dict[str, dict[str, Any]]:
     """Every failure record of a sweep by task id (unreadable records are skipped)."""
     records = {}
-    for path in (Path(sweep_dir) / "failures").glob("*/*.json"):
+    for path in (Path(sweep_dir) / layout.FAILURES).glob("*/*.json"):
         try:
             records[path.stem] = json.loads(path.read_text())
         except (OSError, ValueError):

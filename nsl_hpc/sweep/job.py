@@ -44,10 +44,11 @@ from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info, remove_
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.checkpoints import GroupLock, checkpoint_path
 from nsl_hpc.sweep.directory import process_alive
-from nsl_hpc.sweep.failures import failure_path, record_failure, task_log_path
+from nsl_hpc.sweep.failures import record_failure
+from nsl_hpc.sweep.layout import failure_path, row_path, task_log_path
 from nsl_hpc.sweep.manifest import read_base_config, read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import Group
-from nsl_hpc.sweep.rows import row_path, row_state, set_aside
+from nsl_hpc.sweep.rows import row_state, set_aside
 from nsl_hpc.sweep.task import describe, run_tasks
 
 POLL_SECONDS = 0.2

@@ -24,16 +24,15 @@ from omegaconf.errors import OmegaConfBaseException
 
 from nsl_hpc.atomic import create_parquet, write_text
 from nsl_hpc.errors import ConfigError, damaged_file
+from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.directory import portable_paths
+from nsl_hpc.sweep.layout import base_config_path
 
-MANIFEST_FILE = "manifest.parquet"
-LAUNCH_CONFIG_FILE = "launch.yaml"
-RUN_SETTINGS_FILE = "run.yaml"
 RUN_SETTINGS = ("launcher", "packing", "cost", "watchdog", "lockstep", "checkpoint")  # what a resubmit may change
 
 
 def manifest_path(sweep_dir: Path) -> Path:
-    return Path(sweep_dir) / MANIFEST_FILE
+    return Path(sweep_dir) / layout.MANIFEST
 
 
 def require_sweep(sweep_dir: str | Path) -> Path:
@@ -41,10 +40,6 @@ def require_sweep(sweep_dir: str | Path) -> Path:
     if not manifest_path(sweep_dir).exists():
         raise ConfigError(f"sweep_dir={str(sweep_dir)!r} has no manifest.parquet; launch a sweep there first")
     return Path(sweep_dir)
-
-
-def base_config_path(sweep_dir: Path, system: str, arch: str) -> Path:
-    return Path(sweep_dir) / "configs" / f"{system}__{arch}.yaml"
 
 
 def write_yaml(values: Mapping[str, Any], path: Path, sweep_dir: Path) -> None:
@@ -73,7 +68,7 @@ def write_sweep(sweep_dir: Path, manifest: pa.Table, base_configs: Mapping[tuple
     a concurrent launch that got there first makes this one fail)."""
     for (system, arch), values in base_configs.items():
         write_yaml(values, base_config_path(sweep_dir, system, arch), sweep_dir)
-    write_yaml(launch, Path(sweep_dir) / LAUNCH_CONFIG_FILE, sweep_dir)
+    write_yaml(launch, Path(sweep_dir) / layout.LAUNCH_CONFIG, sweep_dir)
     try:
         create_parquet(manifest, manifest_path(sweep_dir))
     except FileExistsError:
@@ -95,8 +90,8 @@ def read_base_config(sweep_dir: Path, system: str, arch: str) -> DictConfig:
 
 def read_launch_config(sweep_dir: Path) -> DictConfig:
     """The launch's config with the run settings in force (``run.yaml``, when work was dispatched) over it."""
-    launch = read_yaml(Path(sweep_dir) / LAUNCH_CONFIG_FILE, sweep_dir)
-    run_file = Path(sweep_dir) / RUN_SETTINGS_FILE
+    launch = read_yaml(Path(sweep_dir) / layout.LAUNCH_CONFIG, sweep_dir)
+    run_file = Path(sweep_dir) / layout.RUN_SETTINGS
     if run_file.exists():
         run = read_yaml(run_file, sweep_dir)
         for key in RUN_SETTINGS:  # each group replaced whole: a slurm launcher is no local one plus keys
@@ -108,4 +103,4 @@ def read_launch_config(sweep_dir: Path) -> DictConfig:
 def write_run_settings(sweep_dir: Path, cfg: Mapping[str, Any]) -> None:
     """Record the run settings of ``cfg`` (a launch config) as the ones jobs and the next resubmit use."""
     values = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
-    write_yaml({key: values[key] for key in RUN_SETTINGS}, Path(sweep_dir) / RUN_SETTINGS_FILE, sweep_dir)
+    write_yaml({key: values[key] for key in RUN_SETTINGS}, Path(sweep_dir) / layout.RUN_SETTINGS, sweep_dir)

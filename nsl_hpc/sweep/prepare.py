@@ -16,11 +16,11 @@ from nsl_hpc.config import compose_config, unknown_key
 from nsl_hpc.errors import ConfigError, require_non_negative_int, require_number, require_positive_int
 from nsl_hpc.studies import study_named, study_of
 from nsl_hpc.studies.base import Study
+from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.grid import Grid, build_manifest, grid_size, sub_grids, validate_grid
+from nsl_hpc.sweep.layout import base_config_path, row_path
 from nsl_hpc.sweep.manifest import (
-    LAUNCH_CONFIG_FILE,
-    base_config_path,
     manifest_path,
     read_launch_config,
     read_manifest,
@@ -29,7 +29,7 @@ from nsl_hpc.sweep.manifest import (
     write_yaml,
 )
 from nsl_hpc.sweep.plan import check_run_settings
-from nsl_hpc.sweep.rows import row_path, row_state, set_aside
+from nsl_hpc.sweep.rows import row_state, set_aside
 from nsl_hpc.sweep.task import check_settings
 from nsl_hpc.sweep.task_states import read_sweep_state
 
@@ -163,7 +163,7 @@ def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Prepar
         if existing.to_pylist() != manifest["task_id"].to_pylist():
             stored = {pair: read_yaml(base_config_path(sweep_dir, *pair), sweep_dir) for pair in built.configs
                       if base_config_path(sweep_dir, *pair).exists()}
-            changed = changed_settings(read_yaml(sweep_dir / LAUNCH_CONFIG_FILE, sweep_dir), cfg, built.study,
+            changed = changed_settings(read_yaml(sweep_dir / layout.LAUNCH_CONFIG, sweep_dir), cfg, built.study,
                                        {pair: (stored[pair], built.configs[pair]) for pair in stored})
             raise ConfigError(f"sweep_dir={str(sweep_dir)!r} holds a different grid ({len(existing):,} tasks, "
                               f"this one has {len(manifest):,}; {'; '.join(changed) or 'other draws'}): choose "
@@ -210,7 +210,7 @@ def leaf_differences(old: Any, new: Any, prefix: str = "") -> list[tuple[str, An
 def queued_tasks(sweep_dir: Path) -> set[str]:
     """Tasks without a row whose latest SLURM job is pending or running (one sacct call; none without
     submissions)."""
-    if not any((Path(sweep_dir) / "submissions").glob("*.json")):
+    if not any((Path(sweep_dir) / layout.SUBMISSIONS).glob("*.json")):
         return set()
     return {task_id for task_id, state in read_sweep_state(sweep_dir).states.items() if state in ("pending", "running")}
 

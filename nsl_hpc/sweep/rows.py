@@ -14,16 +14,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from nsl_hpc.atomic import write_parquet
+from nsl_hpc.sweep import layout
 
 PARQUET_MAGIC = b"PAR1"  # the first and last four bytes of every Parquet file
-CORRUPT_DIR = "corrupt"
-
-
-def row_path(out_dir: str | os.PathLike, task_id: str) -> Path:
-    """``<out_dir>/rows/<id[:2]>/<id>.parquet``: bucketed so 63k rows do not share one directory."""
-    return Path(out_dir) / "rows" / task_id[:2] / f"{task_id}.parquet"
-
-
 def write_row_atomically(row: Mapping[str, Any], path: Path) -> None:
     """Write ``row`` as a one-row Parquet file: a temporary file in the same directory, then a rename."""
     write_parquet(pa.Table.from_pylist([dict(row)]), path)
@@ -59,7 +52,7 @@ def row_state(path: Path) -> str:
 
 def set_aside(path: Path) -> Path:
     """Move a bad row from ``<out_dir>/rows/xx/`` to ``<out_dir>/corrupt/`` (with a time stamp); returns where."""
-    target = path.parents[2] / CORRUPT_DIR / f"{path.name}.{time.strftime('%Y%m%dT%H%M%S')}.{time.time_ns() % 10**9}"
+    target = path.parents[2] / layout.CORRUPT / f"{path.name}.{time.strftime('%Y%m%dT%H%M%S')}.{time.time_ns() % 10**9}"
     target.parent.mkdir(parents=True, exist_ok=True)
     os.replace(path, target)
     return target

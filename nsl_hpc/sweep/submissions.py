@@ -10,8 +10,7 @@ from typing import Any
 
 from nsl_hpc.atomic import write_text
 from nsl_hpc.errors import damaged_file
-
-SUBMISSIONS_DIR = "submissions"
+from nsl_hpc.sweep import layout
 
 
 def record_submission(sweep_dir: Path, array_id: str, time_limit_min: int, element_ids: Sequence[str],
@@ -19,13 +18,13 @@ def record_submission(sweep_dir: Path, array_id: str, time_limit_min: int, eleme
     """Record an array whose element ``element_ids[i]`` runs the tasks ``elements[i]``."""
     record = {"array_id": array_id, "time_limit_min": time_limit_min, "submitted": time.time(),
               "element_ids": list(element_ids), "elements": [list(task_ids) for task_ids in elements]}
-    write_text(json.dumps(record), Path(sweep_dir) / SUBMISSIONS_DIR / f"{array_id}.json")
+    write_text(json.dumps(record), layout.submission_path(sweep_dir, array_id))
 
 
 def read_submissions(sweep_dir: Path) -> list[dict[str, Any]]:
     """Every array submitted for the sweep, oldest first."""
     records = []
-    for path in (Path(sweep_dir) / SUBMISSIONS_DIR).glob("*.json"):
+    for path in (Path(sweep_dir) / layout.SUBMISSIONS).glob("*.json"):
         try:
             record = json.loads(path.read_text())
             records.append((record["submitted"], record))

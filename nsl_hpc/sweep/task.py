@@ -22,7 +22,8 @@ from nsl_hpc.errors import ConfigError, require_non_negative_int, require_positi
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_of
 from nsl_hpc.studies.base import Study
-from nsl_hpc.sweep.rows import row_path, write_row_atomically
+from nsl_hpc.sweep.layout import row_path
+from nsl_hpc.sweep.rows import write_row_atomically
 
 
 @dataclass(frozen=True)

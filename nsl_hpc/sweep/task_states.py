@@ -11,8 +11,9 @@ from typing import Any
 from nsl_hpc.sweep.checkpoints import running_task_ids
 from nsl_hpc.sweep.directory import launch_running
 from nsl_hpc.sweep.failures import read_failures
+from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.manifest import read_manifest
-from nsl_hpc.sweep.rows import row_path, row_state
+from nsl_hpc.sweep.rows import row_state
 from nsl_hpc.sweep.slurm import job_states
 from nsl_hpc.sweep.submissions import read_submissions
 

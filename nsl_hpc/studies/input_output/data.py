@@ -95,7 +95,7 @@ def require_files(name: str, source: Mapping[str, Any]) -> None:
         if not (data_dir / relative).is_file():
             raise ConfigError(f"{name}: data file {data_dir / relative} is missing; place the benchmark's files "
                               f"under data_dir={str(data_dir)!r} as {', '.join(source['files'])} "
-                              "(python -m nsl_hpc.place_data; README, 'The input-output study')")
+                              "(python -m nsl_hpc.place_data; docs/science.md, 'The input-output study')")
 
 
 def measured_file(source: Mapping[str, Any]) -> Path:

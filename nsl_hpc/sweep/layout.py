@@ -1,0 +1,88 @@
+"""The sweep directory's layout: the one place that names its files and folders.
+
+    <sweep_dir>/
+      manifest.parquet                    the tasks, one row each (sweep/manifest.py)
+      launch.yaml, run.yaml               the launch config; the run settings a resubmit may change
+      configs/<system>__<arch>.yaml       the config every task of a (system, arch) pair shares
+      rows/<id[:2]>/<id>.parquet          one row per finished task (under out_dir, the sweep dir by default)
+      corrupt/                            rows that were not whole Parquet files of their task, set aside
+      failures/<id[:2]>/<id>.json         why a task has no row (failed, frozen, timeout)
+      logs/<id[:2]>/<id>.log              the output of a task's latest attempt
+      checkpoints/<key[:2]>/<key>.pt      a lockstep group's training state (.json: its description, .lock: the
+                                          job training it; .unreadable / .mismatched: set aside)
+      submitit/<array id>/, submitit/local/<job id>/   submitit's pickled jobs and their logs
+      submissions/<array id>.json         what was submitted to SLURM
+      cache/                              simulated trajectories (cache_dir)
+      .lock                               the command that changes the sweep now (launch, resubmit, clean)
+      results.parquet, merge_summary.json, .merge_cache.parquet   merge
+      nsl_fits.parquet, nsl_fits.txt                            fit
+      report.html, comparison.md, figures/, mlflow.db, mlartifacts/   report
+
+Ids and keys are bucketed by their first two characters, so 63k files do not share one directory.
+"""
+
+import os
+from pathlib import Path
+
+MANIFEST = "manifest.parquet"
+LAUNCH_CONFIG = "launch.yaml"
+RUN_SETTINGS = "run.yaml"
+CONFIGS = "configs"
+ROWS = "rows"
+CORRUPT = "corrupt"
+FAILURES = "failures"
+LOGS = "logs"
+CHECKPOINTS = "checkpoints"
+SUBMITIT = "submitit"
+SUBMITIT_LOCAL = "local"  # submitit/local/: the local launcher's jobs
+SUBMISSIONS = "submissions"
+LOCK = ".lock"
+RESULTS = "results.parquet"
+MERGE_SUMMARY = "merge_summary.json"
+FITS = "nsl_fits.parquet"
+FITS_TEXT = "nsl_fits.txt"
+REPORT = "report.html"
+COMPARISON = "comparison.md"
+FIGURES = "figures"
+MLFLOW_DB = "mlflow.db"
+MLFLOW_ARTIFACTS = "mlartifacts"
+MERGE_CACHE = ".merge_cache.parquet"  # merge's read rows, so a second merge reads only new ones
+
+CONTROL = (SUBMITIT, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, MANIFEST)  # what decides the code a sweep's jobs run
+RECORDS = (MANIFEST, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, ROWS, CORRUPT, SUBMISSIONS, LOCK, RESULTS, FITS,
+           FITS_TEXT, REPORT, COMPARISON, FIGURES, MLFLOW_DB, MLFLOW_ARTIFACTS, MERGE_CACHE)  # clean keeps these
+
+
+def bucketed(folder: Path, name: str, suffix: str) -> Path:
+    """``<folder>/<name[:2]>/<name><suffix>``."""
+    return folder / name[:2] / f"{name}{suffix}"
+
+
+def row_path(out_dir: str | os.PathLike, task_id: str) -> Path:
+    return bucketed(Path(out_dir) / ROWS, task_id, ".parquet")
+
+
+def failure_path(sweep_dir: str | os.PathLike, task_id: str) -> Path:
+    return bucketed(Path(sweep_dir) / FAILURES, task_id, ".json")
+
+
+def task_log_path(sweep_dir: str | os.PathLike, task_id: str) -> Path:
+    return bucketed(Path(sweep_dir) / LOGS, task_id, ".log")
+
+
+def checkpoint_file(sweep_dir: str | os.PathLike, key: str) -> Path:
+    """The checkpoint of the lockstep group whose key (a hash of its task ids) is ``key``."""
+    return bucketed(Path(sweep_dir) / CHECKPOINTS, key, ".pt")
+
+
+def base_config_path(sweep_dir: str | os.PathLike, system: str, arch: str) -> Path:
+    return Path(sweep_dir) / CONFIGS / f"{system}__{arch}.yaml"
+
+
+def submission_path(sweep_dir: str | os.PathLike, array_id: str) -> Path:
+    return Path(sweep_dir) / SUBMISSIONS / f"{array_id}.json"
+
+
+def local_jobs_folder(sweep_dir: str | os.PathLike) -> Path:
+    """submitit's folder of the local launcher's jobs (one subfolder per job)."""
+    return Path(sweep_dir) / SUBMITIT / SUBMITIT_LOCAL
