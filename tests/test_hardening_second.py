@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -134,7 +135,8 @@ def test_a_grid_above_max_tasks_is_refused_before_anything_is_written(tmp_path):
 ])
 def test_a_local_worker_killed_or_stopped_is_recorded_and_the_others_finish(sent, state, reason, tmp_path):
     """4 tasks on 2 workers, a task each at a time: the worker of the first group to take its lock gets ``sent``
-    (SIGSTOP: noticed after watchdog.worker_silence_s=30); its group is recorded, its other task is not run, the
+    (SIGSTOP, to it and its training process: noticed after watchdog.worker_silence_s=30); its group is recorded,
+    its other task is not run, the
     other worker's two tasks finish."""
     sweep_dir = tmp_path / "sweep"
     launch = subprocess.Popen([sys.executable, "-m", "nsl_hpc.launch", *TINY_GRID, "sweep.grid.epochs=[4000]",
@@ -146,6 +148,12 @@ def test_a_local_worker_killed_or_stopped_is_recorded_and_the_others_finish(sent
         assert launch.poll() is None, launch.stderr.read()
         time.sleep(0.2)
         locks = [lock for lock in held_locks(sweep_dir) if lock.task_ids]
+    if sent == signal.SIGSTOP:  # the worker and its training process: a stopped or stuck process tree
+        children = Path(f"/proc/{locks[0].pid}/task/{locks[0].pid}/children")
+        while not children.read_text().split():  # the lock is taken just before the training process starts
+            time.sleep(0.05)
+        for child in children.read_text().split():
+            os.kill(int(child), sent)
     os.kill(locks[0].pid, sent)
     if sent == signal.SIGSTOP:  # 30 s before it is noticed: the sweep runs, and status and merge say so
         status, merged = nsl("status", f"sweep_dir={sweep_dir}").stdout, nsl("merge", f"sweep_dir={sweep_dir}").stdout
