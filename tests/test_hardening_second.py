@@ -136,8 +136,7 @@ def test_a_grid_above_max_tasks_is_refused_before_anything_is_written(tmp_path):
 def test_a_local_worker_killed_or_stopped_is_recorded_and_the_others_finish(sent, state, reason, tmp_path):
     """4 tasks on 2 workers, a task each at a time: the worker of the first group to take its lock gets ``sent``
     (SIGSTOP, to it and its training process: noticed after watchdog.worker_silence_s=30); its group is recorded,
-    its other task is not run, the
-    other worker's two tasks finish."""
+    its other task is not run, the other worker's two tasks finish."""
     sweep_dir = tmp_path / "sweep"
     launch = subprocess.Popen([sys.executable, "-m", "nsl_hpc.launch", *TINY_GRID, "sweep.grid.epochs=[4000]",
                                "launcher=local", "launcher.workers=2", "lockstep.enabled=false",
