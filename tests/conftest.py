@@ -36,3 +36,12 @@ def compose(cache_dir, tmp_path):
         return compose_config([f"cache_dir={cache_dir}", f"out_dir={tmp_path / 'out'}", *overrides])
 
     return make
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Under pytest-xdist (``make test``: ``-n 2 --dist loadgroup``) the tests of one file run on one worker, in
+    order, sharing their module fixtures, and the SLURM tests run one after another on one worker: they share the
+    cluster's queue and its CPUs. Without xdist the mark does nothing."""
+    for item in items:
+        group = "slurm" if item.get_closest_marker("slurm") else item.nodeid.split("::")[0]
+        item.add_marker(pytest.mark.xdist_group(group))
