@@ -38,5 +38,5 @@ class ArrayCache:
         except (FileNotFoundError, zipfile.BadZipFile, ValueError, EOFError, OSError):
             arrays = create()
             with replacing(path) as temporary, temporary.open("wb") as handle:
-                np.savez(handle, **arrays)
+                np.savez(handle, **arrays)  # type: ignore[arg-type]  # numpy's stub takes ** for allow_pickle
             return arrays

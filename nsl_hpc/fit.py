@@ -13,7 +13,7 @@ scores (``<metric>_<mode>_<record>``).
 
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.fitting import (
@@ -25,12 +25,13 @@ from nsl_hpc.analysis.fitting import (
     write_fits,
 )
 from nsl_hpc.analysis.settings import check_nsl
+from nsl_hpc.config import plain
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.manifest import require_sweep
 
 
 def main(cfg: DictConfig) -> int:
-    check_nsl(OmegaConf.to_container(cfg.nsl, resolve=True))
+    check_nsl(plain(cfg.nsl))
     sweep_dir = require_sweep(cfg.sweep_dir)
     results = read_results(sweep_dir)
     rows = fit_sweep(results, choose_metrics(cfg.nsl, cfg.metrics, results), cfg.workers)

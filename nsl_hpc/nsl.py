@@ -7,9 +7,9 @@
 The maths lives in ``nsl_hpc.analysis.broken_law``; this module adds the default search settings.
 """
 
-from collections.abc import Sequence
 from typing import Any
 
+from numpy.typing import ArrayLike
 from omegaconf import OmegaConf
 
 from nsl_hpc.analysis.broken_law import (
@@ -21,7 +21,7 @@ from nsl_hpc.analysis.broken_law import (
     fit_broken_law,
     lower_envelope,
 )
-from nsl_hpc.config import config_dir
+from nsl_hpc.config import config_dir, plain
 
 __all__ = ["Backtest", "FitSettings", "NSLFit", "NSLFitError", "backtest_nsl", "default_settings", "fit_nsl",
            "lower_envelope"]
@@ -29,10 +29,10 @@ __all__ = ["Backtest", "FitSettings", "NSLFit", "NSLFitError", "backtest_nsl", "
 
 def default_settings(**changes: Any) -> FitSettings:
     """conf/nsl/default.yaml's search settings, with ``changes`` applied."""
-    return FitSettings.from_mapping(OmegaConf.load(config_dir() / "nsl" / "default.yaml"), **changes)
+    return FitSettings.from_mapping(plain(OmegaConf.load(config_dir() / "nsl" / "default.yaml")), **changes)
 
 
-def fit_nsl(resources: Sequence[float], errors: Sequence[float], breaks: int | None = None, max_breaks: int = 4,
+def fit_nsl(resources: ArrayLike, errors: ArrayLike, breaks: int | None = None, max_breaks: int = 4,
             K: int = 100, settings: FitSettings | None = None) -> NSLFit:
     """Fit a broken NSL to the lower envelope of the outcomes (resources[i], errors[i]).
 
@@ -42,7 +42,7 @@ def fit_nsl(resources: Sequence[float], errors: Sequence[float], breaks: int | N
     return fit_broken_law(resources, errors, breaks, max_breaks, K, settings or default_settings())
 
 
-def backtest_nsl(resources: Sequence[float], errors: Sequence[float], cut: float, breaks: int | None = None,
+def backtest_nsl(resources: ArrayLike, errors: ArrayLike, cut: float, breaks: int | None = None,
                  max_breaks: int = 4, K: int = 100, settings: FitSettings | None = None) -> Backtest:
     """Extrapolation check: the law fitted on the outcomes with resource <= ``cut``, scored above it."""
     return backtest_broken_law(resources, errors, cut, breaks, max_breaks, K, settings or default_settings())

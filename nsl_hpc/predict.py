@@ -11,18 +11,19 @@ nsl_hpc.fit``) and ``results.parquet``.
 """
 
 import pyarrow.parquet as pq
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.fitting import fits_path, read_results
 from nsl_hpc.analysis.prediction import describe_need, what_it_takes
 from nsl_hpc.analysis.settings import check_nsl, check_target
+from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.sweep.manifest import require_sweep
 
 
 def main(cfg: DictConfig) -> int:
-    nsl = OmegaConf.to_container(cfg.nsl, resolve=True)
+    nsl = plain(cfg.nsl)
     check_nsl(nsl)
     check_target(cfg.target, cfg.metric, cfg.resource, nsl)
     sweep_dir = require_sweep(cfg.sweep_dir)

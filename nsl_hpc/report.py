@@ -11,7 +11,7 @@ updated, not duplicated. A tracking server (http, https) must answer within ``ml
 is written. The steps also run alone: ``python -m nsl_hpc.merge``, ``python -m nsl_hpc.fit``.
 """
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.figures import draw_figures, figure_stem
@@ -36,16 +36,17 @@ from nsl_hpc.analysis.report import (
 )
 from nsl_hpc.analysis.settings import check_figures, check_nsl
 from nsl_hpc.atomic import write_text
+from nsl_hpc.config import plain
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 
 
 def main(cfg: DictConfig) -> int:
-    check_nsl(OmegaConf.to_container(cfg.nsl, resolve=True))
-    check_figures(OmegaConf.to_container(cfg.figures, resolve=True), cfg.nsl.resources)
+    check_nsl(plain(cfg.nsl))
+    check_figures(plain(cfg.figures), cfg.nsl.resources)
     sweep_dir = require_sweep(cfg.sweep_dir)
     require_server(cfg.mlflow)
-    launch = OmegaConf.to_container(read_launch_config(sweep_dir), resolve=True)
+    launch = plain(read_launch_config(sweep_dir))
     summary = merge_sweep(sweep_dir)
     print(f"merged {summary.merged:,} tasks into {results_path(sweep_dir)}\n{summary.describe()}")
     results = read_results(sweep_dir)
@@ -54,7 +55,7 @@ def main(cfg: DictConfig) -> int:
     require_some_fit(rows, fits_path(sweep_dir))
     write_fits(sweep_dir, rows)
     print(f"{sum(row['error'] is None for row in rows)} of {len(rows)} NSLs fitted -> {fits_path(sweep_dir)}")
-    nsl, figure_settings = OmegaConf.to_container(chosen, resolve=True), OmegaConf.to_container(cfg.figures)
+    nsl, figure_settings = plain(chosen), plain(cfg.figures, resolve=False)
     figures = draw_figures(sweep_dir, results, rows, nsl, figure_settings)
     wanted = nsl["predict"]["report"]
     entries = what_it_takes(results, rows, wanted["resource"], wanted["metric"],

@@ -21,6 +21,7 @@ import pyarrow.compute as pc
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
+from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.checkpoints import saved_groups
@@ -77,7 +78,7 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
         wanted = [task["task_id"] for task in state.manifest if state.states[task["task_id"]] in cfg.states]
         manifest = read_manifest(sweep_dir)
         selected = manifest.filter(pc.is_in(manifest["task_id"], value_set=pa.array(wanted, type=pa.string())))
-        configs = {pair: OmegaConf.to_container(read_base_config(sweep_dir, *pair), resolve=True)
+        configs = {pair: plain(read_base_config(sweep_dir, *pair))
                    for pair in set(zip(selected["system"].to_pylist(), selected["arch"].to_pylist(), strict=True))}
         runnable, infeasible = split_runnable(selected, study_named(launch.study.name), configs)
         if infeasible:

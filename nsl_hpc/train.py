@@ -17,7 +17,7 @@ from nsl_hpc.sweep.task import describe, run_task
 
 def main(cfg: DictConfig) -> int:
     result = run_task(cfg)
-    if result.skipped:
+    if result.skipped or result.row is None:
         print(f"skipped: row exists at {result.path} (force=true recomputes it)")
     else:
         print(f"{describe(result.row)} -> {result.path}")

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.special import expit
 
@@ -180,7 +181,7 @@ def best_segmentation(x: np.ndarray, y: np.ndarray, b: int) -> list[int]:
     """Inner boundaries of the b + 1 contiguous runs of grid points whose separate line fits leave the least
     squared error (dynamic programming over every boundary position, O(b K^2))."""
     costs = segment_costs(x, y)
-    best, choices = costs[0], []
+    best, choices = costs[0], list[np.ndarray]()
     for _ in range(b):
         total = best[:, None] + costs
         choice = np.argmin(total, axis=0)
@@ -384,7 +385,7 @@ def choose_breaks(margins: dict[int, float], min_gain: float, margin_floor: floa
     return min(score, key=lambda b: (round(score[b], 12), b))
 
 
-def validated_outcomes(resources: Sequence[float], errors: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+def validated_outcomes(resources: ArrayLike, errors: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     r, e = np.asarray(resources, dtype=float).ravel(), np.asarray(errors, dtype=float).ravel()
     if r.shape != e.shape:
         raise NSLFitError(f"{r.size} resources but {e.size} errors")
@@ -434,7 +435,7 @@ def law_of(theta: np.ndarray, r: np.ndarray, e: np.ndarray, grid_r: np.ndarray, 
                   fit_margin=margin_of(theta, x, np.log(grid_e)))
 
 
-def fit_broken_law(resources: Sequence[float], errors: Sequence[float], breaks: int | None, max_breaks: int, K: int,
+def fit_broken_law(resources: ArrayLike, errors: ArrayLike, breaks: int | None, max_breaks: int, K: int,
                    settings: FitSettings) -> NSLFit:
     """Fit a broken NSL to the lower envelope of the outcomes (resources[i], errors[i]).
 
@@ -482,7 +483,7 @@ class Backtest:
     final_ratio: float
 
 
-def backtest_broken_law(resources: Sequence[float], errors: Sequence[float], cut: float, breaks: int | None,
+def backtest_broken_law(resources: ArrayLike, errors: ArrayLike, cut: float, breaks: int | None,
                         max_breaks: int, K: int, settings: FitSettings) -> Backtest:
     """Extrapolation check: how well the law of the early outcomes forecasts the later envelope."""
     r, e = validated_outcomes(resources, errors)

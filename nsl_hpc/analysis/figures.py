@@ -6,7 +6,7 @@ formula, M and its bootstrap band, and the published law where the study gives o
 """
 
 import textwrap
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -101,7 +101,7 @@ def draw_nsl(ax: Axes, data: Mapping[str, np.ndarray], row: Mapping[str, Any], n
                 label=f"published (b={published.b}, M={published.margin:.2g}"
                       + ("" if on_ours is None else f"; M on ours {on_ours:.2g}")
                       + (f"; below the plotted range, at {law.min():.2g}-{law.max():.2g}" if below else "") + ")")
-    ax.set_ylim(low, high)
+    ax.set_ylim(float(low), float(high))
     ax.set_xscale("log")
     ax.set_yscale("log")
     for axis, limits in ((ax.xaxis, (data["r"].min(), data["r"].max())), (ax.yaxis, (low, high))):
@@ -141,7 +141,7 @@ def figure_for_nsl(sweep_dir: Path, results: pa.Table, row: Mapping[str, Any], n
     return save(fig, figure_stem(sweep_dir, row), figures)
 
 
-def overview_figure(sweep_dir: Path, results: pa.Table, rows: list[Mapping[str, Any]], resource: str, metric: str,
+def overview_figure(sweep_dir: Path, results: pa.Table, rows: Sequence[Mapping[str, Any]], resource: str, metric: str,
                     nsl: Mapping[str, Any], figures: Mapping[str, Any]) -> list[Path]:
     """Architecture (rows) x system (columns) grid of the NSLs of one (resource, metric)."""
     archs = list(dict.fromkeys(row["arch"] for row in rows))
@@ -184,7 +184,7 @@ def overview_legend(axes: np.ndarray) -> tuple[list, list[str]]:
 def draw_figures(sweep_dir: Path, results: pa.Table, rows: list[dict[str, Any]], nsl: Mapping[str, Any],
                  figures: Mapping[str, Any]) -> dict[str, list[Path]]:
     """Every NSL figure and overview grid; returns their paths by kind ('nsl', 'overview')."""
-    drawn = {"nsl": [], "overview": []}
+    drawn: dict[str, list[Path]] = {"nsl": [], "overview": []}
     for row in tqdm(rows, desc="figures", unit="NSL", disable=None):
         drawn["nsl"] += figure_for_nsl(sweep_dir, results, row, nsl, figures)
     for resource in nsl["resources"]:

@@ -20,6 +20,7 @@ from nsl_hpc.analysis.broken_law import FitSettings, NSLFit, NSLFitError, backte
 from nsl_hpc.analysis.merge import results_path
 from nsl_hpc.analysis.published import comparison
 from nsl_hpc.atomic import write_parquet, write_text
+from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, RunError
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.studies.metrics import NORMALIZATIONS
@@ -65,7 +66,7 @@ def choose_metrics(nsl: DictConfig, metrics: Sequence[str] | None, results: pa.T
     if missing or not metrics:
         raise ConfigError(f"metrics={list(metrics)}: {', '.join(missing) or 'none chosen'} not among the sweep's "
                           f"scores; choose from: {', '.join(scores)}")
-    chosen = OmegaConf.to_container(nsl, resolve=True)
+    chosen = plain(nsl)
     chosen["metrics"] = {metric: metric_label(metric, chosen["metrics"]) for metric in metrics}
     if chosen["predict"]["report"]["metric"] not in chosen["metrics"]:
         chosen["predict"]["report"]["metric"] = metrics[0]
@@ -146,7 +147,7 @@ def interval_columns(slots: int) -> list[str]:
     return ["last_slope", "L_at_max", "L_at_10x"] + [f"{name}_{end}" for name in names for end in ("lo", "hi")]
 
 
-def fit_from_row(row: dict[str, Any]) -> NSLFit:
+def fit_from_row(row: Mapping[str, Any]) -> NSLFit:
     """The law of an nsl_fits row (envelope not included: recompute it with lower_envelope)."""
     breaks = [(row[f"sigma_{i}"], row[f"phi_{i}"], row[f"delta_{i}"]) for i in range(1, row["b"] + 1)]
     return NSLFit(row["alpha"], row["beta"], row["delta0"], breaks, row["margin"], np.empty(0), np.empty(0),
@@ -155,7 +156,7 @@ def fit_from_row(row: dict[str, Any]) -> NSLFit:
 
 def fit_sweep(results: pa.Table, nsl: DictConfig, workers: int | None) -> list[dict[str, Any]]:
     """Every NSL of the sweep, fitted in parallel processes, in (system, arch, resource, metric) order."""
-    plain = OmegaConf.to_container(nsl, resolve=True)
+    settings = plain(nsl)
     jobs = []
     present = set(zip(results["system"].to_pylist(), results["arch"].to_pylist(), strict=True))
     for system in dict.fromkeys(results["system"].to_pylist()):
@@ -163,13 +164,13 @@ def fit_sweep(results: pa.Table, nsl: DictConfig, workers: int | None) -> list[d
             if (system, arch) not in present:  # a grid of sub-grids need not hold every pair
                 continue
             subset = pair_outcomes(results, system, arch)
-            for resource, spec in plain["resources"].items():
-                for metric in plain["metrics"]:
+            for resource, spec in settings["resources"].items():
+                for metric in settings["metrics"]:
                     keep = fittable(subset, spec["column"], metric)
                     r = subset[spec["column"]].to_numpy().astype(float)[keep]
                     e = subset[metric].to_numpy().astype(float)[keep]
                     key = {"system": system, "arch": arch, "resource": resource, "metric": metric}
-                    jobs.append((key, r, e, int((~keep).sum()), plain, spec["symbol"]))
+                    jobs.append((key, r, e, int((~keep).sum()), settings, spec["symbol"]))
     with ProcessPoolExecutor(workers or os.cpu_count()) as pool:
         futures = [pool.submit(fit_one, *job) for job in jobs]
         return [future.result() for future in tqdm(futures, desc="NSL fits", unit="fit", disable=None)]

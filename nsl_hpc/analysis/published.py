@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 
 from nsl_hpc.analysis.bootstrap import last_slope
 from nsl_hpc.analysis.broken_law import NSLFit, lower_envelope
-from nsl_hpc.config import config_dir
+from nsl_hpc.config import config_dir, plain
 
 KEY = ("system", "arch", "resource", "metric")
 PUBLISHED_FILE = "published_laws.yaml"
@@ -40,7 +40,7 @@ def key_of(entry: Mapping[str, Any]) -> tuple[str, ...]:
 @cache
 def published_laws() -> dict[tuple[str, ...], PublishedLaw]:
     """Every published law by (system, arch, resource, metric)."""
-    data = OmegaConf.to_container(OmegaConf.load(config_dir() / PUBLISHED_FILE))
+    data = plain(OmegaConf.load(config_dir() / PUBLISHED_FILE))
     laws = {}
     for entry in data["laws"]:
         law = NSLFit(entry["alpha"], entry["beta"], entry["delta0"], [tuple(b) for b in entry["breaks"]],
@@ -52,7 +52,7 @@ def published_laws() -> dict[tuple[str, ...], PublishedLaw]:
 @cache
 def published_margins_by_b() -> dict[tuple[str, ...], dict[int, float]]:
     """Published margins per b where the paper gives no formula (its appendix on choosing b)."""
-    data = OmegaConf.to_container(OmegaConf.load(config_dir() / PUBLISHED_FILE))
+    data = plain(OmegaConf.load(config_dir() / PUBLISHED_FILE))
     return {key_of(entry): {int(b): m for b, m in entry["margins"].items()} for entry in data["margins_by_b"]}
 
 

@@ -8,12 +8,10 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from omegaconf import OmegaConf
-
 from nsl_hpc.analysis.merge import MergeSummary
 from nsl_hpc.analysis.mlflow_runs import flatten
 from nsl_hpc.analysis.prediction import format_need
-from nsl_hpc.config import compose_config
+from nsl_hpc.config import compose_config, plain
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import without_paths
 from nsl_hpc.sweep.grid import sub_grids
@@ -70,7 +68,7 @@ def comparison_rows(rows: Sequence[Mapping[str, Any]]) -> list[tuple[str, ...]]:
     """The cells (COMPARISON_HEAD) of paper vs ours for every fitted NSL the study publishes a law (or only
     margins by b) for, one meaning per column, MISSING where a side has no value; resources: the study grid's
     range, ours the range of the fitted outcomes."""
-    table = []
+    table: list[tuple[str, ...]] = []
     for row in rows:
         if row["error"] is not None or (row.get("paper_b") is None and row.get("paper_margins_by_b") is None):
             continue
@@ -170,9 +168,9 @@ def science_settings(sweep_dir: Path, launch: Mapping[str, Any]) -> dict[tuple[s
     for part in sub_grids(launch["sweep"]["grid"]):
         for system in part["system"]:
             for arch in part["arch"]:
-                used = OmegaConf.to_container(read_base_config(sweep_dir, system, arch), resolve=True)
-                default = OmegaConf.to_container(compose_config(
-                    [f"study={study.name}", f"system={system}", f"arch={arch}"]), resolve=True)
+                used = plain(read_base_config(sweep_dir, system, arch))
+                default = plain(compose_config(
+                    [f"study={study.name}", f"system={system}", f"arch={arch}"]))
                 flat_used = flatten(without_paths({key: used[key] for key in study.shared_keys}))
                 flat_default = flatten(without_paths({key: default[key] for key in study.shared_keys}))
                 settings[system, arch] = {key: (value, flat_default.get(key, "(none)"))

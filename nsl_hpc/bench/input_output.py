@@ -23,11 +23,11 @@ from typing import Any
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from nsl_hpc.bench.measure import interpolate, planner_core_hours, study_manifest, timed
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.config import compose_config
+from nsl_hpc.config import compose_config, plain
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies.input_output.data import load_benchmark
 from nsl_hpc.studies.input_output.packed import IOMember, train_packed
@@ -46,8 +46,8 @@ class IOBench:
         self.bases = {}
         for arch in self.io.archs:
             task = compose_config(["study=input_output", f"system={self.io.system}", f"arch={arch}"], "one_task")
-            self.bases[arch] = {"system": OmegaConf.to_container(task.system, resolve=True),
-                                "arch": OmegaConf.to_container(task.arch), "train": OmegaConf.to_container(task.train)}
+            self.bases[arch] = {"system": plain(task.system),
+                                "arch": plain(task.arch, resolve=False), "train": plain(task.train, resolve=False)}
         self.benchmark = load_benchmark(self.bases[self.io.archs[0]]["system"], cache)
         self.record = self.benchmark.train.head(self.io.train_points)
 
@@ -116,8 +116,8 @@ def study_systems(launch: DictConfig, systems: set[str]) -> dict[str, tuple[int,
     """Per system of the study: the samples scored per model (all its test records) and SUBNET's T."""
     facts = {}
     for system in sorted(systems):
-        system_cfg = OmegaConf.to_container(compose_config([f"data_dir={launch.data_dir}", "study=input_output",
-                                                            f"system={system}"], "one_task").system, resolve=True)
+        system_cfg = plain(compose_config([f"data_dir={launch.data_dir}", "study=input_output",
+                                                            f"system={system}"], "one_task").system)
         records = load_benchmark(system_cfg, ArrayCache(launch.cache_dir)).tests.values()
         facts[system] = sum(len(record) for record in records), system_cfg["subnet"]["horizon"]
     return facts
@@ -131,7 +131,7 @@ def projection(bench: IOBench, process_s: float) -> dict[str, Any]:
     launch, manifest = study_manifest("input_output", f"data_dir={io.data_dir}")
     measured: dict[str, dict] = {}
     for arch in io.archs:
-        table = defaultdict(dict)
+        table: dict[str, dict[tuple[int, int], float]] = defaultdict(dict)
         for width in grid.widths[arch]:
             for depth in grid.depths:
                 for key, value in bench.iteration_seconds(arch, width, depth, grid.iterations[arch]).items():

@@ -27,14 +27,15 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from torch import nn
 
 from nsl_hpc.bench.measure import interpolate, planner_core_hours, study_manifest, timed
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.config import compose_config
+from nsl_hpc.config import compose_config, plain
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
+from nsl_hpc.models.state_space import StateSpaceModel
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, predict_derivatives, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
@@ -99,15 +100,15 @@ class Bench:
 
     def __init__(self, cfg: DictConfig, cache: ArrayCache):
         self.cfg = cfg
-        self.train = OmegaConf.to_container(cfg.train)
-        self.system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+        self.train = plain(cfg.train, resolve=False)
+        self.system_cfg = plain(cfg.system)
         self.data = build_training_set(self.system_cfg, 0, cfg.n_traj, cache)
         self.scaling = Scaling.fit(self.data, self.train["rescale_targets"])
         self.batches = batch_count(len(self.data), self.train["batch_size"])
-        self.arch_cfgs = {arch: OmegaConf.to_container(compose_config([f"arch={arch}"]).arch)
+        self.arch_cfgs = {arch: plain(compose_config([f"arch={arch}"]).arch, resolve=False)
                           for arch in {*cfg.archs, cfg.typical_task.arch}}  # composed once, not per model
 
-    def model(self, arch: str, width: int, depth: int, seed: int) -> nn.Module:
+    def model(self, arch: str, width: int, depth: int, seed: int) -> StateSpaceModel:
         system = SYSTEMS[self.system_cfg["name"]]
         torch.manual_seed(seed)
         return build_model(self.arch_cfgs[arch], system.state_dim, system.input_dim, width, depth)
@@ -171,8 +172,8 @@ def task_breakdown(bench: Bench, cfg: DictConfig, root: Path) -> dict[str, float
     member = Member(model, data, Scaling.fit(data, bench.train["rescale_targets"]), task.epochs, 0)
     (stack, _), train_s = timed(lambda: train_lockstep([member], bench.train))
     dtype = getattr(torch, bench.train["dtype"])
-    metrics, score_s = timed(lambda: normalized_errors(test.dx, *predict_derivatives(stack, test, [member.scaling],
-                                                                                      dtype)))
+    metrics, score_s = timed(lambda: normalized_errors(test.dx, predict_derivatives(stack, test, [member.scaling],
+                                                                                     dtype)[0]))
     _, write_s = timed(lambda: write_row_atomically({"task_id": "bench", **metrics}, root / "row.parquet"))
     return {"interpreter": interpreter_s, "imports": imports_s - interpreter_s, "data (miss)": miss_s,
             "data (hit)": hit_s, "training": train_s, "scoring": score_s, "writing": write_s}
@@ -188,7 +189,7 @@ def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, 
     grid = cfg.projection
     costs = {}
     for arch in sorted({task["arch"] for task in manifest}):
-        measured = defaultdict(dict)
+        measured: dict[str, dict[tuple[int, int], float]] = defaultdict(dict)
         for width in grid.widths:
             for depth in grid.depths:
                 for method, seconds in bench.step_seconds(arch, width, depth, grid.steps, cfg.pack_size).items():

@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from nsl_hpc.config.launchers import LAUNCHERS, register_launchers
+from nsl_hpc.config.mapping import plain
 from nsl_hpc.errors import ConfigError
 
 PACKAGE_DIR = Path(__file__).resolve().parent.parent  # nsl_hpc/
@@ -56,7 +57,7 @@ def unknown_key(key: str, overrides: Sequence[str], config_name: str) -> str:
     """"unknown key 'wiat' (did you mean 'wait'?)": the closest key of the config composed with ``overrides``,
     or config group."""
     try:
-        keys = [*config_groups(), *dotted_keys(OmegaConf.to_container(composed(overrides, config_name)))]
+        keys = [*config_groups(), *dotted_keys(plain(composed(overrides, config_name), resolve=False))]
     except ConfigError:
         keys = list(config_groups())
     close = difflib.get_close_matches(key, keys, n=1, cutoff=0.6)
@@ -132,7 +133,8 @@ def documented_config(name: str, prefix: str = "", top: bool = True) -> ConfigDo
     (``# @package _global_``, e.g. ``study: input_state``) are included, and at the ``top`` the options of its
     own groups too (``nsl: default`` as ``nsl.*``)."""
     path = config_dir() / f"{name}.yaml"
-    doc, sections, in_defaults, comment, value = ConfigDoc(path), [], False, "", ""
+    doc, in_defaults, comment, value = ConfigDoc(path), False, "", ""
+    sections: list[str] = []
     for line in path.read_text().splitlines():
         if value:  # a flow mapping or list continued on this line
             doc.keys[-1] = (doc.keys[-1][0], f"{value} {line.split('#')[0].strip()}", doc.keys[-1][2])

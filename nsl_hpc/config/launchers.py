@@ -4,11 +4,12 @@ partition, an account) go in ``conf/local/default.yaml``."""
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
+from nsl_hpc.config.mapping import plain
 from nsl_hpc.errors import ConfigError
 
 
@@ -62,12 +63,12 @@ def register_launchers() -> None:
 
 def launcher_from(values: Mapping[str, Any]) -> Launcher:
     """The launcher a config's ``launcher`` group describes (a composed config, or one read from run.yaml)."""
-    plain = OmegaConf.to_container(values, resolve=True) if OmegaConf.is_config(values) else dict(values)
-    schema = LAUNCHERS.get(plain.get("name"))
+    given = plain(values)
+    schema = LAUNCHERS.get(str(given.get("name")))
     if schema is None:
-        raise ConfigError(f"launcher.name={plain.get('name')!r} is unknown; choose one of: {', '.join(LAUNCHERS)}")
+        raise ConfigError(f"launcher.name={given.get('name')!r} is unknown; choose one of: {', '.join(LAUNCHERS)}")
     try:
-        return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema), plain))
+        return cast(Launcher, OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema), given)))
     except Exception as error:  # OmegaConf's validation errors: a key the schema lacks, a value of another type
         raise ConfigError(f"launcher: {' '.join(str(error).split())[:200]}") from None
 

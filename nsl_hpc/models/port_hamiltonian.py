@@ -75,6 +75,8 @@ class PortHamiltonian(StateSpaceArchitecture):
 
     def assemble(self, outputs: Outputs, v: torch.Tensor, grad_energy: torch.Tensor | None
                  ) -> tuple[torch.Tensor, torch.Tensor]:
+        if grad_energy is None:
+            raise TypeError("a port-Hamiltonian model's dynamics need grad H")
         interconnection, dissipation, gain = self.matrices(outputs)
         grad = grad_energy.unsqueeze(-1)  # (B, n, 1)
         dz = (interconnection - dissipation) @ grad + gain @ v.unsqueeze(-1)

@@ -74,7 +74,10 @@ class StateSpaceModel(nn.Module):
         with torch.enable_grad():
             if not z.requires_grad:
                 z = z.detach().requires_grad_(True)
-            energy = self.architecture.energy(self.nets[self.architecture.energy_head](z))
+            head = self.architecture.energy_head
+            if head is None:
+                raise TypeError(f"{type(self.architecture).__name__} has no energy head")
+            energy = self.architecture.energy(self.nets[head](z))
             (grad,) = torch.autograd.grad(energy.sum(), z, create_graph=self.training)
         return grad
 

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 
-def nonzero(scale: np.ndarray | float) -> np.ndarray | float:
+def nonzero(scale: np.ndarray | float) -> np.ndarray:
     """A scale with zeros replaced by 1, so a constant column is centred, not blown up."""
     return np.where(scale > 0, scale, 1.0)
 
@@ -63,7 +63,12 @@ class TrainingOutcome:
         return [self.steps, self.final_loss, self.finite]
 
     @classmethod
-    def from_state(cls, state: list | None) -> "TrainingOutcome | None":
+    def from_state(cls, state: list) -> "TrainingOutcome":
+        return cls(*state)
+
+    @classmethod
+    def maybe_from_state(cls, state: list | None) -> "TrainingOutcome | None":
+        """An outcome, or None (a model still training) as ``as_state`` stored it."""
         return None if state is None else cls(*state)
 
 

@@ -155,7 +155,7 @@ def portable_paths(values: Mapping[str, Any], sweep_dir: Path) -> dict[str, Any]
     portable = copy.deepcopy(dict(values))
     portable["sweep_dir"] = "???"
     for keys in PATH_KEYS:
-        parent = portable
+        parent: Any = portable
         for key in keys[:-1]:
             parent = parent.get(key) if isinstance(parent, Mapping) else None
         if not isinstance(parent, dict) or parent.get(keys[-1]) is None:

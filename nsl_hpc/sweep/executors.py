@@ -103,7 +103,8 @@ def balance(packs: Sequence[Pack], workers: int) -> list[list[Group]]:
     """The lockstep groups of ``packs`` spread over ``workers`` lists of about equal predicted time (longest
     first)."""
     groups = [group for pack in packs for group in pack.groups]
-    seconds, shares = [0.0] * min(workers, len(groups)), [[] for _ in range(min(workers, len(groups)))]
+    seconds = [0.0] * min(workers, len(groups))
+    shares: list[list[Group]] = [[] for _ in seconds]
     for group in sorted(groups, key=lambda group: -group.seconds):
         lightest = seconds.index(min(seconds))
         seconds[lightest] += group.seconds
@@ -122,6 +123,7 @@ def run_locally(sweep_dir: Path, packs: Sequence[Pack], launcher: LocalLauncher 
     shares = balance(packs, workers)
     task_ids = [task_id for share in shares for group in share for task_id in group.task_ids]
     folder = layout.local_jobs_folder(sweep_dir) / "%j"
+    executor: submitit.Executor
     if debug:
         executor = submitit.DebugExecutor(folder=folder)
     else:
@@ -204,7 +206,7 @@ def unfinished_share(sweep_dir: Path, share: Sequence[Group], reason: str) -> di
                                  "training it (kill -9, the OOM killer?); its checkpoint, if any, is kept: resubmit "
                                  "continues from it")
             lock.path.unlink(missing_ok=True)
-    failures, counts = read_failures(sweep_dir), Counter()
+    failures, counts = read_failures(sweep_dir), Counter[str]()
     for task_id in (task_id for group in share for task_id in group.task_ids):
         done = row_state(row_path(sweep_dir, task_id)) == "done"
         counts["ok" if done else failures[task_id]["status"] if task_id in failures else "not run"] += 1

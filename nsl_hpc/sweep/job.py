@@ -32,6 +32,7 @@ import time
 import traceback
 from collections import Counter
 from collections.abc import Mapping, Sequence
+from multiprocessing.process import BaseProcess
 from pathlib import Path
 from typing import Any
 
@@ -127,7 +128,7 @@ def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], cfgs: Sequenc
         for result in run_tasks(cfgs, lambda: setattr(heartbeat, "value", time.time()), sizes, checkpoint):
             print(describe(result.row) if result.row else f"skipped: {result.path} exists")
     except TrainingStopped:
-        print(f"stopped as asked; checkpoint written ({checkpoint.path.name})", flush=True)
+        print(f"stopped as asked; checkpoint written ({checkpoint.path.name if checkpoint else 'none'})", flush=True)
         os._exit(EXIT_STOPPED)
     except BaseException:
         traceback.print_exc()
@@ -145,7 +146,7 @@ class JobRunner:
 
     def __init__(self, launcher_pid: int | None = None) -> None:
         self.launcher_pid = launcher_pid
-        self.running: tuple[Path, list[str], multiprocessing.Process] | None = None
+        self.running: tuple[Path, list[str], BaseProcess] | None = None
         self.current: Group | None = None  # the group being run (from before its process starts to its end)
         self.started: set[Group] = set()
         self.checkpointing, self.stop_wait_s = False, 30.0
@@ -239,14 +240,14 @@ class JobRunner:
             return "ok"
         if child.exitcode == EXIT_STOPPED:
             return "stopped"
-        reason = (f"exit status {child.exitcode}" if child.exitcode >= 0
-                  else f"killed by signal {signal.Signals(-child.exitcode).name}")
+        exitcode = child.exitcode if child.exitcode is not None else -signal.SIGKILL  # None: it has not ended
+        reason = (f"exit status {exitcode}" if exitcode >= 0 else f"killed by signal {signal.Signals(-exitcode).name}")
         record_group_failure(sweep, ids, "failed", f"{reason}; {lost_work(checkpoint_path(sweep, ids), started)}"
                              if every_s else reason)
         return "failed"
 
     @staticmethod
-    def stop_frozen(child: multiprocessing.Process, sweep: Path, ids: Sequence[str], reason: str) -> str:
+    def stop_frozen(child: BaseProcess, sweep: Path, ids: Sequence[str], reason: str) -> str:
         child.kill()
         child.join()
         record_group_failure(sweep, ids, "frozen", reason)
@@ -260,7 +261,7 @@ class JobRunner:
         resumed = [self.current] if self.current is not None else []  # stopped, or not started yet
         if self.running is not None:
             sweep, ids, child = self.running
-            if self.checkpointing:
+            if self.checkpointing and child.pid is not None:
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(child.pid, signal.SIGUSR1)
                 child.join(self.stop_wait_s)

@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from nsl_hpc.atomic import create_parquet, write_text
+from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, damaged_file
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.directory import portable_paths
@@ -31,7 +32,7 @@ from nsl_hpc.sweep.layout import base_config_path
 RUN_SETTINGS = ("launcher", "packing", "cost", "watchdog", "lockstep", "checkpoint")  # what a resubmit may change
 
 
-def manifest_path(sweep_dir: Path) -> Path:
+def manifest_path(sweep_dir: str | Path) -> Path:
     return Path(sweep_dir) / layout.MANIFEST
 
 
@@ -102,5 +103,5 @@ def read_launch_config(sweep_dir: Path) -> DictConfig:
 
 def write_run_settings(sweep_dir: Path, cfg: Mapping[str, Any]) -> None:
     """Record the run settings of ``cfg`` (a launch config) as the ones jobs and the next resubmit use."""
-    values = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+    values = plain(cfg)
     write_yaml({key: values[key] for key in RUN_SETTINGS}, Path(sweep_dir) / layout.RUN_SETTINGS, sweep_dir)

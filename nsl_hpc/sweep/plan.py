@@ -8,8 +8,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
+from nsl_hpc.config import plain
 from nsl_hpc.config.launchers import SlurmLauncher, launcher_from
 from nsl_hpc.errors import ConfigError, require_int, require_number, require_positive_int
 from nsl_hpc.studies import study_named
@@ -251,7 +252,9 @@ def make_packs(groups: Sequence[Group], packing: Mapping[str, Any]) -> list[Pack
     (under ``short_task_minutes``) fill packs of about ``pack_minutes`` of predicted work; longer ones (or
     all, with packing disabled) run alone."""
     short_limit = packing["short_task_minutes"] * 60 if packing["enabled"] else 0.0
-    packs, current, total = [], [], 0.0
+    packs: list[Pack] = []
+    current: list[Group] = []
+    total = 0.0
 
     def close(members: list[Group], seconds: float) -> None:
         packs.append(Pack(tuple(members), seconds, *job_time(seconds, packing)))
@@ -285,7 +288,7 @@ def sweep_groups(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, packing
     """The lockstep groups of ``tasks`` (manifest rows) with the sweep's lockstep and cost settings: first the
     checkpointed groups ``saved`` whose tasks are all among them, then the others, none predicted to outlast
     the largest time class when it can be split (unless a site cap makes long groups chains of jobs)."""
-    lockstep, cost = lockstep_settings(launch), OmegaConf.to_container(launch.cost)
+    lockstep, cost = lockstep_settings(launch), plain(launch.cost, resolve=False)
     by_id = {task["task_id"]: task for task in tasks}
     kept = [list(ids) for ids in saved if all(task_id in by_id for task_id in ids)]
     taken = {task_id for ids in kept for task_id in ids}

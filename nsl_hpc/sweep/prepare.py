@@ -12,7 +12,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 from omegaconf import DictConfig, OmegaConf
 
-from nsl_hpc.config import compose_config, unknown_key
+from nsl_hpc.config import compose_config, plain, unknown_key
 from nsl_hpc.errors import ConfigError, require_non_negative_int, require_number, require_positive_int
 from nsl_hpc.studies import study_named, study_of
 from nsl_hpc.studies.base import Study
@@ -57,7 +57,7 @@ def validate_launch(cfg: DictConfig, overrides: Sequence[str]) -> Study:
 def sweep_grid(cfg: DictConfig) -> Grid:
     """The launch config's ``sweep.grid`` as plain data, interpolations resolved (a preset may share one list
     between its sub-grids: ``seed: ${repro.seeds}``)."""
-    return OmegaConf.to_container(cfg.sweep.grid, resolve=True)
+    return plain(cfg.sweep.grid)
 
 
 def validate_grid_values(grid: Grid, study: Study, configs: Mapping[tuple[str, str], Mapping[str, Any]]) -> None:
@@ -86,11 +86,10 @@ def pair_configs(cfg: DictConfig, overrides: Sequence[str], study: Study) -> dic
     configs, used = {}, set()
     for system, arch in sorted(pairs):
         selection = [*common, f"system={system}", f"arch={arch}"]
-        plain = compose_config(selection, "launch")
-        applicable = [o for o in scoped if OmegaConf.select(plain, override_key(o), default=MISSING) is not MISSING]
+        selected = compose_config(selection, "launch")
+        applicable = [o for o in scoped if OmegaConf.select(selected, override_key(o), default=MISSING) is not MISSING]
         used.update(applicable)
-        configs[system, arch] = OmegaConf.to_container(compose_config([*applicable, *selection], "launch"),
-                                                       resolve=True)
+        configs[system, arch] = plain(compose_config([*applicable, *selection], "launch"))
         study_of(configs[system, arch]).check_pair(configs[system, arch])
     for override in scoped:
         if override not in used:
@@ -173,7 +172,7 @@ def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Prepar
                 write_yaml(values, base_config_path(sweep_dir, system, arch), sweep_dir)
         read_launch_config(sweep_dir)  # a damaged one is refused here, before any work
     else:
-        write_sweep(sweep_dir, manifest, built.configs, OmegaConf.to_container(cfg, resolve=True))
+        write_sweep(sweep_dir, manifest, built.configs, plain(cfg))
     todo, aside = tasks_without_row(sweep_dir, manifest)
     queued = queued_tasks(sweep_dir)
     todo = todo.filter(pc.invert(pc.is_in(todo["task_id"], value_set=pa.array(sorted(queued), type=pa.string()))))
@@ -191,7 +190,7 @@ def changed_settings(stored: DictConfig, cfg: DictConfig, study: Study,
     compared = [(stored, cfg), *pairs.values()]
     changes: list[str] = []
     for before_cfg, after_cfg in compared:
-        old, new = (OmegaConf.to_container(c, resolve=True) if OmegaConf.is_config(c) else c
+        old, new = (plain(c) if OmegaConf.is_config(c) else c
                     for c in (before_cfg, after_cfg))
         changes += [change for key, before, after in
                     leaf_differences({k: old.get(k) for k in keys}, {k: new.get(k) for k in keys})

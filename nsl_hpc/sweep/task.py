@@ -14,10 +14,11 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 import nsl_hpc
 from nsl_hpc.checkpoint import Checkpointer
+from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, require_non_negative_int, require_positive_int
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_of
@@ -38,7 +39,7 @@ class ResolvedTask:
 def resolve_task(cfg: DictConfig, sizes: Mapping[str, Any] | None = None) -> ResolvedTask:
     """Validate the task's keys (raising ConfigError before any work) and draw its sizes, or take ``sizes``
     as drawn (a sweep's job takes them from the manifest, which is the truth; they are not drawn again)."""
-    values = OmegaConf.to_container(cfg, resolve=True)
+    values = plain(cfg)
     study = study_of(values)
     for key in ("seed", "sweep_seed"):
         require_non_negative_int(key, values[key])
@@ -73,7 +74,7 @@ def task_id_from(study: Study, shared: str, values: Mapping[str, Any]) -> str:
 
 def task_id(cfg: DictConfig) -> str:
     """Hash of every config value that changes the task's outcome."""
-    values = OmegaConf.to_container(cfg, resolve=True)
+    values = plain(cfg)
     study = study_of(values)
     return task_id_from(study, study.shared_identity(values), values)
 

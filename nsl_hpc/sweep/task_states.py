@@ -62,7 +62,7 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
         if row == "missing" and task_id in running:
             states[task_id] = "running"
             continue
-        states[task_id] = task_state(row, failures.get(task_id), element, submitted, element_states.get(element),
+        states[task_id] = task_state(row, failures.get(task_id), element, submitted, element_states.get(element or ""),
                                      now)
         if states[task_id] == "missing" and launching:
             states[task_id] = "pending"

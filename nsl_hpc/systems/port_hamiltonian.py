@@ -4,6 +4,7 @@ Every method is vectorised over a batch: states x are (N, n), inputs u are (N, m
 """
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -57,6 +58,6 @@ def diagonal(entries: np.ndarray) -> np.ndarray:
     return entries[..., :, None] * np.eye(entries.shape[-1])
 
 
-def constant(matrix: list[list[float]], batch: int) -> np.ndarray:
+def constant(matrix: Sequence[Sequence[float]], batch: int) -> np.ndarray:
     """A constant (n, k) matrix repeated over a batch, (N, n, k)."""
     return np.broadcast_to(np.asarray(matrix, dtype=float), (batch, len(matrix), len(matrix[0])))

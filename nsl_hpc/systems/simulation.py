@@ -17,8 +17,8 @@ class Multisine:
     phases: np.ndarray  # (E, m, N) radians
     first_harmonic: int = 1
 
-    def __call__(self, t: np.ndarray) -> np.ndarray:
-        """Inputs at times t (T,) in seconds, (T, E, m)."""
+    def __call__(self, t: np.ndarray | float) -> np.ndarray:
+        """Inputs at times t (T,) in seconds (a scalar: T = 1), (T, E, m)."""
         harmonics = np.arange(self.first_harmonic, self.first_harmonic + self.phases.shape[-1])
         angle = 2 * np.pi * self.f0_hz * np.multiply.outer(np.atleast_1d(t), harmonics)  # (T, N)
         return self.amplitude * np.sin(angle[:, None, None, :] + self.phases).sum(axis=-1)

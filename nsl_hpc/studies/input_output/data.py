@@ -10,7 +10,7 @@ training and not used for selection. Every test record of the benchmark (``syste
 import contextlib
 import io
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -138,7 +138,9 @@ def simulate_signals(system_cfg: Mapping[str, Any], part: str) -> Signals:
     source, samples = system_cfg["source"], system_cfg["samples"][part]
     rng = np.random.default_rng(stable_seed("record", system_cfg["name"], source["seed"], part))
     u = random_phase_multisine(rng, samples, system_cfg["fs_hz"], **system_cfg["excitation"])
-    simulate = {"duffing": simulate_duffing, "wiener_hammerstein": simulate_wiener_hammerstein}[source["kind"]]
+    simulators: dict[str, Callable[..., np.ndarray]] = {"duffing": simulate_duffing,
+                                                      "wiener_hammerstein": simulate_wiener_hammerstein}
+    simulate = simulators[source["kind"]]
     y = simulate(u, system_cfg["fs_hz"], **source["params"])
     return Signals(u, y + system_cfg["output_noise_std"] * rng.standard_normal(samples))
 

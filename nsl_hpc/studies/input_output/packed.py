@@ -16,10 +16,11 @@ clipping and Adam are a few operations on (K, P) tensors (``studies.training.Ada
 advances all K models at once, and the inputs' part of f's first layer is computed for all T steps at once.
 """
 
+import functools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -29,6 +30,7 @@ from torch.nn import functional
 from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.models.blocks import LAYER_NORM_EPS, masked_layer_norm
 from nsl_hpc.models.narx import NARX
+from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.data import Signals
 from nsl_hpc.studies.input_output.training import SignalScaling
 from nsl_hpc.studies.training import Adam, BatchOrder, TrainingOutcome, learning_rate_at
@@ -46,7 +48,7 @@ class IOMember:
     """One model of a pack, initialised, with what it trains on: the training prefix ``record``, its scaling,
     ``iterations`` optimizer steps and the seed of its window shuffle."""
 
-    model: nn.Module
+    model: NARX | SUBNET
     record: Signals
     scaling: SignalScaling
     iterations: int
@@ -64,13 +66,13 @@ class PackedMLPs:
     """The MLPs of K models of one architecture, depth and block as batched MLPs; ``theta`` (K, P) holds every
     parameter, zero-padded to the widest hidden width ``width``."""
 
-    def __init__(self, models: Sequence[nn.Module], dtype: torch.dtype):
+    def __init__(self, models: Sequence[NARX | SUBNET], dtype: torch.dtype):
         first = models[0].mlps()
         self.shapes = {name: mlp_shape(net) for name, net in first.items()}
         if any({name: mlp_shape(net) for name, net in model.mlps().items()} != self.shapes for model in models):
             raise ValueError(f"models packed together need one architecture, depth and block ({type(models[0])}, "
                              f"MLPs {self.shapes}); widths may differ")
-        own = [next(iter(model.mlps().values()))[0].out_features for model in models]
+        own = [cast(nn.Linear, next(iter(model.mlps().values()))[0]).out_features for model in models]
         self.width = max(own)
         size = sum(rows * columns for name in self.shapes for layer in self.tensor_shapes(name)
                    for rows, columns in layer)
@@ -115,7 +117,7 @@ class PackedMLPs:
         self.parameters = [tensor.requires_grad_(True) for layers in self.trained.values() for layer in layers
                            for tensor in layer]
 
-    def load(self, k: int, model: nn.Module, mask: torch.Tensor) -> None:
+    def load(self, k: int, model: NARX | SUBNET, mask: torch.Tensor) -> None:
         """Copy the parameters of ``model`` into row k; set its entries of ``mask`` (K, P) to 1."""
         masks = self.layers(mask)
         for name, net in model.mlps().items():
@@ -135,7 +137,8 @@ class PackedMLPs:
         self.use_theta(self.theta.detach()[rows])
         self.gradient_mask = self.gradient_mask[rows]
         self.models = self.models[rows]
-        self.units = tuple(tensor[self.models] for tensor in self.model_units)
+        mask, inverse = self.model_units
+        self.units = (mask[self.models], inverse[self.models])
         self.padded = bool((self.units[0] == 0).any())
 
     def parameter_gradient(self, loss: torch.Tensor) -> torch.Tensor:
@@ -143,9 +146,9 @@ class PackedMLPs:
         grads = torch.autograd.grad(loss, self.parameters, materialize_grads=True)
         return torch.cat([grad.reshape(len(self.theta), -1) for grad in grads], dim=1).mul_(self.gradient_mask)
 
-    def run(self, name: str, x: torch.Tensor | None, first: torch.Tensor | None = None) -> torch.Tensor:
+    def run(self, name: str, x: torch.Tensor, first: torch.Tensor | None = None) -> torch.Tensor:
         """Output (K, B, out) of the trained MLP ``name`` for x (K, B, in), or from its first layer's
-        pre-activation ``first`` (K, B, width)."""
+        pre-activation ``first`` (K, B, width) (then x is not read)."""
         layers = self.trained[name]
         for weight, bias, *norm in layers[:-1]:
             a = torch.baddbmm(bias, x, weight) if first is None else first
@@ -177,7 +180,7 @@ class Windows:
     def __init__(self, members: Sequence[IOMember], horizon: int, dtype: torch.dtype):
         model = members[0].model
         self.narx = isinstance(model, NARX)
-        if self.narx:
+        if isinstance(model, NARX):
             self.past = max(model.past_outputs, model.past_inputs)
             length = self.past + 1
         else:
@@ -189,16 +192,18 @@ class Windows:
         as_rows = lambda signals: torch.stack([  # noqa: E731
             nn.functional.pad(torch.as_tensor(signal, dtype=dtype), (0, samples - len(signal))) for signal in signals])
         self.u, self.y = as_rows(u for u, _ in records), as_rows(y for _, y in records)
-        if self.narx:  # positions in (y, u) concatenated of a window's regressors
+        self.signals: torch.Tensor | None = None  # NARX: (y, u) concatenated (K, 2 N')
+        if isinstance(model, NARX):  # positions in (y, u) concatenated of a window's regressors
             self.offsets = torch.cat([torch.arange(self.past - model.past_outputs, self.past),
                                       samples + torch.arange(self.past - model.past_inputs, self.past + 1)])
         else:
             self.offsets = torch.arange(length)
-        self.signals = torch.cat([self.y, self.u], dim=1) if self.narx else None
+        if self.narx:
+            self.signals = torch.cat([self.y, self.u], dim=1)
 
     def keep(self, rows: torch.Tensor) -> None:
         self.u, self.y = self.u[rows], self.y[rows]
-        if self.narx:
+        if self.signals is not None:
             self.signals = self.signals[rows]
 
     def gather(self, signal: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:
@@ -209,7 +214,7 @@ class Windows:
     def losses(self, nets: PackedMLPs, starts: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
         """The loss (K,) of each model on its windows ``starts`` (K, B): the sum of ``weights`` (K, B) times the
         squared error of each window (NARX: one step ahead; SUBNET: summed over its T simulated steps)."""
-        if self.narx:
+        if self.signals is not None:  # NARX
             predicted = nets.run("net", self.gather(self.signals, starts))[..., 0]
             target = self.y.gather(1, starts + self.past)
             return ((predicted - target).square() * weights).sum(dim=1)
@@ -223,7 +228,7 @@ class Windows:
         states = []
         for from_input in from_inputs.unbind(1):  # unbind: one backward for all T (a slice's fills (K, T, B, width))
             states.append(x)
-            x = x + nets.run("f", None, first=torch.baddbmm(from_input, x, w_x))
+            x = x + nets.run("f", x, first=torch.baddbmm(from_input, x, w_x))
         steps = max(1, H_CHUNK_VALUES // (x.shape[0] * x.shape[1] * nets.width))  # h of this many steps at once
         target = y[..., past:].transpose(1, 2)  # (K, T, B)
         simulated = torch.cat([nets.run("h", torch.cat(states[k:k + steps], dim=1))  # (K, steps B, 1) each
@@ -282,7 +287,7 @@ def train_packed(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon: i
     saved = checkpoint.load(layout) if checkpoint is not None else None
     if saved is not None:
         start, final = saved["start"], saved["final"]
-        outcomes = [TrainingOutcome.from_state(outcome) for outcome in saved["outcomes"]]
+        outcomes = [TrainingOutcome.maybe_from_state(outcome) for outcome in saved["outcomes"]]
         for order, order_state in zip(orders, saved["orders"], strict=True):
             order.load_state(order_state)
     live = [k for k, outcome in enumerate(outcomes) if outcome is None]
@@ -290,13 +295,19 @@ def train_packed(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon: i
         leave(nets, optimizer, windows, live)
     if saved is not None:
         optimizer.load_state(saved["adam"])
+
+    def state(start: int) -> dict[str, Any]:
+        return {"start": start, "final": final, "adam": optimizer.state(),
+                "orders": [order.state() for order in orders],
+                "outcomes": [None if outcome is None else outcome.as_state() for outcome in outcomes]}
+
     while live:
         size = min(BLOCK_STEPS, total - start)
         starts = torch.stack([orders[k].take(size) for k in live], dim=1)  # (L, K', width)
         weights = (starts >= 0).to(dtype) * shares[live][:, None]
         steps = np.arange(start, start + size)[:, None]
-        rates = learning_rate_at(steps, totals[live], "warmup_cosine", cfg["warmup_fraction"], cfg["lr"])
-        rates = torch.as_tensor(rates, dtype=dtype).unsqueeze(-1)  # (L, K', 1): 0 after a model's last step
+        scheduled = learning_rate_at(steps, totals[live], "warmup_cosine", cfg["warmup_fraction"], cfg["lr"])
+        rates = torch.as_tensor(scheduled, dtype=dtype).unsqueeze(-1)  # (L, K', 1): 0 after a model's last step
         losses = torch.empty(size, len(live), dtype=dtype)
         for i in range(size):
             step_losses = windows.losses(nets, starts[i].clamp_min(0), weights[i])
@@ -313,11 +324,8 @@ def train_packed(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon: i
         start += size
         on_progress()
         if checkpoint is not None and live:
-            checkpoint.block_done(lambda start=start: {
-                "start": start, "final": final, "adam": optimizer.state(),
-                "orders": [order.state() for order in orders],
-                "outcomes": [None if outcome is None else outcome.as_state() for outcome in outcomes]}, start, total)
-    return nets, final, outcomes
+            checkpoint.block_done(functools.partial(state, start), start, total)
+    return nets, final, cast(list[TrainingOutcome], outcomes)  # every model has settled
 
 
 def leave(nets: PackedMLPs, optimizer: Adam, windows: Windows, rows: list[int]) -> None:

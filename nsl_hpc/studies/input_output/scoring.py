@@ -15,6 +15,7 @@ import torch
 
 from nsl_hpc.models.blocks import LAYER_NORM_EPS
 from nsl_hpc.models.narx import NARX
+from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.data import Signals
 from nsl_hpc.studies.input_output.packed import PackedMLPs
 from nsl_hpc.studies.input_output.training import SignalScaling
@@ -39,6 +40,8 @@ class NumpyLayer:
         """The hidden activation of the pre-activation ``pre`` (K, B, out)."""
         if self.norm is None:
             return np.tanh(pre)
+        if self.units is None:
+            raise ValueError("a LayerNorm layer needs its models' units")
         mask, inverse = self.units
         centered = (pre - pre.sum(axis=-1, keepdims=True) * inverse) * mask
         scale, shift = self.norm
@@ -50,12 +53,14 @@ class NumpyLayer:
 def numpy_mlps(nets: PackedMLPs, theta: torch.Tensor) -> dict[str, list[NumpyLayer]]:
     """The MLPs of the pack's models with parameters ``theta`` (K, P), every model it was built from, in
     float64."""
-    units = tuple(tensor.double().numpy() for tensor in nets.model_units)
+    mask, inverse = (tensor.double().numpy() for tensor in nets.model_units)
+    units = (mask, inverse)
     mlps = {}
     for name, layers in nets.layers(theta.detach().double()).items():
         arrays = [[tensor.numpy() for tensor in layer] for layer in layers]
-        mlps[name] = [NumpyLayer(weight, bias, tuple(norm) or None, units) for weight, bias, *norm in arrays[:-1]]
-        mlps[name].append(NumpyLayer(*arrays[-1]))
+        mlps[name] = [NumpyLayer(weight, bias, (norm[0], norm[1]) if norm else None, units)
+                      for weight, bias, *norm in arrays[:-1]]
+        mlps[name].append(NumpyLayer(arrays[-1][0], arrays[-1][1]))
     return mlps
 
 
@@ -119,7 +124,7 @@ def simulate_subnet(mlps: Mapping[str, list[NumpyLayer]], state_dim: int, past: 
     return simulated
 
 
-def predictions(model: torch.nn.Module, mlps: Mapping[str, list[NumpyLayer]], u: np.ndarray, y: np.ndarray,
+def predictions(model: NARX | SUBNET, mlps: Mapping[str, list[NumpyLayer]], u: np.ndarray, y: np.ndarray,
                 init: int) -> dict[str, np.ndarray]:
     """Standardised outputs (K, N) of the models (of ``model``'s architecture) by mode."""
     if isinstance(model, NARX):
@@ -128,7 +133,7 @@ def predictions(model: torch.nn.Module, mlps: Mapping[str, list[NumpyLayer]], u:
     return {"free_run": simulate_subnet(mlps, model.state_dim, model.past, u, y, init)}
 
 
-def score_records(model: torch.nn.Module, mlps: Mapping[str, list[NumpyLayer]], scalings: Sequence[SignalScaling],
+def score_records(model: NARX | SUBNET, mlps: Mapping[str, list[NumpyLayer]], scalings: Sequence[SignalScaling],
                   tests: Mapping[str, Signals], init: int, mv_per_unit: float) -> list[dict[str, float]]:
     """Per model (K, in the order of ``scalings``), its scores on every test record by name: nmae, nmse and
     rmse_mv (RMSE times ``mv_per_unit``) of each mode, counted after the first ``init`` samples."""

@@ -16,11 +16,11 @@ from functools import cache
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
-from torch import nn
+from omegaconf import DictConfig
 
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.checkpoint import Checkpointer, trained_before
+from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, require_member
 from nsl_hpc.models.blocks import require_block
 from nsl_hpc.models.narx import NARX
@@ -32,7 +32,8 @@ from nsl_hpc.studies.input_output.scoring import numpy_mlps, score_records
 from nsl_hpc.studies.input_output.training import SignalScaling
 
 
-def build_io_model(arch_cfg: Mapping[str, Any], system_cfg: Mapping[str, Any], width: int, depth: int) -> nn.Module:
+def build_io_model(arch_cfg: Mapping[str, Any], system_cfg: Mapping[str, Any], width: int, depth: int
+                   ) -> NARX | SUBNET:
     """The architecture ``arch_cfg.name`` (narx or subnet) with n_h = width, n_d = depth."""
     require_block(arch_cfg["block"])
     if arch_cfg["name"] == "narx":
@@ -136,12 +137,12 @@ class InputOutput(Study):
         (``scoring``). train_seconds is the training time (over every resume from ``checkpoint``) divided among the
         items."""
         cfg = items[0][0]
-        system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+        system_cfg = plain(cfg.system)
         benchmark = load_benchmark(system_cfg, ArrayCache(cfg.cache_dir))
         members = [self.member(item_cfg, task, sizes, system_cfg, benchmark) for item_cfg, task, sizes in items]
         started = time.perf_counter()
-        base = {"system": system_cfg, "arch": OmegaConf.to_container(cfg.arch)}
-        nets, theta, outcomes = train_packed(members, OmegaConf.to_container(cfg.train), horizon(base), on_progress,
+        base = {"system": system_cfg, "arch": plain(cfg.arch, resolve=False)}
+        nets, theta, outcomes = train_packed(members, plain(cfg.train, resolve=False), horizon(base), on_progress,
                                              checkpoint)
         train_seconds = (time.perf_counter() - started + trained_before(checkpoint)) / len(items)
         on_progress()

@@ -59,7 +59,7 @@ def subnet_windows(model: SUBNET, u: torch.Tensor, y: torch.Tensor, horizon: int
     return u.unfold(0, length, 1), y.unfold(0, length, 1)
 
 
-def window_loss(model: nn.Module, signals: Signals, scaling: SignalScaling, horizon: int,
+def window_loss(model: NARX | SUBNET, signals: Signals, scaling: SignalScaling, horizon: int,
                 dtype: torch.dtype) -> tuple[int, Callable[[torch.Tensor], torch.Tensor]]:
     """(number of windows W, loss of a batch of window indices (B,)) for ``model`` on ``signals``."""
     u, y = (torch.as_tensor(a, dtype=dtype) for a in scaling.normalise(signals))
@@ -77,7 +77,7 @@ def window_loss(model: nn.Module, signals: Signals, scaling: SignalScaling, hori
     return len(u_windows), loss
 
 
-def train_io_model(model: nn.Module, signals: Signals, scaling: SignalScaling, cfg: Mapping[str, Any],
+def train_io_model(model: NARX | SUBNET, signals: Signals, scaling: SignalScaling, cfg: Mapping[str, Any],
                    iterations: int, horizon: int, shuffle_seed: int,
                    on_progress: Callable[[], None] = lambda: None) -> TrainingOutcome:
     """Adam (warm-up + cosine over ``iterations`` steps, gradient clipping) on mini-batches of

@@ -13,6 +13,7 @@ rows (one gather), their loss weights (the batch spreads of the targets) and the
 then the forward pass, a four-operation loss, the backward pass and the optimizer step.
 """
 
+import functools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -24,6 +25,7 @@ from torch import nn
 from tqdm import tqdm
 
 from nsl_hpc.checkpoint import Checkpointer
+from nsl_hpc.models.state_space import StateSpaceModel
 from nsl_hpc.studies.input_state.data import Dataset
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.input_state.stacked import StackedModels
@@ -38,7 +40,7 @@ class Member:
     schedule ``schedule_epochs`` long (0: ``epochs``), kept (``Snapshot``) after each of ``milestones``
     epochs (and after ``epochs``)."""
 
-    model: nn.Module
+    model: StateSpaceModel
     data: Dataset
     scaling: Scaling
     epochs: int
@@ -183,8 +185,8 @@ class Lockstep:
                                cfg["output_weight"], cfg["loss_std_eps"])
         weighted_targets = -targets * weights
         steps = np.arange(start, start + size)[:, None]
-        rates = learning_rate_at(steps, self.schedules, cfg["schedule"], cfg["warmup_fraction"], cfg["lr"])
-        rates = torch.as_tensor(rates * (steps < self.totals), dtype=dtype).unsqueeze(-1)  # (L, K, 1)
+        scheduled = learning_rate_at(steps, self.schedules, cfg["schedule"], cfg["warmup_fraction"], cfg["lr"])
+        rates = torch.as_tensor(scheduled * (steps < self.totals), dtype=dtype).unsqueeze(-1)  # (L, K, 1)
         losses = torch.empty(size, len(self.plans), dtype=dtype)
         for i in range(size):
             predicted_dz, predicted_y = self.stack.forward(inputs[i])
@@ -218,7 +220,7 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progres
     if saved is not None:
         first, pending = saved["start"], saved["pending"]
         snapshots = [[Snapshot.from_state(snapshot) for snapshot in member] for member in saved["snapshots"]]
-        outcomes = [TrainingOutcome.from_state(outcome) for outcome in saved["outcomes"]]
+        outcomes = [TrainingOutcome.maybe_from_state(outcome) for outcome in saved["outcomes"]]
         run.restore(saved["run"])
 
     def state(start: int) -> dict[str, Any]:
@@ -249,8 +251,8 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progres
             training = [row for row, k in enumerate(run.member) if outcomes[k] is None]
             if len(training) < len(run.member) and start + size < total:
                 for row, k in enumerate(run.member):  # a diverged model's later snapshots: its last parameters
-                    if outcomes[k] is not None:
-                        snapshots[k] += [Snapshot(epochs, outcomes[k], run.stack.theta[row].detach().clone())
+                    if (outcome := outcomes[k]) is not None:
+                        snapshots[k] += [Snapshot(epochs, outcome, run.stack.theta[row].detach().clone())
                                          for epochs in pending[k]]
                         pending[k] = []
                 if not training:
@@ -259,7 +261,7 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progres
             bar.update(size)
             on_progress()
             if checkpoint is not None and start + size < total:
-                checkpoint.block_done(lambda start=start + size: state(start), start + size, total)
+                checkpoint.block_done(functools.partial(state, start + size), start + size, total)
     return run.stack, [[with_divergence(snapshot, outcome) for snapshot in member_snapshots]
                        for member_snapshots, outcome in zip(snapshots, outcomes, strict=True)]
 

@@ -19,6 +19,7 @@ step and the clipping norm are a handful of operations on (K, P) tensors.
 """
 
 from dataclasses import dataclass
+from typing import cast
 
 import torch
 from torch.nn import functional
@@ -166,8 +167,9 @@ class StackedModels:
             for chain, layers, mask_layers in zip(self.chains, self.chain_parameters(), self.layers(mask), strict=True):
                 for position, h in enumerate(chain.heads):
                     net = model.nets[self.heads[h].name]
-                    linears = [layer for layer in net if isinstance(layer, torch.nn.Linear)]
-                    norms = [layer for layer in net if isinstance(layer, torch.nn.LayerNorm)]
+                    linears = [layer for layer in net.children() if isinstance(layer, torch.nn.Linear)]
+                    norms: list[torch.nn.LayerNorm | None] = [
+                        layer for layer in net.children() if isinstance(layer, torch.nn.LayerNorm)]
                     norms += [None] * (len(linears) - len(norms))
                     for tensors, masks, linear, norm in zip(layers, mask_layers, linears, norms, strict=True):
                         values = [linear.weight.T, linear.bias[None]]
@@ -178,20 +180,20 @@ class StackedModels:
                             tensor_mask[k, position, :value.shape[0], :value.shape[1]] = 1.0
 
     def heads_forward(self, zv: torch.Tensor, theta: torch.Tensor | None, units: list[Units]
-                      ) -> tuple[list[torch.Tensor], list[list[tuple[torch.Tensor, ...]]]]:
+                      ) -> tuple[list[torch.Tensor], list[list[tuple[torch.Tensor | None, ...]]]]:
         """Output (K, B, out) of every head for zv = (z, v) (K, B, n + m), with the trained parameters or the
         rows of ``theta`` (K, P) (models with hidden ``units``); and per chain, what each hidden layer keeps for
         ``energy_gradient``: its activation's input t (K M_c, B, width) and, with LayerNorm, the normalised
         units and 1 / their spread (K M_c, B, 1)."""
         outputs: list[torch.Tensor | None] = [None] * len(self.heads)
-        kept = []
+        kept: list[list[tuple[torch.Tensor | None, ...]]] = []
         z = zv[..., :self.n]
         chains = self.chain_parameters() if theta is None else self.layers(theta)
         for c, (chain, layers) in enumerate(zip(self.chains, chains, strict=True)):
             x = zv if chain.in_dim > self.n else z
             x = x.unsqueeze(1).expand(-1, len(chain.heads), -1, -1).flatten(0, 1)  # (K M_c, B, in)
             mask, inverse = units[c].mask.flatten(0, 1), units[c].inverse.flatten(0, 1)
-            chain_kept = []
+            chain_kept: list[tuple[torch.Tensor | None, ...]] = []
             for weight, bias, *norm in layers[:-1]:
                 a = torch.baddbmm(bias.flatten(0, 1), x, weight.flatten(0, 1))
                 if not norm:
@@ -212,7 +214,7 @@ class StackedModels:
             for h, head_out in zip(chain.heads, out.unbind(1), strict=True):
                 outputs[h] = head_out[..., :self.heads[h].out_dim]
             kept.append(chain_kept)
-        return outputs, kept
+        return cast(list[torch.Tensor], outputs), kept  # every head is one chain's
 
     def normalize(self, a: torch.Tensor, c: int, mask: torch.Tensor, inverse: torch.Tensor
                   ) -> tuple[torch.Tensor, torch.Tensor | None]:

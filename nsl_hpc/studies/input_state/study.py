@@ -13,10 +13,11 @@ from functools import cache
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.checkpoint import Checkpointer, trained_before
+from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, require_choice, require_member, require_positive_int
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
@@ -107,14 +108,15 @@ class InputState(Study):
         members = [self.member(*items[run[0]], epochs=[items[i][1]["epochs"] for i in run]) for run in runs.values()]
         cfg = items[0][0]
         started = time.perf_counter()
-        stack, snapshots = train_lockstep(members, OmegaConf.to_container(cfg.train), on_progress, checkpoint)
+        stack, snapshots = train_lockstep(members, plain(cfg.train, resolve=False), on_progress, checkpoint)
         train_seconds = (time.perf_counter() - started + trained_before(checkpoint)) / len(items)
-        kept: list[tuple[int, Snapshot]] = [None] * len(items)  # per item: its run's member index, its snapshot
+        kept_at: dict[int, tuple[int, Snapshot]] = {}  # per item: its run's member index, its snapshot
         for k, (run, member_snapshots) in enumerate(zip(runs.values(), snapshots, strict=True)):
             by_epochs = {snapshot.epochs: snapshot for snapshot in member_snapshots}
             for i in run:
-                kept[i] = (k, by_epochs[items[i][1]["epochs"]])
-        test_data = build_test_set(OmegaConf.to_container(cfg.system, resolve=True), ArrayCache(cfg.cache_dir))
+                kept_at[i] = (k, by_epochs[items[i][1]["epochs"]])
+        kept = [kept_at[i] for i in range(len(items))]
+        test_data = build_test_set(plain(cfg.system), ArrayCache(cfg.cache_dir))
         on_progress()
         theta = torch.stack([snapshot.theta for _, snapshot in kept])
         predictions = predict_derivatives(stack, test_data, [members[k].scaling for k, _ in kept],
@@ -132,7 +134,7 @@ class InputState(Study):
         system_class = SYSTEMS[task["system"]]
         torch.manual_seed(self.seed_for("init", task, cfg.draws))
         model = build_model(cfg.arch, system_class.state_dim, system_class.input_dim, sizes["width"], sizes["depth"])
-        system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+        system_cfg = plain(cfg.system)
         data = build_training_set(system_cfg, task["seed"], sizes["n_traj"], ArrayCache(cfg.cache_dir))
         return Member(model, data, Scaling.fit(data, cfg.train.rescale_targets), max(epochs),
                       self.seed_for("shuffle", task, cfg.draws),

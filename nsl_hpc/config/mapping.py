@@ -1,0 +1,16 @@
+"""Config values as plain Python: what the code below the commands works on."""
+
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from nsl_hpc.errors import ConfigError
+
+
+def plain(node: Any, resolve: bool = True) -> dict[str, Any]:
+    """A config mapping (a DictConfig, or any mapping) as a plain dict, its interpolations resolved unless not
+    ``resolve``."""
+    values = OmegaConf.to_container(node, resolve=resolve) if OmegaConf.is_config(node) else dict(node)
+    if not isinstance(values, dict):
+        raise ConfigError(f"expected a mapping of settings, got {type(values).__name__}")
+    return {str(key): value for key, value in values.items()}
