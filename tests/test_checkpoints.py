@@ -233,11 +233,22 @@ def test_a_site_time_cap_makes_a_long_group_a_chain_of_jobs_and_needs_checkpoint
 
 
 def test_time_is_measured_over_resumes(tmp_path):
-    """A resumed run's training time counts the time trained before it (the row's train_seconds)."""
-    path = tmp_path / "group.pt"
+    """A resumed run's training time counts the time every run before it trained up to its last checkpoint (the
+    row's train_seconds), and not the time between the runs."""
+    path, started = tmp_path / "group.pt", time.monotonic()
     first = Checkpointer(path, 60, ["a"])
     time.sleep(0.05)
-    first.save({}, 1, 2)
+    first.save({}, 1, 3)
+    first_s = time.monotonic() - started
+    time.sleep(0.2)  # between the runs: not training
+    second_started = time.monotonic()
     second = Checkpointer(path, 60, ["a"])
     second.load({})
-    assert second.trained_before_s >= 0.05
+    assert 0.05 <= second.trained_before_s <= first_s
+    time.sleep(0.05)
+    second.save({}, 2, 3)
+    second_s = time.monotonic() - second_started
+    third = Checkpointer(path, 60, ["a"])
+    third.load({})
+    assert second.trained_before_s + 0.05 <= third.trained_before_s <= second.trained_before_s + second_s
+    assert third.resumes == 2

@@ -52,8 +52,20 @@ def test_parameter_counts_leave_out_the_encoder_only(subnet):
 
 
 def test_narx_maps_its_regressors_to_one_output():
+    """y_t = F(y_{t-5..t-1}, u_{t-3..t}): one output per sample, from that sample's regressors alone, every one
+    of which counts (the current input u_t included)."""
+    torch.manual_seed(0)
     model = NARX(past_outputs=5, past_inputs=3, width=6, depth=1, block="layernorm_silu")
-    assert model(torch.randn(B, 5), torch.randn(B, 4)).shape == (B,)
+    past_y, inputs = torch.randn(B, 5), torch.randn(B, 4)
+    with torch.no_grad():
+        y = model(past_y, inputs)
+        assert y.shape == (B,)
+        assert torch.equal(y, model.net(torch.cat([past_y, inputs], dim=-1))[:, 0])
+        assert torch.allclose(model(past_y[:1], inputs[:1]), y[:1])  # a sample's output is its own
+        for column in range(9):  # each regressor moves the output
+            shifted = torch.cat([past_y, inputs], dim=-1)
+            shifted[:, column] += 1.0
+            assert not torch.allclose(model(shifted[:, :5], shifted[:, 5:]), y)
 
 
 def numpy_of(*models) -> dict:

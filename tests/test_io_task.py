@@ -95,7 +95,7 @@ def test_an_input_output_sweep_runs_merges_and_fits(tmp_path):
             "sweep.grid.1.width_tier=[4]", "sweep.grid.2.seed=[0,1]", "sweep.grid.2.data_tier=[312]",
             "sweep.grid.2.width_tier=[2]", "train.batch_size=32", "system.subnet.horizon=20"]
     launched = nsl("launch", *grid, "launcher=local", f"sweep_dir={sweep_dir}")
-    assert launched.returncode in (0, 1), launched.stderr
+    assert launched.returncode == 0, launched.stdout + launched.stderr  # tasks that cannot run are not run
     manifest = pq.read_table(sweep_dir / "manifest.parquet")
     assert manifest.num_rows == 12 + 1 + 2
     merged = nsl("merge", f"sweep_dir={sweep_dir}")
