@@ -6,7 +6,7 @@ import itertools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import pyarrow as pa
 import pyarrow.compute as pc
@@ -56,8 +56,8 @@ def validate_launch(cfg: DictConfig, overrides: Sequence[str]) -> Study:
 
 def sweep_grid(cfg: DictConfig) -> Grid:
     """The launch config's ``sweep.grid`` as plain data, interpolations resolved (a preset may share one list
-    between its sub-grids: ``seed: ${repro.seeds}``)."""
-    return plain(cfg.sweep.grid)
+    between its sub-grids: ``seed: ${repro.seeds}``); a mapping or a list of them."""
+    return cast(Grid, OmegaConf.to_container(cfg.sweep.grid, resolve=True))
 
 
 def validate_grid_values(grid: Grid, study: Study, configs: Mapping[tuple[str, str], Mapping[str, Any]]) -> None:
