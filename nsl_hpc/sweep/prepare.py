@@ -190,8 +190,7 @@ def changed_settings(stored: DictConfig, cfg: DictConfig, study: Study,
     compared = [(stored, cfg), *pairs.values()]
     changes: list[str] = []
     for before_cfg, after_cfg in compared:
-        old, new = (plain(c) if OmegaConf.is_config(c) else c
-                    for c in (before_cfg, after_cfg))
+        old, new = plain(before_cfg), plain(after_cfg)
         changes += [change for key, before, after in
                     leaf_differences({k: old.get(k) for k in keys}, {k: new.get(k) for k in keys})
                     if (change := f"{key} {before!r} -> {after!r}") not in changes]
