@@ -55,16 +55,16 @@ data: $(INSTALLED)
 
 # The SLURM tests need the real single-node cluster; without root they are skipped (under CI=true,
 # a cluster that cannot start fails the run).
-# Two pytest workers: the SLURM tests (mostly waiting on the scheduler) on one, one test file at a time beside
-# them (tests/conftest.py groups them); TEST_WORKERS=0 runs everything in this process.
+# Two pytest workers (pytest-xdist): the SLURM tests (mostly waiting on the scheduler) one after another on one, a
+# test file at a time beside them (tests/conftest.py's scheduling); TEST_WORKERS=0 runs everything in this process.
 TEST_WORKERS ?= 2
 test: $(INSTALLED)
 	bash cluster/up.sh --optional
-	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadgroup
+	$(PY) -m pytest -n $(TEST_WORKERS)
 
 # Everything but the cluster and the end-to-end tests: the science, the planning core, fits (< 2 min).
 test-fast: $(INSTALLED)
-	$(PY) -m pytest -m "not slurm and not e2e" --ignore=tests/cluster
+	$(PY) -m pytest -n $(TEST_WORKERS) -m "not slurm and not e2e" --ignore=tests/cluster
 
 lint: $(INSTALLED)
 	$(VENV)/bin/ruff check .

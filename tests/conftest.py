@@ -4,6 +4,7 @@ Every test trains on one thread, as a job does (``threads: 1``): torch's default
 take 30x longer with another process on the second core. The variables reach the commands tests run too."""
 
 import os
+from typing import Any
 
 for _variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
     os.environ[_variable] = "1"
@@ -11,6 +12,7 @@ for _variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
 import pytest  # noqa: E402 (after the variables: numpy reads them when it loads)
 import torch  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
+from xdist.scheduler import LoadScopeScheduling  # noqa: E402
 
 from nsl_hpc.cache import ArrayCache  # noqa: E402
 from nsl_hpc.config import compose_config  # noqa: E402
@@ -38,10 +40,15 @@ def compose(cache_dir, tmp_path):
     return make
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Under pytest-xdist (``make test``: ``-n 2 --dist loadgroup``) the tests of one file run on one worker, in
-    order, sharing their module fixtures, and the SLURM tests run one after another on one worker: they share the
-    cluster's queue and its CPUs. Without xdist the mark does nothing."""
-    for item in items:
-        group = "slurm" if item.get_closest_marker("slurm") else item.nodeid.split("::")[0]
-        item.add_marker(pytest.mark.xdist_group(group))
+class FileOrCluster(LoadScopeScheduling):
+    """pytest-xdist's scheduling for ``make test`` (``-n 2``): the tests of one file run on one worker, in order,
+    sharing their module fixtures, and the SLURM tests (tests/cluster/) one after another on one worker: they share
+    the cluster's queue and CPUs, and one restarts it. (xdist's loadgroup would do this with marks, but does not
+    group anything under pytest 9.)"""
+
+    def _split_scope(self, nodeid: str) -> str:
+        return "tests/cluster" if nodeid.startswith("tests/cluster/") else nodeid.split("::", 1)[0]
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> FileOrCluster:
+    return FileOrCluster(config, log)
