@@ -62,9 +62,9 @@ test: $(INSTALLED)
 	bash cluster/up.sh --optional
 	$(PY) -m pytest -n $(TEST_WORKERS)
 
-# Everything but the cluster and the end-to-end tests: the science, the planning core, fits (< 2 min).
+# Everything but the cluster, the end-to-end and the slow tests: the science, the planning core, fits (< 2 min).
 test-fast: $(INSTALLED)
-	$(PY) -m pytest -n $(TEST_WORKERS) -m "not slurm and not e2e" --ignore=tests/cluster
+	$(PY) -m pytest -n $(TEST_WORKERS) -m "not slurm and not e2e and not slow" --ignore=tests/cluster
 
 lint: $(INSTALLED)
 	$(VENV)/bin/ruff check .

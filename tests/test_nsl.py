@@ -101,6 +101,7 @@ def last_slope(fit: NSLFit) -> float:
     return fit.delta0 + sum(delta for _, _, delta in fit.breaks)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", HARD_SHAPES)
 def test_hard_shapes_fit_like_a_direct_multistart_and_choose_b_within_one(name):
     true, low, high, n = HARD_SHAPES[name]
@@ -119,6 +120,7 @@ SWEEP_LIKE = {name: shape for name, shape in (published_shapes() | random_shapes
                                   "ball/port_hamiltonian", "silverbox/subnet", "random 3", "random 6", "random 7"))}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", SWEEP_LIKE)
 def test_sweep_like_clouds_reach_the_direct_margin_and_no_spurious_break(name):
     """Clouds as a sweep makes them (a fifth of the outcomes near the law, the rest far above) of published
