@@ -19,7 +19,7 @@ from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info
 from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models import build_model
-from nsl_hpc.studies.input_output.packed import train_packed
+from nsl_hpc.studies.input_output import lockstep as io_lockstep
 from nsl_hpc.studies.input_output.study import horizon
 from nsl_hpc.studies.input_state.data import build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, train_lockstep
@@ -29,7 +29,7 @@ from nsl_hpc.sweep.job import JobRunner
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import Group, check_run_settings, make_packs, packing_for, plan_jobs
 from tests.sweeps import TINY_GRID, nsl, row_files
-from tests.test_io_packed import members_of
+from tests.test_io_lockstep import members_of
 
 
 def stopping(checkpoint: Checkpointer, after_blocks: int):
@@ -139,7 +139,7 @@ def test_a_packed_input_output_group_stopped_and_resumed_gives_its_models_bit_fo
     train_cfg = OmegaConf.to_container(cfg.train)
 
     def train(on_progress, checkpoint=None):
-        return train_packed(copy.deepcopy(members), train_cfg, horizon(base), on_progress, checkpoint)[1:]
+        return io_lockstep.train_lockstep(copy.deepcopy(members), train_cfg, horizon(base), on_progress, checkpoint)[1:]
 
     final, outcomes = train(lambda: None)
     (final_resumed, outcomes_resumed), _ = interrupted(train, tmp_path / "group.pt")

@@ -8,7 +8,7 @@ import torch
 from nsl_hpc.models.blocks import mlp_parameter_count
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
-from nsl_hpc.studies.input_output.packed import PackedMLPs
+from nsl_hpc.studies.input_output.lockstep import StackedMLPs
 from nsl_hpc.studies.input_output.scoring import numpy_mlps, one_step_narx, simulate_narx, simulate_subnet
 
 B, P, T, NX = 7, 50, 13, 4
@@ -70,7 +70,7 @@ def test_narx_maps_its_regressors_to_one_output():
 
 def numpy_of(*models) -> dict:
     """The float64 numpy MLPs of ``models`` packed (zero-padded to the widest)."""
-    nets = PackedMLPs(list(models), torch.float64)
+    nets = StackedMLPs(list(models), torch.float64)
     return numpy_mlps(nets, nets.theta)
 
 

@@ -2,7 +2,7 @@
 
 1. per architecture at a small and a large size: seconds per iteration of the reference (``train_io_model``,
    the plain loop a user writes: a random batch of windows, forward or T-step rollout, MSE, backward,
-   clip_grad_norm_, Adam, the warm-up + cosine schedule), of ours alone (``train_packed``, K = 1) and per model
+   clip_grad_norm_, Adam, the warm-up + cosine schedule), of ours alone (``train_lockstep``, K = 1) and per model
    of ours packed (K models as the planner groups them: ``lockstep.size`` within ``lockstep.memory_mb``);
 2. scoring: seconds per model and test sample, alone and in a pack (free run, and NARX one step ahead);
 3. the projected core-hours of the 42,120-task input-output study, each task its own process with the
@@ -30,7 +30,7 @@ from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config, plain
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies.input_output.data import load_benchmark
-from nsl_hpc.studies.input_output.packed import IOMember, train_packed
+from nsl_hpc.studies.input_output.lockstep import IOMember, train_lockstep
 from nsl_hpc.studies.input_output.scoring import numpy_mlps, score_records
 from nsl_hpc.studies.input_output.study import build_io_model, horizon, training_memory_mb
 from nsl_hpc.studies.input_output.training import SignalScaling, train_io_model
@@ -74,10 +74,10 @@ class IOBench:
         steps = horizon(base)
         _, reference_s = timed(lambda: train_io_model(reference, member.record, member.scaling, base["train"],
                                                       iterations, steps, 0))
-        _, single_s = timed(lambda: train_packed([member], base["train"], steps))
+        _, single_s = timed(lambda: train_lockstep([member], base["train"], steps))
         pack = self.pack_size(arch, width, depth)
         packed = self.members(arch, width, depth, pack, iterations)
-        _, packed_s = timed(lambda: train_packed(packed, base["train"], steps))
+        _, packed_s = timed(lambda: train_lockstep(packed, base["train"], steps))
         return {"reference": reference_s / iterations, "single": single_s / iterations,
                 "packed": packed_s / iterations, "pack": pack, "params": member.model.counted_parameters()}
 
@@ -88,7 +88,7 @@ class IOBench:
         seconds = {}
         for name, count in (("alone", 1), ("packed", pack)):
             members = self.members(arch, 8, 2, count, 0)
-            nets, theta, _ = train_packed(members, base["train"], horizon(base))
+            nets, theta, _ = train_lockstep(members, base["train"], horizon(base))
             _, elapsed = timed(lambda: score_records(members[0].model, numpy_mlps(nets, theta),  # noqa: B023
                                                      [m.scaling for m in members], test,  # noqa: B023
                                                      base["system"]["init_samples"], 1.0))

@@ -19,7 +19,7 @@ class NARX(nn.Module):
         return self.net(torch.cat([past_y, inputs], dim=-1))[:, 0]
 
     def mlps(self) -> dict[str, nn.Sequential]:
-        """Its MLPs by name (a packed path stacks them)."""
+        """Its MLPs by name (the lockstep path stacks them)."""
         return {"net": self.net}
 
     def counted_parameters(self) -> int:

@@ -33,7 +33,7 @@ class SUBNET(nn.Module):
         return self.h(torch.stack(states, dim=1))[..., 0]  # h of all T states at once
 
     def mlps(self) -> dict[str, nn.Sequential]:
-        """Its MLPs by name (a packed path stacks them)."""
+        """Its MLPs by name (the lockstep path stacks them)."""
         return {"encoder": self.encoder, "f": self.f, "h": self.h}
 
     def counted_parameters(self) -> int:

@@ -28,7 +28,7 @@ class Study:
     axes: tuple[str, ...]  # grid axes in expansion order: "system", "arch", "seed", then the size coordinates
     length_axis: str  # the axis of training length (with shared draws, longer runs of the same model)
     shared_keys: tuple[str, ...]  # config groups and keys that change the outcome of every task of a pair
-    lockstep: bool = False  # train_and_score_pack trains same-shape tasks together (a lockstep loop)
+    lockstep: bool = False  # train_and_score_group trains same-shape tasks together (in lockstep)
 
     @property
     def size_axes(self) -> tuple[str, ...]:
@@ -113,7 +113,7 @@ class Study:
         study extras. ``task``: its coordinates and task_id; ``sizes``: its drawn sizes."""
         raise NotImplementedError
 
-    def train_and_score_pack(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
+    def train_and_score_group(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
                              on_progress: Callable[[], None], checkpoint: Checkpointer | None = None
                              ) -> list[dict[str, Any]]:
         """``train_and_score`` of each (cfg, task, sizes): one after another unless a study trains them

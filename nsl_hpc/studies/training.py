@@ -1,6 +1,6 @@
 """What the training loops share: mini-batch bounds, the learning-rate schedule,
 the outcome record and Adam on the rows of a stack of models. The loops are ``input_state.lockstep``
-(input-state models, alone or K in lockstep) and ``input_output.packed`` (NARX and SUBNET, alone or K packed).
+(input-state models) and ``input_output.lockstep`` (NARX and SUBNET), each alone or K in lockstep.
 """
 
 import math
@@ -73,7 +73,7 @@ class TrainingOutcome:
 
 
 class BatchOrder:
-    """The batches one model of a packed loop takes, step after step: each pass (epoch) a fresh permutation on
+    """The batches one model of a lockstep loop takes, step after step: each pass (epoch) a fresh permutation on
     its own ``generator`` (``next_pass``: the pass's batches, (batches, width) indices), then, once its
     ``remaining`` steps are taken, rows of ``fill`` (padding). Its ``state`` is what a checkpoint keeps: the
     generator's state before the current pass and how many of its batches are still to take (the pass is drawn

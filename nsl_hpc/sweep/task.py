@@ -152,7 +152,7 @@ def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lamb
     delay = max(inject_fault(cfgs[i].fault, cfgs[i].seed) for i in todo)
     if delay > 0:
         on_progress = slowed(on_progress, delay)
-    outcomes = tasks[todo[0]].study.train_and_score_pack(
+    outcomes = tasks[todo[0]].study.train_and_score_group(
         [(cfgs[i], {**tasks[i].coordinates, "task_id": paths[i].stem}, tasks[i].sizes) for i in todo], on_progress,
         checkpoint if len(todo) == len(cfgs) else None)
     for i, outcome in zip(todo, outcomes, strict=True):

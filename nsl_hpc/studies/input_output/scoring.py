@@ -1,4 +1,4 @@
-"""Scores of trained input-output models on every test record of their benchmark, all models of a pack at
+"""Scores of trained input-output models on every test record of their benchmark, all models of a lockstep group at
 once, in float64 numpy (a step of these tiny MLPs costs a few microseconds there, tens in torch).
 
 Every model is simulated freely (its own outputs fed back; the first ``init`` samples of a record are the
@@ -17,7 +17,7 @@ from nsl_hpc.models.blocks import LAYER_NORM_EPS
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.data import Signals
-from nsl_hpc.studies.input_output.packed import PackedMLPs
+from nsl_hpc.studies.input_output.lockstep import StackedMLPs
 from nsl_hpc.studies.input_output.training import SignalScaling
 from nsl_hpc.studies.metrics import normalized_errors
 
@@ -50,8 +50,8 @@ class NumpyLayer:
         return t / (1.0 + np.exp(-t))
 
 
-def numpy_mlps(nets: PackedMLPs, theta: torch.Tensor) -> dict[str, list[NumpyLayer]]:
-    """The MLPs of the pack's models with parameters ``theta`` (K, P), every model it was built from, in
+def numpy_mlps(nets: StackedMLPs, theta: torch.Tensor) -> dict[str, list[NumpyLayer]]:
+    """The MLPs of the group's models with parameters ``theta`` (K, P), every model it was built from, in
     float64."""
     mask, inverse = (tensor.double().numpy() for tensor in nets.model_units)
     units = (mask, inverse)

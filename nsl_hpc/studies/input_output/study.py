@@ -1,5 +1,5 @@
 """The input-output study: NARX and SUBNET models identified from input-output records (Silverbox,
-Wiener-Hammerstein, or their simulated stand-ins), trained packed (``packed``) and scored on every test record
+Wiener-Hammerstein, or their simulated stand-ins), trained in lockstep (``lockstep``) and scored on every test record
 (``scoring``).
 
 Sizes are drawn from the task's grid coordinates: n_l (training prefix length) an integer in
@@ -27,7 +27,7 @@ from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.base import Study, draw_tier
 from nsl_hpc.studies.input_output.data import Benchmark, load_benchmark, require_files
-from nsl_hpc.studies.input_output.packed import IOMember, train_packed
+from nsl_hpc.studies.input_output.lockstep import IOMember, train_lockstep
 from nsl_hpc.studies.input_output.scoring import numpy_mlps, score_records
 from nsl_hpc.studies.input_output.training import SignalScaling
 
@@ -64,7 +64,7 @@ def horizon(base: Mapping[str, Any]) -> int:
 def training_memory_mb(base: Mapping[str, Any], width: int, depth: int) -> float:
     """Estimated memory (MB) one model's training iteration keeps for its backward pass: six (n_h,) tensors per
     hidden layer, per window of the batch, for every MLP evaluation (NARX: F once; SUBNET: f and h at each of
-    its T steps), plus the NARX regressors. Measured: a pack of 16 SUBNETs at n_h 32, n_d 3, T 150 holds
+    its T steps), plus the NARX regressors. Measured: a lockstep group of 16 SUBNETs at n_h 32, n_d 3, T 150 holds
     2.6 GB, 165 MB each (estimate 177)."""
     batch, dtype_bytes = base["train"]["batch_size"], torch.finfo(getattr(torch, base["train"]["dtype"])).bits // 8
     if base["arch"]["name"] == "narx":
@@ -127,12 +127,12 @@ class InputOutput(Study):
 
     def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
                         on_progress: Callable[[], None]) -> dict[str, Any]:
-        return self.train_and_score_pack([(cfg, task, sizes)], on_progress)[0]
+        return self.train_and_score_group([(cfg, task, sizes)], on_progress)[0]
 
-    def train_and_score_pack(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
+    def train_and_score_group(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
                              on_progress: Callable[[], None], checkpoint: Checkpointer | None = None
                              ) -> list[dict[str, Any]]:
-        """Train the items' models packed (they share system, arch and depth) and score each on every test
+        """Train the items' models in lockstep (they share system, arch and depth) and score each on every test
         record: nmae, nmse and rmse_mv are the free-run scores on ``system.score_on``, the others extra columns
         (``scoring``). train_seconds is the training time (over every resume from ``checkpoint``) divided among the
         items."""
@@ -142,7 +142,7 @@ class InputOutput(Study):
         members = [self.member(item_cfg, task, sizes, system_cfg, benchmark) for item_cfg, task, sizes in items]
         started = time.perf_counter()
         base = {"system": system_cfg, "arch": plain(cfg.arch, resolve=False)}
-        nets, theta, outcomes = train_packed(members, plain(cfg.train, resolve=False), horizon(base), on_progress,
+        nets, theta, outcomes = train_lockstep(members, plain(cfg.train, resolve=False), horizon(base), on_progress,
                                              checkpoint)
         train_seconds = (time.perf_counter() - started + trained_before(checkpoint)) / len(items)
         on_progress()
@@ -156,7 +156,7 @@ class InputOutput(Study):
 
     def member(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
                system_cfg: Mapping[str, Any], benchmark: Benchmark) -> IOMember:
-        """The task's initialised model and training prefix, ready for ``train_packed``."""
+        """The task's initialised model and training prefix, ready for ``train_lockstep``."""
         torch.manual_seed(self.seed_for("init", task, cfg.draws))
         model = build_io_model(cfg.arch, system_cfg, sizes["width"], task["depth"])
         record = benchmark.train.head(sizes["train_points"])

@@ -1,5 +1,5 @@
-"""The plain training loop of one input-output model on windows of a training prefix: the reference the packed
-path (``packed``, which the study runs) equals and the benchmark compares with.
+"""The plain training loop of one input-output model on windows of a training prefix: the reference the lockstep
+path (``lockstep``, which the study runs) equals and the benchmark compares with.
 
 Signals are standardised with the training prefix's mean and standard deviation. A NARX model trains on
 one-step-ahead windows (its regressors hold measured past outputs); a SUBNET on sub-sequences: the encoder

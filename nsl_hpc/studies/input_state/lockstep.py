@@ -36,7 +36,7 @@ BLOCK_STEPS = 32  # steps prepared at once: (K, BLOCK_STEPS, batch) rows of data
 
 @dataclass(frozen=True)
 class Member:
-    """One model of a lockstep pack, initialised, with what it trains on: ``epochs`` of a learning-rate
+    """One model of a lockstep group, initialised, with what it trains on: ``epochs`` of a learning-rate
     schedule ``schedule_epochs`` long (0: ``epochs``), kept (``Snapshot``) after each of ``milestones``
     epochs (and after ``epochs``)."""
 

@@ -93,9 +93,9 @@ class InputState(Study):
 
     def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
                         on_progress: Callable[[], None]) -> dict[str, Any]:
-        return self.train_and_score_pack([(cfg, task, sizes)], on_progress)[0]
+        return self.train_and_score_group([(cfg, task, sizes)], on_progress)[0]
 
-    def train_and_score_pack(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
+    def train_and_score_group(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
                              on_progress: Callable[[], None], checkpoint: Checkpointer | None = None
                              ) -> list[dict[str, Any]]:
         """Train the items' models in lockstep (they share system, arch and depth) and score each on the

@@ -9,7 +9,7 @@ import torch
 from omegaconf import OmegaConf
 
 from nsl_hpc.studies.input_output.data import Signals, load_benchmark
-from nsl_hpc.studies.input_output.packed import IOMember, PackedMLPs, train_packed
+from nsl_hpc.studies.input_output.lockstep import IOMember, StackedMLPs, train_lockstep
 from nsl_hpc.studies.input_output.study import build_io_model, horizon
 from nsl_hpc.studies.input_output.training import SignalScaling, train_io_model
 
@@ -35,9 +35,9 @@ def members_of(cfg, cache, specs, record=None) -> list[IOMember]:
     return members
 
 
-def parameters_of(nets: PackedMLPs, theta: torch.Tensor, model: torch.nn.Module) -> list[torch.Tensor]:
+def parameters_of(nets: StackedMLPs, theta: torch.Tensor, model: torch.nn.Module) -> list[torch.Tensor]:
     """The parameters of ``model``'s shape held in a row ``theta`` (1, P) of ``nets`` (padding cut off)."""
-    alone = PackedMLPs([model], theta.dtype)
+    alone = StackedMLPs([model], theta.dtype)
     cut = []
     for name, layers in alone.layers(alone.theta.detach()).items():
         for own, packed in zip(layers, nets.layers(theta)[name], strict=True):
@@ -51,13 +51,13 @@ def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, 
     base = {"system": OmegaConf.to_container(cfg.system, resolve=True), "arch": OmegaConf.to_container(cfg.arch)}
     members = members_of(cfg, cache, MEMBERS)
     alone = [copy.deepcopy(member.model) for member in members]
-    nets, theta, outcomes = train_packed(members, OmegaConf.to_container(cfg.train), horizon(base))
+    nets, theta, outcomes = train_lockstep(members, OmegaConf.to_container(cfg.train), horizon(base))
     for k, (member, model) in enumerate(zip(members, alone, strict=True)):
         single = train_io_model(model, member.record, member.scaling, cfg.train, member.iterations, horizon(base),
                                 member.shuffle_seed)
         assert outcomes[k].steps == single.steps == member.iterations and outcomes[k].finite
         assert outcomes[k].final_loss == pytest.approx(single.final_loss, rel=PACKED_RTOL)
-        trained_alone = PackedMLPs([model], torch.float32)
+        trained_alone = StackedMLPs([model], torch.float32)
         for packed, own in zip(parameters_of(nets, theta[k:k + 1], model),
                                parameters_of(trained_alone, trained_alone.theta.detach(), model), strict=True):
             torch.testing.assert_close(packed, own, rtol=PACKED_RTOL, atol=1e-6)
@@ -73,7 +73,7 @@ def test_a_diverging_model_leaves_the_others_of_its_pack_as_they_are_alone(compo
     bad = IOMember(bad.model, bad.record, SignalScaling.fit(train), bad.iterations, bad.shuffle_seed)
     good = members_of(cfg, cache, [(1300, 20, 6, 1)])[0]
     model = copy.deepcopy(good.model)
-    _, _, (bad_outcome, good_outcome) = train_packed([bad, good], OmegaConf.to_container(cfg.train), 1)
+    _, _, (bad_outcome, good_outcome) = train_lockstep([bad, good], OmegaConf.to_container(cfg.train), 1)
     per_pass = (1300 - 50) // 256
     assert not bad_outcome.finite and bad_outcome.steps == per_pass
     single = train_io_model(model, good.record, good.scaling, cfg.train, 20, 1, good.shuffle_seed)

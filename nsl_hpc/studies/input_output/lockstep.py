@@ -1,5 +1,5 @@
-"""NARX or SUBNET models of one architecture and depth trained K at a time, each as if alone: the input-output
-fast path (K = 1 is the single-model path).
+"""NARX or SUBNET models of one architecture and depth trained K at a time in lockstep, each as if alone: the
+input-output fast path (K = 1 is the single-model path; ``input_state.lockstep`` is the input-state one).
 
 Each model keeps its own initial weights, width, training prefix (and its scaling), window shuffle, iteration
 count and learning-rate schedule: at iteration s model k takes the s-th mini-batch it takes in the plain loop
@@ -36,7 +36,7 @@ from nsl_hpc.studies.input_output.training import SignalScaling
 from nsl_hpc.studies.training import Adam, BatchOrder, TrainingOutcome, learning_rate_at
 
 BLOCK_STEPS = 16  # iterations whose batch orders and learning rates are prepared at once (a heartbeat each)
-# SUBNET's h runs on the states of this many (K, B, n_h) values at once: all T steps of a small pack, while a
+# SUBNET's h runs on the states of this many (K, B, n_h) values at once: all T steps of a small group, while a
 # large one's tensors stay small enough to be reused (a (32, 256 x 150, 32) one was a fresh mapping, 3x slower).
 H_CHUNK_VALUES = 2**21
 
@@ -45,7 +45,7 @@ Layer = tuple[torch.Tensor, ...]  # weight (K, in, out), bias (K, 1, out)[, Laye
 
 @dataclass(frozen=True)
 class IOMember:
-    """One model of a pack, initialised, with what it trains on: the training prefix ``record``, its scaling,
+    """One model of a lockstep group, initialised, with what it trains on: the training prefix ``record``, its scaling,
     ``iterations`` optimizer steps and the seed of its window shuffle."""
 
     model: NARX | SUBNET
@@ -62,7 +62,7 @@ def mlp_shape(net: nn.Sequential) -> tuple[int, int, int, bool]:
             any(isinstance(layer, nn.LayerNorm) for layer in net))
 
 
-class PackedMLPs:
+class StackedMLPs:
     """The MLPs of K models of one architecture, depth and block as batched MLPs; ``theta`` (K, P) holds every
     parameter, zero-padded to the widest hidden width ``width``."""
 
@@ -70,7 +70,7 @@ class PackedMLPs:
         first = models[0].mlps()
         self.shapes = {name: mlp_shape(net) for name, net in first.items()}
         if any({name: mlp_shape(net) for name, net in model.mlps().items()} != self.shapes for model in models):
-            raise ValueError(f"models packed together need one architecture, depth and block ({type(models[0])}, "
+            raise ValueError(f"models trained together need one architecture, depth and block ({type(models[0])}, "
                              f"MLPs {self.shapes}); widths may differ")
         own = [cast(nn.Linear, next(iter(model.mlps().values()))[0]).out_features for model in models]
         self.width = max(own)
@@ -211,7 +211,7 @@ class Windows:
         index = (starts[..., None] + self.offsets).flatten(1)
         return signal.gather(1, index).view(*starts.shape, len(self.offsets))
 
-    def losses(self, nets: PackedMLPs, starts: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    def losses(self, nets: StackedMLPs, starts: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
         """The loss (K,) of each model on its windows ``starts`` (K, B): the sum of ``weights`` (K, B) times the
         squared error of each window (NARX: one step ahead; SUBNET: summed over its T simulated steps)."""
         if self.signals is not None:  # NARX
@@ -263,15 +263,15 @@ def settle(losses: np.ndarray, start: int, iterations: int, per_pass: int) -> Tr
     return None
 
 
-def train_packed(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon: int,
+def train_lockstep(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon: int,
                  on_progress: Callable[[], None] = lambda: None, checkpoint: Checkpointer | None = None
-                 ) -> tuple[PackedMLPs, torch.Tensor, list[TrainingOutcome]]:
+                 ) -> tuple[StackedMLPs, torch.Tensor, list[TrainingOutcome]]:
     """Train every member as if alone (``cfg`` is the ``train`` group; ``horizon``: SUBNET's T); returns the
-    pack, each member's trained parameters (K, P) (rows of its ``theta`` layout) and outcomes. ``on_progress``
+    group, each member's trained parameters (K, P) (rows of its ``theta`` layout) and outcomes. ``on_progress``
     is called after every block of ``BLOCK_STEPS`` iterations (a heartbeat); ``checkpoint`` continues from its
     state, if any, and gets the state after each block (a resumed run gives the same outcomes, bit for bit)."""
     dtype = getattr(torch, cfg["dtype"])
-    nets = PackedMLPs([member.model for member in members], dtype)
+    nets = StackedMLPs([member.model for member in members], dtype)
     optimizer = Adam(nets.theta, cfg["grad_clip_norm"])
     windows = Windows(members, horizon, dtype)
     batches = [min(cfg["batch_size"], count) for count in windows.counts]
@@ -328,7 +328,7 @@ def train_packed(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon: i
     return nets, final, cast(list[TrainingOutcome], outcomes)  # every model has settled
 
 
-def leave(nets: PackedMLPs, optimizer: Adam, windows: Windows, rows: list[int]) -> None:
+def leave(nets: StackedMLPs, optimizer: Adam, windows: Windows, rows: list[int]) -> None:
     """Train only these rows from now on."""
     index = torch.tensor(rows, dtype=torch.long)
     nets.keep(index)
