@@ -4,8 +4,17 @@ The commands are ``python -m nsl_hpc.<command>`` (launch, status, resubmit, clea
 report, bench, place_data); the public fitting API is ``fit_nsl`` and ``backtest_nsl`` (``nsl_hpc.nsl``).
 """
 
+from typing import Any
+
 __version__ = "0.2.0"
-
-from nsl_hpc.nsl import backtest_nsl, fit_nsl  # after __version__, which the modules it loads read
-
 __all__ = ["__version__", "backtest_nsl", "fit_nsl"]
+
+
+def __getattr__(name: str) -> Any:
+    """``nsl_hpc.fit_nsl`` and ``nsl_hpc.backtest_nsl``, loaded on first use (PEP 562): every command and job
+    imports this package, and only fits need the fitting code (scipy.optimize and the law)."""
+    if name in ("fit_nsl", "backtest_nsl"):
+        from nsl_hpc import nsl
+
+        return getattr(nsl, name)
+    raise AttributeError(f"module 'nsl_hpc' has no attribute {name!r}")
