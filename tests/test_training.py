@@ -1,6 +1,7 @@
 """Training: schedule, batching, loss, and real learning of every architecture on every system."""
 
 import dataclasses
+import tracemalloc
 
 import numpy as np
 import pytest
@@ -8,10 +9,11 @@ import torch
 from omegaconf import OmegaConf
 
 from nsl_hpc.models import build_model
-from nsl_hpc.studies.input_state.data import build_test_set, build_training_set
-from nsl_hpc.studies.input_state.lockstep import Member, loss_weights, predict_derivatives, train_lockstep
+from nsl_hpc.studies.input_state.data import Dataset, build_test_set, build_training_set
+from nsl_hpc.studies.input_state.lockstep import (Member, loss_weights, predict_derivatives, score_derivatives,
+                                                  train_lockstep)
 from nsl_hpc.studies.input_state.scaling import Scaling
-from nsl_hpc.studies.metrics import normalized_errors
+from nsl_hpc.studies.metrics import normalized_errors, scores_both_ways
 from nsl_hpc.studies.training import batch_bounds, batch_count, warmup_cosine
 from nsl_hpc.systems import SYSTEMS
 from tests.helpers import ARCH_NAMES, SYSTEM_NAMES
@@ -170,3 +172,35 @@ def test_a_diverging_model_leaves_the_others_of_its_pack_as_they_are_alone(compo
     _, (alone,) = train_lockstep([member(data, 10)], cfg.train)
     assert good[-1].outcome.finite and good[-1].outcome.final_loss == pytest.approx(alone[-1].outcome.final_loss,
                                                                                     rel=PACKED_RTOL)
+
+
+def test_a_group_scores_on_a_large_test_set_in_the_memory_of_a_chunk(compose, cache):
+    """Scoring R models on N test samples holds one chunk of predictions, not R x N (a group of 32 on the
+    200 x 200 s test set once reached 20 GB), and gives the scores of the whole predictions at once. NumPy's
+    allocations are traced: the spreads of the test set take one temporary (N, n) array, whatever R."""
+    cfg = compose("system=ball", "arch=input_affine")
+    system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+    train = build_training_set(system_cfg, 0, 1.0, cache)
+    rng = np.random.default_rng(0)
+    samples = 100_000
+    test = Dataset(*(rng.normal(size=(samples, columns)) for columns in (3, 1, 3, 1)))
+    members = []
+    for seed in range(8):
+        torch.manual_seed(seed)
+        model = build_model(cfg.arch, 3, 1, width=8, depth=1)
+        members.append(Member(model, train, Scaling.fit(train, rescale_targets=False), 0, seed))
+    stack, _ = train_lockstep(members, cfg.train)
+    theta, models, scalings = stack.theta.detach(), range(len(members)), [m.scaling for m in members]
+    one_model_bytes = samples * 3 * 8
+
+    tracemalloc.start()
+    scores = score_derivatives(stack, test, scalings, torch.float32, theta, models, "scalar")
+    streamed_peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.reset_peak()
+    whole = predict_derivatives(stack, test, scalings, torch.float32, theta, models)
+    whole_peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+
+    assert streamed_peak < 2 * one_model_bytes and len(members) * one_model_bytes <= whole_peak
+    for model_scores, predicted in zip(scores, whole, strict=True):
+        assert model_scores == pytest.approx(scores_both_ways(test.dx, predicted, "scalar"), rel=1e-12)

@@ -34,6 +34,10 @@ class Dataset:
     def __len__(self) -> int:
         return len(self.x)
 
+    def rows(self, start: int, stop: int) -> "Dataset":
+        """Samples start to stop (views, not copies)."""
+        return Dataset(self.x[start:stop], self.u[start:stop], self.dx[start:stop], self.y[start:stop])
+
 
 def points_per_trajectory(system_cfg: Mapping[str, Any]) -> int:
     """Samples in one simulated trajectory (1,000 for 10 s at 0.01 s)."""

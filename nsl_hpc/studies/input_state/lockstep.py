@@ -15,7 +15,7 @@ then the forward pass, a four-operation loss, the backward pass and the optimize
 
 import functools
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,6 +29,7 @@ from nsl_hpc.models.state_space import StateSpaceModel
 from nsl_hpc.studies.input_state.data import Dataset
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.input_state.stacked import StackedModels
+from nsl_hpc.studies.metrics import ErrorSums, spreads
 from nsl_hpc.studies.training import Adam, BatchOrder, TrainingOutcome, batch_bounds, learning_rate_at
 
 BLOCK_STEPS = 32  # steps prepared at once: (K, BLOCK_STEPS, batch) rows of data in memory
@@ -286,18 +287,40 @@ def settle(plan: BatchPlan, losses: torch.Tensor, start: int) -> TrainingOutcome
     return None
 
 
-def predict_derivatives(stack: StackedModels, data: Dataset, scalings: Sequence[Scaling], dtype: torch.dtype,
-                        theta: torch.Tensor | None = None, models: Sequence[int] | None = None,
-                        on_progress: Callable[[], None] = lambda: None, chunk: int = 4096) -> list[np.ndarray]:
-    """dx/dt (N, n) on the same ``data``, in physical units, without a graph, of every model of ``stack`` or,
-    given ``theta`` (R, P), of the ``models`` (R indices of the stack's members) with those parameters; a
-    scaling per row. ``on_progress`` is called after each chunk of samples (a heartbeat)."""
-    zv = torch.stack([torch.cat(scaling.model_inputs(data, dtype), dim=1) for scaling in scalings])  # (R, N, n + m)
+def derivative_chunks(stack: StackedModels, data: Dataset, scalings: Sequence[Scaling], dtype: torch.dtype,
+                      theta: torch.Tensor | None = None, models: Sequence[int] | None = None,
+                      on_progress: Callable[[], None] = lambda: None, chunk: int = 4096
+                      ) -> Iterator[tuple[slice, np.ndarray]]:
+    """dx/dt of every model of ``stack`` or, given ``theta`` (R, P), of the ``models`` (R indices of the stack's
+    members) with those parameters, a scaling per row: per chunk of ``data``'s samples, the chunk's rows and the
+    predictions (R, c, n) in physical units, computed without a graph. Memory grows with R x ``chunk``, not with
+    the data. ``on_progress`` is called after each chunk (a heartbeat)."""
     rows = None if models is None else torch.as_tensor(models, dtype=torch.long)
-    parts = []
-    with torch.no_grad():
-        for i in range(0, len(data), chunk):
-            parts.append(stack.forward(zv[:, i:i + chunk], theta, rows)[0])
-            on_progress()
-    predicted = torch.cat(parts, dim=1).double().numpy()
-    return [predicted[k] * scaling.derivative_unit for k, scaling in enumerate(scalings)]
+    units = np.stack([scaling.derivative_unit for scaling in scalings])[:, None, :]  # (R, 1, n)
+    for start in range(0, len(data), chunk):
+        part = data.rows(start, start + chunk)
+        zv = torch.stack([torch.cat(scaling.model_inputs(part, dtype), dim=1) for scaling in scalings])
+        with torch.no_grad():
+            predicted = stack.forward(zv, theta, rows)[0].double().numpy()
+        on_progress()
+        yield slice(start, start + len(part)), predicted * units
+
+
+def predict_derivatives(stack: StackedModels, data: Dataset, scalings: Sequence[Scaling], dtype: torch.dtype,
+                        theta: torch.Tensor | None = None, models: Sequence[int] | None = None) -> list[np.ndarray]:
+    """Every prediction of ``derivative_chunks`` at once: a (N, n) array per model."""
+    parts = [predicted for _, predicted in derivative_chunks(stack, data, scalings, dtype, theta, models)]
+    return list(np.concatenate(parts, axis=1))
+
+
+def score_derivatives(stack: StackedModels, data: Dataset, scalings: Sequence[Scaling], dtype: torch.dtype,
+                      theta: torch.Tensor, models: Sequence[int], normalization: str,
+                      on_progress: Callable[[], None] = lambda: None) -> list[dict[str, float]]:
+    """The row scores (``ErrorSums.both_ways``) of the ``models`` with parameters ``theta`` on ``data``, chunk by
+    chunk: a group scores on a test set of millions of samples in the memory of one chunk."""
+    test_spreads = spreads(data.dx)
+    sums = [ErrorSums(test_spreads) for _ in models]
+    for rows, predicted in derivative_chunks(stack, data, scalings, dtype, theta, models, on_progress):
+        for model_sums, model_predicted in zip(sums, predicted, strict=True):
+            model_sums.add(model_predicted - data.dx[rows])
+    return [model_sums.both_ways(normalization) for model_sums in sums]

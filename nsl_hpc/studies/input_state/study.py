@@ -23,9 +23,9 @@ from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
 from nsl_hpc.studies.base import Study, draw_tier, model_of
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set, points_per_trajectory, training_points
-from nsl_hpc.studies.input_state.lockstep import LOSSES, Member, Snapshot, predict_derivatives, train_lockstep
+from nsl_hpc.studies.input_state.lockstep import LOSSES, Member, Snapshot, score_derivatives, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
-from nsl_hpc.studies.metrics import NORMALIZATIONS, scores_both_ways
+from nsl_hpc.studies.metrics import NORMALIZATIONS
 from nsl_hpc.studies.training import SCHEDULES, batch_count
 from nsl_hpc.systems import SYSTEMS
 
@@ -119,13 +119,13 @@ class InputState(Study):
         test_data = build_test_set(plain(cfg.system), ArrayCache(cfg.cache_dir))
         on_progress()
         theta = torch.stack([snapshot.theta for _, snapshot in kept])
-        predictions = predict_derivatives(stack, test_data, [members[k].scaling for k, _ in kept],
-                                          getattr(torch, cfg.train.dtype), theta, [k for k, _ in kept], on_progress)
-        normalization = cfg.metric.normalization
-        return [{**scores_both_ways(test_data.dx, predicted, normalization), "steps": snapshot.outcome.steps,
+        scores = score_derivatives(stack, test_data, [members[k].scaling for k, _ in kept],
+                                   getattr(torch, cfg.train.dtype), theta, [k for k, _ in kept],
+                                   cfg.metric.normalization, on_progress)
+        return [{**model_scores, "steps": snapshot.outcome.steps,
                  "final_loss": snapshot.outcome.final_loss, "finite": snapshot.outcome.finite,
                  "train_seconds": train_seconds, "milestone": cfg.train.schedule_epochs is not None}
-                for predicted, (_, snapshot) in zip(predictions, kept, strict=True)]
+                for model_scores, (_, snapshot) in zip(scores, kept, strict=True)]
 
     def member(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
                epochs: Sequence[int]) -> Member:
