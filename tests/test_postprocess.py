@@ -10,6 +10,7 @@ import pyarrow.parquet as pq
 import pytest
 from mlflow.tracking import MlflowClient
 
+from nsl_hpc.analysis.figures import power_label
 from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.rows import read_row, write_row_atomically
@@ -219,3 +220,9 @@ def test_a_fit_where_no_law_can_be_fitted_keeps_the_fits_it_would_replace(fitted
     assert result.returncode == 1 and "none of the 6 NSLs could be fitted" in result.stderr, result.stderr
     assert "nsl_fits.parquet is left as it was" in result.stderr
     assert (sweep_copy / "nsl_fits.parquet").read_bytes() == fits
+
+
+@pytest.mark.parametrize(("value", "label"), [(1e5, "10\u2075"), (1.0, "10\u2070"), (2e-3, "2\u00d710\u207b\u00b3"),
+                                              (7e12, "7\u00d710\u00b9\u00b2"), (0.5, "5\u00d710\u207b\u00b9")])
+def test_log_tick_labels_are_powers_of_ten_in_unicode(value, label):
+    assert power_label(value) == label

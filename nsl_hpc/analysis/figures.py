@@ -5,6 +5,7 @@ formula, M and its bootstrap band, and the published law where the study gives o
 ``<sweep_dir>/figures/`` (``nsl/<system>__<arch>__<resource>__<metric>.*``, ``overview__<resource>__<metric>.*``).
 """
 
+import math
 import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -15,7 +16,7 @@ import pyarrow as pa
 from matplotlib.axes import Axes
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
-from matplotlib.ticker import LogFormatterSciNotation, LogLocator, NullFormatter
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 from tqdm import tqdm
 
 from nsl_hpc.analysis.bootstrap import band, thetas_of
@@ -120,8 +121,21 @@ def log_ticks(axis, low: float, high: float) -> None:
         subs = ((1.0, 2.0, 5.0) if decades >= 1 else (1.0, 2.0, 3.0, 5.0, 7.0) if decades >= 0.5
                 else tuple(float(k) for k in range(1, 10)))
         axis.set_major_locator(LogLocator(base=10, subs=subs))
-        axis.set_major_formatter(LogFormatterSciNotation(labelOnlyBase=False, minor_thresholds=(np.inf, np.inf)))
+    axis.set_major_formatter(FuncFormatter(power_label))
     axis.set_minor_formatter(NullFormatter())
+
+
+SUPERSCRIPT = str.maketrans("-0123456789", "\u207b\u2070\u00b9\u00b2\u00b3\u2074\u2075\u2076\u2077\u2078\u2079")
+
+
+def power_label(value: float, _position: object = None) -> str:
+    """A tick label 10^k or a x 10^k with Unicode superscripts (mathtext's typesetting took a third of a report)."""
+    if value <= 0:
+        return ""
+    exponent = math.floor(math.log10(value) + 1e-9)
+    mantissa = round(value / 10.0 ** exponent, 6)
+    power = "10" + str(exponent).translate(SUPERSCRIPT)
+    return power if mantissa == 1 else f"{mantissa:g}\u00d7{power}"
 
 
 def figure_for_nsl(sweep_dir: Path, results: pa.Table, row: Mapping[str, Any], nsl: Mapping[str, Any],
@@ -133,7 +147,7 @@ def figure_for_nsl(sweep_dir: Path, results: pa.Table, row: Mapping[str, Any], n
     ax = fig.subplots()
     points = draw_nsl(ax, data, row, nsl, figures, LogNorm(data["c"].min(), data["c"].max()), legend=True)
     colour, size = figures["colour"][row["resource"]], figures["size"][row["resource"]]
-    fig.colorbar(points, ax=ax, label=nsl["resources"][colour]["label"])
+    fig.colorbar(points, ax=ax, label=nsl["resources"][colour]["label"], format=FuncFormatter(power_label))
     ax.set_xlabel(nsl["resources"][row["resource"]]["label"])
     ax.set_ylabel(f"{nsl['metrics'][row['metric']]} (test)")
     ax.set_title(f"{row['system']} / {row['arch']}: {nsl['metrics'][row['metric']]} vs {row['resource']} "
@@ -162,7 +176,8 @@ def overview_figure(sweep_dir: Path, results: pa.Table, rows: Sequence[Mapping[s
     for ax in axes[:, 0]:
         ax.set_ylabel(nsl["metrics"][metric], fontsize=8)
     if points is not None:
-        fig.colorbar(points, ax=axes, label=nsl["resources"][figures["colour"][resource]]["label"], shrink=0.8)
+        fig.colorbar(points, ax=axes, label=nsl["resources"][figures["colour"][resource]]["label"], shrink=0.8,
+                     format=FuncFormatter(power_label))
     fig.legend(*overview_legend(axes), loc="outside lower center", fontsize=8, ncols=4)
     return save(fig, overview_stem(sweep_dir, resource, metric), figures)
 
