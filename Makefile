@@ -55,16 +55,17 @@ data: $(INSTALLED)
 
 # The SLURM tests need the real single-node cluster; without root they are skipped (under CI=true,
 # a cluster that cannot start fails the run).
-# Two pytest workers (pytest-xdist): the SLURM tests (mostly waiting on the scheduler) one after another on one, a
-# test file at a time beside them (tests/conftest.py's scheduling); TEST_WORKERS=0 runs everything in this process.
-TEST_WORKERS ?= 2
+# pytest-xdist workers: make test runs the SLURM tests (mostly waiting on the scheduler and on jobs that sleep) one
+# after another on one worker and a test file at a time on each of two others, filling both cores; make test-fast
+# runs two (tests/conftest.py's scheduling). TEST_WORKERS=N sets either; TEST_WORKERS=0 runs in this process.
+TEST_WORKERS ?=
 test: $(INSTALLED)
 	bash cluster/up.sh --optional
-	$(PY) -m pytest -n $(TEST_WORKERS)
+	$(PY) -m pytest -n $(or $(TEST_WORKERS),3)
 
 # Everything but the cluster, the end-to-end and the slow tests: the science, the planning core, fits (< 2 min).
 test-fast: $(INSTALLED)
-	$(PY) -m pytest -n $(TEST_WORKERS) -m "not slurm and not e2e and not slow" --ignore=tests/cluster
+	$(PY) -m pytest -n $(or $(TEST_WORKERS),2) -m "not slurm and not e2e and not slow" --ignore=tests/cluster
 
 lint: $(INSTALLED)
 	$(VENV)/bin/ruff check .

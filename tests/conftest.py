@@ -41,13 +41,20 @@ def compose(cache_dir, tmp_path):
 
 
 class FileOrCluster(LoadScopeScheduling):
-    """pytest-xdist's scheduling for ``make test`` (``-n 2``): the tests of one file run on one worker, in order,
+    """pytest-xdist's scheduling for ``make test`` (``-n 3``): the tests of one file run on one worker, in order,
     sharing their module fixtures, and the SLURM tests (tests/cluster/) one after another on one worker: they share
     the cluster's queue and CPUs, and one restarts it. (xdist's loadgroup would do this with marks, but does not
     group anything under pytest 9.)"""
 
     def _split_scope(self, nodeid: str) -> str:
         return "tests/cluster" if nodeid.startswith("tests/cluster/") else nodeid.split("::", 1)[0]
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The SLURM tests first, then the files with end-to-end tests, then the rest (each group in its order): the
+    workers take files in this order, so the longest ones start first and no long file is left for the end."""
+    heavy = {item.path for item in items if item.get_closest_marker("e2e") or item.get_closest_marker("slow")}
+    items.sort(key=lambda item: 0 if "cluster" in item.path.parts else 1 if item.path in heavy else 2)
 
 
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> FileOrCluster:

@@ -147,7 +147,7 @@ def test_report_figures_and_mlflow_runs_are_updated_not_duplicated(sweep_copy):
         "last_slope_hi"]
 
     row_path(sweep_copy, manifest_ids(sweep_copy)[0]).unlink()  # one task fewer: some laws change
-    again = nsl("report", f"sweep_dir={sweep_copy}", "nsl.max_breaks=1")
+    again = nsl("report", f"sweep_dir={sweep_copy}", "nsl.max_breaks=1", "nsl.bootstrap=20", "figures.formats=[png]")
     assert again.returncode == 0, again.stderr
     runs = client.search_runs([experiment])
     assert len(runs) == 1 + NSLS

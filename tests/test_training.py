@@ -10,8 +10,13 @@ from omegaconf import OmegaConf
 
 from nsl_hpc.models import build_model
 from nsl_hpc.studies.input_state.data import Dataset, build_test_set, build_training_set
-from nsl_hpc.studies.input_state.lockstep import (Member, loss_weights, predict_derivatives, score_derivatives,
-                                                  train_lockstep)
+from nsl_hpc.studies.input_state.lockstep import (
+    Member,
+    loss_weights,
+    predict_derivatives,
+    score_derivatives,
+    train_lockstep,
+)
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.metrics import normalized_errors, scores_both_ways
 from nsl_hpc.studies.training import batch_bounds, batch_count, warmup_cosine
