@@ -58,4 +58,5 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 
 
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> FileOrCluster:
+    config.option.loadscopereorder = False  # keep the order above, not xdist's default of the most tests first
     return FileOrCluster(config, log)
