@@ -4,6 +4,7 @@ Every test trains on one thread, as a job does (``threads: 1``): torch's default
 take 30x longer with another process on the second core. The variables reach the commands tests run too."""
 
 import os
+from collections import Counter
 from typing import Any
 
 for _variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
@@ -51,10 +52,11 @@ class FileOrCluster(LoadScopeScheduling):
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The SLURM tests first, then the files with end-to-end tests, then the rest (each group in its order): the
-    workers take files in this order, so the longest ones start first and no long file is left for the end."""
-    heavy = {item.path for item in items if item.get_closest_marker("e2e") or item.get_closest_marker("slow")}
-    items.sort(key=lambda item: 0 if "cluster" in item.path.parts else 1 if item.path in heavy else 2)
+    """The SLURM tests first, then the files by their number of end-to-end and slow tests (most first), then the
+    rest, each file's tests in their order: the workers take files in this order, so the longest start first and
+    none is left to run alone at the end."""
+    heavy = Counter(item.path for item in items if item.get_closest_marker("e2e") or item.get_closest_marker("slow"))
+    items.sort(key=lambda item: (0, 0) if "cluster" in item.path.parts else (1, -heavy[item.path]))
 
 
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> FileOrCluster:
