@@ -51,13 +51,15 @@ def refuse_task_overrides(overrides: Sequence[str]) -> None:
 
 def with_named_settings(launch: DictConfig, cfg: DictConfig, overrides: Sequence[str]) -> DictConfig:
     """``launch`` (the sweep's config and last run settings) with the run settings the command line names:
-    ``launcher=<name>`` replaces the launcher group, ``group.key=value`` one value."""
+    ``launcher=<name>`` replaces the launcher group, ``group.key=value`` one value, ``compile=<mode>`` the mode."""
     keys = [override_key(override) for override in overrides]
     if "launcher" in keys:
         launch.launcher = cfg.launcher
     for key in keys:
         group = key.split(".")[0]
-        if "." in key and group in RUN_SETTINGS and not (group == "launcher" and "launcher" in keys):
+        if key == "compile":  # the one run setting that is a value, not a group
+            launch.compile = cfg.compile
+        elif "." in key and group in RUN_SETTINGS and not (group == "launcher" and "launcher" in keys):
             OmegaConf.update(launch, key, OmegaConf.select(cfg, key), force_add=True)
     return launch
 

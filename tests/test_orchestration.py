@@ -19,6 +19,7 @@ from nsl_hpc.sweep.plan import (
     Group,
     Pack,
     check_signal_delay,
+    compiles,
     group_seconds,
     job_time,
     lockstep_groups,
@@ -45,8 +46,9 @@ def task(task_id: str, steps: int = 1000, width: int = 4, depth: int = 1, params
             "steps": steps, "params": params, "seed": seed, "epochs": epochs, "sweep_seed": 0}
 
 
-def lockstep(size: int = 4, buckets=(2, 4, 8), model_keys=(), memory_mb: float = 1000.0) -> dict:
-    return {"size": size, "width_buckets": list(buckets), "model_keys": list(model_keys), "memory_mb": memory_mb}
+def lockstep(size: int = 4, buckets=(2, 4, 8), model_keys=(), memory_mb: float = 1000.0, compile_mode="auto") -> dict:
+    return {"size": size, "width_buckets": list(buckets), "model_keys": list(model_keys), "memory_mb": memory_mb,
+            "compile": compile_mode}
 
 
 def test_predicted_seconds_follow_the_cost_model():
@@ -114,6 +116,22 @@ def test_milestone_tasks_of_one_model_stay_in_one_group_and_cost_their_longest_r
     one = [t for t in tasks if t["seed"] == 0]
     per_step = predicted_seconds("unstructured", 1, 100, COST) - COST["startup_s"]
     assert group_seconds(one, COST, lockstep(model_keys=["seed"])) == pytest.approx(2.0 + 400 * per_step)
+
+
+def test_a_group_compiles_where_the_predicted_saving_exceeds_the_compile_time():
+    """A compiled step 1.5x faster saves a third of a group's eager seconds: with 20 s to compile, a group of
+    100 eager seconds compiles (saves 33 s; planned at 100 / 1.5 + 20 = 86.7 s), one of 50 s does not (17 s);
+    always and never override, and an architecture without a measured speedup never compiles."""
+    cost = {**COST, "compile_s": {"unstructured": 20.0}, "compile_speedup": {"unstructured": 1.5}}
+    per_step = predicted_seconds("unstructured", 1, 100, COST) - COST["startup_s"]
+    long, short = [task("long", steps=round(98 / per_step))], [task("short", steps=round(48 / per_step))]
+    (planned,) = planned_groups(long, lockstep(), cost)
+    assert planned.compiled and planned.seconds == pytest.approx(100 / 1.5 + 20, rel=1e-3)
+    assert not planned_groups(short, lockstep(), cost)[0].compiled
+    assert planned_groups(short, lockstep(compile_mode="always"), cost)[0].compiled
+    assert not planned_groups(long, lockstep(compile_mode="never"), cost)[0].compiled
+    assert not planned_groups(long, lockstep(compile_mode="always"), COST)[0].compiled  # no speedup measured
+    assert compiles("unstructured", 100.0, cost, "auto") and not compiles("narx", 1e9, cost, "auto")
 
 
 def test_group_seconds_charge_the_extra_share_while_more_models_train():

@@ -1,5 +1,6 @@
 """`python -m nsl_hpc.train` end to end: one row, idempotence, determinism, and bad input."""
 
+import os
 import subprocess
 import sys
 
@@ -16,16 +17,16 @@ TIMING_COLUMNS = {"train_seconds", "wall_seconds"}
 ROW_COLUMNS = {
     "task_id", "system", "arch", "seed", "sweep_seed", "epochs", "data_tier", "data_size", "n_traj",
     "train_points", "width_tier", "width", "depth_tier", "depth", "batch_size", "lr", "nmae", "nmse",
-    "nmae_per_column", "nmse_per_column", "nmae_scalar", "nmse_scalar",
+    "nmae_per_column", "nmse_per_column", "nmae_scalar", "nmse_scalar", "compiled",
     "params", "flops", "flops_paper", "test_points", "steps", "final_loss", "status", "milestone", "package_version",
     "torch_version",
     "python_version", "host", *TIMING_COLUMNS,
 }
 
 
-def train(*args: str, cache_dir: str) -> subprocess.CompletedProcess:
+def train(*args: str, cache_dir: str, env: dict | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "nsl_hpc.train", f"cache_dir={cache_dir}", *args],
-                          capture_output=True, text=True, timeout=300)
+                          capture_output=True, text=True, timeout=300, env=env)
 
 
 def rows_under(out_dir):
@@ -82,6 +83,48 @@ def test_different_seeds_draw_different_sizes(tmp_path, cache_dir):
     assert len({row["task_id"] for row in rows}) == 4
 
 
+# A compiled step sums in another order than the eager one: their scores agree to this relative tolerance
+# (float32; measured: 1e-6 and below after 9-18 steps).
+COMPILED_RTOL = 1e-4
+
+
+def test_compiled_tasks_agree_with_eager_share_their_kernels_and_fall_back_without_a_compiler(tmp_path, cache_dir):
+    """compile=always: two tasks compiling the same step at once into one kernel cache both finish compiled, with
+    the eager task's scores to float rounding, and a third one compiles nothing anew (the cache hits). On a node
+    without a working C++ compiler (CXX names none) a task trains eagerly after one warning line (compiled=false)."""
+    eager = train(*TASK, f"out_dir={tmp_path / 'eager'}", "compile=never", cache_dir=cache_dir)
+    assert eager.returncode == 0, eager.stderr
+    kernels = tmp_path / "kernels"
+    both = [subprocess.Popen([sys.executable, "-m", "nsl_hpc.train", f"cache_dir={cache_dir}", *TASK,
+                              f"out_dir={tmp_path / name}", "compile=always", f"compile_cache_dir={kernels}"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for name in ("a", "b")]
+    for process in both:
+        _, stderr = process.communicate(timeout=600)
+        assert process.returncode == 0, stderr
+        assert "warning" not in stderr
+    expected = read_row(rows_under(tmp_path / "eager")[0])
+    assert expected["compiled"] is False
+    for name in ("a", "b"):
+        row = read_row(rows_under(tmp_path / name)[0])
+        assert row["compiled"] is True and row["task_id"] == expected["task_id"]
+        for column in ("nmae", "nmse", "final_loss"):
+            assert row[column] == pytest.approx(expected[column], rel=COMPILED_RTOL)
+    no_compiler = {**os.environ, "CXX": str(tmp_path / "no-such-c++")}
+    fallback = train(*TASK, f"out_dir={tmp_path / 'fallback'}", "compile=always",
+                     f"compile_cache_dir={tmp_path / 'fresh'}", cache_dir=cache_dir, env=no_compiler)
+    assert fallback.returncode == 0, fallback.stderr
+    warnings = [line for line in fallback.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1 and "training eagerly" in warnings[0]
+    row = read_row(rows_under(tmp_path / "fallback")[0])
+    assert row["compiled"] is False and row["nmae"] == pytest.approx(expected["nmae"], rel=COMPILED_RTOL)
+    graphs = sorted((kernels / "fxgraph").rglob("*"))
+    cached = train(*TASK, f"out_dir={tmp_path / 'cached'}", "compile=always", f"compile_cache_dir={kernels}",
+                   cache_dir=cache_dir)
+    assert cached.returncode == 0, cached.stderr
+    assert read_row(rows_under(tmp_path / "cached")[0])["compiled"] is True
+    assert graphs and sorted((kernels / "fxgraph").rglob("*")) == graphs  # nothing compiled anew: the cache hit
+
+
 @pytest.mark.parametrize(("override", "message"), [
     ("system=pendulum", "unknown system 'pendulum'; choose one of: ball, motor, silverbox, silverbox_sim, spring"),
     ("arch=transformer", "unknown arch 'transformer'; choose one of: input_affine, narx, port_hamiltonian, "
@@ -95,6 +138,7 @@ def test_different_seeds_draw_different_sizes(tmp_path, cache_dir):
     ("depth_tier=8", "depth_tier=8 is outside the grid"),
     ("arch.width_factor=0.1", None),  # only unstructured has the key: an unknown key for pH
     ("learning_rate=0.1", "learning_rate"),
+    ("compile=sometimes", "compile='sometimes'; choose one of: auto, always, never"),
 ])
 def test_bad_input_fails_fast_with_one_line(override, message, tmp_path, cache_dir):
     out_dir = tmp_path / "out"

@@ -15,11 +15,12 @@ from nsl_hpc.studies.input_state.lockstep import (
     loss_weights,
     predict_derivatives,
     score_derivatives,
+    stack_rows,
     train_lockstep,
 )
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.metrics import normalized_errors, scores_both_ways
-from nsl_hpc.studies.training import batch_bounds, batch_count, warmup_cosine
+from nsl_hpc.studies.training import StepCompiler, batch_bounds, batch_count, warmup_cosine
 from nsl_hpc.systems import SYSTEMS
 from tests.helpers import ARCH_NAMES, SYSTEM_NAMES
 
@@ -128,6 +129,71 @@ def test_a_model_trained_in_a_pack_matches_it_trained_alone(arch, compose, cache
         assert outcome.final_loss == pytest.approx(single.final_loss, rel=PACKED_RTOL)
         expected = normalized_errors(test.dx, *predict_derivatives(alone, test, [member.scaling], torch.float32))
         assert normalized_errors(test.dx, predicted) == pytest.approx(expected, rel=PACKED_RTOL)
+
+
+def compiled_members(cfg, cache, epochs: list[int]) -> list[Member]:
+    """Spring models of widths 6, 3, 6, ... (the narrow ones zero-padded), n_d 1, 1.3 trajectories each."""
+    system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+    members = []
+    for seed, count in enumerate(epochs):
+        data = build_training_set(system_cfg, seed, 1.3, cache)
+        torch.manual_seed(seed)
+        model = build_model(cfg.arch, 4, 2, width=3 if seed % 2 else 6, depth=1)
+        members.append(Member(model, data, Scaling.fit(data, rescale_targets=False), count, shuffle_seed=10 + seed))
+    return members
+
+
+def prediction(stack, snapshot, k: int, member: Member) -> np.ndarray:
+    """dx/dt (N, n) on the member's training data of model k of ``stack`` with the parameters of ``snapshot``."""
+    (predicted,) = predict_derivatives(stack, member.data, [member.scaling], torch.float32, snapshot.theta[None], [k])
+    return predicted
+
+
+def assert_trained_alike(one, other, members: list[Member], models: list[int]) -> None:
+    """Two trainings (stack, snapshots) of ``members`` (model ``models[i]`` of ``one``, i of ``other``) agree to
+    float rounding: steps, final losses and predictions after the last epoch."""
+    for i, (k, member) in enumerate(zip(models, members, strict=True)):
+        (*_, a), (*_, b) = one[1][k], other[1][i]
+        assert a.outcome.steps == b.outcome.steps
+        assert a.outcome.final_loss == pytest.approx(b.outcome.final_loss, rel=PACKED_RTOL)
+        expected = prediction(other[0], b, i, member)
+        np.testing.assert_allclose(prediction(one[0], a, k, member), expected, rtol=PACKED_RTOL,
+                                   atol=PACKED_RTOL * np.abs(expected).max())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("arch", ARCH_NAMES)
+def test_a_compiled_pack_trains_each_model_as_the_eager_loop_alone(arch, compose, cache):
+    """The compiled step (torch.compile, the pH energy gradient included) of a pack of two models of different
+    widths: each model's loss and predictions agree with it trained alone eagerly, to float rounding."""
+    cfg = compose("system=spring", f"arch={arch}")
+    members = compiled_members(cfg, cache, [3, 3])
+    compiler = StepCompiler(True)
+    packed = train_lockstep(members, cfg.train, compiler=compiler)
+    assert compiler.enabled
+    for k, member in enumerate(members):
+        assert_trained_alike(packed, train_lockstep([member], cfg.train), [member], [k])
+
+
+@pytest.mark.slow
+def test_a_compiled_pack_keeps_static_shapes_as_models_finish(compose, cache):
+    """Four models of 100, 70, 50 and 20 steps (blocks of 32), compiled: the stack keeps its 4 rows after the
+    first block (the finished model stays, padding only: 3 rows would be a new shape), 2 after the second, 1
+    after the third; every model ends as the eager pack trains it."""
+    cfg = compose("system=spring", "arch=unstructured")
+    members = compiled_members(cfg, cache, [20, 14, 10, 4])  # 5 batches an epoch
+    compiled = train_lockstep(members, cfg.train, compiler=StepCompiler(True))
+    assert compiled[0].count == 1
+    assert_trained_alike(compiled, train_lockstep(members, cfg.train), members, [0, 1, 2, 3])
+
+
+def test_static_stacks_shrink_by_powers_of_two_topped_up_with_finished_rows():
+    assert stack_rows([0, 4], 6, static=False) == [0, 4]
+    assert stack_rows([0, 4, 5], 6, static=True) == [0, 1, 4, 5]  # 3 still training of 6 rows: 4 rows
+    assert stack_rows([1, 2, 3, 5], 6, static=True) == [1, 2, 3, 5]
+    assert stack_rows([0, 4], 6, static=True) == [0, 4]
+    assert stack_rows([0, 1, 2, 3, 4], 6, static=True) == [0, 1, 2, 3, 4, 5]  # 8 >= 6: all stay
+    assert stack_rows([3], 4, static=True) == [3]
 
 
 def milestone_run(compose, cache, schedule: str, epochs: int, milestones=(), schedule_epochs: int = 0):

@@ -1,13 +1,16 @@
 """What the training loops share: mini-batch bounds, the learning-rate schedule,
-the outcome record and Adam on the rows of a stack of models. The loops are ``input_state.lockstep``
+the outcome record, Adam on the rows of a stack of models and the compiled step. The loops are ``input_state.lockstep``
 (input-state models) and ``input_output.lockstep`` (NARX and SUBNET), each alone or K in lockstep.
 """
 
 import math
+import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+from torch._dynamo.exc import TorchDynamoException
 
 
 def nonzero(scale: np.ndarray | float) -> np.ndarray:
@@ -153,3 +156,36 @@ class Adam:
         denominator = self.second.sqrt().div_(math.sqrt(1 - beta2 ** self.steps)).add_(ADAM_EPS)
         step_size = lr / (1 - beta1 ** self.steps)  # (K, 1)
         self.theta.addcdiv_(self.first * step_size, denominator, value=-1.0)
+
+
+COMPILE_MODES = ("auto", "always", "never")
+
+
+class StepCompiler:
+    """Whether a training loop runs its step function compiled (``torch.compile`` of the whole forward pass and
+    loss, one static shape at a time, Inductor's fused kernels for it and its backward), and whether it still
+    does: a compile that fails (no working C++ compiler on the node, an operation Inductor cannot lower) turns it
+    off with one warning line on stderr, and the loop goes on eagerly. ``enabled`` after training is what the
+    row's ``compiled`` column records."""
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled
+
+    def wrap(self, step: Callable[..., torch.Tensor]) -> Callable[..., torch.Tensor]:
+        """``step``, compiled while ``enabled``."""
+        if not self.enabled:
+            return step
+        compiled = torch.compile(step, dynamic=False, fullgraph=True)
+
+        def call(*args: torch.Tensor) -> torch.Tensor:
+            if self.enabled:
+                try:
+                    return compiled(*args)
+                except TorchDynamoException as error:
+                    self.enabled = False
+                    reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+                    print(f"warning: compiling the training step failed ({reason}); training eagerly",
+                          file=sys.stderr, flush=True)
+            return step(*args)
+
+        return call

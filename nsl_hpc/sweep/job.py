@@ -190,7 +190,7 @@ class JobRunner:
                 counts["busy"] += len(todo)
                 continue
             try:
-                outcome = self.run_watched(sweep, todo, group.seconds, launch, lock)
+                outcome = self.run_watched(sweep, todo, group, launch, lock)
             finally:
                 lock.release()
             counts[outcome] += len(todo)
@@ -199,13 +199,15 @@ class JobRunner:
         self.current = None
         return dict(counts)
 
-    def run_watched(self, sweep: Path, group: Sequence[Mapping[str, Any]], predicted: float, launch: DictConfig,
+    def run_watched(self, sweep: Path, group: Sequence[Mapping[str, Any]], planned: Group, launch: DictConfig,
                     lock: GroupLock) -> str:
-        """Run the tasks (manifest rows) of one lockstep group, predicted to take ``predicted`` seconds, in a
-        child process under the watchdog (``launch.watchdog``), renewing ``lock``; returns ok, failed, frozen
-        (the outcome of each of its tasks) or stopped."""
+        """Run the tasks (manifest rows) ``group`` of the lockstep group ``planned`` (its predicted seconds, compiled
+        or not) in a child process under the watchdog (``launch.watchdog``), renewing ``lock``; returns ok,
+        failed, frozen (the outcome of each of its tasks) or stopped."""
         cfgs = [task_config(sweep, task) for task in group]
+        predicted = planned.seconds
         for cfg in cfgs:
+            cfg.compile = "always" if planned.compiled else "never"  # as planned (auto resolved)
             if cfg.fault.once and failure_path(sweep, cfg.task_id).exists():
                 cfg.fault.kind = None  # test-only faults strike a task's first attempt only
         watchdog = launch.watchdog

@@ -13,6 +13,7 @@
       submitit/<array id>/, submitit/local/<job id>/   submitit's pickled jobs and their logs
       submissions/<array id>.json         what was submitted to SLURM
       cache/                              simulated trajectories (cache_dir)
+      compile_cache/                      Inductor's compiled training steps (compile_cache_dir)
       .lock                               the command that changes the sweep now (launch, resubmit, clean)
       results.parquet, merge_summary.json, .merge_cache.parquet   merge
       nsl_fits.parquet, nsl_fits.txt                            fit

@@ -29,7 +29,8 @@ from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.directory import portable_paths
 from nsl_hpc.sweep.layout import base_config_path
 
-RUN_SETTINGS = ("launcher", "packing", "cost", "watchdog", "lockstep", "checkpoint")  # what a resubmit may change
+# what a resubmit may change
+RUN_SETTINGS = ("launcher", "packing", "cost", "watchdog", "lockstep", "checkpoint", "compile")
 
 
 def manifest_path(sweep_dir: str | Path) -> Path:
@@ -104,4 +105,5 @@ def read_launch_config(sweep_dir: Path) -> DictConfig:
 def write_run_settings(sweep_dir: Path, cfg: Mapping[str, Any]) -> None:
     """Record the run settings of ``cfg`` (a launch config) as the ones jobs and the next resubmit use."""
     values = plain(cfg)
-    write_yaml({key: values[key] for key in RUN_SETTINGS}, Path(sweep_dir) / layout.RUN_SETTINGS, sweep_dir)
+    write_yaml({key: values[key] for key in RUN_SETTINGS if key in values}, Path(sweep_dir) / layout.RUN_SETTINGS,
+               sweep_dir)  # a sweep launched before a setting existed has none

@@ -12,9 +12,10 @@ from omegaconf import DictConfig
 
 from nsl_hpc.config import plain
 from nsl_hpc.config.launchers import SlurmLauncher, launcher_from
-from nsl_hpc.errors import ConfigError, require_int, require_number, require_positive_int
+from nsl_hpc.errors import ConfigError, require_choice, require_int, require_number, require_positive_int
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import model_of
+from nsl_hpc.studies.training import COMPILE_MODES
 from nsl_hpc.sweep.checkpoints import RENEW_S, STALE_S
 
 SBATCH_MEMORY = re.compile(r"[1-9][0-9]*[KMGT]?")  # sbatch --mem: megabytes, or with a unit
@@ -98,12 +99,33 @@ def group_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any], l
                                              for steps, models in training_segments(group, lockstep))
 
 
+def compiles(arch: str, eager_seconds: float, cost: Mapping[str, Any], mode: str) -> bool:
+    """Whether a lockstep group of ``arch`` predicted at ``eager_seconds`` compiles its step (``compile``: always,
+    never, or auto: when the predicted saving, eager_seconds (1 - 1 / cost.compile_speedup[arch]), exceeds what
+    compiling costs, cost.compile_s[arch]). An architecture without a compile_speedup runs eagerly."""
+    speedup = cost.get("compile_speedup", {}).get(arch)
+    if mode == "never" or speedup is None:
+        return False
+    return mode == "always" or eager_seconds * (1 - 1 / speedup) > cost["compile_s"][arch]
+
+
 @dataclass(frozen=True)
 class Group:
-    """Tasks one process trains together (in lockstep; one task when K = 1); ``seconds``: predicted wall time."""
+    """Tasks one process trains together (in lockstep; one task when K = 1); ``seconds``: predicted wall time;
+    ``compiled``: whether its training step is compiled (``compiles``)."""
 
     task_ids: tuple[str, ...]
     seconds: float
+    compiled: bool = False
+
+
+def planned_group(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any], lockstep: Mapping[str, Any]) -> Group:
+    """The ``Group`` of a lockstep group's tasks: its predicted seconds, compiled where that pays."""
+    seconds, arch = group_seconds(group, cost, lockstep), group[0]["arch"]
+    ids = tuple(task["task_id"] for task in group)
+    if compiles(arch, seconds, cost, lockstep["compile"]):
+        return Group(ids, seconds / cost["compile_speedup"][arch] + cost["compile_s"][arch], compiled=True)
+    return Group(ids, seconds)
 
 
 @dataclass(frozen=True)
@@ -126,10 +148,10 @@ def planned_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, An
     """The lockstep groups of ``tasks`` with their predicted seconds (``make_packs``'s input); a group predicted
     longer than ``longest_s`` is halved (by model, in its order) until each part fits or holds one model."""
     def fitting(group: list[Mapping[str, Any]]) -> list[Group]:
-        seconds = group_seconds(group, cost, lockstep)
+        planned = planned_group(group, cost, lockstep)
         models = list(dict.fromkeys(model_of(task, lockstep["model_keys"]) for task in group))
-        if seconds <= longest_s or len(models) == 1:
-            return [Group(tuple(task["task_id"] for task in group), seconds)]
+        if planned.seconds <= longest_s or len(models) == 1:
+            return [planned]
         first = set(models[:len(models) // 2])
         return [part for half in (True, False) for part in fitting(
             [task for task in group if (model_of(task, lockstep["model_keys"]) in first) == half])]
@@ -155,16 +177,19 @@ def job_time(seconds: float, packing: Mapping[str, Any]) -> tuple[int, int]:
 
 def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
     """Of a launch config: ``size`` (K, the models a job trains in lockstep: ``lockstep.size`` when enabled
-    and the study can, else 1), ``width_buckets``, and ``model_keys``, the keys of one model: with epoch
-    milestones (train.schedule_epochs, shared draws) the study's draw keys, else none (a model per task)."""
+    and the study can, else 1), ``width_buckets``, ``model_keys``, the keys of one model: with epoch
+    milestones (train.schedule_epochs, shared draws) the study's draw keys, else none (a model per task), and
+    ``compile`` (a sweep launched before it had none: auto)."""
     settings, study = launch["lockstep"], study_named(launch["study"]["name"])
+    compile_mode = launch.get("compile", "auto")
+    require_choice("compile", compile_mode, COMPILE_MODES)
     require_positive_int("lockstep.size", settings["size"])
     for width in settings["width_buckets"]:
         require_positive_int("lockstep.width_buckets value", width)
     require_number("lockstep.memory_mb", settings["memory_mb"], 0, 100000, low_open=True)
     return {"size": settings["size"] if settings["enabled"] and study.lockstep else 1,
             "width_buckets": list(settings["width_buckets"]), "memory_mb": settings["memory_mb"],
-            "model_keys": list(study.model_keys(launch))}
+            "model_keys": list(study.model_keys(launch)), "compile": compile_mode}
 
 
 def check_run_settings(launch: Mapping[str, Any]) -> None:
@@ -294,5 +319,5 @@ def sweep_groups(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, packing
     taken = {task_id for ids in kept for task_id in ids}
     longest_s = math.inf if packing["max_time_minutes"] else \
         60 * max(packing["time_classes_minutes"]) / packing["time_safety"]
-    return ([Group(tuple(ids), group_seconds([by_id[task_id] for task_id in ids], cost, lockstep)) for ids in kept]
+    return ([planned_group([by_id[task_id] for task_id in ids], cost, lockstep) for ids in kept]
             + planned_groups([task for task in tasks if task["task_id"] not in taken], lockstep, cost, longest_s))

@@ -5,6 +5,7 @@ What a task's coordinates are, how its sizes are drawn and how it trains is its 
 """
 
 import math
+import os
 import platform
 import socket
 import time
@@ -19,10 +20,11 @@ from omegaconf import DictConfig
 import nsl_hpc
 from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.config import plain
-from nsl_hpc.errors import ConfigError, require_non_negative_int, require_positive_int
+from nsl_hpc.errors import ConfigError, require_choice, require_non_negative_int, require_positive_int
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_of
 from nsl_hpc.studies.base import Study
+from nsl_hpc.studies.training import COMPILE_MODES
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.rows import write_row_atomically
 
@@ -58,6 +60,7 @@ def check_settings(values: Mapping[str, Any]) -> None:
     train = values["train"]
     require_positive_int("train.batch_size", train["batch_size"])
     require_positive_int("threads", values["threads"])
+    require_choice("compile", values.get("compile", "auto"), COMPILE_MODES)
     for key in ("lr", "grad_clip_norm"):
         if not (isinstance(train[key], int | float) and train[key] > 0):
             raise ConfigError(f"train.{key}={train[key]!r} must be a positive number")
@@ -149,6 +152,8 @@ def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lamb
     for i in todo:
         ensure_writable_dir(Path(cfgs[i].out_dir))
     torch.set_num_threads(cfgs[todo[0]].threads)
+    if cfgs[todo[0]].get("compile_cache_dir"):  # Inductor reads it when it first compiles
+        os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(Path(cfgs[todo[0]].compile_cache_dir).resolve())
     delay = max(inject_fault(cfgs[i].fault, cfgs[i].seed) for i in todo)
     if delay > 0:
         on_progress = slowed(on_progress, delay)

@@ -30,7 +30,7 @@ from nsl_hpc.studies.input_state.data import Dataset
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.input_state.stacked import StackedModels
 from nsl_hpc.studies.metrics import ErrorSums, spreads
-from nsl_hpc.studies.training import Adam, BatchOrder, TrainingOutcome, batch_bounds, learning_rate_at
+from nsl_hpc.studies.training import Adam, BatchOrder, StepCompiler, TrainingOutcome, batch_bounds, learning_rate_at
 
 BLOCK_STEPS = 32  # steps prepared at once: (K, BLOCK_STEPS, batch) rows of data in memory
 
@@ -136,8 +136,10 @@ class Lockstep:
     """The state of the models still training: their rows of the stack and of Adam's moments, their data and
     batch plans; ``member`` maps a row to its member's index."""
 
-    def __init__(self, members: Sequence[Member], cfg: Mapping[str, Any]):
+    def __init__(self, members: Sequence[Member], cfg: Mapping[str, Any], compiler: StepCompiler | None = None):
         self.cfg, self.dtype = cfg, getattr(torch, cfg["dtype"])
+        self.compiler = compiler or StepCompiler(False)
+        self.compiled_losses = self.compiler.wrap(self.losses)
         self.stack = StackedModels([member.model for member in members], self.dtype)
         self.optimizer = Adam(self.stack.theta, cfg["grad_clip_norm"])
         self.data = stacked_data(members, self.dtype)
@@ -174,6 +176,26 @@ class Lockstep:
         self.totals, self.schedules = self.totals[rows], self.schedules[rows]
         self.member = [self.member[row] for row in rows]
 
+    def losses(self, theta: torch.Tensor | None, inputs: torch.Tensor, weighted_targets: torch.Tensor,
+               weights: torch.Tensor) -> torch.Tensor:
+        """Each row's loss (K,) on one step's batch (inputs (K, W, n + m), the targets times -r and r (K, W, n + m):
+        ``loss_weights``), with the stack's parameters or ``theta`` (K, P)."""
+        predicted = torch.cat(self.stack.forward(inputs, theta), dim=-1)
+        return torch.addcmul(weighted_targets, predicted, weights).square().sum(dim=(1, 2))
+
+    def gradient(self, inputs: torch.Tensor, weighted_targets: torch.Tensor,
+                 weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each row's loss (K,) on one step's batch and its gradient (K, P), 0 on padding. Eager: autograd
+        through the stack's layer views; compiled: through the compiled losses of a (K, P) leaf sharing the
+        stack's parameters."""
+        if not self.compiler.enabled:
+            losses = self.losses(None, inputs, weighted_targets, weights)
+            return losses, self.stack.parameter_gradient(losses.sum())
+        theta = self.stack.theta.detach().requires_grad_(True)
+        losses = self.compiled_losses(theta, inputs, weighted_targets, weights)
+        grad, = torch.autograd.grad(losses.sum(), theta)
+        return losses, grad.mul_(self.stack.gradient_mask) if self.stack.masked else grad
+
     def train_block(self, start: int, size: int, after_step: Callable[[int, torch.Tensor], None]) -> torch.Tensor:
         """Steps start .. start + size - 1 of every row; returns their losses (size, rows).
         ``after_step(step, losses)`` is called after each update."""
@@ -190,23 +212,23 @@ class Lockstep:
         rates = torch.as_tensor(scheduled * (steps < self.totals), dtype=dtype).unsqueeze(-1)  # (L, K, 1)
         losses = torch.empty(size, len(self.plans), dtype=dtype)
         for i in range(size):
-            predicted_dz, predicted_y = self.stack.forward(inputs[i])
-            residual = torch.addcmul(weighted_targets[i], torch.cat([predicted_dz, predicted_y], dim=-1), weights[i])
-            step_losses = residual.square().sum(dim=(1, 2))
-            self.optimizer.step(self.stack.parameter_gradient(step_losses.sum()), rates[i])
+            step_losses, grad = self.gradient(inputs[i], weighted_targets[i], weights[i])
+            self.optimizer.step(grad, rates[i])
             losses[i] = step_losses.detach()
             after_step(start + i, losses[i])
         return losses
 
 
 def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progress: Callable[[], None] = lambda: None,
-                   checkpoint: Checkpointer | None = None) -> tuple[StackedModels, list[list[Snapshot]]]:
+                   checkpoint: Checkpointer | None = None, compiler: StepCompiler | None = None
+                   ) -> tuple[StackedModels, list[list[Snapshot]]]:
     """Train every member as if alone (``cfg`` is the ``train`` group); returns the stack and each member's
     snapshots, by epochs (the last after its ``epochs``). Models that have finished leave the stack at the
     end of a block, so the stack holds the models that trained longest. ``on_progress`` is called after
     every block of ``BLOCK_STEPS`` steps (a heartbeat); ``checkpoint`` continues from its state, if any, and
-    gets the state after each block (a resumed run gives the same snapshots, bit for bit)."""
-    run = Lockstep(members, cfg)
+    gets the state after each block (a resumed run gives the same snapshots, bit for bit). With an enabled
+    ``compiler`` the step is compiled, and the stack keeps static shapes (``stack_rows``)."""
+    run = Lockstep(members, cfg, compiler)
     pending = [sorted({*member.milestones, member.epochs}) for member in members]  # epochs not yet kept, per member
     due: dict[int, list[tuple[int, int]]] = {}  # step index -> (member, epochs) kept after it
     for k, plan in enumerate(run.plans):
@@ -258,13 +280,28 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progres
                         pending[k] = []
                 if not training:
                     break
-                run.keep(training)
+                if len(rows := stack_rows(training, len(run.member), run.compiler.enabled)) < len(run.member):
+                    run.keep(rows)
             bar.update(size)
             on_progress()
             if checkpoint is not None and start + size < total:
                 checkpoint.block_done(functools.partial(state, start + size), start + size, total)
     return run.stack, [[with_divergence(snapshot, outcome) for snapshot in member_snapshots]
                        for member_snapshots, outcome in zip(snapshots, outcomes, strict=True)]
+
+
+def stack_rows(training: list[int], rows: int, static: bool) -> list[int]:
+    """The rows a stack of ``rows`` keeps when only the rows ``training`` still train: those; with static shapes
+    (a compiled step compiles once per shape), a power of two of rows, topped up with finished rows (learning
+    rate 0, padding only: they change nothing), and all of them until that power is below ``rows``: a group
+    of K compiles at most 1 + log2 K shapes."""
+    if not static:
+        return training
+    size = 1 << (len(training) - 1).bit_length()
+    if size >= rows:
+        return list(range(rows))
+    finished = [row for row in range(rows) if row not in set(training)]
+    return sorted([*training, *finished[:size - len(training)]])
 
 
 def with_divergence(snapshot: Snapshot, final: TrainingOutcome | None) -> Snapshot:

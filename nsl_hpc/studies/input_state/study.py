@@ -26,7 +26,7 @@ from nsl_hpc.studies.input_state.data import build_test_set, build_training_set,
 from nsl_hpc.studies.input_state.lockstep import LOSSES, Member, Snapshot, score_derivatives, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.metrics import NORMALIZATIONS
-from nsl_hpc.studies.training import SCHEDULES, batch_count
+from nsl_hpc.studies.training import SCHEDULES, StepCompiler, batch_count
 from nsl_hpc.systems import SYSTEMS
 
 TIER_OF = {"data_tier": "data", "width_tier": "width", "depth_tier": "depth"}
@@ -101,14 +101,15 @@ class InputState(Study):
         """Train the items' models in lockstep (they share system, arch and depth) and score each on the
         system's test set; with epoch milestones (train.schedule_epochs), items that differ only in epochs are
         one model, scored after each one's epochs. train_seconds is the training time (over every resume from
-        ``checkpoint``) divided among the items."""
+        ``checkpoint``) divided among the items; compiled: whether the step ran compiled (``compile``)."""
         runs: dict[tuple, list[int]] = {}
         for i, (cfg, task, _) in enumerate(items):
             runs.setdefault(model_of(task, self.model_keys(cfg)), []).append(i)
         members = [self.member(*items[run[0]], epochs=[items[i][1]["epochs"] for i in run]) for run in runs.values()]
         cfg = items[0][0]
         started = time.perf_counter()
-        stack, snapshots = train_lockstep(members, plain(cfg.train, resolve=False), on_progress, checkpoint)
+        compiler = StepCompiler(cfg.get("compile") == "always")  # auto is resolved by a sweep's planner
+        stack, snapshots = train_lockstep(members, plain(cfg.train, resolve=False), on_progress, checkpoint, compiler)
         train_seconds = (time.perf_counter() - started + trained_before(checkpoint)) / len(items)
         kept_at: dict[int, tuple[int, Snapshot]] = {}  # per item: its run's member index, its snapshot
         for k, (run, member_snapshots) in enumerate(zip(runs.values(), snapshots, strict=True)):
@@ -124,7 +125,8 @@ class InputState(Study):
                                    cfg.metric.normalization, on_progress)
         return [{**model_scores, "steps": snapshot.outcome.steps,
                  "final_loss": snapshot.outcome.final_loss, "finite": snapshot.outcome.finite,
-                 "train_seconds": train_seconds, "milestone": cfg.train.schedule_epochs is not None}
+                 "train_seconds": train_seconds, "milestone": cfg.train.schedule_epochs is not None,
+                 "compiled": compiler.enabled}
                 for model_scores, (_, snapshot) in zip(scores, kept, strict=True)]
 
     def member(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
