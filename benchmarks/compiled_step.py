@@ -63,6 +63,14 @@ def measure(arch: str, width: int, depth: int, models: int, blocks: int, data_di
     return {"eager_s": best[False], "compiled_s": best[True], "compile_s": first[True] - first[False]}
 
 
+def measured(command: list[str], env: dict[str, str]) -> dict[str, float]:
+    """The figures a measuring process prints (its last line); its error output and exit when it fails."""
+    result = subprocess.run(command, capture_output=True, text=True, env=env)
+    if result.returncode != 0:
+        raise SystemExit(f"{' '.join(command[2:])} failed:\n{result.stderr[-3000:]}")
+    return json.loads(result.stdout.splitlines()[-1])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", type=int, default=32, help="K, models in lockstep (lockstep.size)")
@@ -84,11 +92,10 @@ def main() -> None:
             for size in args.sizes:
                 width, depth = size.split("x")
                 with tempfile.TemporaryDirectory(dir=scratch) as kernels:  # cold, then warm: one cache per row
-                    cold, warm = (json.loads(subprocess.run(
-                        [sys.executable, __file__, "--models", str(args.models), "--blocks", str(args.blocks),
-                         "--one", arch, width, depth, scratch], check=True, capture_output=True, text=True,
-                        env={**os.environ, "TORCHINDUCTOR_CACHE_DIR": kernels},
-                    ).stdout.splitlines()[-1]) for _ in range(2))
+                    command = [sys.executable, __file__, "--models", str(args.models), "--blocks", str(args.blocks),
+                               "--one", arch, width, depth, scratch]
+                    cold, warm = (measured(command, {**os.environ, "TORCHINDUCTOR_CACHE_DIR": kernels})
+                                  for _ in range(2))
                 ratio = cold["eager_s"] / cold["compiled_s"]
                 results.setdefault(arch, []).append((ratio, cold["compile_s"], warm["compile_s"]))
                 print(f"{arch:<18}{size:>10}{cold['eager_s'] * 1e3:>10.2f}{cold['compiled_s'] * 1e3:>13.2f}"

@@ -24,6 +24,7 @@ from nsl_hpc.studies.input_output.study import horizon
 from nsl_hpc.studies.input_state.data import build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
+from nsl_hpc.studies.training import StepCompiler
 from nsl_hpc.sweep.checkpoints import GroupLock, checkpoint_path
 from nsl_hpc.sweep.job import JobRunner
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest
@@ -68,10 +69,14 @@ def ph_members(compose, cache, specs) -> tuple[list[Member], dict]:
     return members, OmegaConf.to_container(cfg.train)
 
 
-def lockstep_trainer(members, train_cfg):
-    """``train(on_progress, checkpoint)``: the snapshots of the members trained in lockstep (a fresh copy each)."""
+def lockstep_trainer(members, train_cfg, compiled: bool = False):
+    """``train(on_progress, checkpoint)``: the snapshots of the members trained in lockstep (a fresh copy each),
+    eagerly or compiled."""
     def train(on_progress, checkpoint=None):
-        return train_lockstep(copy.deepcopy(members), train_cfg, on_progress, checkpoint)[1]
+        compiler = StepCompiler(compiled)
+        snapshots = train_lockstep(copy.deepcopy(members), train_cfg, on_progress, checkpoint, compiler)[1]
+        assert compiler.enabled == compiled
+        return snapshots
     return train
 
 
@@ -82,10 +87,12 @@ def assert_same_snapshots(expected, got):
             assert torch.equal(snapshot.theta, again.theta)
 
 
-def test_a_lockstep_group_stopped_and_resumed_gives_its_snapshots_bit_for_bit(compose, cache, tmp_path):
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.slow)])
+def test_a_lockstep_group_stopped_and_resumed_gives_its_snapshots_bit_for_bit(compiled, compose, cache, tmp_path):
     """3 port-Hamiltonian models (6 batches per epoch: 72, 42 and 60 steps, blocks of 32, one kept after 4 epochs
-    too), stopped after the first block, resumed, stopped after the next (a model has left), resumed to the end."""
-    train = lockstep_trainer(*ph_members(compose, cache, [(12, 6, (4,)), (7, 3, ()), (10, 6, ())]))
+    too), stopped after the first block, resumed, stopped after the next (a model has left), resumed to the end;
+    eager, or compiled (the stack keeps its shapes across a resume)."""
+    train = lockstep_trainer(*ph_members(compose, cache, [(12, 6, (4,)), (7, 3, ()), (10, 6, ())]), compiled)
     expected = train(lambda: None)
     (resumed, checkpoint) = interrupted(train, tmp_path / "group.pt")
     assert checkpoint.resumes == 2
@@ -128,18 +135,26 @@ def test_a_checkpoint_of_another_layout_is_set_aside_and_the_group_trains_afresh
     assert "group.pt mismatched (made for {'format': 2, 'theta': [3, " in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("arch", ["narx", "subnet"])
-def test_a_packed_input_output_group_stopped_and_resumed_gives_its_models_bit_for_bit(arch, compose, cache,
-                                                                                     tmp_path):
+@pytest.mark.parametrize(("arch", "compiled"), [
+    ("narx", False), ("subnet", False),
+    pytest.param("narx", True, marks=pytest.mark.slow),
+])
+def test_a_packed_input_output_group_stopped_and_resumed_gives_its_models_bit_for_bit(arch, compiled, compose,
+                                                                                     cache, tmp_path):
     """3 models of 40, 20 and 35 iterations (blocks of 16), stopped after the first block, then after the
-    second (one model has finished), then to the end."""
+    second (one model has finished), then to the end; eager, or compiled (NARX: SUBNET's compiled step shares
+    the loop and its state, and compiles for minutes)."""
     cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}")
     base = {"system": OmegaConf.to_container(cfg.system, resolve=True), "arch": OmegaConf.to_container(cfg.arch)}
     members = members_of(cfg, cache, [(700, 40, 4, 0), (400, 20, 3, 1), (1300, 35, 5, 2)])
     train_cfg = OmegaConf.to_container(cfg.train)
 
     def train(on_progress, checkpoint=None):
-        return io_lockstep.train_lockstep(copy.deepcopy(members), train_cfg, horizon(base), on_progress, checkpoint)[1:]
+        compiler = StepCompiler(compiled)
+        result = io_lockstep.train_lockstep(copy.deepcopy(members), train_cfg, horizon(base), on_progress,
+                                            checkpoint, compiler)[1:]
+        assert compiler.enabled == compiled
+        return result
 
     final, outcomes = train(lambda: None)
     (final_resumed, outcomes_resumed), _ = interrupted(train, tmp_path / "group.pt")

@@ -12,6 +12,7 @@ from nsl_hpc.studies.input_output.data import Signals, load_benchmark
 from nsl_hpc.studies.input_output.lockstep import IOMember, StackedMLPs, train_lockstep
 from nsl_hpc.studies.input_output.study import build_io_model, horizon
 from nsl_hpc.studies.input_output.training import SignalScaling, train_io_model
+from nsl_hpc.studies.training import StepCompiler
 
 # As for the input-state path (float32; batched operations sum in another order). Measured: 1e-7 and below.
 # A model whose 150-step rollout is ill-conditioned at its initial weights (seen once: n_h 3, seed 1) has a
@@ -45,15 +46,24 @@ def parameters_of(nets: StackedMLPs, theta: torch.Tensor, model: torch.nn.Module
     return cut
 
 
-@pytest.mark.parametrize("arch", ["narx", "subnet"])
-def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, compose, cache):
+@pytest.mark.parametrize(("arch", "compiled"), [
+    ("narx", False), ("subnet", False),
+    pytest.param("narx", True, marks=pytest.mark.slow), pytest.param("subnet", True, marks=pytest.mark.slow),
+])
+def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, compiled, compose, cache):
+    """Eager, or compiled (``StepCompiler``: the stack shrinks by powers of two as models finish, topped up with
+    finished ones), each model of the pack trains as the plain loop trains it alone. Compiled SUBNET simulates
+    T = 10 steps (Inductor takes ~2 min per shape to compile the study's unrolled 150)."""
     cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}")
     base = {"system": OmegaConf.to_container(cfg.system, resolve=True), "arch": OmegaConf.to_container(cfg.arch)}
+    steps = 10 if compiled else horizon(base)
     members = members_of(cfg, cache, MEMBERS)
     alone = [copy.deepcopy(member.model) for member in members]
-    nets, theta, outcomes = train_lockstep(members, OmegaConf.to_container(cfg.train), horizon(base))
+    compiler = StepCompiler(compiled)
+    nets, theta, outcomes = train_lockstep(members, OmegaConf.to_container(cfg.train), steps, compiler=compiler)
+    assert compiler.enabled == compiled
     for k, (member, model) in enumerate(zip(members, alone, strict=True)):
-        single = train_io_model(model, member.record, member.scaling, cfg.train, member.iterations, horizon(base),
+        single = train_io_model(model, member.record, member.scaling, cfg.train, member.iterations, steps,
                                 member.shuffle_seed)
         assert outcomes[k].steps == single.steps == member.iterations and outcomes[k].finite
         assert outcomes[k].final_loss == pytest.approx(single.final_loss, rel=PACKED_RTOL)

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from torch._dynamo.exc import TorchDynamoException
+from torch._dynamo.exc import FailOnRecompileLimitHit, TorchDynamoException
 
 
 def nonzero(scale: np.ndarray | float) -> np.ndarray:
@@ -159,6 +159,7 @@ class Adam:
 
 
 COMPILE_MODES = ("auto", "always", "never")
+RECOMPILE_LIMIT = 64  # compiled variants of one step function per process (a group needs at most 1 + log2 K)
 
 
 class StepCompiler:
@@ -175,13 +176,17 @@ class StepCompiler:
         """``step``, compiled while ``enabled``."""
         if not self.enabled:
             return step
+        # a process may compile a step function for many groups and shapes; past the limit, fail (and train
+        # eagerly, recorded as such) rather than run uncompiled while recorded compiled
+        torch._dynamo.config.recompile_limit = RECOMPILE_LIMIT
+        torch._dynamo.config.fail_on_recompile_limit_hit = True
         compiled = torch.compile(step, dynamic=False, fullgraph=True)
 
         def call(*args: torch.Tensor) -> torch.Tensor:
             if self.enabled:
                 try:
                     return compiled(*args)
-                except TorchDynamoException as error:
+                except (TorchDynamoException, FailOnRecompileLimitHit) as error:
                     self.enabled = False
                     reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
                     print(f"warning: compiling the training step failed ({reason}); training eagerly",
@@ -189,3 +194,28 @@ class StepCompiler:
             return step(*args)
 
         return call
+
+
+def compiled_gradient(losses_of: Callable[..., torch.Tensor], theta: torch.Tensor, mask: torch.Tensor,
+                      *batch: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The losses (K,) ``losses_of(theta, *batch)`` of a step and their gradient (K, P), 0 where ``mask`` is,
+    through a leaf that shares ``theta``'s storage (a compiled function differentiates whole, not through the
+    stack's layer views)."""
+    leaf = theta.detach().requires_grad_(True)
+    losses = losses_of(leaf, *batch)
+    (grad,) = torch.autograd.grad(losses.sum(), leaf)
+    return losses, grad.mul_(mask)
+
+
+def stack_rows(training: list[int], rows: int, static: bool) -> list[int]:
+    """The rows a stack of ``rows`` keeps when only the rows ``training`` still train: those; with static shapes
+    (a compiled step compiles once per shape), a power of two of rows, topped up with finished rows (learning
+    rate 0, padding only: they change nothing), and all of them until that power is below ``rows``: a group
+    of K compiles at most 1 + log2 K shapes."""
+    if not static:
+        return training
+    size = 1 << (len(training) - 1).bit_length()
+    if size >= rows:
+        return list(range(rows))
+    finished = [row for row in range(rows) if row not in set(training)]
+    return sorted([*training, *finished[:size - len(training)]])

@@ -33,7 +33,15 @@ from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.data import Signals
 from nsl_hpc.studies.input_output.training import SignalScaling
-from nsl_hpc.studies.training import Adam, BatchOrder, TrainingOutcome, learning_rate_at
+from nsl_hpc.studies.training import (
+    Adam,
+    BatchOrder,
+    StepCompiler,
+    TrainingOutcome,
+    compiled_gradient,
+    learning_rate_at,
+    stack_rows,
+)
 
 BLOCK_STEPS = 16  # iterations whose batch orders and learning rates are prepared at once (a heartbeat each)
 # SUBNET's h runs on the states of this many (K, B, n_h) values at once: all T steps of a small group, while a
@@ -146,10 +154,11 @@ class StackedMLPs:
         grads = torch.autograd.grad(loss, self.parameters, materialize_grads=True)
         return torch.cat([grad.reshape(len(self.theta), -1) for grad in grads], dim=1).mul_(self.gradient_mask)
 
-    def run(self, name: str, x: torch.Tensor, first: torch.Tensor | None = None) -> torch.Tensor:
-        """Output (K, B, out) of the trained MLP ``name`` for x (K, B, in), or from its first layer's
-        pre-activation ``first`` (K, B, width) (then x is not read)."""
-        layers = self.trained[name]
+    def run(self, name: str, x: torch.Tensor, first: torch.Tensor | None = None,
+            layers: list[Layer] | None = None) -> torch.Tensor:
+        """Output (K, B, out) of the trained MLP ``name`` (or of its ``layers``, views of another theta) for x
+        (K, B, in), or from its first layer's pre-activation ``first`` (K, B, width) (then x is not read)."""
+        layers = self.trained[name] if layers is None else layers
         for weight, bias, *norm in layers[:-1]:
             a = torch.baddbmm(bias, x, weight) if first is None else first
             first, x = None, self.activate(a, norm)
@@ -211,28 +220,31 @@ class Windows:
         index = (starts[..., None] + self.offsets).flatten(1)
         return signal.gather(1, index).view(*starts.shape, len(self.offsets))
 
-    def losses(self, nets: StackedMLPs, starts: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    def losses(self, nets: StackedMLPs, starts: torch.Tensor, weights: torch.Tensor,
+               theta: torch.Tensor | None = None) -> torch.Tensor:
         """The loss (K,) of each model on its windows ``starts`` (K, B): the sum of ``weights`` (K, B) times the
-        squared error of each window (NARX: one step ahead; SUBNET: summed over its T simulated steps)."""
+        squared error of each window (NARX: one step ahead; SUBNET: summed over its T simulated steps), with
+        the trained parameters or ``theta`` (K, P)."""
+        layers = nets.trained if theta is None else nets.layers(theta)
         if self.signals is not None:  # NARX
-            predicted = nets.run("net", self.gather(self.signals, starts))[..., 0]
+            predicted = nets.run("net", self.gather(self.signals, starts), layers=layers["net"])[..., 0]
             target = self.y.gather(1, starts + self.past)
             return ((predicted - target).square() * weights).sum(dim=1)
         u, y = self.gather(self.u, starts), self.gather(self.y, starts)  # (K, B, P + T)
         past = self.past
-        x = nets.run("encoder", torch.cat([u[..., :past], y[..., :past]], dim=-1))  # (K, B, n_x)
-        weight, bias, *_ = nets.trained["f"][0]
+        x = nets.run("encoder", torch.cat([u[..., :past], y[..., :past]], dim=-1), layers=layers["encoder"])
+        weight, bias, *_ = layers["f"][0]
         from_inputs = torch.addcmul(bias[:, None], u[..., past:].transpose(1, 2)[..., None],
                                     weight[:, None, self.state_dim:])  # (K, T, B, width): u's part, every step
         w_x = weight[:, :self.state_dim]
         states = []
         for from_input in from_inputs.unbind(1):  # unbind: one backward for all T (a slice's fills (K, T, B, width))
             states.append(x)
-            x = x + nets.run("f", x, first=torch.baddbmm(from_input, x, w_x))
+            x = x + nets.run("f", x, first=torch.baddbmm(from_input, x, w_x), layers=layers["f"])
         steps = max(1, H_CHUNK_VALUES // (x.shape[0] * x.shape[1] * nets.width))  # h of this many steps at once
         target = y[..., past:].transpose(1, 2)  # (K, T, B)
-        simulated = torch.cat([nets.run("h", torch.cat(states[k:k + steps], dim=1))  # (K, steps B, 1) each
-                               for k in range(0, self.horizon, steps)], dim=1).view(target.shape)
+        simulated = torch.cat([nets.run("h", torch.cat(states[k:k + steps], dim=1), layers=layers["h"])
+                               for k in range(0, self.horizon, steps)], dim=1).view(target.shape)  # (K, T, B)
         return ((simulated - target).square().sum(dim=1) * weights).sum(dim=1)
 
 
@@ -264,16 +276,19 @@ def settle(losses: np.ndarray, start: int, iterations: int, per_pass: int) -> Tr
 
 
 def train_lockstep(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon: int,
-                 on_progress: Callable[[], None] = lambda: None, checkpoint: Checkpointer | None = None
-                 ) -> tuple[StackedMLPs, torch.Tensor, list[TrainingOutcome]]:
+                   on_progress: Callable[[], None] = lambda: None, checkpoint: Checkpointer | None = None,
+                   compiler: StepCompiler | None = None) -> tuple[StackedMLPs, torch.Tensor, list[TrainingOutcome]]:
     """Train every member as if alone (``cfg`` is the ``train`` group; ``horizon``: SUBNET's T); returns the
     group, each member's trained parameters (K, P) (rows of its ``theta`` layout) and outcomes. ``on_progress``
     is called after every block of ``BLOCK_STEPS`` iterations (a heartbeat); ``checkpoint`` continues from its
-    state, if any, and gets the state after each block (a resumed run gives the same outcomes, bit for bit)."""
+    state, if any, and gets the state after each block (a resumed run gives the same outcomes, bit for bit).
+    With an enabled ``compiler`` the step is compiled, and the stack keeps static shapes (``stack_rows``)."""
     dtype = getattr(torch, cfg["dtype"])
+    compiler = compiler or StepCompiler(False)
     nets = StackedMLPs([member.model for member in members], dtype)
     optimizer = Adam(nets.theta, cfg["grad_clip_norm"])
     windows = Windows(members, horizon, dtype)
+    compiled_losses = compiler.wrap(functools.partial(compiled_step, windows, nets))
     batches = [min(cfg["batch_size"], count) for count in windows.counts]
     orders = [WindowOrder(count, batch, member.iterations, member.shuffle_seed, max(batches))
               for count, batch, member in zip(windows.counts, batches, members, strict=True)]
@@ -291,41 +306,55 @@ def train_lockstep(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon:
         for order, order_state in zip(orders, saved["orders"], strict=True):
             order.load_state(order_state)
     live = [k for k, outcome in enumerate(outcomes) if outcome is None]
-    if len(live) < len(members):
-        leave(nets, optimizer, windows, live)
+    rows = saved.get("rows", live) if saved is not None else live  # the members in the stack (fillers too)
+    if len(rows) < len(members):
+        leave(nets, optimizer, windows, rows)
     if saved is not None:
         optimizer.load_state(saved["adam"])
 
     def state(start: int) -> dict[str, Any]:
-        return {"start": start, "final": final, "adam": optimizer.state(),
+        return {"start": start, "final": final, "adam": optimizer.state(), "rows": rows,
                 "orders": [order.state() for order in orders],
                 "outcomes": [None if outcome is None else outcome.as_state() for outcome in outcomes]}
 
     while live:
         size = min(BLOCK_STEPS, total - start)
-        starts = torch.stack([orders[k].take(size) for k in live], dim=1)  # (L, K', width)
-        weights = (starts >= 0).to(dtype) * shares[live][:, None]
+        starts = torch.stack([orders[k].take(size) for k in rows], dim=1)  # (L, K', width)
+        weights = (starts >= 0).to(dtype) * shares[rows][:, None]
         steps = np.arange(start, start + size)[:, None]
-        scheduled = learning_rate_at(steps, totals[live], "warmup_cosine", cfg["warmup_fraction"], cfg["lr"])
+        scheduled = learning_rate_at(steps, totals[rows], "warmup_cosine", cfg["warmup_fraction"], cfg["lr"])
         rates = torch.as_tensor(scheduled, dtype=dtype).unsqueeze(-1)  # (L, K', 1): 0 after a model's last step
-        losses = torch.empty(size, len(live), dtype=dtype)
+        losses = torch.empty(size, len(rows), dtype=dtype)
         for i in range(size):
-            step_losses = windows.losses(nets, starts[i].clamp_min(0), weights[i])
-            optimizer.step(nets.parameter_gradient(step_losses.sum()), rates[i])
+            if compiler.enabled:
+                step_losses, grad = compiled_gradient(compiled_losses, nets.theta, nets.gradient_mask,
+                                                      starts[i].clamp_min(0), weights[i])
+            else:
+                step_losses = windows.losses(nets, starts[i].clamp_min(0), weights[i])
+                grad = nets.parameter_gradient(step_losses.sum())
+            optimizer.step(grad, rates[i])
             losses[i] = step_losses.detach()
-        for row, k in enumerate(live):
-            outcomes[k] = settle(losses[:, row].double().numpy(), start, int(totals[k]), orders[k].per_pass)
-            if outcomes[k] is not None:
-                final[k] = nets.theta[row].detach()
-        still = [row for row, k in enumerate(live) if outcomes[k] is None]
-        if len(still) < len(live):
-            live = [live[row] for row in still]
-            leave(nets, optimizer, windows, still)
+        for row, k in enumerate(rows):
+            if outcomes[k] is None:
+                outcomes[k] = settle(losses[:, row].double().numpy(), start, int(totals[k]), orders[k].per_pass)
+                if outcomes[k] is not None:
+                    final[k] = nets.theta[row].detach()
+        live = [k for k in rows if outcomes[k] is None]
+        kept = stack_rows([row for row, k in enumerate(rows) if outcomes[k] is None], len(rows), compiler.enabled)
+        if live and len(kept) < len(rows):
+            rows = [rows[row] for row in kept]
+            leave(nets, optimizer, windows, kept)
         start += size
         on_progress()
         if checkpoint is not None and live:
             checkpoint.block_done(functools.partial(state, start), start, total)
     return nets, final, cast(list[TrainingOutcome], outcomes)  # every model has settled
+
+
+def compiled_step(windows: Windows, nets: StackedMLPs, theta: torch.Tensor, starts: torch.Tensor,
+                  weights: torch.Tensor) -> torch.Tensor:
+    """``Windows.losses`` with parameters ``theta``: the function a ``StepCompiler`` compiles."""
+    return windows.losses(nets, starts, weights, theta)
 
 
 def leave(nets: StackedMLPs, optimizer: Adam, windows: Windows, rows: list[int]) -> None:

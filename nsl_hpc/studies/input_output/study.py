@@ -30,6 +30,7 @@ from nsl_hpc.studies.input_output.data import Benchmark, load_benchmark, require
 from nsl_hpc.studies.input_output.lockstep import IOMember, train_lockstep
 from nsl_hpc.studies.input_output.scoring import numpy_mlps, score_records
 from nsl_hpc.studies.input_output.training import SignalScaling
+from nsl_hpc.studies.training import StepCompiler
 
 
 def build_io_model(arch_cfg: Mapping[str, Any], system_cfg: Mapping[str, Any], width: int, depth: int
@@ -135,15 +136,16 @@ class InputOutput(Study):
         """Train the items' models in lockstep (they share system, arch and depth) and score each on every test
         record: nmae, nmse and rmse_mv are the free-run scores on ``system.score_on``, the others extra columns
         (``scoring``). train_seconds is the training time (over every resume from ``checkpoint``) divided among the
-        items."""
+        items; compiled: whether the step ran compiled (``compile``)."""
         cfg = items[0][0]
         system_cfg = plain(cfg.system)
         benchmark = load_benchmark(system_cfg, ArrayCache(cfg.cache_dir))
         members = [self.member(item_cfg, task, sizes, system_cfg, benchmark) for item_cfg, task, sizes in items]
         started = time.perf_counter()
         base = {"system": system_cfg, "arch": plain(cfg.arch, resolve=False)}
+        compiler = StepCompiler(cfg.get("compile") == "always")  # auto is resolved by a sweep's planner
         nets, theta, outcomes = train_lockstep(members, plain(cfg.train, resolve=False), horizon(base), on_progress,
-                                             checkpoint)
+                                               checkpoint, compiler)
         train_seconds = (time.perf_counter() - started + trained_before(checkpoint)) / len(items)
         on_progress()
         scores = score_records(members[0].model, numpy_mlps(nets, theta), [member.scaling for member in members],
@@ -151,7 +153,7 @@ class InputOutput(Study):
         default = f"free_run_{system_cfg['score_on']}"
         return [{**{metric: row[f"{metric}_{default}"] for metric in ("nmae", "nmse", "rmse_mv")}, **row,
                  "steps": outcome.steps, "final_loss": outcome.final_loss, "finite": outcome.finite,
-                 "train_seconds": train_seconds}
+                 "train_seconds": train_seconds, "compiled": compiler.enabled}
                 for row, outcome in zip(scores, outcomes, strict=True)]
 
     def member(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],

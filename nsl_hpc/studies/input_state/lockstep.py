@@ -30,7 +30,16 @@ from nsl_hpc.studies.input_state.data import Dataset
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.input_state.stacked import StackedModels
 from nsl_hpc.studies.metrics import ErrorSums, spreads
-from nsl_hpc.studies.training import Adam, BatchOrder, StepCompiler, TrainingOutcome, batch_bounds, learning_rate_at
+from nsl_hpc.studies.training import (
+    Adam,
+    BatchOrder,
+    StepCompiler,
+    TrainingOutcome,
+    batch_bounds,
+    compiled_gradient,
+    learning_rate_at,
+    stack_rows,
+)
 
 BLOCK_STEPS = 32  # steps prepared at once: (K, BLOCK_STEPS, batch) rows of data in memory
 
@@ -191,10 +200,8 @@ class Lockstep:
         if not self.compiler.enabled:
             losses = self.losses(None, inputs, weighted_targets, weights)
             return losses, self.stack.parameter_gradient(losses.sum())
-        theta = self.stack.theta.detach().requires_grad_(True)
-        losses = self.compiled_losses(theta, inputs, weighted_targets, weights)
-        grad, = torch.autograd.grad(losses.sum(), theta)
-        return losses, grad.mul_(self.stack.gradient_mask) if self.stack.masked else grad
+        return compiled_gradient(self.compiled_losses, self.stack.theta, self.stack.gradient_mask, inputs,
+                                 weighted_targets, weights)
 
     def train_block(self, start: int, size: int, after_step: Callable[[int, torch.Tensor], None]) -> torch.Tensor:
         """Steps start .. start + size - 1 of every row; returns their losses (size, rows).
@@ -288,20 +295,6 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progres
                 checkpoint.block_done(functools.partial(state, start + size), start + size, total)
     return run.stack, [[with_divergence(snapshot, outcome) for snapshot in member_snapshots]
                        for member_snapshots, outcome in zip(snapshots, outcomes, strict=True)]
-
-
-def stack_rows(training: list[int], rows: int, static: bool) -> list[int]:
-    """The rows a stack of ``rows`` keeps when only the rows ``training`` still train: those; with static shapes
-    (a compiled step compiles once per shape), a power of two of rows, topped up with finished rows (learning
-    rate 0, padding only: they change nothing), and all of them until that power is below ``rows``: a group
-    of K compiles at most 1 + log2 K shapes."""
-    if not static:
-        return training
-    size = 1 << (len(training) - 1).bit_length()
-    if size >= rows:
-        return list(range(rows))
-    finished = [row for row in range(rows) if row not in set(training)]
-    return sorted([*training, *finished[:size - len(training)]])
 
 
 def with_divergence(snapshot: Snapshot, final: TrainingOutcome | None) -> Snapshot:
