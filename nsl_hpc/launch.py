@@ -43,7 +43,7 @@ def describe_lockstep(tasks: Sequence[Mapping[str, Any]], packs: Sequence[Pack],
 
 
 def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str) -> str:
-    """The plan in a few lines: tasks, jobs, time limits, predicted core-hours."""
+    """The plan in a few lines: tasks, jobs, time limits, predicted core-hours (and the groups compiled)."""
     total, todo = prepared.manifest.num_rows, prepared.todo.num_rows
     done = total - todo - len(prepared.infeasible)
     by_limit: dict[int, int] = {}
@@ -56,6 +56,9 @@ def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str)
                     f"{chains[0]}{f'-{chains[-1]}' if chains[-1] > chains[0] else ''} jobs")
     core_hours = sum(pack.seconds for pack in packs) / 3600
     predicted = f"{core_hours:,.1f} core-hours" if core_hours >= 1 else f"{core_hours * 60:.1f} core-minutes"
+    groups = [group for pack in packs for group in pack.groups]
+    if compiled := sum(group.compiled for group in groups):
+        predicted += f" ({compiled:,} of {len(groups):,} lockstep groups compiled)"
     notes = "".join([f", {prepared.queued:,} queued in SLURM (not submitted again)" if prepared.queued else "",
                      f", {prepared.set_aside:,} corrupt rows moved to corrupt/" if prepared.set_aside else ""])
     done -= prepared.queued

@@ -42,6 +42,10 @@ from tests.sweeps import TINY_GRID, nsl
     (["launcher=slurm", "launcher.max_job_count=-5"], "launcher.max_job_count=-5 must be a positive integer"),
     (["launcher=slurm", "launcher.mem=abc"], "launcher.mem='abc' is no sbatch --mem"),
     (["launcher=slurm", "launcher.mem=0G"], "launcher.mem='0G' is no sbatch --mem"),
+    (["cost.compile_speedup.unstructured=0"], "cost.compile_speedup.unstructured=0 must be a finite number in (0, "),
+    (["cost.compile_s.subnet=null"], "cost.compile_speedup.subnet needs cost.compile_s.subnet"),
+    (["cost.compile_s.unstructured=-1"], "cost.compile_s.unstructured=-1 must be a finite number in [0, 86400]"),
+    (["compile=sometimes"], "compile='sometimes'; choose one of: auto, always, never"),
 ])
 def test_settings_that_would_switch_a_protection_off_are_refused_in_one_line(overrides, message):
     launch = compose_config(["+sweep=demo", *overrides], "launch")
@@ -51,7 +55,8 @@ def test_settings_that_would_switch_a_protection_off_are_refused_in_one_line(ove
 
 
 @pytest.mark.parametrize("overrides", [[], ["checkpoint.every_minutes=0"], ["checkpoint.every_minutes=0.1"],
-                                       ["launcher=slurm", "launcher.mem=1500M", "launcher.max_array_size=1001"]])
+                                       ["launcher=slurm", "launcher.mem=1500M", "launcher.max_array_size=1001"],
+                                       ["compile=never"], ["compile=always"]])
 def test_sane_run_settings_pass(overrides):
     check_run_settings(compose_config(["+sweep=demo", *overrides], "launch"))
 

@@ -121,7 +121,7 @@ def test_milestone_tasks_of_one_model_stay_in_one_group_and_cost_their_longest_r
 def test_a_group_compiles_where_the_predicted_saving_exceeds_the_compile_time():
     """A compiled step 1.5x faster saves a third of a group's eager seconds: with 20 s to compile, a group of
     100 eager seconds compiles (saves 33 s; planned at 100 / 1.5 + 20 = 86.7 s), one of 50 s does not (17 s);
-    always and never override, and an architecture without a measured speedup never compiles."""
+    always and never override, and under auto an architecture without a measured speedup never compiles."""
     cost = {**COST, "compile_s": {"unstructured": 20.0}, "compile_speedup": {"unstructured": 1.5}}
     per_step = predicted_seconds("unstructured", 1, 100, COST) - COST["startup_s"]
     long, short = [task("long", steps=round(98 / per_step))], [task("short", steps=round(48 / per_step))]
@@ -130,8 +130,10 @@ def test_a_group_compiles_where_the_predicted_saving_exceeds_the_compile_time():
     assert not planned_groups(short, lockstep(), cost)[0].compiled
     assert planned_groups(short, lockstep(compile_mode="always"), cost)[0].compiled
     assert not planned_groups(long, lockstep(compile_mode="never"), cost)[0].compiled
-    assert not planned_groups(long, lockstep(compile_mode="always"), COST)[0].compiled  # no speedup measured
+    (unmeasured,) = planned_groups(long, lockstep(compile_mode="always"), COST)  # no speedup, no compile time
+    assert unmeasured.compiled and unmeasured.seconds == pytest.approx(100.0, rel=1e-3)
     assert compiles("unstructured", 100.0, cost, "auto") and not compiles("narx", 1e9, cost, "auto")
+    assert not compiles("narx", 1e9, {**cost, "compile_speedup": {"narx": None}}, "auto")
 
 
 def test_group_seconds_charge_the_extra_share_while_more_models_train():

@@ -102,11 +102,11 @@ def group_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any], l
 def compiles(arch: str, eager_seconds: float, cost: Mapping[str, Any], mode: str) -> bool:
     """Whether a lockstep group of ``arch`` predicted at ``eager_seconds`` compiles its step (``compile``: always,
     never, or auto: when the predicted saving, eager_seconds (1 - 1 / cost.compile_speedup[arch]), exceeds what
-    compiling costs, cost.compile_s[arch]). An architecture without a compile_speedup runs eagerly."""
+    compiling costs, cost.compile_s[arch]; an architecture whose compile_speedup is null runs eagerly)."""
+    if mode != "auto":
+        return mode == "always"
     speedup = cost.get("compile_speedup", {}).get(arch)
-    if mode == "never" or speedup is None:
-        return False
-    return mode == "always" or eager_seconds * (1 - 1 / speedup) > cost["compile_s"][arch]
+    return speedup is not None and eager_seconds * (1 - 1 / speedup) > cost["compile_s"][arch]
 
 
 @dataclass(frozen=True)
@@ -124,7 +124,8 @@ def planned_group(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any], l
     seconds, arch = group_seconds(group, cost, lockstep), group[0]["arch"]
     ids = tuple(task["task_id"] for task in group)
     if compiles(arch, seconds, cost, lockstep["compile"]):
-        return Group(ids, seconds / cost["compile_speedup"][arch] + cost["compile_s"][arch], compiled=True)
+        speedup = cost.get("compile_speedup", {}).get(arch) or 1.0
+        return Group(ids, seconds / speedup + cost.get("compile_s", {}).get(arch, 0.0), compiled=True)
     return Group(ids, seconds)
 
 
@@ -193,7 +194,7 @@ def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def check_run_settings(launch: Mapping[str, Any]) -> None:
-    """Raise ConfigError for run settings (launcher, packing, cost, watchdog, lockstep, checkpoint) no job can
+    """Raise ConfigError for run settings (launcher, packing, cost, watchdog, lockstep, checkpoint, compile) no job can
     run with, or that would switch a protection off: every number finite and in its range (NaN or inf would
     silence the watchdog, 1e-9-minute checkpoints would write at every block)."""
     lockstep_settings(launch)
@@ -220,6 +221,14 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
         for arch, value in launch["cost"][key].items():
             require_number(f"cost.{key}.{arch}", value, 0, high, low_open=True)
     require_number("cost.score_seconds", launch["cost"].get("score_seconds", 0.0), 0, 1)
+    compile_s = launch["cost"].get("compile_s", {})
+    for arch, value in launch["cost"].get("compile_speedup", {}).items():
+        if value is None:  # never compiled under compile=auto
+            continue
+        require_number(f"cost.compile_speedup.{arch}", value, 0, 100, low_open=True)
+        if compile_s.get(arch) is None:
+            raise ConfigError(f"cost.compile_speedup.{arch} needs cost.compile_s.{arch} (seconds a group compiles)")
+        require_number(f"cost.compile_s.{arch}", compile_s[arch], 0, 86400)
     every = launch["checkpoint"]["every_minutes"]
     if every != 0:
         try:
