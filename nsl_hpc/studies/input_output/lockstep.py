@@ -7,7 +7,8 @@ count and learning-rate schedule: at iteration s model k takes the s-th mini-bat
 W // b batches of b = min(B, W)). Batches of different sizes are padded and masked (zero loss weight); a model
 that has finished gets padding and learning rate 0 until the end of the block of ``BLOCK_STEPS`` iterations,
 then leaves. A model whose loss is not finite at the end of a pass has diverged (as in the plain loop) and
-leaves at the end of the block.
+leaves at the end of the block (a compiled step keeps such models while that keeps the stack's shape:
+``studies.training.stack_rows``).
 
 The MLPs of all K models (``model.mlps()``) are batched MLPs, weights (K, in, n_h), zero-padded to the widest
 n_h: LayerNorm averages over each model's own units and padded entries get exactly zero gradient, so a padded

@@ -4,7 +4,8 @@ Each model keeps its own initial weights, width, data (size and scaling), shuffl
 epoch count and learning-rate schedule: at step s model k takes its own s-th mini-batch, exactly the one it
 takes when trained alone (K = 1, the single-model path). Mini-batches of different lengths are padded and
 masked; a model that has finished (or diverged) gets padding only (zero loss weight, learning rate 0) until
-the end of the block, then leaves the stack. The loss, the gradient-norm clipping and Adam
+the end of the block, then leaves the stack (a compiled step keeps it while that keeps the stack's shape:
+``studies.training.stack_rows``). The loss, the gradient-norm clipping and Adam
 (torch.optim.Adam's arithmetic) are computed per model, in a few operations on the (K, P) parameter rows of
 ``stacked``. A model is kept (``Snapshot``) after its epochs and after each of its milestones.
 
