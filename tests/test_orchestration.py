@@ -14,6 +14,7 @@ from nsl_hpc.errors import ConfigError
 from nsl_hpc.status import remaining_seconds, running_cores, summary
 from nsl_hpc.sweep.checkpoints import GroupLock
 from nsl_hpc.sweep.executors import array_chunks, balance, slurm_executor
+from nsl_hpc.sweep.job import compile_allowance
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import (
     Group,
@@ -134,6 +135,11 @@ def test_a_group_compiles_where_the_predicted_saving_exceeds_the_compile_time():
     assert unmeasured.compiled and unmeasured.seconds == pytest.approx(100.0, rel=1e-3)
     assert compiles("unstructured", 100.0, cost, "auto") and not compiles("narx", 1e9, cost, "auto")
     assert not compiles("narx", 1e9, {**cost, "compile_speedup": {"narx": None}}, "auto")
+
+
+def test_a_compiled_group_may_go_without_a_heartbeat_three_times_its_compile_time_longer():
+    launch = compose_config(["+sweep=input_output", "cost.compile_s.subnet=400", "cost.compile_s.narx=null"], "launch")
+    assert compile_allowance(launch, "subnet") == 1200.0 and compile_allowance(launch, "narx") == 0.0
 
 
 def test_group_seconds_charge_the_extra_share_while_more_models_train():

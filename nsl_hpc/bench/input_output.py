@@ -34,7 +34,7 @@ from nsl_hpc.studies.input_output.lockstep import IOMember, train_lockstep
 from nsl_hpc.studies.input_output.scoring import numpy_mlps, score_records
 from nsl_hpc.studies.input_output.study import build_io_model, horizon, training_memory_mb
 from nsl_hpc.studies.input_output.training import SignalScaling, train_io_model
-from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments
+from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments, with_compile
 
 
 class IOBench:
@@ -150,22 +150,26 @@ def projection(bench: IOBench, process_s: float) -> dict[str, Any]:
 
     reference = sum(process_s + task["steps"] * cost(task, "reference")
                     + samples[task["system"]] * scoring[task["arch"]]["alone"] for task in manifest)
-    settings = lockstep_settings(launch)
+    settings, cost_values = lockstep_settings(launch), plain(launch.cost, resolve=False)
     groups = lockstep_groups(manifest, settings)
-    ours = len(groups) * process_s
+    ours = eager = len(groups) * process_s
     for group in groups:
         first, width = group[0], max(task["width"] for task in group)
         single, packed = cost(first, "single", width), cost(first, "packed", width)
         pack = interpolate(measured[first["arch"]]["pack"], list(grid.widths[first["arch"]]), list(grid.depths),
                            width, first["depth"])
         per_model = (packed - single) / max(1.0, pack - 1)
-        ours += sum(steps * (single + per_model * (models - 1)) for steps, models in training_segments(group, settings))
-        ours += sum(samples[task["system"]] * scoring[task["arch"]]["packed"] for task in group)
+        training = sum(steps * (single + per_model * (models - 1))
+                       for steps, models in training_segments(group, settings))
+        scored = sum(samples[task["system"]] * scoring[task["arch"]]["packed"] for task in group)
+        ours += with_compile(first["arch"], training, cost_values, settings["compile"])[0] + scored
+        eager += training + scored
     try:
         planner: float | str = planner_core_hours(launch, manifest)
     except ConfigError as error:  # e.g. cost values under which a group outgrows every time class
         planner = f"refused: {error}"
     return {"io_core_hours_reference": reference / 3600, "io_core_hours_ours": ours / 3600,
+            "io_core_hours_ours_eager": eager / 3600, "io_compile": settings["compile"],
             "io_core_hours_planner": planner, "io_tasks": len(manifest),
             "io_groups": len(groups), "io_calibrated_cost": calibrated_cost(measured),
             "io_scoring_seconds_per_sample": scoring}
@@ -205,7 +209,8 @@ def report(rows: list[dict[str, Any]], projected: Mapping[str, Any], io: DictCon
     fitted = projected["io_calibrated_cost"]
     lines += ["", f"Projected core-hours of the {projected['io_tasks']:,}-task input-output study: plain loop, one "
               f"process per task, {reference:,.0f}; ours {ours:,.0f} ({reference / ours:.1f}x fewer; "
-              f"{projected['io_groups']:,} packed groups). The planner predicts "
+              f"{projected['io_groups']:,} packed groups; compile={projected['io_compile']}, at `cost.compile_speedup` "
+              f"and `cost.compile_s`; eager {projected['io_core_hours_ours_eager']:,.0f}). The planner predicts "
               f"{planner if isinstance(planner, str) else f'{planner:,.0f}'} "
               "(`cost.*`). Fitted cost values: " + "; ".join(
                   f"{arch}: step_seconds {fitted['step_seconds'][arch]:.3g}, params_per_overhead "

@@ -41,7 +41,7 @@ from nsl_hpc.studies.input_state.lockstep import Member, predict_derivatives, tr
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.metrics import normalized_errors
 from nsl_hpc.studies.training import batch_count, warmup_cosine
-from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments
+from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments, with_compile
 from nsl_hpc.sweep.rows import write_row_atomically
 from nsl_hpc.systems import SYSTEMS
 
@@ -204,23 +204,28 @@ def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, 
         return len(manifest) * (process + per_task) + sum(
             task["steps"] * step_cost(task["arch"], method, task["width"], task["depth"]) for task in manifest)
 
-    def ours(tasks: list[dict[str, Any]], settings: Mapping[str, Any]) -> tuple[float, int]:
-        """Seconds and lockstep groups of ``tasks`` trained our way with lockstep ``settings``."""
+    def ours(tasks: list[dict[str, Any]], settings: Mapping[str, Any], mode: str) -> tuple[float, int]:
+        """Seconds and lockstep groups of ``tasks`` trained our way with lockstep ``settings``, the groups
+        compiled as ``compile=mode`` would (``with_compile``: the cost values of benchmarks/compiled_step.py)."""
         seconds, groups = len(tasks) * per_task, lockstep_groups(tasks, settings)
         for group in groups:
             arch, width, depth = group[0]["arch"], max(t["width"] for t in group), group[0]["depth"]
             single, packed = step_cost(arch, "single", width, depth), step_cost(arch, "packed", width, depth)
-            seconds += sum(steps * (single + (packed - single) * (models - 1) / max(1, cfg.pack_size - 1))
-                           for steps, models in training_segments(group, settings))
+            seconds += with_compile(arch, sum(
+                steps * (single + (packed - single) * (models - 1) / max(1, cfg.pack_size - 1))
+                for steps, models in training_segments(group, settings)), cost, mode)[0]
         return seconds, len(groups)
 
-    faithful, groups = ours(manifest, {**lockstep_settings(launch), "size": cfg.pack_size})
+    cost, settings = plain(launch.cost, resolve=False), {**lockstep_settings(launch), "size": cfg.pack_size}
+    faithful, groups = ours(manifest, settings, settings["compile"])
+    eager, _ = ours(manifest, settings, "never")
     shared_launch, shared = study_manifest("input_state", "draws=shared_across_epochs", "train.schedule_epochs=16384")
-    milestones, _ = ours(shared, {**lockstep_settings(shared_launch), "size": cfg.pack_size})
+    milestones, _ = ours(shared, {**lockstep_settings(shared_launch), "size": cfg.pack_size}, settings["compile"])
     return {"core_hours_reference": one_process_per_task("reference") / 3600,
             "core_hours_authors": one_process_per_task("authors") / 3600, "core_hours_ours": faithful / 3600,
-            "core_hours_milestones": milestones / 3600, "core_hours_planner": planner_core_hours(launch, manifest),
-            "tasks": len(manifest), "groups": groups}
+            "core_hours_ours_eager": eager / 3600, "core_hours_milestones": milestones / 3600,
+            "core_hours_planner": planner_core_hours(launch, manifest), "tasks": len(manifest), "groups": groups,
+            "compile": settings["compile"]}
 
 
 def largest_task_peak_memory(cfg: DictConfig, root: Path) -> float:
@@ -261,7 +266,9 @@ def report(speeds: list[dict], breakdown: Mapping[str, float], peak: float, proj
               f"plain loop {reference:,.0f}, authors' loop {projection['core_hours_authors']:,.0f}; ours "
               f"{ours:,.0f} ({reference / ours:.1f}x fewer than the plain loop, "
               f"{projection['core_hours_authors'] / ours:.1f}x fewer than the authors'; {projection['groups']:,} "
-              f"lockstep groups of up to K = {cfg.pack_size}). With epoch milestones (shared draws, "
+              f"lockstep groups of up to K = {cfg.pack_size}; compile={projection['compile']}: the groups the planner "
+              "compiles at `cost.compile_speedup` and `cost.compile_s`, benchmarks/compiled_step.py; eager "
+              f"{projection['core_hours_ours_eager']:,.0f}). With epoch milestones (shared draws, "
               "train.schedule_epochs = the largest epoch count; rows of another meaning, see Epoch milestones) "
               f"{projection['core_hours_milestones']:,.0f} ({reference / projection['core_hours_milestones']:.1f}x "
               f"fewer). The planner predicts {projection['core_hours_planner']:,.0f} (`cost.*`, for time limits).",

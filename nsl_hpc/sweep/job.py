@@ -211,6 +211,8 @@ class JobRunner:
             if cfg.fault.once and failure_path(sweep, cfg.task_id).exists():
                 cfg.fault.kind = None  # test-only faults strike a task's first attempt only
         watchdog = launch.watchdog
+        silence_s = watchdog.heartbeat_timeout_s + (compile_allowance(launch, group[0]["arch"]) if planned.compiled
+                                                    else 0.0)  # no heartbeat while the first block compiles
         ids = [task["task_id"] for task in group]
         context = multiprocessing.get_context("fork")
         heartbeat = context.Value("d", time.time(), lock=False)
@@ -226,7 +228,7 @@ class JobRunner:
                 if self.launcher_gone():  # its task dies with it (die_with_parent)
                     os._exit(1)
                 silent, elapsed = time.time() - heartbeat.value, time.time() - started
-                if child.is_alive() and silent > watchdog.heartbeat_timeout_s:
+                if child.is_alive() and silent > silence_s:
                     return self.stop_frozen(child, sweep, ids, f"no heartbeat for {silent:.0f} s")
                 if child.is_alive() and elapsed > watchdog.overrun_factor * predicted:
                     return self.stop_frozen(child, sweep, ids, f"ran {elapsed:.0f} s, over "
@@ -281,6 +283,12 @@ class JobRunner:
         if not remaining:
             return None
         return submitit.helpers.DelayedSubmission(JobRunner(self.launcher_pid), sweep_dir, remaining)
+
+
+def compile_allowance(launch: DictConfig, arch: str) -> float:
+    """Seconds a compiled group of ``arch`` may go without a heartbeat beyond the watchdog's: three times its
+    predicted compile time (cost.compile_s; a slower node, a cold cache)."""
+    return 3.0 * float(OmegaConf.select(launch, f"cost.compile_s.{arch}", default=None) or 0.0)
 
 
 def lost_work(path: Path, started: float) -> str:

@@ -109,6 +109,15 @@ def compiles(arch: str, eager_seconds: float, cost: Mapping[str, Any], mode: str
     return speedup is not None and eager_seconds * (1 - 1 / speedup) > cost["compile_s"][arch]
 
 
+def with_compile(arch: str, eager_seconds: float, cost: Mapping[str, Any], mode: str) -> tuple[float, bool]:
+    """A group's predicted seconds and whether it compiles (``compiles``): compiled, its eager seconds over
+    cost.compile_speedup[arch] (1 when null) plus cost.compile_s[arch] (0 when null)."""
+    if not compiles(arch, eager_seconds, cost, mode):
+        return eager_seconds, False
+    speedup = cost.get("compile_speedup", {}).get(arch) or 1.0
+    return eager_seconds / speedup + (cost.get("compile_s", {}).get(arch) or 0.0), True
+
+
 @dataclass(frozen=True)
 class Group:
     """Tasks one process trains together (in lockstep; one task when K = 1); ``seconds``: predicted wall time;
@@ -121,12 +130,8 @@ class Group:
 
 def planned_group(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any], lockstep: Mapping[str, Any]) -> Group:
     """The ``Group`` of a lockstep group's tasks: its predicted seconds, compiled where that pays."""
-    seconds, arch = group_seconds(group, cost, lockstep), group[0]["arch"]
-    ids = tuple(task["task_id"] for task in group)
-    if compiles(arch, seconds, cost, lockstep["compile"]):
-        speedup = cost.get("compile_speedup", {}).get(arch) or 1.0
-        return Group(ids, seconds / speedup + cost.get("compile_s", {}).get(arch, 0.0), compiled=True)
-    return Group(ids, seconds)
+    seconds, compiled = with_compile(group[0]["arch"], group_seconds(group, cost, lockstep), cost, lockstep["compile"])
+    return Group(tuple(task["task_id"] for task in group), seconds, compiled)
 
 
 @dataclass(frozen=True)
