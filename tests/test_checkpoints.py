@@ -56,9 +56,10 @@ def interrupted(train, path, stops=(1, 1)):
     return train(lambda: None, checkpoint), checkpoint
 
 
-def ph_members(compose, cache, specs) -> tuple[list[Member], dict]:
-    """Spring port-Hamiltonian lockstep members of (epochs, width, milestones) each, and the train config."""
-    cfg = compose("system=spring", "arch=port_hamiltonian")
+def ph_members(compose, cache, specs, arch: str = "port_hamiltonian") -> tuple[list[Member], dict]:
+    """Spring lockstep members (port-Hamiltonian by default) of (epochs, width, milestones) each, and the train
+    config."""
+    cfg = compose("system=spring", f"arch={arch}")
     system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
     members = []
     for seed, (epochs, width, milestones) in enumerate(specs):
@@ -89,10 +90,13 @@ def assert_same_snapshots(expected, got):
 
 @pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.slow)])
 def test_a_lockstep_group_stopped_and_resumed_gives_its_snapshots_bit_for_bit(compiled, compose, cache, tmp_path):
-    """3 port-Hamiltonian models (6 batches per epoch: 72, 42 and 60 steps, blocks of 32, one kept after 4 epochs
+    """3 models (6 batches per epoch: 72, 42 and 60 steps, blocks of 32, one kept after 4 epochs
     too), stopped after the first block, resumed, stopped after the next (a model has left), resumed to the end;
-    eager, or compiled (the stack keeps its shapes across a resume)."""
-    train = lockstep_trainer(*ph_members(compose, cache, [(12, 6, (4,)), (7, 3, ()), (10, 6, ())]), compiled)
+    eager, or compiled (unstructured models, the cheapest to compile: the stack keeps its shapes across a
+    resume)."""
+    members = ph_members(compose, cache, [(12, 6, (4,)), (7, 3, ()), (10, 6, ())],
+                         "unstructured" if compiled else "port_hamiltonian")
+    train = lockstep_trainer(*members, compiled)
     expected = train(lambda: None)
     (resumed, checkpoint) = interrupted(train, tmp_path / "group.pt")
     assert checkpoint.resumes == 2
