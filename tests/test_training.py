@@ -161,10 +161,11 @@ def assert_trained_alike(one, other, members: list[Member], models: list[int]) -
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("arch", ARCH_NAMES)
+@pytest.mark.parametrize("arch", ["input_affine", "port_hamiltonian"])
 def test_a_compiled_pack_trains_each_model_as_the_eager_loop_alone(arch, compose, cache):
     """The compiled step (torch.compile, the pH energy gradient included) of a pack of two models of different
-    widths: each model's loss and predictions agree with it trained alone eagerly, to float rounding."""
+    widths: each model's loss and predictions agree with it trained alone eagerly, to float rounding (unstructured:
+    the next test, against the eager pack, which trains each model as alone: the test above)."""
     cfg = compose("system=spring", f"arch={arch}")
     members = compiled_members(cfg, cache, [3, 3])
     compiler = StepCompiler(True)
