@@ -52,8 +52,8 @@ def parameters_of(nets: StackedMLPs, theta: torch.Tensor, model: torch.nn.Module
 ])
 def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, compiled, compose, cache):
     """Eager, or compiled (``StepCompiler``, the first two models: one shape to compile; the compiled stack's
-    shrinking is tests/test_checkpoints.py's), each model of the pack trains as the plain loop trains it alone. Compiled SUBNET simulates
-    T = 4 steps (Inductor takes minutes per shape to compile the study's unrolled 150)."""
+    shrinking is tests/test_checkpoints.py's), each model of the pack trains as the plain loop trains it alone.
+    Compiled SUBNET simulates T = 4 steps (Inductor takes minutes per shape to compile the study's unrolled 150)."""
     cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}")
     base = {"system": OmegaConf.to_container(cfg.system, resolve=True), "arch": OmegaConf.to_container(cfg.arch)}
     steps = 4 if compiled else horizon(base)
