@@ -74,6 +74,7 @@ def test_a_compiled_sweep_shares_its_kernel_cache_and_clean_removes_it_once_done
     assert "lockstep groups compiled)" in launched.stdout
     assert [read_row(path)["compiled"] for path in row_files(sweep_dir)] == [True]
     assert any((sweep_dir / "compile_cache").rglob("fxgraph/*"))
+    assert "compile_cache_dir: ${sweep_dir}/compile_cache" in (sweep_dir / "launch.yaml").read_text()  # moves along
     dry = nsl("clean", f"sweep_dir={sweep_dir}", "dry_run=true")
     assert f"{sweep_dir.resolve() / 'compile_cache'}/" in dry.stdout.splitlines()
     assert nsl("clean", f"sweep_dir={sweep_dir}").returncode == 0

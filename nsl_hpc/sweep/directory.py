@@ -26,7 +26,8 @@ from typing import Any
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.sweep import layout
 
-PATH_KEYS = (("out_dir",), ("cache_dir",), ("data_dir",), ("system", "source", "data_dir"))  # of a launch config
+# the path keys of a launch config (portable_paths)
+PATH_KEYS = (("out_dir",), ("cache_dir",), ("compile_cache_dir",), ("data_dir",), ("system", "source", "data_dir"))
 SWEEP_DIR_REFERENCE = "${sweep_dir}"
 
 
