@@ -1,10 +1,11 @@
 """Training-speed benchmark: plain PyTorch loops against ours, side by side in one process.
 
-    python -m nsl_hpc.bench [parts=[input_state,input_output]] [out=bench.json] [readme=docs/performance.md] [steps=300]
+    python -m nsl_hpc.bench [parts=[input_state,input_output,compiled]] [out=bench.json] [readme=docs/performance.md]
 
 Prints (and with ``readme=`` writes between that file's markers of each part) the input-state part
-(``nsl_hpc.bench.input_state``) and the input-output part (``nsl_hpc.bench.input_output``). Everything runs on one
-thread. ``out=`` writes the headline figures as JSON.
+(``nsl_hpc.bench.input_state``), the input-output part (``nsl_hpc.bench.input_output``) and compiled against
+eager steps of both (``nsl_hpc.bench.compiled``). Everything runs on one thread. ``out=`` writes the headline
+figures as JSON.
 """
 
 import json
@@ -16,12 +17,14 @@ from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.atomic import write_text
+from nsl_hpc.bench.compiled import compiled_part
 from nsl_hpc.bench.input_output import input_output_part
 from nsl_hpc.bench.input_state import input_state_part
 from nsl_hpc.errors import ConfigError
 
 MARKERS = {"input_state": ("<!-- bench:start -->", "<!-- bench:end -->"),
-           "input_output": ("<!-- bench-io:start -->", "<!-- bench-io:end -->")}
+           "input_output": ("<!-- bench-io:start -->", "<!-- bench-io:end -->"),
+           "compiled": ("<!-- bench-compiled:start -->", "<!-- bench-compiled:end -->")}
 
 
 def write_readme(path: Path, table: str, part: str) -> None:
@@ -34,7 +37,7 @@ def write_readme(path: Path, table: str, part: str) -> None:
     write_text(f"{head}{start}\n{table}\n{end}{rest.split(end, 1)[1]}", path)
 
 
-PARTS = ("input_state", "input_output")
+PARTS = {"input_state": input_state_part, "input_output": input_output_part, "compiled": compiled_part}
 
 
 def main(cfg: DictConfig) -> int:
@@ -45,8 +48,7 @@ def main(cfg: DictConfig) -> int:
     headline = {}
     with tempfile.TemporaryDirectory() as folder:
         for part in cfg.parts:
-            table, figures = {"input_state": input_state_part, "input_output": input_output_part}[part](
-                cfg, Path(folder))
+            table, figures = PARTS[part](cfg, Path(folder))
             print(table, end="\n\n")
             if cfg.readme:
                 write_readme(Path(cfg.readme), table, part)

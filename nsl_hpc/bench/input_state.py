@@ -30,7 +30,7 @@ import torch
 from omegaconf import DictConfig
 from torch import nn
 
-from nsl_hpc.bench.measure import interpolate, planner_core_hours, study_manifest, timed
+from nsl_hpc.bench.measure import interpolate, matmul_peak_flops, planner_core_hours, study_manifest, timed
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config, plain
 from nsl_hpc.models import build_model
@@ -132,14 +132,6 @@ class Bench:
                 "params": parameter_count(member.model)}
 
 
-def matmul_peak_flops(size: int, repeats: int = 20) -> float:
-    """Dense float32 matmul rate of this core (flop/s)."""
-    a, b = torch.randn(size, size), torch.randn(size, size)
-    torch.mm(a, b)
-    _, seconds = timed(lambda: [torch.mm(a, b) for _ in range(repeats)])
-    return 2.0 * size**3 * repeats / seconds
-
-
 def speed_table(bench: Bench, cfg: DictConfig) -> list[dict[str, Any]]:
     for arch in cfg.archs:  # warm-up: the first passes through a code path pay one-off costs
         bench.step_seconds(arch, 2, 1, 16, 2)
@@ -206,7 +198,7 @@ def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, 
 
     def ours(tasks: list[dict[str, Any]], settings: Mapping[str, Any], mode: str) -> tuple[float, int]:
         """Seconds and lockstep groups of ``tasks`` trained our way with lockstep ``settings``, the groups
-        compiled as ``compile=mode`` would (``with_compile``: the cost values of benchmarks/compiled_step.py)."""
+        compiled as ``compile=mode`` would (``with_compile``: the cost values of the bench's compiled part)."""
         seconds, groups = len(tasks) * per_task, lockstep_groups(tasks, settings)
         for group in groups:
             arch, width, depth = group[0]["arch"], max(t["width"] for t in group), group[0]["depth"]

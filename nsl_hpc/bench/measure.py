@@ -6,6 +6,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
+import torch
 from omegaconf import DictConfig
 
 from nsl_hpc.config import compose_config
@@ -45,3 +46,11 @@ def planner_core_hours(launch: DictConfig, manifest: list[dict[str, Any]]) -> fl
     packing = packing_for(launch.packing, {"name": "slurm"})
     packs = make_packs(sweep_groups(manifest, launch, packing), packing)
     return sum(pack.seconds for pack in packs) / 3600
+
+
+def matmul_peak_flops(size: int, repeats: int = 20) -> float:
+    """Dense float32 matmul rate of this core (flop/s)."""
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    torch.mm(a, b)
+    _, seconds = timed(lambda: [torch.mm(a, b) for _ in range(repeats)])
+    return 2.0 * size**3 * repeats / seconds
