@@ -11,14 +11,29 @@ clean, is refused. launcher=slurm returns as soon as the job arrays are submitte
 `python -m nsl_hpc.status sweep_dir=<dir>`.
 """
 
-from collections.abc import Mapping, Sequence
+import dataclasses
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import pyarrow as pa
+import pyarrow.compute as pc
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.studies.base import model_of
+from nsl_hpc.sweep.budget import (
+    Budget,
+    Rounds,
+    budget_of,
+    budget_requested,
+    check_round_structure,
+    decide_next_round,
+    describe_budget,
+    planned_seconds,
+    read_decisions,
+    refuse_small_budget,
+)
 from nsl_hpc.sweep.checkpoints import saved_groups
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 from nsl_hpc.sweep.executors import run_jobs
@@ -44,8 +59,8 @@ def describe_lockstep(tasks: Sequence[Mapping[str, Any]], packs: Sequence[Pack],
 
 def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str) -> str:
     """The plan in a few lines: tasks, jobs, time limits, predicted core-hours (and the groups compiled)."""
-    total, todo = prepared.manifest.num_rows, prepared.todo.num_rows
-    done = total - todo - len(prepared.infeasible)
+    total, todo, done = prepared.manifest.num_rows, prepared.todo.num_rows, prepared.done
+    later = total - done - todo - len(prepared.infeasible) - prepared.queued  # a budget's later rounds or skipped
     by_limit: dict[int, int] = {}
     for pack in packs:
         by_limit[pack.time_limit_min] = by_limit.get(pack.time_limit_min, 0) + 1
@@ -60,8 +75,8 @@ def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str)
     if compiled := sum(group.compiled for group in groups):
         predicted += f" ({compiled:,} of {len(groups):,} lockstep groups compiled)"
     notes = "".join([f", {prepared.queued:,} queued in SLURM (not submitted again)" if prepared.queued else "",
+                     f", {later:,} not in this round of the budget" if later else "",
                      f", {prepared.set_aside:,} corrupt rows moved to corrupt/" if prepared.set_aside else ""])
-    done -= prepared.queued
     return (f"sweep {prepared.sweep_dir}: {total:,} tasks, {done:,} done, {todo:,} to run{notes}\n"
             f"  jobs: {len(packs):,} ({launcher}; time limits: {classes or 'none'})\n"
             f"  predicted: {predicted}")
@@ -77,8 +92,35 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
 
 
 def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> int:
-    """Prepare the sweep directory, print the plan, and (unless a dry run) run or submit the tasks to run."""
+    """Prepare the sweep directory, then run or submit its tasks to run: all of them, or with a budget round after
+    round (``launch_rounds``)."""
+    budgeted = budgeted_rounds(cfg, built, sweep_dir)  # checked before anything is written
     prepared = prepare_sweep(cfg, built, sweep_dir)
+    if budgeted is None:
+        return run_tasks(cfg, built, prepared)
+    return launch_rounds(cfg, built, prepared, *budgeted)
+
+
+def budgeted_rounds(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path
+                    ) -> tuple[Budget, Rounds, Callable[[Sequence[str]], float]] | None:
+    """The launch's budget, the rounds of its tasks and the planner's seconds of any of them; None without a
+    budget or with one that covers the whole sweep. A budget below round 1's cost, or with other rounds than
+    those already decided, is refused."""
+    if not budget_requested(cfg):
+        return None
+    manifest = {task["task_id"]: task for task in built.manifest.to_pylist()}
+    planned_s = planned_seconds(manifest, cfg)
+    budget = budget_of(cfg, planned_s(list(manifest)))
+    if budget is None:
+        return None
+    rounds = Rounds(list(manifest.values()), built.study, budget)
+    refuse_small_budget(budget, rounds, planned_s)
+    check_round_structure(sweep_dir, budget)
+    return budget, rounds, planned_s
+
+
+def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> int:
+    """Print the plan of ``prepared.todo`` and (unless a dry run) run or submit it."""
     lockstep, tasks = lockstep_settings(cfg), prepared.todo.to_pylist()
     packs = plan_jobs(tasks, cfg, saved=[saved.task_ids for saved in saved_groups(prepared.sweep_dir)])
     print(describe_plan(prepared, packs, cfg.launcher.name))
@@ -94,6 +136,40 @@ def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> int:
               + (" or is queued" if prepared.queued else ""))
         return 0
     return run_jobs(prepared.sweep_dir, cfg, packs, tasks, prepared.configs)
+
+
+def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, budget: Budget, rounds: Rounds,
+                  planned_s: Callable[[Sequence[str]], float]) -> int:
+    """A budgeted sweep (nsl_hpc/sweep/budget.py): decide the next round once the rounds before have run, run its
+    tasks, and go on (the local launchers) until the last round; on SLURM submit one round and return (launch
+    again when it has run)."""
+    sweep_dir, manifest = prepared.sweep_dir, {task["task_id"]: task for task in prepared.manifest.to_pylist()}
+    attempted: set[str] = set()
+    worst = 0
+    while True:
+        decisions = read_decisions(sweep_dir)
+        chosen = {d["task_id"] for d in decisions if d["run"]}
+        decided = max((d["round"] for d in decisions), default=0)
+        print(describe_budget(budget, decisions, rounds.count))
+        if cfg.dry_run:  # the round that runs next, as far as it is decided (round 1 always is)
+            shown = chosen if decisions else set(rounds.tasks_of(1))
+            return run_tasks(cfg, built, dataclasses.replace(prepared, todo=prepared.todo.filter(
+                pc.is_in(prepared.todo["task_id"], value_set=pa.array(sorted(shown), pa.string())))))
+        todo = pc.is_in(prepared.todo["task_id"], value_set=pa.array(sorted(chosen - attempted), pa.string()))
+        if pc.any(todo).as_py() or prepared.queued:
+            worst = max(worst, run_tasks(cfg, built, dataclasses.replace(prepared, todo=prepared.todo.filter(todo))))
+            if prepared.queued or cfg.launcher.name == "slurm":
+                if decided < rounds.count:
+                    print(f"budget: round {decided} runs in SLURM; launch again with the same command once it has "
+                          f"run to decide round {decided + 1} (python -m nsl_hpc.status sweep_dir={sweep_dir})")
+                return worst
+            attempted |= set(prepared.todo.filter(todo)["task_id"].to_pylist())
+            prepared = prepare_sweep(cfg, built, sweep_dir)
+            continue
+        if decided == rounds.count:
+            print("budget: every round has run")
+            return worst
+        decide_next_round(sweep_dir, decided + 1, rounds, manifest, planned_s, budget)
 
 
 if __name__ == "__main__":

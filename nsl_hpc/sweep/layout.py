@@ -14,6 +14,7 @@
       submissions/<array id>.json         what was submitted to SLURM
       cache/                              simulated trajectories (cache_dir)
       compile_cache/                      Inductor's compiled training steps (compile_cache_dir)
+      budget/round-<r>.parquet            a budgeted sweep's decisions: which tasks of round r run (sweep/budget.py)
       .lock                               the command that changes the sweep now (launch, resubmit, clean)
       results.parquet, merge_summary.json, .merge_cache.parquet   merge
       nsl_fits.parquet, nsl_fits.txt                            fit
@@ -47,10 +48,11 @@ COMPARISON = "comparison.md"
 FIGURES = "figures"
 MLFLOW_DB = "mlflow.db"
 MLFLOW_ARTIFACTS = "mlartifacts"
+BUDGET = "budget"
 MERGE_CACHE = ".merge_cache.parquet"  # merge's read rows, so a second merge reads only new ones
 
 CONTROL = (SUBMITIT, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, MANIFEST)  # what decides the code a sweep's jobs run
-RECORDS = (MANIFEST, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, ROWS, CORRUPT, SUBMISSIONS, LOCK, RESULTS, FITS,
+RECORDS = (MANIFEST, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, ROWS, CORRUPT, SUBMISSIONS, LOCK, BUDGET, RESULTS, FITS,
            FITS_TEXT, REPORT, COMPARISON, FIGURES, MLFLOW_DB, MLFLOW_ARTIFACTS, MERGE_CACHE)  # clean keeps these
 
 

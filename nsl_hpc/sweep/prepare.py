@@ -119,6 +119,7 @@ class PreparedSweep:
     configs: dict[tuple[str, str], dict]  # the plain config of each (system, arch)
     queued: int  # tasks without a row that are pending or running in SLURM (left alone)
     set_aside: int  # corrupt rows moved to corrupt/ (their tasks run again)
+    done: int  # tasks with a valid row
 
 
 def require_tasks_at_most(tasks: int, cap: Any) -> None:
@@ -173,11 +174,13 @@ def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Prepar
         read_launch_config(sweep_dir)  # a damaged one is refused here, before any work
     else:
         write_sweep(sweep_dir, manifest, built.configs, plain(cfg))
-    todo, aside = tasks_without_row(sweep_dir, manifest)
+    without_row, aside = tasks_without_row(sweep_dir, manifest)
     queued = queued_tasks(sweep_dir)
-    todo = todo.filter(pc.invert(pc.is_in(todo["task_id"], value_set=pa.array(sorted(queued), type=pa.string()))))
+    queued_ids = pa.array(sorted(queued), type=pa.string())
+    todo = without_row.filter(pc.invert(pc.is_in(without_row["task_id"], value_set=queued_ids)))
     runnable, infeasible = split_runnable(todo, built.study, built.configs)
-    return PreparedSweep(sweep_dir, manifest, runnable, infeasible, built.configs, len(queued), aside)
+    return PreparedSweep(sweep_dir, manifest, runnable, infeasible, built.configs, len(queued), aside,
+                         manifest.num_rows - without_row.num_rows)
 
 
 def changed_settings(stored: DictConfig, cfg: DictConfig, study: Study,

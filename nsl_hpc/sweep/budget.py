@@ -1,0 +1,271 @@
+"""Budgeted sweeps: which tasks of a sweep run, in rounds along the study's cost axis (input-state: epochs;
+input-output: iter_multiplier), so that a budget is spent where the lower envelopes are decided.
+
+The rule. The grid's values of the cost axis are levels (2, 4, ..., 16384 epochs: 14 levels). Round 1 runs every
+task at the first ``budget.first_levels`` levels; each later round takes the next ``budget.levels_per_round``.
+A task of a later round has a line (its task with every coordinate equal but the cost axis) and an ancestor: the
+line's task at the last level of the rounds before. It runs only if its ancestor has a row and, for some
+resource (compute, data, model) and metric that the sweep's fits use (conf/nsl), the ancestor's error divided
+by ``budget.margin`` is below the lower envelope (Definition 1's step envelope of every row of its (system,
+arch) so far) at the task's own resource value: trained longer, it could still lower that envelope. The
+candidates run in the order of that ratio (its smallest over resources and metrics: most promising first)
+while the budget lasts; the others are skipped, each with its reason. Costs are the planner's (``cost.*``):
+each task's share of its lockstep group's predicted seconds when the whole sweep is planned, so the shares add
+up to the planner's prediction, and ``budget.share`` is a share of it. Every decision depends only on the rows
+of earlier rounds; a round's decisions are written (``budget/round-<r>.parquet``) before its tasks run, so a
+launch that stops anywhere continues with the same decisions.
+"""
+
+import math
+from collections import defaultdict
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+from omegaconf import DictConfig, OmegaConf
+
+from nsl_hpc.atomic import write_parquet
+from nsl_hpc.config import plain
+from nsl_hpc.errors import ConfigError, require_number, require_positive_int
+from nsl_hpc.studies.base import Study
+from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.layout import row_path
+from nsl_hpc.sweep.plan import packing_for, sweep_groups
+from nsl_hpc.sweep.rows import read_row, row_state
+
+DECISION_COLUMNS = ("task_id", "round", "run", "reason", "promise", "cost_s")
+
+
+@dataclass(frozen=True)
+class Budget:
+    """A sweep's budget: ``seconds`` of predicted core time (of ``full_seconds``, the whole sweep's) and the rule's
+    settings."""
+
+    seconds: float
+    full_seconds: float
+    first_levels: int
+    levels_per_round: int
+    margin: float
+    resources: tuple[str, ...]  # the result columns of the fits' resources (flops, train_points, params)
+    metrics: tuple[str, ...]  # and their metrics (nmae, nmse)
+
+
+def budget_requested(launch: DictConfig) -> bool:
+    """Whether the launch sets a budget (``budget.core_hours`` or ``budget.share``)."""
+    return any(OmegaConf.select(launch, f"budget.{key}", default=None) is not None for key in ("core_hours", "share"))
+
+
+def describe_budget(budget: Budget, decisions: Sequence[Mapping[str, Any]], rounds: int) -> str:
+    """A line: rounds decided, predicted core-hours committed of the budget, tasks skipped and why."""
+    decided = max((d["round"] for d in decisions), default=0)
+    committed = sum(d["cost_s"] for d in decisions if d["run"]) / 3600
+    reasons: dict[str, int] = defaultdict(int)
+    for d in decisions:
+        if not d["run"]:
+            reasons[d["reason"]] += 1
+    skipped = sum(reasons.values())
+    return (f"budget: {budget.seconds / 3600:,.3g} of the sweep's {budget.full_seconds / 3600:,.3g} predicted "
+            f"core-hours; round {decided} of {rounds} decided, {committed:,.3g} core-hours committed, "
+            f"{skipped:,} tasks skipped"
+            + (f" ({', '.join(f'{n:,} {why}' for why, n in sorted(reasons.items()))})" if skipped else ""))
+
+
+def budget_of(launch: DictConfig, full_seconds: float) -> Budget | None:
+    """The launch's budget (``budget.core_hours`` or ``budget.share``), checked; None without one, or when it
+    covers the whole sweep (``budget.share=1``: a full sweep)."""
+    settings = plain(OmegaConf.select(launch, "budget", default={}) or {})
+    hours, share = settings.get("core_hours"), settings.get("share")
+    if hours is None and share is None:
+        return None
+    if hours is not None and share is not None:
+        raise ConfigError(f"budget.core_hours={hours} and budget.share={share}: set one of them")
+    if hours is not None:
+        require_number("budget.core_hours", hours, 0, low_open=True)
+    else:
+        require_number("budget.share", share, 0, 1, low_open=True)
+    require_positive_int("budget.first_levels", settings["first_levels"])
+    require_positive_int("budget.levels_per_round", settings["levels_per_round"])
+    require_number("budget.margin", settings["margin"], 1)
+    seconds = 3600 * float(hours) if hours is not None else float(share or 0) * full_seconds
+    if seconds >= full_seconds:
+        return None
+    resources, metrics = fitted_columns(plain(launch.nsl))
+    return Budget(seconds, full_seconds, settings["first_levels"], settings["levels_per_round"], settings["margin"],
+                  tuple(resources), tuple(metrics))
+
+
+def planned_seconds(tasks: Mapping[str, Mapping[str, Any]], launch: DictConfig) -> Callable[[Sequence[str]], float]:
+    """The planner's predicted core-seconds of running some of ``tasks`` (by id) as one launch: their lockstep
+    groups' seconds (``cost.*``)."""
+    packing = packing_for(launch.packing, launch.launcher)
+    return lambda task_ids: sum(group.seconds for group in sweep_groups([tasks[t] for t in task_ids], launch, packing))
+
+
+def round_of_level(level: int, first_levels: int, levels_per_round: int) -> int:
+    """The round (1, 2, ...) that runs the tasks at ``level`` (0: the cheapest value of the cost axis)."""
+    return 1 if level < first_levels else 2 + (level - first_levels) // levels_per_round
+
+
+class Rounds:
+    """The rounds of a sweep's tasks: each task's round and its ancestor (None in round 1)."""
+
+    def __init__(self, tasks: Sequence[Mapping[str, Any]], study: Study, budget: Budget):
+        axis = study.length_axis
+        values = sorted({task[axis] for task in tasks})
+        level = {value: index for index, value in enumerate(values)}
+        self.round = {task["task_id"]: round_of_level(level[task[axis]], budget.first_levels, budget.levels_per_round)
+                      for task in tasks}
+        self.count = max(self.round.values())
+        lines: dict[tuple, dict[int, str]] = defaultdict(dict)  # line -> level -> task id
+        for task in tasks:
+            lines[tuple(task[key] for key in study.axes if key != axis)][level[task[axis]]] = task["task_id"]
+        self.ancestor: dict[str, str | None] = {}
+        for line in lines.values():
+            for task_id in line.values():
+                earlier = [lv for lv in line if self.round[line[lv]] < self.round[task_id]]
+                self.ancestor[task_id] = line[max(earlier)] if earlier else None
+
+    def tasks_of(self, number: int) -> list[str]:
+        return [task_id for task_id, r in self.round.items() if r == number]
+
+
+class Envelopes:
+    """Lower envelopes (Definition 1, the step envelope) of the outcomes so far, per (system, arch), resource column
+    and metric: ``at`` gives the smallest error of the outcomes whose resource is at most x."""
+
+    def __init__(self, rows: Sequence[Mapping[str, Any]], resources: Sequence[str], metrics: Sequence[str]):
+        self.curves: dict[tuple[str, str, str, str], tuple[np.ndarray, np.ndarray]] = {}
+        by_pair: dict[tuple[str, str], list[Mapping[str, Any]]] = defaultdict(list)
+        for row in rows:
+            by_pair[row["system"], row["arch"]].append(row)
+        for pair, pair_rows in by_pair.items():
+            for resource in resources:
+                for metric in metrics:
+                    points = sorted((float(row[resource]), float(row[metric])) for row in pair_rows
+                                    if math.isfinite(float(row[metric])) and float(row[metric]) > 0)
+                    if points:
+                        r, e = np.array(points).T
+                        self.curves[(*pair, resource, metric)] = (r, np.minimum.accumulate(e))
+
+    def at(self, system: str, arch: str, resource: str, metric: str, x: float) -> float:
+        """The envelope at resource ``x`` (inf where no outcome has a resource at most x)."""
+        curve = self.curves.get((system, arch, resource, metric))
+        if curve is None:
+            return math.inf
+        index = int(np.searchsorted(curve[0], x, side="right")) - 1
+        return math.inf if index < 0 else float(curve[1][index])
+
+
+def fitted_columns(nsl: Mapping[str, Any]) -> tuple[list[str], list[str]]:
+    """The resource columns and metrics the sweep's fits use (the launch's ``nsl`` group, conf/nsl)."""
+    return [spec["column"] for spec in nsl["resources"].values()], list(nsl["metrics"])
+
+
+def promise(task: Mapping[str, Any], ancestor_row: Mapping[str, Any], envelopes: Envelopes, margin: float,
+            resources: Sequence[str], metrics: Sequence[str]) -> float:
+    """The smallest, over resources and metrics, of the ancestor's error / margin over the envelope at the task's
+    own resource value; below 1, the task could lower an envelope."""
+    ratios = [float(ancestor_row[metric]) / margin / envelopes.at(task["system"], task["arch"], resource, metric,
+                                                                  float(task[resource]))
+              for resource in resources for metric in metrics]
+    finite = [ratio for ratio in ratios if not math.isnan(ratio)]
+    return min(finite) if finite else math.inf
+
+
+def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, Any]],
+                 rows: Mapping[str, Mapping[str, Any]], planned_s: Callable[[Sequence[str]], float], left_s: float,
+                 budget: Budget) -> list[dict[str, Any]]:
+    """The decisions (DECISION_COLUMNS) of round ``number``: round 1 runs all its tasks; a later round the
+    promising ones (``promise`` below 1), most promising first, as many as the planner's prediction of them
+    (``planned_s`` of their ids: lockstep groups and all) fits in ``left_s``. ``cost_s``: a run task's share of
+    the round's predicted seconds."""
+    candidates = sorted(rounds.tasks_of(number))
+    scored = []
+    if number == 1:
+        scored = [(0.0, task_id, "") for task_id in candidates]
+    envelopes = Envelopes(list(rows.values()), budget.resources, budget.metrics)
+    for task_id in candidates if number > 1 else ():
+        ancestor = rounds.ancestor[task_id]
+        row = rows.get(ancestor) if ancestor is not None else None
+        value = math.inf if row is None else promise(tasks[task_id], row, envelopes, budget.margin,
+                                                     budget.resources, budget.metrics)
+        scored.append((value, task_id, "its ancestor has no row" if row is None else "far above the envelope"))
+    scored.sort(key=lambda item: (item[0], item[1]))
+    promising = [task_id for value, task_id, _ in scored if value < 1]
+    low, high = 0, len(promising)  # the longest prefix of the promising tasks that the budget left holds
+    while low < high:
+        middle = (low + high + 1) // 2
+        low, high = (middle, high) if planned_s(promising[:middle]) <= left_s else (low, middle - 1)
+    run = set(promising[:low])
+    seconds = planned_s(promising[:low]) if run else 0.0
+    weights = {task_id: tasks[task_id]["steps"] * tasks[task_id]["params"] + 1.0 for task_id in run}
+    total = sum(weights.values())
+    return [{"task_id": task_id, "round": number, "run": task_id in run,
+             "reason": ("first round" if number == 1 else "promising") if task_id in run
+             else "budget spent" if value < 1 else reason, "promise": value,
+             "cost_s": seconds * weights[task_id] / total if task_id in run else 0.0}
+            for value, task_id, reason in scored]
+
+
+def budget_dir(sweep_dir: Path) -> Path:
+    return Path(sweep_dir) / layout.BUDGET
+
+
+def read_decisions(sweep_dir: Path) -> list[dict[str, Any]]:
+    """Every round's decisions written so far."""
+    files = sorted(budget_dir(sweep_dir).glob("round-*.parquet"))
+    return [row for path in files for row in pq.read_table(path).to_pylist()]
+
+
+def write_decisions(sweep_dir: Path, number: int, decisions: Sequence[Mapping[str, Any]], budget: Budget) -> None:
+    """Write round ``number``'s decisions (atomically) with the round structure they assume."""
+    table = pa.Table.from_pylist([dict(d) for d in decisions], schema=pa.schema([
+        ("task_id", pa.string()), ("round", pa.int64()), ("run", pa.bool_()), ("reason", pa.string()),
+        ("promise", pa.float64()), ("cost_s", pa.float64())]))
+    table = table.replace_schema_metadata({"first_levels": str(budget.first_levels),
+                                           "levels_per_round": str(budget.levels_per_round)})
+    write_parquet(table, budget_dir(sweep_dir) / f"round-{number:03d}.parquet")
+
+
+def check_round_structure(sweep_dir: Path, budget: Budget) -> None:
+    """Refuse a budget whose rounds differ from those of the decisions already taken."""
+    for path in sorted(budget_dir(sweep_dir).glob("round-*.parquet")):
+        stored = pq.read_schema(path).metadata or {}
+        levels = (int(stored.get(b"first_levels", 0)), int(stored.get(b"levels_per_round", 0)))
+        if levels != (budget.first_levels, budget.levels_per_round):
+            raise ConfigError(f"{path} was decided with budget.first_levels={levels[0]}, budget.levels_per_round="
+                              f"{levels[1]}: relaunch with those (the rounds of a budgeted sweep stay as decided)")
+
+
+def done_rows(sweep_dir: Path, task_ids: Sequence[str]) -> dict[str, dict[str, Any]]:
+    """The rows (status ok) of those of ``task_ids`` that have one."""
+    rows = {}
+    for task_id in task_ids:
+        path = row_path(sweep_dir, task_id)
+        if row_state(path) == "done" and (row := read_row(path)).get("status", "ok") == "ok":
+            rows[task_id] = row
+    return rows
+
+
+def refuse_small_budget(budget: Budget, rounds: Rounds, planned_s: Callable[[Sequence[str]], float]) -> None:
+    """A budget that does not cover round 1 is refused, in one line."""
+    first = planned_s(rounds.tasks_of(1))
+    if first > budget.seconds:
+        raise ConfigError(f"the budget ({budget.seconds / 3600:.3g} core-hours) is less than its first round "
+                          f"({first / 3600:.3g} predicted core-hours, the tasks at the first budget.first_levels="
+                          f"{budget.first_levels} levels): raise it or lower budget.first_levels")
+
+
+def decide_next_round(sweep_dir: Path, number: int, rounds: Rounds, manifest: Mapping[str, Mapping[str, Any]],
+                      planned_s: Callable[[Sequence[str]], float], budget: Budget) -> None:
+    """Decide round ``number`` from the rows of the rounds before (and what they left of the budget) and write its
+    decisions."""
+    decisions = read_decisions(sweep_dir)
+    chosen = sorted(d["task_id"] for d in decisions if d["run"])
+    rows = {task_id: {**manifest[task_id], **row} for task_id, row in done_rows(sweep_dir, chosen).items()}
+    left = budget.seconds - sum(d["cost_s"] for d in decisions)
+    write_decisions(sweep_dir, number, decide_round(number, rounds, manifest, rows, planned_s, left, budget), budget)
