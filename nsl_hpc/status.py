@@ -6,9 +6,10 @@ bar with an ETA, and the failed tasks with the last lines of their logs.
 
 `missing` tasks have no row, no failure record and no active job (cancelled, lost, never submitted);
 `corrupt` ones a file where their row belongs that is no valid row (truncated, overwritten):
-`python -m nsl_hpc.resubmit sweep_dir=<dir>` runs them again, with the failed ones. Groups with a training
-checkpoint are listed with their progress and how often they were resumed (a time cap's chain, a preemption,
-a requeue, a resubmit after a crash): `running (resumed 2 times)`.
+`python -m nsl_hpc.resubmit sweep_dir=<dir>` runs them again, with the failed ones. In a budgeted sweep,
+`skipped` tasks were decided not to run and `waiting` ones wait for their round (launch decides it). Groups
+with a training checkpoint are listed with their progress and how often they were resumed (a time cap's chain,
+a preemption, a requeue, a resubmit after a crash): `running (resumed 2 times)`.
 """
 
 import time
@@ -17,6 +18,7 @@ from collections import Counter
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
+from nsl_hpc.sweep.budget import describe_rounds, read_decisions
 from nsl_hpc.sweep.checkpoints import held_locks, saved_groups
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest, require_sweep
 from nsl_hpc.sweep.plan import packing_for, sweep_groups
@@ -28,7 +30,8 @@ LOG_LINES = 5  # log lines shown per failed task
 def remaining_seconds(sweep_dir, state: SweepState, launch: DictConfig) -> float:
     """Predicted core-seconds of the tasks without a row, in the lockstep groups the planner makes of them (a
     group with a checkpoint: the share of its steps still to train)."""
-    todo = [task for task in read_manifest(sweep_dir).to_pylist() if state.states[task["task_id"]] != "done"]
+    todo = [task for task in read_manifest(sweep_dir).to_pylist()
+            if state.states[task["task_id"]] not in ("done", "skipped", "waiting")]
     saved = {group.task_ids: group for group in saved_groups(sweep_dir)}
     groups = sweep_groups(todo, launch, packing_for(launch.packing, launch.launcher), list(saved))
     return sum(group.seconds * (1 - saved[group.task_ids].step / max(saved[group.task_ids].total_steps, 1)
@@ -92,6 +95,8 @@ def main(cfg: DictConfig) -> int:
         state = read_sweep_state(cfg.sweep_dir)
         print(summary(state, remaining_seconds(cfg.sweep_dir, state, launch), running_cores(cfg.sweep_dir, state)),
               flush=True)
+        if decisions := read_decisions(cfg.sweep_dir):
+            print(f"budget: {describe_rounds(decisions)}", flush=True)
         active = state.counts()["running"] + state.counts()["pending"]
         if not cfg.wait or (not active and (confirming or not state.counts()["missing"])):
             break

@@ -17,6 +17,7 @@ import pyarrow.parquet as pq
 
 from nsl_hpc.atomic import write_parquet, write_text
 from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.budget import budget_states, skipped_reasons, without_row_state
 from nsl_hpc.sweep.checkpoints import running_task_ids
 from nsl_hpc.sweep.directory import launch_running
 from nsl_hpc.sweep.failures import FAILURE_STATES, read_failures
@@ -41,16 +42,23 @@ class MergeSummary:
     duplicate_rows: int
     unknown_rows: int
     running: int = 0  # without a row yet, but a job trains them now or a running launch will: not dropped
+    skipped: int = 0  # a budgeted sweep's tasks decided not to run (not dropped: never meant to run)
+    waiting: int = 0  # a budgeted sweep's tasks whose round is not decided yet (not dropped)
+    skipped_reasons: dict[str, int] | None = None  # why the skipped ones were
 
     @property
     def dropped(self) -> int:
-        return self.tasks - self.merged - self.running
+        return self.tasks - self.merged - self.running - self.skipped - self.waiting
 
     def describe(self) -> str:
         share = 100 * self.dropped / self.tasks if self.tasks else 0.0
         lines = [f"{self.dropped:,} of {self.tasks:,} tasks ({share:.1f}%) dropped: {self.frozen:,} frozen, "
                  f"{self.failed:,} failed, {self.missing:,} missing"
                  + (f", {self.timeout:,} timed out" if self.timeout else "")]
+        if self.skipped or self.waiting:
+            reasons = ", ".join(f"{n:,} {why}" for why, n in sorted((self.skipped_reasons or {}).items()))
+            lines.append(f"{self.skipped:,} tasks skipped by the budget" + (f" ({reasons})" if reasons else "")
+                         + (f", {self.waiting:,} waiting for their round" if self.waiting else ""))
         if self.running:
             lines.append(f"{self.running:,} tasks still running or queued in a running launch: merge again once "
                          "they finish")
@@ -161,13 +169,15 @@ def one_row_per_manifest_task(rows: pa.Table, task_ids: pa.ChunkedArray) -> tupl
 
 def dropped_counts(sweep_dir: Path, task_ids: pa.ChunkedArray, merged_ids: pa.ChunkedArray) -> dict[str, int]:
     """Tasks without a merged row: running (a live job holds their group's lock), by their failure record's
-    state (failed, frozen, timeout), running (queued in a launch or resubmit that runs now) or missing."""
+    state (failed, frozen, timeout), running (queued in a launch or resubmit that runs now), skipped or waiting
+    (a budgeted sweep's rounds decided not to run them, or have not decided yet) or missing."""
     failures, running = read_failures(sweep_dir), running_task_ids(sweep_dir)
-    launching = launch_running(sweep_dir)
+    launching, budgeted = launch_running(sweep_dir), budget_states(sweep_dir)
     merged = set(merged_ids.to_pylist())
     states = ["running" if t in running else failures[t]["status"] if t in failures else
-              "running" if launching else "missing" for t in task_ids.to_pylist() if t not in merged]
-    return {state: states.count(state) for state in (*FAILURE_STATES, "missing", "running")}
+              "running" if launching else without_row_state(budgeted, t)
+              for t in task_ids.to_pylist() if t not in merged]
+    return {state: states.count(state) for state in (*FAILURE_STATES, "missing", "running", "skipped", "waiting")}
 
 
 def merge_sweep(sweep_dir: Path) -> MergeSummary:
@@ -186,7 +196,7 @@ def merge_sweep(sweep_dir: Path) -> MergeSummary:
     diverged = int(pc.sum(pc.not_equal(results["status"], "ok")).as_py() or 0) if results.num_rows else 0
     summary = MergeSummary(tasks=manifest.num_rows, merged=results.num_rows,
                            **dropped_counts(sweep_dir, manifest["task_id"], results["task_id"]),
-                           diverged=diverged,
+                           diverged=diverged, skipped_reasons=skipped_reasons(sweep_dir),
                            corrupt_shards=corrupt,
                            duplicate_rows=duplicates, unknown_rows=unknown)
     write_text(json.dumps(asdict(summary), indent=1), sweep_dir / layout.MERGE_SUMMARY)

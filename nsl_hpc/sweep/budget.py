@@ -59,19 +59,24 @@ def budget_requested(launch: DictConfig) -> bool:
     return any(OmegaConf.select(launch, f"budget.{key}", default=None) is not None for key in ("core_hours", "share"))
 
 
-def describe_budget(budget: Budget, decisions: Sequence[Mapping[str, Any]], rounds: int) -> str:
-    """A line: rounds decided, predicted core-hours committed of the budget, tasks skipped and why."""
+def describe_rounds(decisions: Sequence[Mapping[str, Any]]) -> str:
+    """Rounds decided, predicted core-hours committed, tasks skipped and why (launch and status print it)."""
     decided = max((d["round"] for d in decisions), default=0)
     committed = sum(d["cost_s"] for d in decisions if d["run"]) / 3600
     reasons: dict[str, int] = defaultdict(int)
     for d in decisions:
-        if not d["run"]:
-            reasons[d["reason"]] += 1
+        reasons[d["reason"]] += not d["run"]
+    reasons = {why: n for why, n in reasons.items() if n}
     skipped = sum(reasons.values())
+    return (f"{decided} round{'s' * (decided != 1)} decided, {committed:,.3g} predicted core-hours committed, "
+            f"{skipped:,} tasks skipped" + (f" ({', '.join(f'{n:,} {why}' for why, n in sorted(reasons.items()))})"
+                                            if skipped else ""))
+
+
+def describe_budget(budget: Budget, decisions: Sequence[Mapping[str, Any]], rounds: int) -> str:
+    """A line: the budget of the sweep's predicted core-hours, its rounds and ``describe_rounds``."""
     return (f"budget: {budget.seconds / 3600:,.3g} of the sweep's {budget.full_seconds / 3600:,.3g} predicted "
-            f"core-hours; round {decided} of {rounds} decided, {committed:,.3g} core-hours committed, "
-            f"{skipped:,} tasks skipped"
-            + (f" ({', '.join(f'{n:,} {why}' for why, n in sorted(reasons.items()))})" if skipped else ""))
+            f"core-hours in {rounds} rounds; {describe_rounds(decisions)}")
 
 
 def budget_of(launch: DictConfig, full_seconds: float) -> Budget | None:
@@ -219,6 +224,28 @@ def read_decisions(sweep_dir: Path) -> list[dict[str, Any]]:
     """Every round's decisions written so far."""
     files = sorted(budget_dir(sweep_dir).glob("round-*.parquet"))
     return [row for path in files for row in pq.read_table(path).to_pylist()]
+
+
+def budget_states(sweep_dir: Path) -> dict[str, str]:
+    """Task id -> "skipped" for the tasks a budgeted sweep's rounds decided not to run, "to run" for the others
+    decided; empty for a sweep without a budget."""
+    return {d["task_id"]: "to run" if d["run"] else "skipped" for d in read_decisions(sweep_dir)}
+
+
+def without_row_state(budgeted: Mapping[str, str], task_id: str) -> str:
+    """The state of a task without a row, failure or job (``budgeted``: ``budget_states``): missing; in a budgeted
+    sweep skipped where its round decided not to run it, waiting while its round is not decided."""
+    decision = budgeted.get(task_id, "waiting") if budgeted else "to run"
+    return "missing" if decision == "to run" else decision
+
+
+def skipped_reasons(sweep_dir: Path) -> dict[str, int]:
+    """Why a budgeted sweep's skipped tasks were (reason -> tasks); empty without a budget."""
+    reasons: dict[str, int] = defaultdict(int)
+    for d in read_decisions(sweep_dir):
+        if not d["run"]:
+            reasons[d["reason"]] += 1
+    return dict(reasons)
 
 
 def write_decisions(sweep_dir: Path, number: int, decisions: Sequence[Mapping[str, Any]], budget: Budget) -> None:

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from nsl_hpc.sweep.budget import budget_states, without_row_state
 from nsl_hpc.sweep.checkpoints import running_task_ids
 from nsl_hpc.sweep.directory import launch_running
 from nsl_hpc.sweep.failures import read_failures
@@ -18,7 +19,7 @@ from nsl_hpc.sweep.slurm import job_states
 from nsl_hpc.sweep.submissions import read_submissions
 
 ACCOUNTING_LAG_S = 30  # a just-submitted job may take a while to appear in sacct (slurmdbd restarts, load)
-STATES = ("done", "running", "pending", "failed", "frozen", "timeout", "missing", "corrupt")
+STATES = ("done", "running", "pending", "failed", "frozen", "timeout", "missing", "corrupt", "skipped", "waiting")
 ACTIVE_JOB_STATES = {"RUNNING": "running", "COMPLETING": "running", "PENDING": "pending", "REQUEUED": "pending",
                      "CONFIGURING": "running", "RESIZING": "running", "SUSPENDED": "pending"}
 
@@ -42,7 +43,8 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
     workers included); else its latest array element's state while that is active; else its failure record
     written since that submission (failed, frozen, timeout); else pending while a launch or resubmit holds the
     sweep (a local one runs it later); else missing. A file where its row belongs that is no valid row makes it
-    corrupt."""
+    corrupt. In a budgeted sweep a missing task is skipped where its round decided not to run it, and waiting
+    while its round is not decided."""
     sweep_dir = Path(sweep_dir)
     manifest = read_manifest(sweep_dir, columns=["task_id", "system", "arch", "seed", "width", "depth", "steps",
                                                  "params"])
@@ -56,6 +58,7 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
     element_states = job_states(record["array_id"] for record in submissions) if submissions else {}
     now, states = time.time(), {}
     running, launching = running_task_ids(sweep_dir), launch_running(sweep_dir)
+    budgeted = budget_states(sweep_dir)
     for task_id in manifest["task_id"].to_pylist():
         element, submitted = latest.get(task_id, (None, 0.0))
         row = row_state(row_path(sweep_dir, task_id))
@@ -66,6 +69,8 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
                                      now)
         if states[task_id] == "missing" and launching:
             states[task_id] = "pending"
+        if states[task_id] == "missing":
+            states[task_id] = without_row_state(budgeted, task_id)
     return SweepState(states, failures, manifest.to_pylist(), element_states)
 
 
