@@ -1,0 +1,108 @@
+"""Budgeted sweeps: the round rule on hand-made outcomes, and a budgeted sweep launched, stopped and relaunched
+as a user would (real training, the local launcher)."""
+
+import random
+
+import pyarrow.parquet as pq
+import pytest
+
+from nsl_hpc.studies import study_named
+from nsl_hpc.sweep.budget import Budget, Rounds, decide_round
+from tests.sweeps import nsl, row_files
+
+STUDY = study_named("input_state")
+
+
+def line(seed: int, width_tier: int) -> list[dict]:
+    """One line's tasks (epochs 2, 4, 8) with their resources: compute grows with the epochs."""
+    return [{"task_id": f"s{seed}w{width_tier}e{epochs}", "system": "ball", "arch": "unstructured", "seed": seed,
+             "epochs": epochs, "data_tier": 2, "width_tier": width_tier, "depth_tier": 2, "steps": 10 * epochs,
+             "params": 10 * width_tier, "flops": 1e3 * epochs * width_tier, "train_points": 100}
+            for epochs in (2, 4, 8)]
+
+
+def budget(seconds: float = 1e9) -> Budget:
+    return Budget(seconds, 2e9, first_levels=1, levels_per_round=1, margin=2.0, resources=("flops", "params"),
+                  metrics=("nmae",))
+
+
+TASKS = [task for seed in (0, 1) for width_tier in (2, 4) for task in line(seed, width_tier)]
+BY_ID = {task["task_id"]: task for task in TASKS}
+ERRORS = {"s0w2e2": 0.10, "s1w2e2": 0.50, "s0w4e2": 0.12, "s1w4e2": 0.90}  # round 1's outcomes
+
+
+def round_two(tasks: list[dict], seconds: float = 1e9) -> list[dict]:
+    rounds = Rounds(tasks, STUDY, budget(seconds))
+    rows = {task_id: {**BY_ID[task_id], "nmae": error} for task_id, error in ERRORS.items()}
+    return decide_round(2, rounds, BY_ID, rows, lambda ids: 10.0 * len(ids), seconds, budget(seconds))
+
+
+def test_rounds_follow_the_cost_axis_and_each_task_continues_its_line():
+    rounds = Rounds(TASKS, STUDY, budget())
+    assert rounds.count == 3
+    assert {rounds.round[t["task_id"]] for t in TASKS if t["epochs"] == 4} == {2}
+    assert rounds.ancestor["s1w4e8"] == "s1w4e4" and rounds.ancestor["s1w4e2"] is None
+
+
+def test_a_round_runs_the_tasks_whose_cheaper_run_came_near_an_envelope_most_promising_first():
+    decisions = {d["task_id"]: d for d in round_two(TASKS)}
+    assert {t for t, d in decisions.items() if d["run"]} == {"s0w2e4", "s0w4e4"}  # within 2x of the envelope
+    assert decisions["s1w4e4"]["reason"] == "far above the envelope"  # 0.90 / 2 is above 0.10 at every resource
+    assert decisions["s0w2e4"]["promise"] < decisions["s0w4e4"]["promise"]
+    tight = {d["task_id"]: d for d in round_two(TASKS, seconds=15.0)}  # room for one task: the most promising
+    assert [t for t, d in tight.items() if d["run"]] == ["s0w2e4"] and tight["s0w4e4"]["reason"] == "budget spent"
+    assert sum(d["cost_s"] for d in tight.values()) == pytest.approx(10.0)
+
+
+def test_a_rounds_decisions_depend_only_on_the_rows_not_on_the_task_order():
+    shuffled = TASKS[:]
+    random.Random(3).shuffle(shuffled)
+    assert round_two(shuffled) == round_two(TASKS)
+
+
+# 36 tasks: spring, unstructured, 2 seeds, epochs 4 / 16 / 64 (a round each), 3 data tiers, 2 width tiers.
+BUDGETED = ["+sweep=demo", "sweep.grid.system=[spring]", "sweep.grid.arch=[unstructured]", "budget.first_levels=1",
+            "budget.levels_per_round=1"]
+
+
+@pytest.mark.e2e
+def test_a_budgeted_sweep_runs_in_rounds_skips_the_rest_and_continues_where_it_stopped(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    args = [*BUDGETED, "budget.share=0.97", f"sweep_dir={sweep_dir}"]
+    first = nsl("launch", *args)
+    assert first.returncode == 0, first.stderr
+    decisions = pq.read_table(sweep_dir / "budget").to_pylist()
+    assert sorted({d["round"] for d in decisions}) == [1, 2, 3] and len(decisions) == 36
+    ran = {d["task_id"] for d in decisions if d["run"]}
+    assert 12 < len(ran) < 36  # round 1's 12 tasks and some of the later rounds'
+    assert {path.stem for path in row_files(sweep_dir)} == ran
+    assert "budget: 3 rounds decided" in nsl("status", f"sweep_dir={sweep_dir}").stdout
+    merged = nsl("merge", f"sweep_dir={sweep_dir}")
+    assert f"{36 - len(ran)} tasks skipped by the budget" in merged.stdout and "0 of 36 tasks" in merged.stdout
+
+    mtimes = {path: path.stat().st_mtime_ns for path in row_files(sweep_dir)}
+    again = nsl("launch", *args)
+    assert again.returncode == 0 and "every round has run" in again.stdout
+    assert {path: path.stat().st_mtime_ns for path in row_files(sweep_dir)} == mtimes  # no task ran twice
+
+    # stopped in round 3 before its decisions were written, with one task of round 2 unfinished: the relaunch runs
+    # that task alone again and decides round 3 as before
+    round_three = sweep_dir / "budget" / "round-003.parquet"
+    decided = pq.read_table(round_three).to_pylist()
+    unfinished = next(d["task_id"] for d in decisions if d["run"] and d["round"] == 2)
+    next(path for path in row_files(sweep_dir) if path.stem == unfinished).unlink()
+    round_three.unlink()
+    resumed = nsl("launch", *args)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "1 to run" in resumed.stdout
+    assert pq.read_table(round_three).to_pylist() == decided
+    assert {path.stem for path in row_files(sweep_dir)} == ran
+
+
+@pytest.mark.e2e
+def test_a_budget_below_the_first_round_is_refused_in_one_line_before_anything_is_written(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    refused = nsl("launch", *BUDGETED, "budget.share=0.05", f"sweep_dir={sweep_dir}")
+    assert refused.returncode != 0
+    assert refused.stderr.strip().startswith("error: the budget") and len(refused.stderr.strip().splitlines()) == 1
+    assert not (sweep_dir / "manifest.parquet").exists()
