@@ -28,8 +28,9 @@ from nsl_hpc.sweep.checkpoints import STALE_S, lock_path, saved_groups
 from nsl_hpc.sweep.directory import process_alive, sweep_lock
 from nsl_hpc.sweep.layout import failure_path, task_log_path
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
+from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES
 from nsl_hpc.sweep.submissions import read_submissions
-from nsl_hpc.sweep.task_states import ACTIVE_JOB_STATES, read_sweep_state
+from nsl_hpc.sweep.task_states import read_sweep_state
 
 ENTRY = re.compile(r"[0-9a-f]{32}\.npz")  # an ArrayCache entry's name
 

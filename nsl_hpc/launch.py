@@ -21,6 +21,7 @@ import pyarrow.compute as pc
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
+from nsl_hpc.config.launchers import SlurmLauncher, launcher_from
 from nsl_hpc.studies.base import model_of
 from nsl_hpc.sweep.budget import (
     Budget,
@@ -32,11 +33,12 @@ from nsl_hpc.sweep.budget import (
     describe_budget,
     planned_seconds,
     read_decisions,
+    record_round_job,
     refuse_small_budget,
 )
 from nsl_hpc.sweep.checkpoints import saved_groups
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
-from nsl_hpc.sweep.executors import run_jobs
+from nsl_hpc.sweep.executors import run_jobs, submit_next_round
 from nsl_hpc.sweep.plan import Pack, lockstep_settings, plan_jobs
 from nsl_hpc.sweep.prepare import (
     PAIR_KEYS,
@@ -46,6 +48,7 @@ from nsl_hpc.sweep.prepare import (
     describe_infeasible,
     prepare_sweep,
 )
+from nsl_hpc.sweep.submissions import read_submissions
 
 
 def describe_lockstep(tasks: Sequence[Mapping[str, Any]], packs: Sequence[Pack], lockstep: Mapping[str, Any]) -> str:
@@ -88,17 +91,17 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
         sweep_dir = usable_sweep_dir(cfg.sweep_dir)
         with sweep_lock(sweep_dir, "launch"):
             check_control_files(sweep_dir, cfg.allow_shared_sweep_dir)
-            return launch(cfg, built, sweep_dir)
+            return launch(cfg, built, sweep_dir, overrides)
 
 
-def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> int:
+def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path, overrides: Sequence[str] = ()) -> int:
     """Prepare the sweep directory, then run or submit its tasks to run: all of them, or with a budget round after
-    round (``launch_rounds``)."""
+    round (``launch_rounds``; ``overrides``: the command line's, for the job that launches the next round)."""
     budgeted = budgeted_rounds(cfg, built, sweep_dir)  # checked before anything is written
     prepared = prepare_sweep(cfg, built, sweep_dir)
     if budgeted is None:
         return run_tasks(cfg, built, prepared)
-    return launch_rounds(cfg, built, prepared, *budgeted)
+    return launch_rounds(cfg, built, prepared, overrides, *budgeted)
 
 
 def budgeted_rounds(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path
@@ -138,11 +141,11 @@ def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> in
     return run_jobs(prepared.sweep_dir, cfg, packs, tasks, prepared.configs)
 
 
-def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, budget: Budget, rounds: Rounds,
-                  planned_s: Callable[[Sequence[str]], float]) -> int:
+def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, overrides: Sequence[str],
+                  budget: Budget, rounds: Rounds, planned_s: Callable[[Sequence[str]], float]) -> int:
     """A budgeted sweep (nsl_hpc/sweep/budget.py): decide the next round once the rounds before have run, run its
-    tasks, and go on (the local launchers) until the last round; on SLURM submit one round and return (launch
-    again when it has run)."""
+    tasks, and go on (the local launchers) until the last round; on SLURM submit one round and, behind it, a job
+    that launches again (``overrides``) once it has run, and return."""
     sweep_dir, manifest = prepared.sweep_dir, {task["task_id"]: task for task in prepared.manifest.to_pylist()}
     attempted: set[str] = set()
     worst = 0
@@ -157,11 +160,11 @@ def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, b
                 pc.is_in(prepared.todo["task_id"], value_set=pa.array(sorted(shown), pa.string())))))
         todo = pc.is_in(prepared.todo["task_id"], value_set=pa.array(sorted(chosen - attempted), pa.string()))
         if pc.any(todo).as_py() or prepared.queued:
+            submitted = set(prepared.todo.filter(todo)["task_id"].to_pylist())
             worst = max(worst, run_tasks(cfg, built, dataclasses.replace(prepared, todo=prepared.todo.filter(todo))))
             if prepared.queued or cfg.launcher.name == "slurm":
                 if decided < rounds.count:
-                    print(f"budget: round {decided} runs in SLURM; launch again with the same command once it has "
-                          f"run to decide round {decided + 1} (python -m nsl_hpc.status sweep_dir={sweep_dir})")
+                    print(next_round_line(cfg, sweep_dir, overrides, submitted, decided))
                 return worst
             attempted |= set(prepared.todo.filter(todo)["task_id"].to_pylist())
             prepared = prepare_sweep(cfg, built, sweep_dir)
@@ -170,6 +173,23 @@ def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, b
             print("budget: every round has run")
             return worst
         decide_next_round(sweep_dir, decided + 1, rounds, manifest, planned_s, budget)
+
+
+def next_round_line(cfg: DictConfig, sweep_dir: Path, overrides: Sequence[str], submitted: set[str],
+                    decided: int) -> str:
+    """Submit the job that decides the next round once the arrays of the ``submitted`` tasks have ended (none
+    when this launch submitted nothing: the job of the launch that did goes on), and say so."""
+    arrays = [record["array_id"] for record in read_submissions(sweep_dir)
+              if any(task_id in submitted for element in record["elements"] for task_id in element)]
+    launcher = launcher_from(cfg.launcher)
+    if not arrays or not isinstance(launcher, SlurmLauncher):
+        return (f"budget: round {decided} is queued or running in SLURM; the job submitted behind it launches round "
+                f"{decided + 1} (or launch again with the same command once it has run)")
+    job = submit_next_round(sweep_dir, overrides, launcher, cfg.sweep.name, arrays,
+                            cfg.budget.round_job_minutes)
+    record_round_job(sweep_dir, job)
+    return (f"budget: round {decided} submitted; job {job} launches again once it has run (afterany), to decide "
+            f"and submit round {decided + 1} (python -m nsl_hpc.status sweep_dir={sweep_dir})")
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ from collections import Counter
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.sweep.budget import describe_rounds, read_decisions
+from nsl_hpc.sweep.budget import describe_rounds, read_decisions, round_job_queued
 from nsl_hpc.sweep.checkpoints import held_locks, saved_groups
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest, require_sweep
 from nsl_hpc.sweep.plan import packing_for, sweep_groups
@@ -97,7 +97,8 @@ def main(cfg: DictConfig) -> int:
               flush=True)
         if decisions := read_decisions(cfg.sweep_dir):
             print(f"budget: {describe_rounds(decisions)}", flush=True)
-        active = state.counts()["running"] + state.counts()["pending"]
+        active = state.counts()["running"] + state.counts()["pending"] + (
+            state.counts()["waiting"] if round_job_queued(cfg.sweep_dir) else 0)  # the next round comes
         if not cfg.wait or (not active and (confirming or not state.counts()["missing"])):
             break
         if not active:  # a job being requeued can look ended for a moment: look again before calling it missing

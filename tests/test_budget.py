@@ -7,7 +7,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from nsl_hpc.studies import study_named
-from nsl_hpc.sweep.budget import Budget, Rounds, decide_round
+from nsl_hpc.sweep.budget import Budget, Rounds, decide_round, read_decisions
 from tests.sweeps import nsl, row_files
 
 STUDY = study_named("input_state")
@@ -71,7 +71,7 @@ def test_a_budgeted_sweep_runs_in_rounds_skips_the_rest_and_continues_where_it_s
     args = [*BUDGETED, "budget.share=0.97", f"sweep_dir={sweep_dir}"]
     first = nsl("launch", *args)
     assert first.returncode == 0, first.stderr
-    decisions = pq.read_table(sweep_dir / "budget").to_pylist()
+    decisions = read_decisions(sweep_dir)
     assert sorted({d["round"] for d in decisions}) == [1, 2, 3] and len(decisions) == 36
     ran = {d["task_id"] for d in decisions if d["run"]}
     assert 12 < len(ran) < 36  # round 1's 12 tasks and some of the later rounds'

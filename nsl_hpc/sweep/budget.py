@@ -16,6 +16,7 @@ of earlier rounds; a round's decisions are written (``budget/round-<r>.parquet``
 launch that stops anywhere continues with the same decisions.
 """
 
+import json
 import math
 from collections import defaultdict
 from collections.abc import Callable, Mapping, Sequence
@@ -28,7 +29,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from omegaconf import DictConfig, OmegaConf
 
-from nsl_hpc.atomic import write_parquet
+from nsl_hpc.atomic import write_parquet, write_text
 from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, require_number, require_positive_int
 from nsl_hpc.studies.base import Study
@@ -36,6 +37,7 @@ from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.plan import packing_for, sweep_groups
 from nsl_hpc.sweep.rows import read_row, row_state
+from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES, job_states
 
 DECISION_COLUMNS = ("task_id", "round", "run", "reason", "promise", "cost_s")
 
@@ -246,6 +248,22 @@ def skipped_reasons(sweep_dir: Path) -> dict[str, int]:
         if not d["run"]:
             reasons[d["reason"]] += 1
     return dict(reasons)
+
+
+ROUND_JOB = "round_job.json"  # the SLURM job that launches the next round
+
+
+def record_round_job(sweep_dir: Path, job_id: str) -> None:
+    write_text(json.dumps({"job_id": job_id}), budget_dir(sweep_dir) / ROUND_JOB)
+
+
+def round_job_queued(sweep_dir: Path) -> bool:
+    """Whether the job that launches a budgeted sweep's next round is pending or running in SLURM."""
+    path = budget_dir(sweep_dir) / ROUND_JOB
+    if not path.exists():
+        return False
+    job_id = json.loads(path.read_text())["job_id"]
+    return job_states([job_id]).get(job_id) in ACTIVE_JOB_STATES
 
 
 def write_decisions(sweep_dir: Path, number: int, decisions: Sequence[Mapping[str, Any]], budget: Budget) -> None:

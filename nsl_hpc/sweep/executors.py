@@ -7,6 +7,8 @@ import os
 import shutil
 import signal
 import socket
+import subprocess
+import sys
 import time
 from collections import Counter
 from collections.abc import Mapping, Sequence
@@ -74,18 +76,44 @@ def array_chunks(packs: Sequence[Pack], max_array_size: int) -> list[list[Pack]]
     return chunks
 
 
-def slurm_executor(sweep_dir: Path, time_limit_min: int, launcher: SlurmLauncher, name: str, chain: int = 1
-                   ) -> submitit.SlurmExecutor:
+def slurm_executor(sweep_dir: Path, time_limit_min: int, launcher: SlurmLauncher, name: str, chain: int = 1,
+                   after: Sequence[str] = ()) -> submitit.SlurmExecutor:
     """The submitit executor of one array: single-CPU elements of one time limit, warned before it, each
-    requeued up to ``chain`` + 2 times at its time limit (a chain of ``chain`` jobs, and some slack)."""
+    requeued up to ``chain`` + 2 times at its time limit (a chain of ``chain`` jobs, and some slack); with
+    ``after``, they start once those jobs have ended (however they ended)."""
     executor = submitit.SlurmExecutor(folder=sweep_dir / layout.SUBMITIT / "%A", max_num_timeout=chain + 2)
+    dependency = {"dependency": "afterany:" + ":".join(after)} if after else {}
     executor.update_parameters(
         job_name=f"nsl-{name}", time=time_limit_min, cpus_per_task=1, ntasks_per_node=1, mem=launcher.mem,
         partition=launcher.partition, account=launcher.account, qos=launcher.qos,
         array_parallelism=launcher.array_parallelism, signal_delay_s=launcher.signal_delay_s,
-        additional_parameters=dict(launcher.extra_sbatch), setup=list(launcher.setup),
+        additional_parameters={**launcher.extra_sbatch, **dependency}, setup=list(launcher.setup),
         stderr_to_stdout=True)
     return executor
+
+
+@dataclass(frozen=True)
+class NextRound:
+    """What a budgeted sweep's round job runs: ``python -m nsl_hpc.launch <arguments>`` in ``cwd`` (it decides
+    the next round, submits it and the job after it)."""
+
+    arguments: tuple[str, ...]
+    cwd: str
+
+    def __call__(self) -> None:
+        command = [sys.executable, "-m", "nsl_hpc.launch", *self.arguments]
+        result = subprocess.run(command, cwd=self.cwd, check=False)
+        if result.returncode != 0:
+            raise RunError(f"{' '.join(command)} exited with {result.returncode}")
+
+
+def submit_next_round(sweep_dir: Path, arguments: Sequence[str], launcher: SlurmLauncher, name: str,
+                      after: Sequence[str], minutes: int) -> str:
+    """Submit the job that launches a budgeted sweep again (``arguments``: its launch's) once the jobs ``after``
+    have ended; returns its id."""
+    executor = slurm_executor(Path(sweep_dir), minutes, launcher, f"{name}-rounds", after=after)
+    own = [argument for argument in arguments if argument.split("=", 1)[0].lstrip("+~") != "sweep_dir"]
+    return str(executor.submit(NextRound((*own, f"sweep_dir={sweep_dir}"), os.getcwd())).job_id)
 
 
 def submit_array(sweep_dir: Path, packs: Sequence[Pack], time_limit_min: int, launcher: SlurmLauncher,

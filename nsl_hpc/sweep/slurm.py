@@ -62,6 +62,11 @@ def queued_jobs(user_only: bool) -> int:
     return len(slurm_command(*args).split())
 
 
+# sacct states of a job that has not ended -> the state of the tasks it holds
+ACTIVE_JOB_STATES = {"RUNNING": "running", "COMPLETING": "running", "PENDING": "pending", "REQUEUED": "pending",
+                     "CONFIGURING": "running", "RESIZING": "running", "SUSPENDED": "pending"}
+
+
 def job_states(job_ids: Iterable[str]) -> dict[str, str]:
     """State of every array element of ``job_ids`` (array job ids), from one ``sacct`` call."""
     ids = ",".join(job_ids)

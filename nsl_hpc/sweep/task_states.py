@@ -15,13 +15,11 @@ from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.manifest import read_manifest
 from nsl_hpc.sweep.rows import row_state
-from nsl_hpc.sweep.slurm import job_states
+from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES, job_states
 from nsl_hpc.sweep.submissions import read_submissions
 
 ACCOUNTING_LAG_S = 30  # a just-submitted job may take a while to appear in sacct (slurmdbd restarts, load)
 STATES = ("done", "running", "pending", "failed", "frozen", "timeout", "missing", "corrupt", "skipped", "waiting")
-ACTIVE_JOB_STATES = {"RUNNING": "running", "COMPLETING": "running", "PENDING": "pending", "REQUEUED": "pending",
-                     "CONFIGURING": "running", "RESIZING": "running", "SUSPENDED": "pending"}
 
 
 @dataclass(frozen=True)

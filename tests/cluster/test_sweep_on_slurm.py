@@ -9,6 +9,7 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
+from nsl_hpc.sweep.budget import read_decisions
 from tests.cluster.requeues import releasing
 from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
 
@@ -108,3 +109,17 @@ def test_time_limit_records_timeout_requeues_unstarted_tasks_and_resubmit_finish
     assert resubmitted.returncode == 0 and "resubmitting 2 tasks" in resubmitted.stdout
     assert "done 2 |" in wait_for_sweep(sweep_dir)
     assert sorted(path.stem for path in row_files(sweep_dir)) == sorted(manifest_ids(sweep_dir))
+
+
+def test_a_budgeted_sweep_runs_its_rounds_on_slurm_one_after_another(slurm_cluster, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    launched = nsl("launch", "+sweep=demo", "sweep.grid.system=[spring]", "sweep.grid.arch=[unstructured]",
+                   "sweep.grid.data_tier=[2]", "budget.first_levels=2", "budget.levels_per_round=1",
+                   "budget.share=0.99", "launcher=slurm", f"sweep_dir={sweep_dir}")
+    assert launched.returncode == 0, launched.stderr
+    assert "job" in launched.stdout and "launches again once it has run" in launched.stdout
+    status = wait_for_sweep(sweep_dir)  # waits for the round job too: the next round comes
+    assert "waiting 0" in status and "2 rounds decided" in status
+    decisions = read_decisions(sweep_dir)
+    assert {path.stem for path in row_files(sweep_dir)} == {d["task_id"] for d in decisions if d["run"]}
+    assert {d["round"] for d in decisions} == {1, 2} and len(decisions) == 12
