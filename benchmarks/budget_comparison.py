@@ -1,0 +1,104 @@
+"""A budgeted sweep against the full sweep of the same grid: per fitted law, the budgeted envelope over the full
+one, and the budgeted last slope against the full fit's interval; per round, the tasks kept and their cost.
+
+    python benchmarks/budget_comparison.py FULL_SWEEP_DIR BUDGETED_SWEEP_DIR [--goal 1.15]
+
+Both directories are merged and fitted first where they have no fits (``python -m nsl_hpc.merge`` and
+``python -m nsl_hpc.fit``, the fits with their bootstrap intervals). The envelopes are Definition 1's step
+envelopes at the K = ``nsl.K`` log-spaced points over the full sweep's resource range. Prints markdown.
+"""
+
+import argparse
+import subprocess
+import sys
+from collections import Counter, defaultdict
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+
+from nsl_hpc.analysis.broken_law import lower_envelope
+from nsl_hpc.analysis.fitting import fittable, pair_outcomes
+from nsl_hpc.config import compose_config, plain
+from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.budget import read_decisions
+
+
+def fitted(sweep_dir: Path) -> tuple:
+    """(results, fits) of a sweep, merging and fitting it first where needed."""
+    if not (sweep_dir / layout.FITS).exists():
+        for verb in ("merge", "fit"):
+            subprocess.run([sys.executable, "-m", f"nsl_hpc.{verb}", f"sweep_dir={sweep_dir}"], check=True)
+    return pq.read_table(sweep_dir / layout.RESULTS), pq.read_table(sweep_dir / layout.FITS).to_pylist()
+
+
+def envelope_at(results, system: str, arch: str, column: str, metric: str, grid: np.ndarray) -> np.ndarray:
+    """The step envelope of a sweep's outcomes at the resources ``grid`` (inf below its smallest outcome)."""
+    subset = pair_outcomes(results, system, arch)
+    keep = fittable(subset, column, metric)
+    r = subset[column].to_numpy().astype(float)[keep]
+    e = subset[metric].to_numpy().astype(float)[keep]
+    order = np.argsort(r)
+    r, e = r[order], np.minimum.accumulate(e[order])
+    index = np.searchsorted(r, grid, side="right") - 1
+    return np.where(index >= 0, e[np.maximum(index, 0)], np.inf)
+
+
+def law_rows(full, full_fits, budgeted, budgeted_fits, nsl: dict, goal: float) -> list[str]:
+    columns = {name: spec["column"] for name, spec in nsl["resources"].items()}
+    by_key = {(f["system"], f["arch"], f["resource"], f["metric"]): f for f in budgeted_fits}
+    lines = [f"| law | budgeted / full envelope: largest (median) | points within {goal}x | last slope budgeted | "
+             "full (90% interval) | inside |", "|---|---:|---:|---:|---:|---|"]
+    for fit in full_fits:
+        key = (fit["system"], fit["arch"], fit["resource"], fit["metric"])
+        column = columns[fit["resource"]]
+        subset = pair_outcomes(full, fit["system"], fit["arch"])
+        keep = fittable(subset, column, fit["metric"])
+        grid, full_envelope = lower_envelope(subset[column].to_numpy().astype(float)[keep],
+                                             subset[fit["metric"]].to_numpy().astype(float)[keep], nsl["K"])
+        ratio = envelope_at(budgeted, *key[:2], column, fit["metric"], grid) / full_envelope
+        other = by_key.get(key)
+        slope = other["last_slope"] if other else float("nan")
+        low, high = fit.get("last_slope_lo", np.nan), fit.get("last_slope_hi", np.nan)
+        lines.append(f"| {' / '.join(key)} | {np.max(ratio):.2f} ({np.median(ratio):.2f}) | "
+                     f"{np.mean(ratio <= goal):.0%} | {slope:.2f} | {fit['last_slope']:.2f} ({low:.2f} .. {high:.2f}) "
+                     f"| {'yes' if low <= slope <= high else 'no'} |")
+    return lines
+
+
+def round_rows(budgeted_dir: Path, budgeted) -> list[str]:
+    seconds = dict(zip(budgeted["task_id"].to_pylist(), budgeted["train_seconds"].to_pylist(), strict=True))
+    rounds: dict[int, list[dict]] = defaultdict(list)
+    for decision in read_decisions(budgeted_dir):
+        rounds[decision["round"]].append(decision)
+    lines = ["| round | tasks | run | skipped (why) | predicted core-hours | trained core-hours |",
+             "|---:|---:|---:|---|---:|---:|"]
+    for number, decisions in sorted(rounds.items()):
+        run = [d for d in decisions if d["run"]]
+        why = Counter(d["reason"] for d in decisions if not d["run"])
+        lines.append(f"| {number} | {len(decisions):,} | {len(run):,} | {sum(why.values()):,}"
+                     + (f" ({', '.join(f'{n:,} {reason}' for reason, n in sorted(why.items()))})" if why else "")
+                     + f" | {sum(d['cost_s'] for d in run) / 3600:.3f} | "
+                     f"{sum(seconds.get(d['task_id'], 0.0) for d in run) / 3600:.3f} |")
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("full", type=Path)
+    parser.add_argument("budgeted", type=Path)
+    parser.add_argument("--goal", type=float, default=1.15, help="the envelope ratio the budget should stay within")
+    args = parser.parse_args()
+    nsl = plain(compose_config([f"sweep_dir={args.full}"], "fit").nsl)
+    full, full_fits = fitted(args.full)
+    budgeted, budgeted_fits = fitted(args.budgeted)
+    trained = {name: float(np.nansum(table["train_seconds"].to_numpy(zero_copy_only=False))) / 3600
+               for name, table in (("full", full), ("budgeted", budgeted))}
+    print(f"Tasks with a row: full {full.num_rows:,}, budgeted {budgeted.num_rows:,}; trained core-hours: full "
+          f"{trained['full']:.3f}, budgeted {trained['budgeted']:.3f} ({trained['budgeted'] / trained['full']:.0%})\n")
+    print("\n".join(law_rows(full, full_fits, budgeted, budgeted_fits, nsl, args.goal)) + "\n")
+    print("\n".join(round_rows(args.budgeted, budgeted)))
+
+
+if __name__ == "__main__":
+    main()
