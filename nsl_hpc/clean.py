@@ -3,8 +3,9 @@ whose tasks all have a row, stale failure records and logs of tasks that succeed
 checkpoints (of groups whose tasks all have a row, or that are not in the manifest) and group locks no job
 renews. Rows, the manifest, the sweep's configs, the checkpoints of groups still to finish and the failure
 records and logs of tasks without a row are kept, as are the files of jobs still pending or running, whatever
-the paths are set to. The simulated-data cache's entries go once every task has a row, and so does the
-compiled-step cache when it lies inside the sweep directory (one shared with other sweeps is left alone).
+the paths are set to. The simulated-data cache's entries go once every task has a row (or, in a budgeted sweep,
+was skipped), and so does the compiled-step cache when it lies inside the sweep directory (one shared with other
+sweeps is left alone).
 
     python -m nsl_hpc.clean sweep_dir=runs/input_state dry_run=true    # list what would go
     python -m nsl_hpc.clean sweep_dir=runs/input_state
@@ -126,7 +127,8 @@ def doomed_paths(sweep_dir: Path) -> tuple[list[Path], int, int]:
     doomed = [*finished_slurm_job_files(sweep_dir, done, state.element_states),
               *finished_local_job_files(sweep_dir), *stale_failure_files(sweep_dir, done, set(state.failures)),
               *stale_checkpoint_files(sweep_dir, done, set(state.states))]
-    if len(done) == len(state.states):
+    settled = done | {task_id for task_id, status in state.states.items() if status == "skipped"}
+    if len(settled) == len(state.states):  # every task has a row, or a budget decided not to run it
         launch = read_launch_config(sweep_dir)
         doomed += cache_entries(Path(launch.cache_dir))
         if launch.get("compile_cache_dir") and Path(launch.compile_cache_dir).resolve().is_relative_to(sweep_dir):

@@ -97,6 +97,8 @@ def test_a_budgeted_sweep_runs_in_rounds_skips_the_rest_and_continues_where_it_s
     assert "1 to run" in resumed.stdout
     assert pq.read_table(round_three).to_pylist() == decided
     assert {path.stem for path in row_files(sweep_dir)} == ran
+    assert nsl("clean", f"sweep_dir={sweep_dir}").returncode == 0  # skipped tasks need no cache
+    assert not (sweep_dir / "cache").exists() and {path.stem for path in row_files(sweep_dir)} == ran
 
 
 @pytest.mark.e2e
