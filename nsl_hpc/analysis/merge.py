@@ -17,7 +17,7 @@ import pyarrow.parquet as pq
 
 from nsl_hpc.atomic import write_parquet, write_text
 from nsl_hpc.sweep import layout
-from nsl_hpc.sweep.budget import budget_states, skipped_reasons, without_row_state
+from nsl_hpc.sweep.budget import budget_states, read_decisions, skip_reasons, without_row_state
 from nsl_hpc.sweep.checkpoints import running_task_ids
 from nsl_hpc.sweep.directory import launch_running
 from nsl_hpc.sweep.failures import FAILURE_STATES, read_failures
@@ -196,7 +196,7 @@ def merge_sweep(sweep_dir: Path) -> MergeSummary:
     diverged = int(pc.sum(pc.not_equal(results["status"], "ok")).as_py() or 0) if results.num_rows else 0
     summary = MergeSummary(tasks=manifest.num_rows, merged=results.num_rows,
                            **dropped_counts(sweep_dir, manifest["task_id"], results["task_id"]),
-                           diverged=diverged, skipped_reasons=skipped_reasons(sweep_dir),
+                           diverged=diverged, skipped_reasons=skip_reasons(read_decisions(sweep_dir)),
                            corrupt_shards=corrupt,
                            duplicate_rows=duplicates, unknown_rows=unknown)
     write_text(json.dumps(asdict(summary), indent=1), sweep_dir / layout.MERGE_SUMMARY)

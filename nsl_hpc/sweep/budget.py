@@ -9,11 +9,11 @@ resource (compute, data, model) and metric that the sweep's fits use (conf/nsl),
 by ``budget.margin`` is below the lower envelope (Definition 1's step envelope of every row of its (system,
 arch) so far) at the task's own resource value: trained longer, it could still lower that envelope. The
 candidates run in the order of that ratio (its smallest over resources and metrics: most promising first)
-while the budget lasts; the others are skipped, each with its reason. Costs are the planner's (``cost.*``):
-each task's share of its lockstep group's predicted seconds when the whole sweep is planned, so the shares add
-up to the planner's prediction, and ``budget.share`` is a share of it. Every decision depends only on the rows
-of earlier rounds; a round's decisions are written (``budget/round-<r>.parquet``) before its tasks run, so a
-launch that stops anywhere continues with the same decisions.
+as long as the planner's prediction of them (``cost.*``: their lockstep groups' seconds, planned as the round
+runs them) fits in what the budget has left; the others are skipped, each with its reason. ``budget.share`` is
+a share of the planner's prediction for the whole sweep. Every decision depends only on the rows of earlier
+rounds; a round's decisions are written (``budget/round-<r>.parquet``) before its tasks run, so a launch that
+stops anywhere continues with the same decisions.
 """
 
 import json
@@ -31,7 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.atomic import write_parquet, write_text
 from nsl_hpc.config import plain
-from nsl_hpc.errors import ConfigError, require_number, require_positive_int
+from nsl_hpc.errors import ConfigError, damaged_file, require_number, require_positive_int
 from nsl_hpc.studies.base import Study
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.layout import row_path
@@ -39,7 +39,9 @@ from nsl_hpc.sweep.plan import packing_for, sweep_groups
 from nsl_hpc.sweep.rows import read_row, row_state
 from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES, job_states
 
-DECISION_COLUMNS = ("task_id", "round", "run", "reason", "promise", "cost_s")
+# one row per task of a decided round; cost_s: the predicted core-seconds it is charged (0 when skipped)
+DECISION_SCHEMA = pa.schema([("task_id", pa.string()), ("round", pa.int64()), ("run", pa.bool_()),
+                             ("reason", pa.string()), ("promise", pa.float64()), ("cost_s", pa.float64())])
 
 
 @dataclass(frozen=True)
@@ -61,14 +63,20 @@ def budget_requested(launch: DictConfig) -> bool:
     return any(OmegaConf.select(launch, f"budget.{key}", default=None) is not None for key in ("core_hours", "share"))
 
 
+def skip_reasons(decisions: Sequence[Mapping[str, Any]]) -> dict[str, int]:
+    """Why the skipped tasks of ``decisions`` were: reason -> tasks."""
+    reasons: dict[str, int] = defaultdict(int)
+    for d in decisions:
+        if not d["run"]:
+            reasons[d["reason"]] += 1
+    return dict(reasons)
+
+
 def describe_rounds(decisions: Sequence[Mapping[str, Any]]) -> str:
     """Rounds decided, predicted core-hours committed, tasks skipped and why (launch and status print it)."""
     decided = max((d["round"] for d in decisions), default=0)
     committed = sum(d["cost_s"] for d in decisions if d["run"]) / 3600
-    reasons: dict[str, int] = defaultdict(int)
-    for d in decisions:
-        reasons[d["reason"]] += not d["run"]
-    reasons = {why: n for why, n in reasons.items() if n}
+    reasons = skip_reasons(decisions)
     skipped = sum(reasons.values())
     return (f"{decided} round{'s' * (decided != 1)} decided, {committed:,.3g} predicted core-hours committed, "
             f"{skipped:,} tasks skipped" + (f" ({', '.join(f'{n:,} {why}' for why, n in sorted(reasons.items()))})"
@@ -186,7 +194,7 @@ def promise(task: Mapping[str, Any], ancestor_row: Mapping[str, Any], envelopes:
 def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, Any]],
                  rows: Mapping[str, Mapping[str, Any]], planned_s: Callable[[Sequence[str]], float], left_s: float,
                  budget: Budget) -> list[dict[str, Any]]:
-    """The decisions (DECISION_COLUMNS) of round ``number``: round 1 runs all its tasks; a later round the
+    """The decisions (DECISION_SCHEMA) of round ``number``: round 1 runs all its tasks; a later round the
     promising ones (``promise`` below 1), most promising first, as many as the planner's prediction of them
     (``planned_s`` of their ids: lockstep groups and all) fits in ``left_s``. ``cost_s``: a run task's share of
     the round's predicted seconds."""
@@ -218,14 +226,20 @@ def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, A
             for value, task_id, reason in scored]
 
 
-def budget_dir(sweep_dir: Path) -> Path:
-    return Path(sweep_dir) / layout.BUDGET
+def decision_files(sweep_dir: Path) -> list[Path]:
+    """The decided rounds' files, in round order."""
+    return sorted((Path(sweep_dir) / layout.BUDGET).glob("round-*.parquet"))
 
 
 def read_decisions(sweep_dir: Path) -> list[dict[str, Any]]:
-    """Every round's decisions written so far."""
-    files = sorted(budget_dir(sweep_dir).glob("round-*.parquet"))
-    return [row for path in files for row in pq.read_table(path).to_pylist()]
+    """Every round's decisions written so far (a damaged file is refused in one line)."""
+    decisions = []
+    for path in decision_files(sweep_dir):
+        try:
+            decisions += pq.read_table(path, schema=DECISION_SCHEMA).to_pylist()
+        except (OSError, pa.ArrowException) as error:
+            raise damaged_file(path, error) from None
+    return decisions
 
 
 def budget_states(sweep_dir: Path) -> dict[str, str]:
@@ -241,44 +255,34 @@ def without_row_state(budgeted: Mapping[str, str], task_id: str) -> str:
     return "missing" if decision == "to run" else decision
 
 
-def skipped_reasons(sweep_dir: Path) -> dict[str, int]:
-    """Why a budgeted sweep's skipped tasks were (reason -> tasks); empty without a budget."""
-    reasons: dict[str, int] = defaultdict(int)
-    for d in read_decisions(sweep_dir):
-        if not d["run"]:
-            reasons[d["reason"]] += 1
-    return dict(reasons)
-
-
-ROUND_JOB = "round_job.json"  # the SLURM job that launches the next round
-
-
 def record_round_job(sweep_dir: Path, job_id: str) -> None:
-    write_text(json.dumps({"job_id": job_id}), budget_dir(sweep_dir) / ROUND_JOB)
+    """Remember the SLURM job that launches the next round (``round_job_queued`` asks about it)."""
+    write_text(json.dumps({"job_id": job_id}), layout.round_job_path(sweep_dir))
 
 
 def round_job_queued(sweep_dir: Path) -> bool:
     """Whether the job that launches a budgeted sweep's next round is pending or running in SLURM."""
-    path = budget_dir(sweep_dir) / ROUND_JOB
+    path = layout.round_job_path(sweep_dir)
     if not path.exists():
         return False
-    job_id = json.loads(path.read_text())["job_id"]
+    try:
+        job_id = json.loads(path.read_text())["job_id"]
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise damaged_file(path, error) from None
     return job_states([job_id]).get(job_id) in ACTIVE_JOB_STATES
 
 
 def write_decisions(sweep_dir: Path, number: int, decisions: Sequence[Mapping[str, Any]], budget: Budget) -> None:
     """Write round ``number``'s decisions (atomically) with the round structure they assume."""
-    table = pa.Table.from_pylist([dict(d) for d in decisions], schema=pa.schema([
-        ("task_id", pa.string()), ("round", pa.int64()), ("run", pa.bool_()), ("reason", pa.string()),
-        ("promise", pa.float64()), ("cost_s", pa.float64())]))
+    table = pa.Table.from_pylist([dict(d) for d in decisions], schema=DECISION_SCHEMA)
     table = table.replace_schema_metadata({"first_levels": str(budget.first_levels),
                                            "levels_per_round": str(budget.levels_per_round)})
-    write_parquet(table, budget_dir(sweep_dir) / f"round-{number:03d}.parquet")
+    write_parquet(table, layout.round_decisions_path(sweep_dir, number))
 
 
 def check_round_structure(sweep_dir: Path, budget: Budget) -> None:
     """Refuse a budget whose rounds differ from those of the decisions already taken."""
-    for path in sorted(budget_dir(sweep_dir).glob("round-*.parquet")):
+    for path in decision_files(sweep_dir):
         stored = pq.read_schema(path).metadata or {}
         levels = (int(stored.get(b"first_levels", 0)), int(stored.get(b"levels_per_round", 0)))
         if levels != (budget.first_levels, budget.levels_per_round):

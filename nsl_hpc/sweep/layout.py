@@ -15,6 +15,7 @@
       cache/                              simulated trajectories (cache_dir)
       compile_cache/                      Inductor's compiled training steps (compile_cache_dir)
       budget/round-<r>.parquet            a budgeted sweep's decisions: which tasks of round r run (sweep/budget.py)
+      budget/round_job.json               the SLURM job that launches its next round
       .lock                               the command that changes the sweep now (launch, resubmit, clean)
       results.parquet, merge_summary.json, .merge_cache.parquet   merge
       nsl_fits.parquet, nsl_fits.txt                            fit
@@ -89,3 +90,12 @@ def submission_path(sweep_dir: str | os.PathLike, array_id: str) -> Path:
 def local_jobs_folder(sweep_dir: str | os.PathLike) -> Path:
     """submitit's folder of the local launcher's jobs (one subfolder per job)."""
     return Path(sweep_dir) / SUBMITIT / SUBMITIT_LOCAL
+
+
+def round_decisions_path(sweep_dir: str | os.PathLike, number: int) -> Path:
+    """The decisions of a budgeted sweep's round ``number``."""
+    return Path(sweep_dir) / BUDGET / f"round-{number:03d}.parquet"
+
+
+def round_job_path(sweep_dir: str | os.PathLike) -> Path:
+    return Path(sweep_dir) / BUDGET / "round_job.json"
