@@ -10,10 +10,11 @@ by ``budget.margin`` is below the lower envelope (Definition 1's step envelope o
 arch) so far) at the task's own resource value: trained longer, it could still lower that envelope. The
 candidates run in the order of that ratio (its smallest over resources and metrics: most promising first)
 as long as the planner's prediction of them (``cost.*``: their lockstep groups' seconds, planned as the round
-runs them) fits in what the budget has left; the others are skipped, each with its reason. ``budget.share`` is
-a share of the planner's prediction for the whole sweep. Every decision depends only on the rows of earlier
-rounds; a round's decisions are written (``budget/round-<r>.parquet``) before its tasks run, so a launch that
-stops anywhere continues with the same decisions.
+runs them) fits in the round's allowance: with ``budget.spread`` its equal share of what the budget has left for
+it and the rounds after it (so the long rounds are reached), else all that is left; the others are skipped,
+each with its reason. ``budget.share`` is a share of the planner's prediction for the whole sweep. Every
+decision depends only on the rows of earlier rounds; a round's decisions are written (``budget/round-<r>.parquet``)
+before its tasks run, so a launch that stops anywhere continues with the same decisions.
 """
 
 import json
@@ -56,6 +57,7 @@ class Budget:
     margin: float
     resources: tuple[str, ...]  # the result columns of the fits' resources (flops, train_points, params)
     metrics: tuple[str, ...]  # and their metrics (nmae, nmse)
+    spread: bool = True  # a later round spends at most its equal share of what is left (else all it can)
 
 
 def budget_requested(launch: DictConfig) -> bool:
@@ -109,8 +111,10 @@ def budget_of(launch: DictConfig, full_seconds: float) -> Budget | None:
     if seconds >= full_seconds:
         return None
     resources, metrics = fitted_columns(plain(launch.nsl))
+    if not isinstance(settings["spread"], bool):
+        raise ConfigError(f"budget.spread={settings['spread']!r}: true or false")
     return Budget(seconds, full_seconds, settings["first_levels"], settings["levels_per_round"], settings["margin"],
-                  tuple(resources), tuple(metrics))
+                  tuple(resources), tuple(metrics), settings["spread"])
 
 
 def planned_seconds(tasks: Mapping[str, Mapping[str, Any]], launch: DictConfig) -> Callable[[Sequence[str]], float]:
@@ -317,4 +321,6 @@ def decide_next_round(sweep_dir: Path, number: int, rounds: Rounds, manifest: Ma
     chosen = sorted(d["task_id"] for d in decisions if d["run"])
     rows = {task_id: {**manifest[task_id], **row} for task_id, row in done_rows(sweep_dir, chosen).items()}
     left = budget.seconds - sum(d["cost_s"] for d in decisions)
+    if budget.spread and number > 1:  # this round's equal share of what is left to it and the rounds after it
+        left /= rounds.count - number + 1
     write_decisions(sweep_dir, number, decide_round(number, rounds, manifest, rows, planned_s, left, budget), budget)
