@@ -12,6 +12,7 @@ clean, is refused. launcher=slurm returns as soon as the job arrays are submitte
 """
 
 import dataclasses
+import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -22,14 +23,17 @@ from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.config.launchers import SlurmLauncher, launcher_from
+from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies.base import model_of
 from nsl_hpc.sweep.budget import (
     Budget,
     Rounds,
     budget_of,
     budget_requested,
+    cancel_round_job,
     check_round_structure,
     decide_next_round,
+    decision_files,
     describe_budget,
     planned_seconds,
     read_decisions,
@@ -39,6 +43,7 @@ from nsl_hpc.sweep.budget import (
 from nsl_hpc.sweep.checkpoints import saved_groups
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 from nsl_hpc.sweep.executors import run_jobs, submit_next_round
+from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.plan import Pack, lockstep_settings, plan_jobs
 from nsl_hpc.sweep.prepare import (
     PAIR_KEYS,
@@ -47,6 +52,7 @@ from nsl_hpc.sweep.prepare import (
     build_sweep,
     describe_infeasible,
     prepare_sweep,
+    queued_tasks,
 )
 from nsl_hpc.sweep.submissions import read_submissions
 
@@ -87,29 +93,35 @@ def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str)
 
 def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
     built = build_sweep(cfg, overrides)  # every check first: nothing is written for a refused launch
+    budgeted = budgeted_rounds(cfg, built, Path(cfg.sweep_dir))
     with private_umask():
         sweep_dir = usable_sweep_dir(cfg.sweep_dir)
         with sweep_lock(sweep_dir, "launch"):
             check_control_files(sweep_dir, cfg.allow_shared_sweep_dir)
-            return launch(cfg, built, sweep_dir, overrides)
+            return launch(cfg, built, sweep_dir, budgeted, overrides)
 
 
-def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path, overrides: Sequence[str] = ()) -> int:
+Budgeted = tuple[Budget, Rounds, Callable[[Sequence[str]], float]] | None
+
+
+def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path, budgeted: Budgeted = None,
+           overrides: Sequence[str] = ()) -> int:
     """Prepare the sweep directory, then run or submit its tasks to run: all of them, or with a budget round after
     round (``launch_rounds``; ``overrides``: the command line's, for the job that launches the next round)."""
-    budgeted = budgeted_rounds(cfg, built, sweep_dir)  # checked before anything is written
     prepared = prepare_sweep(cfg, built, sweep_dir)
     if budgeted is None:
         return run_tasks(cfg, built, prepared)
     return launch_rounds(cfg, built, prepared, overrides, *budgeted)
 
 
-def budgeted_rounds(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path
-                    ) -> tuple[Budget, Rounds, Callable[[Sequence[str]], float]] | None:
+def budgeted_rounds(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Budgeted:
     """The launch's budget, the rounds of its tasks and the planner's seconds of any of them; None without a
-    budget or with one that covers the whole sweep. A budget below round 1's cost, or with other rounds than
-    those already decided, is refused."""
+    budget or with one that covers the whole sweep. A budget below round 1's cost, with other rounds than those
+    already decided, or none for a sweep whose rounds have begun, is refused; nothing is written."""
     if not budget_requested(cfg):
+        if decision_files(sweep_dir):
+            raise ConfigError(f"sweep_dir={str(sweep_dir)!r} is a budgeted sweep (its budget/ holds decided rounds): "
+                              "launch it with budget.core_hours or budget.share (budget.share=1: every task left)")
         return None
     manifest = {task["task_id"]: task for task in built.manifest.to_pylist()}
     planned_s = planned_seconds(manifest, cfg)
@@ -147,7 +159,7 @@ def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, o
     tasks, and go on (the local launchers) until the last round; on SLURM submit one round and, behind it, a job
     that launches again (``overrides``) once it has run, and return."""
     sweep_dir, manifest = prepared.sweep_dir, {task["task_id"]: task for task in prepared.manifest.to_pylist()}
-    attempted: set[str] = set()
+    attempted = set(read_failures(sweep_dir))  # a task that failed runs again by resubmit, not by the rounds
     worst = 0
     while True:
         decisions = read_decisions(sweep_dir)
@@ -160,11 +172,11 @@ def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, o
                 pc.is_in(prepared.todo["task_id"], value_set=pa.array(sorted(shown), pa.string())))))
         todo = pc.is_in(prepared.todo["task_id"], value_set=pa.array(sorted(chosen - attempted), pa.string()))
         if pc.any(todo).as_py() or prepared.queued:
-            submitted = set(prepared.todo.filter(todo)["task_id"].to_pylist())
+            started = time.time()
             worst = max(worst, run_tasks(cfg, built, dataclasses.replace(prepared, todo=prepared.todo.filter(todo))))
             if prepared.queued or cfg.launcher.name == "slurm":
                 if decided < rounds.count:
-                    print(next_round_line(cfg, sweep_dir, overrides, submitted, decided))
+                    print(next_round_line(cfg, sweep_dir, overrides, chosen, started, decided))
                 return worst
             attempted |= set(prepared.todo.filter(todo)["task_id"].to_pylist())
             prepared = prepare_sweep(cfg, built, sweep_dir)
@@ -175,18 +187,22 @@ def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, o
         decide_next_round(sweep_dir, decided + 1, rounds, manifest, planned_s, budget)
 
 
-def next_round_line(cfg: DictConfig, sweep_dir: Path, overrides: Sequence[str], submitted: set[str],
+def next_round_line(cfg: DictConfig, sweep_dir: Path, overrides: Sequence[str], chosen: set[str], since: float,
                     decided: int) -> str:
-    """Submit the job that decides the next round once the arrays of the ``submitted`` tasks have ended (none
-    when this launch submitted nothing: the job of the launch that did goes on), and say so."""
-    arrays = [record["array_id"] for record in read_submissions(sweep_dir)
-              if any(task_id in submitted for element in record["elements"] for task_id in element)]
+    """Submit the job that decides the next round once the arrays that hold this round's ``chosen`` tasks (those
+    submitted since ``since``, or still queued from before) have ended, in place of one queued by an earlier
+    launch (this launch's settings win), and say so."""
+    records = read_submissions(sweep_dir)
+    queued = queued_tasks(sweep_dir)
+    arrays = [record["array_id"] for record in records
+              if any(task_id in chosen and (record["submitted"] >= since or task_id in queued)
+                     for element in record["elements"] for task_id in element)]
     launcher = launcher_from(cfg.launcher)
     if not arrays or not isinstance(launcher, SlurmLauncher):
-        return (f"budget: round {decided} is queued or running in SLURM; the job submitted behind it launches round "
-                f"{decided + 1} (or launch again with the same command once it has run)")
-    job = submit_next_round(sweep_dir, overrides, launcher, cfg.sweep.name, arrays,
-                            cfg.budget.round_job_minutes)
+        return (f"budget: round {decided} is queued or running in SLURM; launch again with launcher=slurm once it "
+                f"has run to decide round {decided + 1}")
+    cancel_round_job(sweep_dir)
+    job = submit_next_round(sweep_dir, overrides, launcher, cfg.sweep.name, arrays, cfg.budget.round_job_minutes)
     record_round_job(sweep_dir, job)
     return (f"budget: round {decided} submitted; job {job} launches again once it has run (afterany), to decide "
             f"and submit round {decided + 1} (python -m nsl_hpc.status sweep_dir={sweep_dir})")

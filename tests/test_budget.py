@@ -31,9 +31,9 @@ BY_ID = {task["task_id"]: task for task in TASKS}
 ERRORS = {"s0w2e2": 0.10, "s1w2e2": 0.50, "s0w4e2": 0.12, "s1w4e2": 0.90}  # round 1's outcomes
 
 
-def round_two(tasks: list[dict], seconds: float = 1e9) -> list[dict]:
+def round_two(tasks: list[dict], seconds: float = 1e9, rows_order: list[str] | None = None) -> list[dict]:
     rounds = Rounds(tasks, STUDY, budget(seconds))
-    rows = {task_id: {**BY_ID[task_id], "nmae": error} for task_id, error in ERRORS.items()}
+    rows = {task_id: {**BY_ID[task_id], "nmae": ERRORS[task_id]} for task_id in rows_order or list(ERRORS)}
     return decide_round(2, rounds, BY_ID, rows, lambda ids: 10.0 * len(ids), seconds, budget(seconds))
 
 
@@ -54,10 +54,11 @@ def test_a_round_runs_the_tasks_whose_cheaper_run_came_near_an_envelope_most_pro
     assert sum(d["cost_s"] for d in tight.values()) == pytest.approx(10.0)
 
 
-def test_a_rounds_decisions_depend_only_on_the_rows_not_on_the_task_order():
-    shuffled = TASKS[:]
+def test_a_rounds_decisions_depend_only_on_the_rows_not_on_the_order_of_tasks_or_rows():
+    shuffled, rows_order = TASKS[:], list(ERRORS)
     random.Random(3).shuffle(shuffled)
-    assert round_two(shuffled) == round_two(TASKS)
+    random.Random(4).shuffle(rows_order)
+    assert round_two(shuffled, rows_order=rows_order) == round_two(TASKS)
 
 
 # 12 tasks: spring, unstructured, 2 seeds, epochs 4 / 16 / 64 (a round each), 2 width tiers.
@@ -83,6 +84,8 @@ def test_a_budgeted_sweep_runs_in_rounds_skips_the_rest_and_continues_where_it_s
     mtimes = {path: path.stat().st_mtime_ns for path in row_files(sweep_dir)}
     again = nsl("launch", *args)
     assert again.returncode == 0 and "every round has run" in again.stdout
+    without_budget = nsl("launch", *BUDGETED[:4], f"sweep_dir={sweep_dir}")  # would run the skipped tasks
+    assert without_budget.returncode != 0 and "is a budgeted sweep" in without_budget.stderr
     assert {path: path.stat().st_mtime_ns for path in row_files(sweep_dir)} == mtimes  # no task ran twice
 
     # stopped in round 3 before its decisions were written, with one task of round 2 unfinished: the relaunch runs
@@ -107,4 +110,4 @@ def test_a_budget_below_the_first_round_is_refused_in_one_line_before_anything_i
     refused = nsl("launch", *BUDGETED, "budget.share=0.05", f"sweep_dir={sweep_dir}")
     assert refused.returncode != 0
     assert refused.stderr.strip().startswith("error: the budget") and len(refused.stderr.strip().splitlines()) == 1
-    assert not (sweep_dir / "manifest.parquet").exists()
+    assert not sweep_dir.exists()

@@ -175,7 +175,7 @@ def dropped_counts(sweep_dir: Path, task_ids: pa.ChunkedArray, merged_ids: pa.Ch
     launching, budgeted = launch_running(sweep_dir), budget_states(sweep_dir)
     merged = set(merged_ids.to_pylist())
     states = ["running" if t in running else failures[t]["status"] if t in failures else
-              "running" if launching else without_row_state(budgeted, t)
+              "running" if launching and without_row_state(budgeted, t) != "skipped" else without_row_state(budgeted, t)
               for t in task_ids.to_pylist() if t not in merged]
     return {state: states.count(state) for state in (*FAILURE_STATES, "missing", "running", "skipped", "waiting")}
 
@@ -196,7 +196,8 @@ def merge_sweep(sweep_dir: Path) -> MergeSummary:
     diverged = int(pc.sum(pc.not_equal(results["status"], "ok")).as_py() or 0) if results.num_rows else 0
     summary = MergeSummary(tasks=manifest.num_rows, merged=results.num_rows,
                            **dropped_counts(sweep_dir, manifest["task_id"], results["task_id"]),
-                           diverged=diverged, skipped_reasons=skip_reasons(read_decisions(sweep_dir)),
+                           diverged=diverged, skipped_reasons=skip_reasons(read_decisions(sweep_dir),
+                                                                     set(results["task_id"].to_pylist())),
                            corrupt_shards=corrupt,
                            duplicate_rows=duplicates, unknown_rows=unknown)
     write_text(json.dumps(asdict(summary), indent=1), sweep_dir / layout.MERGE_SUMMARY)

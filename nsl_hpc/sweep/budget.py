@@ -20,7 +20,7 @@ before its tasks run, so a launch that stops anywhere continues with the same de
 import json
 import math
 from collections import defaultdict
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -38,7 +38,7 @@ from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.plan import packing_for, sweep_groups
 from nsl_hpc.sweep.rows import read_row, row_state
-from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES, job_states
+from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES, job_states, slurm_command
 
 # one row per task of a decided round; cost_s: the predicted core-seconds it is charged (0 when skipped)
 DECISION_SCHEMA = pa.schema([("task_id", pa.string()), ("round", pa.int64()), ("run", pa.bool_()),
@@ -65,11 +65,11 @@ def budget_requested(launch: DictConfig) -> bool:
     return any(OmegaConf.select(launch, f"budget.{key}", default=None) is not None for key in ("core_hours", "share"))
 
 
-def skip_reasons(decisions: Sequence[Mapping[str, Any]]) -> dict[str, int]:
-    """Why the skipped tasks of ``decisions`` were: reason -> tasks."""
+def skip_reasons(decisions: Sequence[Mapping[str, Any]], ran: Collection[str] = ()) -> dict[str, int]:
+    """Why the skipped tasks of ``decisions`` (but those in ``ran``: run since, by hand) were: reason -> tasks."""
     reasons: dict[str, int] = defaultdict(int)
     for d in decisions:
-        if not d["run"]:
+        if not d["run"] and d["task_id"] not in ran:
             reasons[d["reason"]] += 1
     return dict(reasons)
 
@@ -107,12 +107,13 @@ def budget_of(launch: DictConfig, full_seconds: float) -> Budget | None:
     require_positive_int("budget.first_levels", settings["first_levels"])
     require_positive_int("budget.levels_per_round", settings["levels_per_round"])
     require_number("budget.margin", settings["margin"], 1)
+    require_positive_int("budget.round_job_minutes", settings["round_job_minutes"])
+    if not isinstance(settings["spread"], bool):
+        raise ConfigError(f"budget.spread={settings['spread']!r}: true or false")
     seconds = 3600 * float(hours) if hours is not None else float(share or 0) * full_seconds
     if seconds >= full_seconds:
         return None
     resources, metrics = fitted_columns(plain(launch.nsl))
-    if not isinstance(settings["spread"], bool):
-        raise ConfigError(f"budget.spread={settings['spread']!r}: true or false")
     return Budget(seconds, full_seconds, settings["first_levels"], settings["levels_per_round"], settings["margin"],
                   tuple(resources), tuple(metrics), settings["spread"])
 
@@ -212,7 +213,7 @@ def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, A
         row = rows.get(ancestor) if ancestor is not None else None
         value = math.inf if row is None else promise(tasks[task_id], row, envelopes, budget.margin,
                                                      budget.resources, budget.metrics)
-        scored.append((value, task_id, "its ancestor has no row" if row is None else "far above the envelope"))
+        scored.append((value, task_id, "its ancestor did not finish" if row is None else "far above the envelope"))
     scored.sort(key=lambda item: (item[0], item[1]))
     promising = [task_id for value, task_id, _ in scored if value < 1]
     low, high = 0, len(promising)  # the longest prefix of the promising tasks that the budget left holds
@@ -264,16 +265,26 @@ def record_round_job(sweep_dir: Path, job_id: str) -> None:
     write_text(json.dumps({"job_id": job_id}), layout.round_job_path(sweep_dir))
 
 
-def round_job_queued(sweep_dir: Path) -> bool:
-    """Whether the job that launches a budgeted sweep's next round is pending or running in SLURM."""
+def queued_round_job(sweep_dir: Path) -> str | None:
+    """The id of the job that launches a budgeted sweep's next round while it is pending or running in SLURM."""
     path = layout.round_job_path(sweep_dir)
     if not path.exists():
-        return False
+        return None
     try:
-        job_id = json.loads(path.read_text())["job_id"]
+        job_id = str(json.loads(path.read_text())["job_id"])
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise damaged_file(path, error) from None
-    return job_states([job_id]).get(job_id) in ACTIVE_JOB_STATES
+    return job_id if job_states([job_id]).get(job_id) in ACTIVE_JOB_STATES else None
+
+
+def round_job_queued(sweep_dir: Path) -> bool:
+    return queued_round_job(sweep_dir) is not None
+
+
+def cancel_round_job(sweep_dir: Path) -> None:
+    """Cancel the queued job of an earlier launch that would launch the next round (a later launch's replaces it)."""
+    if (job_id := queued_round_job(sweep_dir)) is not None:
+        slurm_command("scancel", job_id)
 
 
 def write_decisions(sweep_dir: Path, number: int, decisions: Sequence[Mapping[str, Any]], budget: Budget) -> None:
@@ -287,7 +298,10 @@ def write_decisions(sweep_dir: Path, number: int, decisions: Sequence[Mapping[st
 def check_round_structure(sweep_dir: Path, budget: Budget) -> None:
     """Refuse a budget whose rounds differ from those of the decisions already taken."""
     for path in decision_files(sweep_dir):
-        stored = pq.read_schema(path).metadata or {}
+        try:
+            stored = pq.read_schema(path).metadata or {}
+        except (OSError, pa.ArrowException) as error:
+            raise damaged_file(path, error) from None
         levels = (int(stored.get(b"first_levels", 0)), int(stored.get(b"levels_per_round", 0)))
         if levels != (budget.first_levels, budget.levels_per_round):
             raise ConfigError(f"{path} was decided with budget.first_levels={levels[0]}, budget.levels_per_round="

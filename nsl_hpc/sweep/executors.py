@@ -95,16 +95,25 @@ def slurm_executor(sweep_dir: Path, time_limit_min: int, launcher: SlurmLauncher
 @dataclass(frozen=True)
 class NextRound:
     """What a budgeted sweep's round job runs: ``python -m nsl_hpc.launch <arguments>`` in ``cwd`` (it decides
-    the next round, submits it and the job after it)."""
+    the next round, submits it and the job after it); while another command holds the sweep (a resubmit, a
+    clean, a launch by hand) it tries again every ``wait_s`` seconds, ``attempts`` times in all."""
 
     arguments: tuple[str, ...]
     cwd: str
+    attempts: int = 10
+    wait_s: float = 60.0
 
     def __call__(self) -> None:
         command = [sys.executable, "-m", "nsl_hpc.launch", *self.arguments]
-        result = subprocess.run(command, cwd=self.cwd, check=False)
-        if result.returncode != 0:
-            raise RunError(f"{' '.join(command)} exited with {result.returncode}")
+        for _ in range(self.attempts):
+            result = subprocess.run(command, cwd=self.cwd, check=False, stderr=subprocess.PIPE, text=True)
+            print(result.stderr, end="", file=sys.stderr, flush=True)
+            if result.returncode == 0:
+                return
+            if "is in use by" not in result.stderr:
+                break
+            time.sleep(self.wait_s)
+        raise RunError(f"{' '.join(command)} exited with {result.returncode}")
 
 
 def submit_next_round(sweep_dir: Path, arguments: Sequence[str], launcher: SlurmLauncher, name: str,
