@@ -61,9 +61,10 @@ def test_a_rounds_decisions_depend_only_on_the_rows_not_on_the_order_of_tasks_or
     assert round_two(shuffled, rows_order=rows_order) == round_two(TASKS)
 
 
-# 12 tasks: spring, unstructured, 2 seeds, epochs 4 / 16 / 64 (a round each), 2 width tiers.
+# 12 tasks: spring, unstructured, 2 seeds, epochs 4 / 16 / 64 (a round each), 2 width tiers; in-process (the
+# local launcher's rounds are the same loop; tests/cluster has them on SLURM).
 BUDGETED = ["+sweep=demo", "sweep.grid.system=[spring]", "sweep.grid.arch=[unstructured]", "sweep.grid.data_tier=[2]",
-            "budget.first_levels=1", "budget.levels_per_round=1"]
+            "launcher=debug", "budget.first_levels=1", "budget.levels_per_round=1"]
 
 
 @pytest.mark.e2e
@@ -84,7 +85,7 @@ def test_a_budgeted_sweep_runs_in_rounds_skips_the_rest_and_continues_where_it_s
     mtimes = {path: path.stat().st_mtime_ns for path in row_files(sweep_dir)}
     again = nsl("launch", *args)
     assert again.returncode == 0 and "every round has run" in again.stdout
-    without_budget = nsl("launch", *BUDGETED[:4], f"sweep_dir={sweep_dir}")  # would run the skipped tasks
+    without_budget = nsl("launch", *BUDGETED[:5], f"sweep_dir={sweep_dir}")  # would run the skipped tasks
     assert without_budget.returncode != 0 and "is a budgeted sweep" in without_budget.stderr
     assert {path: path.stat().st_mtime_ns for path in row_files(sweep_dir)} == mtimes  # no task ran twice
 

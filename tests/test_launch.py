@@ -52,7 +52,7 @@ def test_dry_run_writes_manifest_and_plan_only(tmp_path):
 
 
 @pytest.mark.parametrize(("args", "message"), [
-    (["+sweep=nonexistent"], "unknown sweep 'nonexistent'; choose one of: demo, input_output, input_state, io_demo"),
+    (["+sweep=nonexistent"], "unknown sweep 'nonexistent'; choose one of: budget_io, demo, input_output, input_state,"),
     ([], "no sweep chosen: add +sweep=<name>"),
     (["+sweep=demo", "epochs=8"], "epochs is a grid axis of the sweep"),
     (["+sweep=demo", "trian.lr=1"], "trian"),
