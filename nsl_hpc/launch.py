@@ -167,24 +167,28 @@ def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, o
         decided = max((d["round"] for d in decisions), default=0)
         print(describe_budget(budget, decisions, rounds.count))
         if cfg.dry_run:  # the round that runs next, as far as it is decided (round 1 always is)
-            shown = chosen if decisions else set(rounds.tasks_of(1))
-            return run_tasks(cfg, built, dataclasses.replace(prepared, todo=prepared.todo.filter(
-                pc.is_in(prepared.todo["task_id"], value_set=pa.array(sorted(shown), pa.string())))))
-        todo = pc.is_in(prepared.todo["task_id"], value_set=pa.array(sorted(chosen - attempted), pa.string()))
-        if pc.any(todo).as_py() or prepared.queued:
+            return run_tasks(cfg, built, only(prepared, chosen if decisions else set(rounds.tasks_of(1))))
+        this_round = only(prepared, chosen - attempted)
+        if this_round.todo.num_rows or prepared.queued:
             started = time.time()
-            worst = max(worst, run_tasks(cfg, built, dataclasses.replace(prepared, todo=prepared.todo.filter(todo))))
+            worst = max(worst, run_tasks(cfg, built, this_round))
             if prepared.queued or cfg.launcher.name == "slurm":
                 if decided < rounds.count:
                     print(next_round_line(cfg, sweep_dir, overrides, chosen, started, decided))
                 return worst
-            attempted |= set(prepared.todo.filter(todo)["task_id"].to_pylist())
+            attempted |= set(this_round.todo["task_id"].to_pylist())
             prepared = prepare_sweep(cfg, built, sweep_dir)
             continue
         if decided == rounds.count:
             print("budget: every round has run")
             return worst
         decide_next_round(sweep_dir, decided + 1, rounds, manifest, planned_s, budget)
+
+
+def only(prepared: PreparedSweep, task_ids: set[str]) -> PreparedSweep:
+    """``prepared`` with only those of its tasks to run that are among ``task_ids``."""
+    keep = pc.is_in(prepared.todo["task_id"], value_set=pa.array(sorted(task_ids), pa.string()))
+    return dataclasses.replace(prepared, todo=prepared.todo.filter(keep))
 
 
 def next_round_line(cfg: DictConfig, sweep_dir: Path, overrides: Sequence[str], chosen: set[str], since: float,

@@ -175,7 +175,7 @@ def dropped_counts(sweep_dir: Path, task_ids: pa.ChunkedArray, merged_ids: pa.Ch
     launching, budgeted = launch_running(sweep_dir), budget_states(sweep_dir)
     merged = set(merged_ids.to_pylist())
     states = ["running" if t in running else failures[t]["status"] if t in failures else
-              "running" if launching and without_row_state(budgeted, t) != "skipped" else without_row_state(budgeted, t)
+              without_row_state(budgeted, t, launching).replace("pending", "running")
               for t in task_ids.to_pylist() if t not in merged]
     return {state: states.count(state) for state in (*FAILURE_STATES, "missing", "running", "skipped", "waiting")}
 

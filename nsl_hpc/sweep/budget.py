@@ -253,11 +253,13 @@ def budget_states(sweep_dir: Path) -> dict[str, str]:
     return {d["task_id"]: "to run" if d["run"] else "skipped" for d in read_decisions(sweep_dir)}
 
 
-def without_row_state(budgeted: Mapping[str, str], task_id: str) -> str:
+def without_row_state(budgeted: Mapping[str, str], task_id: str, launching: bool) -> str:
     """The state of a task without a row, failure or job (``budgeted``: ``budget_states``): missing; in a budgeted
-    sweep skipped where its round decided not to run it, waiting while its round is not decided."""
+    sweep skipped where its round decided not to run it, waiting while its round is not decided; pending instead
+    of missing or waiting while a launch or resubmit holds the sweep (it runs them, or decides their round)."""
     decision = budgeted.get(task_id, "waiting") if budgeted else "to run"
-    return "missing" if decision == "to run" else decision
+    state = "missing" if decision == "to run" else decision
+    return "pending" if launching and state != "skipped" else state
 
 
 def record_round_job(sweep_dir: Path, job_id: str) -> None:

@@ -66,9 +66,7 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
         states[task_id] = task_state(row, failures.get(task_id), element, submitted, element_states.get(element or ""),
                                      now)
         if states[task_id] == "missing":
-            states[task_id] = without_row_state(budgeted, task_id)  # skipped, waiting for its round, or missing
-        if states[task_id] in ("missing", "waiting") and launching:
-            states[task_id] = "pending"
+            states[task_id] = without_row_state(budgeted, task_id, launching)
     return SweepState(states, failures, manifest.to_pylist(), element_states)
 
 
