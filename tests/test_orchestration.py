@@ -120,15 +120,18 @@ def test_milestone_tasks_of_one_model_stay_in_one_group_and_cost_their_longest_r
 
 
 def test_a_group_compiles_where_the_predicted_saving_exceeds_the_compile_time():
-    """A compiled step 1.5x faster saves a third of a group's eager seconds: with 20 s to compile, a group of
-    100 eager seconds compiles (saves 33 s; planned at 100 / 1.5 + 20 = 86.7 s), one of 50 s does not (17 s);
-    always and never override, and under auto an architecture without a measured speedup never compiles."""
+    """A compiled step 1.5x faster saves a third of a group's eager training seconds: with 20 s to compile, a
+    group of 98 training seconds (100 with the 2 s start-up) compiles (saves 33 s; planned at 2 + 98 / 1.5 + 20),
+    one of 48 s does not (16 s), nor one of 59.5 s (19.8 s; with the start-up it would have been 20.5 s): the
+    start-up counts toward neither; always and never override, and under auto
+    an architecture without a measured speedup never compiles."""
     cost = {**COST, "compile_s": {"unstructured": 20.0}, "compile_speedup": {"unstructured": 1.5}}
     per_step = predicted_seconds("unstructured", 1, 100, COST) - COST["startup_s"]
     long, short = [task("long", steps=round(98 / per_step))], [task("short", steps=round(48 / per_step))]
     (planned,) = planned_groups(long, lockstep(), cost)
-    assert planned.compiled and planned.seconds == pytest.approx(100 / 1.5 + 20, rel=1e-3)
+    assert planned.compiled and planned.seconds == pytest.approx(2 + 98 / 1.5 + 20, rel=1e-3)
     assert not planned_groups(short, lockstep(), cost)[0].compiled
+    assert not planned_groups([task("edge", steps=round(59.5 / per_step))], lockstep(), cost)[0].compiled
     assert planned_groups(short, lockstep(compile_mode="always"), cost)[0].compiled
     assert not planned_groups(long, lockstep(compile_mode="never"), cost)[0].compiled
     (unmeasured,) = planned_groups(long, lockstep(compile_mode="always"), COST)  # no speedup, no compile time

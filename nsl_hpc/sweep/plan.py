@@ -86,17 +86,28 @@ def training_segments(group: Sequence[Mapping[str, Any]], lockstep: Mapping[str,
             for index, (start, stop) in enumerate(zip([0, *steps[:-1]], steps, strict=True))]
 
 
-def group_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any], lockstep: Mapping[str, Any]) -> float:
-    """Predicted wall time (s) of a lockstep group: a step of its largest member costs what it costs alone,
-    plus ``cost.lockstep_extra[arch]`` of that for each further model still training (finished ones leave);
-    then each task is scored, ``cost.score_seconds`` per test sample and parameter (its ``test_points``: none
-    for a study, or a sweep from before, whose manifest has no such column)."""
+def training_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any],
+                     lockstep: Mapping[str, Any]) -> float:
+    """Predicted eager seconds of a lockstep group's training steps: a step of its largest member costs what it
+    costs alone, plus ``cost.lockstep_extra[arch]`` of that for each further model still training (finished ones
+    leave)."""
     largest = max(group, key=lambda task: task["params"])
     per_step = predicted_seconds(largest["arch"], 1, largest["params"], cost) - cost["startup_s"]
     extra = cost["lockstep_extra"][largest["arch"]]
-    scoring = cost.get("score_seconds", 0.0) * sum(task.get("test_points", 0) * task["params"] for task in group)
-    return cost["startup_s"] + scoring + sum(steps * per_step * (1 + (models - 1) * extra)
-                                             for steps, models in training_segments(group, lockstep))
+    return sum(steps * per_step * (1 + (models - 1) * extra) for steps, models in training_segments(group, lockstep))
+
+
+def fixed_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any]) -> float:
+    """Predicted seconds of a lockstep group's start-up (``cost.startup_s``) and of scoring each task,
+    ``cost.score_seconds`` per test sample and parameter (its ``test_points``: none for a study, or a sweep from
+    before, whose manifest has no such column)."""
+    return cost["startup_s"] + cost.get("score_seconds", 0.0) * sum(task.get("test_points", 0) * task["params"]
+                                                                    for task in group)
+
+
+def group_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any], lockstep: Mapping[str, Any]) -> float:
+    """Predicted wall time (s) of a lockstep group trained eagerly: start-up, training and scoring."""
+    return fixed_seconds(group, cost) + training_seconds(group, cost, lockstep)
 
 
 def compiles(arch: str, eager_seconds: float, cost: Mapping[str, Any], mode: str) -> bool:
@@ -129,9 +140,11 @@ class Group:
 
 
 def planned_group(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any], lockstep: Mapping[str, Any]) -> Group:
-    """The ``Group`` of a lockstep group's tasks: its predicted seconds, compiled where that pays."""
-    seconds, compiled = with_compile(group[0]["arch"], group_seconds(group, cost, lockstep), cost, lockstep["compile"])
-    return Group(tuple(task["task_id"] for task in group), seconds, compiled)
+    """The ``Group`` of a lockstep group's tasks: its predicted seconds, its training compiled where that pays
+    (``compiles`` on the training seconds alone: start-up and scoring are the same either way)."""
+    training, compiled = with_compile(group[0]["arch"], training_seconds(group, cost, lockstep), cost,
+                                      lockstep["compile"])
+    return Group(tuple(task["task_id"] for task in group), fixed_seconds(group, cost) + training, compiled)
 
 
 @dataclass(frozen=True)
