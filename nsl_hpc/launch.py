@@ -31,14 +31,13 @@ from nsl_hpc.sweep.budget import (
     budget_of,
     budget_requested,
     cancel_round_job,
-    check_round_structure,
     decide_next_round,
     decision_files,
     describe_budget,
     planned_seconds,
     read_decisions,
     record_round_job,
-    refuse_small_budget,
+    sweep_rounds,
 )
 from nsl_hpc.sweep.checkpoints import saved_groups
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
@@ -128,10 +127,7 @@ def budgeted_rounds(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Budg
     budget = budget_of(cfg, planned_s(list(manifest)))
     if budget is None:
         return None
-    rounds = Rounds(list(manifest.values()), built.study, budget)
-    refuse_small_budget(budget, rounds, planned_s)
-    check_round_structure(sweep_dir, budget)
-    return budget, rounds, planned_s
+    return budget, sweep_rounds(sweep_dir, list(manifest.values()), built.study, budget, planned_s), planned_s
 
 
 def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> int:

@@ -7,7 +7,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from nsl_hpc.studies import study_named
-from nsl_hpc.sweep.budget import Budget, Rounds, decide_round, read_decisions
+from nsl_hpc.sweep.budget import Budget, Rounds, decide_round, first_round_levels, read_decisions
 from tests.sweeps import nsl, row_files
 
 STUDY = study_named("input_state")
@@ -22,8 +22,8 @@ def line(seed: int, width_tier: int) -> list[dict]:
 
 
 def budget(seconds: float = 1e9) -> Budget:
-    return Budget(seconds, 2e9, first_levels=1, levels_per_round=1, margin=2.0, resources=("flops", "params"),
-                  metrics=("nmae",))
+    return Budget(seconds, 2e9, first_levels=1, first_share=0.25, levels_per_round=1, margin=2.0,
+                  resources=("flops", "params"), metrics=("nmae",))
 
 
 TASKS = [task for seed in (0, 1) for width_tier in (2, 4) for task in line(seed, width_tier)]
@@ -32,16 +32,26 @@ ERRORS = {"s0w2e2": 0.10, "s1w2e2": 0.50, "s0w4e2": 0.12, "s1w4e2": 0.90}  # rou
 
 
 def round_two(tasks: list[dict], seconds: float = 1e9, rows_order: list[str] | None = None) -> list[dict]:
-    rounds = Rounds(tasks, STUDY, budget(seconds))
+    rounds = Rounds(tasks, STUDY, 1, 1)
     rows = {task_id: {**BY_ID[task_id], "nmae": ERRORS[task_id]} for task_id in rows_order or list(ERRORS)}
     return decide_round(2, rounds, BY_ID, rows, lambda ids: 10.0 * len(ids), seconds, budget(seconds))
 
 
 def test_rounds_follow_the_cost_axis_and_each_task_continues_its_line():
-    rounds = Rounds(TASKS, STUDY, budget())
+    rounds = Rounds(TASKS, STUDY, 1, 1)
     assert rounds.count == 3
     assert {rounds.round[t["task_id"]] for t in TASKS if t["epochs"] == 4} == {2}
     assert rounds.ancestor["s1w4e8"] == "s1w4e4" and rounds.ancestor["s1w4e2"] is None
+
+
+def test_round_one_takes_the_cheapest_levels_that_fit_its_share_of_the_budget_and_at_least_one():
+    """4 tasks a level at 10 predicted seconds each: 40 s for the cheapest level, 80 s for two, 120 s for all."""
+    def first(seconds: float, first_levels: int = 3, share: float = 0.25) -> int:
+        settings = Budget(seconds, 2e9, first_levels, share, 1, 2.0, ("flops",), ("nmae",))
+        return first_round_levels(TASKS, STUDY, settings, lambda ids: 10.0 * len(ids))
+
+    assert first(400.0) == 2 and first(480.0) == 3 and first(480.0, first_levels=2) == 2
+    assert first(100.0) == 1 and first(400.0, share=1.0) == 3
 
 
 def test_a_round_runs_the_tasks_whose_cheaper_run_came_near_an_envelope_most_promising_first():

@@ -2,7 +2,8 @@
 input-output: iter_multiplier), so that a budget is spent where the lower envelopes are decided.
 
 The rule. The grid's values of the cost axis are levels (2, 4, ..., 16384 epochs: 14 levels). Round 1 runs every
-task at the first ``budget.first_levels`` levels; each later round takes the next ``budget.levels_per_round``.
+task at the cheapest levels: as many as the planner predicts within ``budget.first_share`` of the budget, at most
+``budget.first_levels`` and at least one; each later round takes the next ``budget.levels_per_round``.
 A task of a later round has a line (its task with every coordinate equal but the cost axis) and an ancestor: the
 line's task at the last level of the rounds before. It runs only if its ancestor has a row and, for some
 resource (compute, data, model) and metric that the sweep's fits use (conf/nsl), the ancestor's error divided
@@ -52,7 +53,8 @@ class Budget:
 
     seconds: float
     full_seconds: float
-    first_levels: int
+    first_levels: int  # round 1 takes at most this many levels ...
+    first_share: float  # ... as long as they cost at most this share of the budget (at least one level)
     levels_per_round: int
     margin: float
     resources: tuple[str, ...]  # the result columns of the fits' resources (flops, train_points, params)
@@ -105,6 +107,7 @@ def budget_of(launch: DictConfig, full_seconds: float) -> Budget | None:
     else:
         require_number("budget.share", share, 0, 1, low_open=True)
     require_positive_int("budget.first_levels", settings["first_levels"])
+    require_number("budget.first_share", settings["first_share"], 0, 1, low_open=True)
     require_positive_int("budget.levels_per_round", settings["levels_per_round"])
     require_number("budget.margin", settings["margin"], 1)
     require_positive_int("budget.round_job_minutes", settings["round_job_minutes"])
@@ -114,8 +117,9 @@ def budget_of(launch: DictConfig, full_seconds: float) -> Budget | None:
     if seconds >= full_seconds:
         return None
     resources, metrics = fitted_columns(plain(launch.nsl))
-    return Budget(seconds, full_seconds, settings["first_levels"], settings["levels_per_round"], settings["margin"],
-                  tuple(resources), tuple(metrics), settings["spread"])
+    return Budget(seconds, full_seconds, settings["first_levels"], settings["first_share"],
+                  settings["levels_per_round"], settings["margin"], tuple(resources), tuple(metrics),
+                  settings["spread"])
 
 
 def planned_seconds(tasks: Mapping[str, Mapping[str, Any]], launch: DictConfig) -> Callable[[Sequence[str]], float]:
@@ -130,14 +134,33 @@ def round_of_level(level: int, first_levels: int, levels_per_round: int) -> int:
     return 1 if level < first_levels else 2 + (level - first_levels) // levels_per_round
 
 
-class Rounds:
-    """The rounds of a sweep's tasks: each task's round and its ancestor (None in round 1)."""
+def levels_of(tasks: Sequence[Mapping[str, Any]], study: Study) -> dict[Any, int]:
+    """Each value of the study's cost axis among ``tasks`` -> its level (0: the cheapest)."""
+    return {value: index for index, value in enumerate(sorted({task[study.length_axis] for task in tasks}))}
 
-    def __init__(self, tasks: Sequence[Mapping[str, Any]], study: Study, budget: Budget):
+
+def first_round_levels(tasks: Sequence[Mapping[str, Any]], study: Study, budget: Budget,
+                       planned_s: Callable[[Sequence[str]], float]) -> int:
+    """How many of the cheapest levels round 1 runs: the most, up to ``budget.first_levels``, whose tasks the
+    planner predicts within ``budget.first_share`` of the budget; at least one."""
+    level = levels_of(tasks, study)
+    count = 1
+    while count < min(budget.first_levels, len(level)) and planned_s(
+            [task["task_id"] for task in tasks if level[task[study.length_axis]] <= count]) \
+            <= budget.first_share * budget.seconds:
+        count += 1
+    return count
+
+
+class Rounds:
+    """The rounds of a sweep's tasks: round 1 the ``first_levels`` cheapest levels of the cost axis, each later
+    one the next ``levels_per_round``; each task's round and its ancestor (None in round 1)."""
+
+    def __init__(self, tasks: Sequence[Mapping[str, Any]], study: Study, first_levels: int, levels_per_round: int):
+        self.first_levels, self.levels_per_round = first_levels, levels_per_round
         axis = study.length_axis
-        values = sorted({task[axis] for task in tasks})
-        level = {value: index for index, value in enumerate(values)}
-        self.round = {task["task_id"]: round_of_level(level[task[axis]], budget.first_levels, budget.levels_per_round)
+        level = levels_of(tasks, study)
+        self.round = {task["task_id"]: round_of_level(level[task[axis]], first_levels, levels_per_round)
                       for task in tasks}
         self.count = max(self.round.values())
         lines: dict[tuple, dict[int, str]] = defaultdict(dict)  # line -> level -> task id
@@ -289,25 +312,51 @@ def cancel_round_job(sweep_dir: Path) -> None:
         slurm_command("scancel", job_id)
 
 
-def write_decisions(sweep_dir: Path, number: int, decisions: Sequence[Mapping[str, Any]], budget: Budget) -> None:
+def write_decisions(sweep_dir: Path, number: int, decisions: Sequence[Mapping[str, Any]], rounds: Rounds) -> None:
     """Write round ``number``'s decisions (atomically) with the round structure they assume."""
     table = pa.Table.from_pylist([dict(d) for d in decisions], schema=DECISION_SCHEMA)
-    table = table.replace_schema_metadata({"first_levels": str(budget.first_levels),
-                                           "levels_per_round": str(budget.levels_per_round)})
+    table = table.replace_schema_metadata({"first_levels": str(rounds.first_levels),
+                                           "levels_per_round": str(rounds.levels_per_round)})
     write_parquet(table, layout.round_decisions_path(sweep_dir, number))
 
 
-def check_round_structure(sweep_dir: Path, budget: Budget) -> None:
-    """Refuse a budget whose rounds differ from those of the decisions already taken."""
+def decided_structure(sweep_dir: Path) -> tuple[int, int] | None:
+    """(levels of round 1, levels per later round) of the rounds already decided (None before round 1); rounds
+    decided with different structures are refused."""
+    structures = set()
     for path in decision_files(sweep_dir):
         try:
             stored = pq.read_schema(path).metadata or {}
         except (OSError, pa.ArrowException) as error:
             raise damaged_file(path, error) from None
-        levels = (int(stored.get(b"first_levels", 0)), int(stored.get(b"levels_per_round", 0)))
-        if levels != (budget.first_levels, budget.levels_per_round):
-            raise ConfigError(f"{path} was decided with budget.first_levels={levels[0]}, budget.levels_per_round="
-                              f"{levels[1]}: relaunch with those (the rounds of a budgeted sweep stay as decided)")
+        structures.add((int(stored.get(b"first_levels", 0)), int(stored.get(b"levels_per_round", 0))))
+    if len(structures) > 1:
+        raise ConfigError(f"{layout.BUDGET} of sweep_dir={str(sweep_dir)!r} holds rounds of different structures "
+                          f"({sorted(structures)}): its decisions were edited by hand")
+    return structures.pop() if structures else None
+
+
+def refuse_small_budget(budget: Budget, rounds: Rounds, planned_s: Callable[[Sequence[str]], float]) -> None:
+    """A budget that does not cover round 1 is refused, in one line."""
+    first = planned_s(rounds.tasks_of(1))
+    if first > budget.seconds:
+        raise ConfigError(f"the budget ({budget.seconds / 3600:.3g} core-hours) is less than its first round "
+                          f"({first / 3600:.3g} predicted core-hours, the tasks at the {rounds.first_levels} "
+                          f"cheapest level{'s' * (rounds.first_levels > 1)} of the cost axis): raise it")
+
+
+def sweep_rounds(sweep_dir: Path, tasks: Sequence[Mapping[str, Any]], study: Study, budget: Budget,
+                 planned_s: Callable[[Sequence[str]], float]) -> Rounds:
+    """The rounds of a budgeted sweep: as already decided (a budget with other budget.levels_per_round is
+    refused), else round 1 sized by ``first_round_levels``; a budget below round 1 is refused."""
+    decided = decided_structure(sweep_dir)
+    if decided is not None and decided[1] != budget.levels_per_round:
+        raise ConfigError(f"the rounds of sweep_dir={str(sweep_dir)!r} were decided with budget.levels_per_round="
+                          f"{decided[1]}: relaunch with it (the rounds of a budgeted sweep stay as decided)")
+    first = decided[0] if decided is not None else first_round_levels(tasks, study, budget, planned_s)
+    rounds = Rounds(tasks, study, first, budget.levels_per_round)
+    refuse_small_budget(budget, rounds, planned_s)
+    return rounds
 
 
 def done_rows(sweep_dir: Path, task_ids: Sequence[str]) -> dict[str, dict[str, Any]]:
@@ -320,15 +369,6 @@ def done_rows(sweep_dir: Path, task_ids: Sequence[str]) -> dict[str, dict[str, A
     return rows
 
 
-def refuse_small_budget(budget: Budget, rounds: Rounds, planned_s: Callable[[Sequence[str]], float]) -> None:
-    """A budget that does not cover round 1 is refused, in one line."""
-    first = planned_s(rounds.tasks_of(1))
-    if first > budget.seconds:
-        raise ConfigError(f"the budget ({budget.seconds / 3600:.3g} core-hours) is less than its first round "
-                          f"({first / 3600:.3g} predicted core-hours, the tasks at the first budget.first_levels="
-                          f"{budget.first_levels} levels): raise it or lower budget.first_levels")
-
-
 def decide_next_round(sweep_dir: Path, number: int, rounds: Rounds, manifest: Mapping[str, Mapping[str, Any]],
                       planned_s: Callable[[Sequence[str]], float], budget: Budget) -> None:
     """Decide round ``number`` from the rows of the rounds before (and what they left of the budget) and write its
@@ -339,4 +379,4 @@ def decide_next_round(sweep_dir: Path, number: int, rounds: Rounds, manifest: Ma
     left = budget.seconds - sum(d["cost_s"] for d in decisions)
     if budget.spread and number > 1:  # this round's equal share of what is left to it and the rounds after it
         left /= rounds.count - number + 1
-    write_decisions(sweep_dir, number, decide_round(number, rounds, manifest, rows, planned_s, left, budget), budget)
+    write_decisions(sweep_dir, number, decide_round(number, rounds, manifest, rows, planned_s, left, budget), rounds)
