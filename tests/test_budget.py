@@ -34,14 +34,15 @@ ERRORS = {"s0w2e2": 0.10, "s1w2e2": 0.50, "s0w4e2": 0.12, "s1w4e2": 0.90}  # rou
 def round_two(tasks: list[dict], seconds: float = 1e9, rows_order: list[str] | None = None) -> list[dict]:
     rounds = Rounds(tasks, STUDY, 1, 1)
     rows = {task_id: {**BY_ID[task_id], "nmae": ERRORS[task_id]} for task_id in rows_order or list(ERRORS)}
-    return decide_round(2, rounds, BY_ID, rows, lambda ids: 10.0 * len(ids), seconds, budget(seconds))
+    return decide_round(2, rounds, BY_ID, set(ERRORS), rows, lambda ids: 10.0 * len(ids), seconds, budget(seconds))
 
 
 def test_rounds_follow_the_cost_axis_and_each_task_continues_its_line():
     rounds = Rounds(TASKS, STUDY, 1, 1)
     assert rounds.count == 3
     assert {rounds.round[t["task_id"]] for t in TASKS if t["epochs"] == 4} == {2}
-    assert rounds.ancestor["s1w4e8"] == "s1w4e4" and rounds.ancestor["s1w4e2"] is None
+    assert rounds.ancestor("s1w4e8", {"s1w4e2", "s1w4e4"}) == "s1w4e4" and rounds.ancestor("s1w4e2", {"s1w4e4"}) is None
+    assert rounds.ancestor("s1w4e8", {"s1w4e2"}) == "s1w4e2"  # left out of round 2: back from its round-1 row
 
 
 def test_round_one_takes_the_cheapest_levels_that_fit_its_share_of_the_budget_and_at_least_one():

@@ -5,7 +5,8 @@ The rule. The grid's values of the cost axis are levels (2, 4, ..., 16384 epochs
 task at the cheapest levels: as many as the planner predicts within ``budget.first_share`` of the budget, at most
 ``budget.first_levels`` and at least one; each later round takes the next ``budget.levels_per_round``.
 A task of a later round has a line (its task with every coordinate equal but the cost axis) and an ancestor: the
-line's task at the last level of the rounds before. It runs only if its ancestor has a row and, for some
+line's latest task that an earlier round ran (a line the budget left out of a round may come back in a later
+one, from its latest row). It runs only if its ancestor has a row and, for some
 resource (compute, data, model) and metric that the sweep's fits use (conf/nsl), the ancestor's error divided
 by ``budget.margin`` is below the lower envelope (Definition 1's step envelope of every row of its (system,
 arch) so far) at the task's own resource value: trained longer, it could still lower that envelope. The
@@ -154,7 +155,8 @@ def first_round_levels(tasks: Sequence[Mapping[str, Any]], study: Study, budget:
 
 class Rounds:
     """The rounds of a sweep's tasks: round 1 the ``first_levels`` cheapest levels of the cost axis, each later
-    one the next ``levels_per_round``; each task's round and its ancestor (None in round 1)."""
+    one the next ``levels_per_round``; each task's round and its line's tasks in earlier rounds (``earlier``:
+    latest first, none in round 1)."""
 
     def __init__(self, tasks: Sequence[Mapping[str, Any]], study: Study, first_levels: int, levels_per_round: int):
         self.first_levels, self.levels_per_round = first_levels, levels_per_round
@@ -166,11 +168,15 @@ class Rounds:
         lines: dict[tuple, dict[int, str]] = defaultdict(dict)  # line -> level -> task id
         for task in tasks:
             lines[tuple(task[key] for key in study.axes if key != axis)][level[task[axis]]] = task["task_id"]
-        self.ancestor: dict[str, str | None] = {}
+        self.earlier: dict[str, list[str]] = {}
         for line in lines.values():
             for task_id in line.values():
-                earlier = [lv for lv in line if self.round[line[lv]] < self.round[task_id]]
-                self.ancestor[task_id] = line[max(earlier)] if earlier else None
+                self.earlier[task_id] = [line[lv] for lv in sorted(line, reverse=True)
+                                         if self.round[line[lv]] < self.round[task_id]]
+
+    def ancestor(self, task_id: str, ran: Collection[str]) -> str | None:
+        """The latest task of ``task_id``'s line that an earlier round ran (``ran``), if any."""
+        return next((earlier for earlier in self.earlier[task_id] if earlier in ran), None)
 
     def tasks_of(self, number: int) -> list[str]:
         return [task_id for task_id, r in self.round.items() if r == number]
@@ -219,10 +225,11 @@ def promise(task: Mapping[str, Any], ancestor_row: Mapping[str, Any], envelopes:
     return min(finite) if finite else math.inf
 
 
-def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, Any]],
+def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, Any]], ran: Collection[str],
                  rows: Mapping[str, Mapping[str, Any]], planned_s: Callable[[Sequence[str]], float], left_s: float,
                  budget: Budget) -> list[dict[str, Any]]:
-    """The decisions (DECISION_SCHEMA) of round ``number``: round 1 runs all its tasks; a later round the
+    """The decisions (DECISION_SCHEMA) of round ``number`` (``ran``: the tasks earlier rounds ran; ``rows``: the
+    rows of those that finished): round 1 runs all its tasks; a later round the
     promising ones (``promise`` below 1), most promising first, as many as the planner's prediction of them
     (``planned_s`` of their ids: lockstep groups and all) fits in ``left_s``. ``cost_s``: a run task's share of
     the round's predicted seconds."""
@@ -232,7 +239,7 @@ def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, A
         scored = [(0.0, task_id, "") for task_id in candidates]
     envelopes = Envelopes(list(rows.values()), budget.resources, budget.metrics)
     for task_id in candidates if number > 1 else ():
-        ancestor = rounds.ancestor[task_id]
+        ancestor = rounds.ancestor(task_id, ran)
         row = rows.get(ancestor) if ancestor is not None else None
         value = math.inf if row is None else promise(tasks[task_id], row, envelopes, budget.margin,
                                                      budget.resources, budget.metrics)
@@ -379,4 +386,5 @@ def decide_next_round(sweep_dir: Path, number: int, rounds: Rounds, manifest: Ma
     left = budget.seconds - sum(d["cost_s"] for d in decisions)
     if budget.spread and number > 1:  # this round's equal share of what is left to it and the rounds after it
         left /= rounds.count - number + 1
-    write_decisions(sweep_dir, number, decide_round(number, rounds, manifest, rows, planned_s, left, budget), rounds)
+    decided = decide_round(number, rounds, manifest, set(chosen), rows, planned_s, left, budget)
+    write_decisions(sweep_dir, number, decided, rounds)

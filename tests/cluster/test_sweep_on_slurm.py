@@ -114,8 +114,8 @@ def test_time_limit_records_timeout_requeues_unstarted_tasks_and_resubmit_finish
 def test_a_budgeted_sweep_runs_its_rounds_on_slurm_one_after_another(slurm_cluster, tmp_path):
     sweep_dir = tmp_path / "sweep"
     launched = nsl("launch", "+sweep=demo", "sweep.grid.system=[spring]", "sweep.grid.arch=[unstructured]",
-                   "sweep.grid.data_tier=[2]", "budget.first_levels=2", "budget.first_share=1", "budget.levels_per_round=1",
-                   "budget.share=0.99", "launcher=slurm", f"sweep_dir={sweep_dir}")
+                   "sweep.grid.data_tier=[2]", "budget.first_levels=2", "budget.first_share=1",
+                   "budget.levels_per_round=1", "budget.share=0.99", "launcher=slurm", f"sweep_dir={sweep_dir}")
     assert launched.returncode == 0, launched.stderr
     assert "job" in launched.stdout and "launches again once it has run" in launched.stdout
     status = wait_for_sweep(sweep_dir)  # waits for the round job too: the next round comes
