@@ -34,6 +34,7 @@ from nsl_hpc.sweep.budget import (
     decide_next_round,
     decision_files,
     describe_budget,
+    describe_first_round,
     planned_seconds,
     read_decisions,
     record_round_job,
@@ -162,6 +163,8 @@ def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, o
         chosen = {d["task_id"] for d in decisions if d["run"]}
         decided = max((d["round"] for d in decisions), default=0)
         print(describe_budget(budget, decisions, rounds.count))
+        if not decided:
+            print(describe_first_round(budget, rounds, planned_s))
         if cfg.dry_run:  # the round that runs next, as far as it is decided (round 1 always is)
             return run_tasks(cfg, built, only(prepared, chosen if decisions else set(rounds.tasks_of(1))))
         this_round = only(prepared, chosen - attempted)

@@ -160,8 +160,9 @@ class Rounds:
 
     def __init__(self, tasks: Sequence[Mapping[str, Any]], study: Study, first_levels: int, levels_per_round: int):
         self.first_levels, self.levels_per_round = first_levels, levels_per_round
-        axis = study.length_axis
+        axis = self.axis = study.length_axis
         level = levels_of(tasks, study)
+        self.values = sorted(level)  # the cost axis's values, cheapest first
         self.round = {task["task_id"]: round_of_level(level[task[axis]], first_levels, levels_per_round)
                       for task in tasks}
         self.count = max(self.round.values())
@@ -207,6 +208,21 @@ class Envelopes:
             return math.inf
         index = int(np.searchsorted(curve[0], x, side="right")) - 1
         return math.inf if index < 0 else float(curve[1][index])
+
+
+def describe_first_round(budget: Budget, rounds: Rounds, planned_s: Callable[[Sequence[str]], float]) -> str:
+    """A line: round 1's tasks, their predicted core-hours and share of the budget (a warning where it is most of
+    it: the later rounds, which decide the envelopes, share the rest)."""
+    tasks = rounds.tasks_of(1)
+    seconds = planned_s(tasks)
+    values = rounds.values[:rounds.first_levels]
+    line = (f"budget: round 1 is the {len(tasks):,} tasks at {rounds.axis} {values[0]}"
+            + (f"-{values[-1]}" if len(values) > 1 else "")
+            + f", {seconds / 3600:,.3g} predicted core-hours ({seconds / budget.seconds:.0%} of the budget)")
+    if seconds > budget.seconds / 2 and rounds.count > 1:
+        line += (f"; rounds 2-{rounds.count} share the rest and will run few tasks: raise the budget (on a small "
+                 "grid the tasks' fixed costs, start-up and scoring, dominate)")
+    return line
 
 
 def fitted_columns(nsl: Mapping[str, Any]) -> tuple[list[str], list[str]]:
