@@ -10,7 +10,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from torch._dynamo.exc import FailOnRecompileLimitHit, TorchDynamoException
 
 
 def nonzero(scale: np.ndarray | float) -> np.ndarray:
@@ -176,6 +175,9 @@ class StepCompiler:
         """``step``, compiled while ``enabled``."""
         if not self.enabled:
             return step
+        # imported here, not with the module: dynamo adds ~1 s to every command's and eager job's start-up
+        from torch._dynamo.exc import FailOnRecompileLimitHit, TorchDynamoException
+
         # a process may compile a step function for many groups and shapes; past the limit, fail (and train
         # eagerly, recorded as such) rather than run uncompiled while recorded compiled
         torch._dynamo.config.recompile_limit = RECOMPILE_LIMIT
