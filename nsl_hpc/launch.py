@@ -116,8 +116,9 @@ def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path, budgeted: Budget
 
 def budgeted_rounds(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Budgeted:
     """The launch's budget, the rounds of its tasks and the planner's seconds of any of them; None without a
-    budget or with one that covers the whole sweep. A budget below round 1's cost, with other rounds than those
-    already decided, or none for a sweep whose rounds have begun, is refused; nothing is written."""
+    budget or with one that covers the whole sweep. A budget below round 1's cost, with another
+    budget.levels_per_round than the rounds already decided, or none for a sweep whose rounds have begun, is
+    refused; nothing is written."""
     if not budget_requested(cfg):
         if decision_files(sweep_dir):
             raise ConfigError(f"sweep_dir={str(sweep_dir)!r} is a budgeted sweep (its budget/ holds decided rounds): "

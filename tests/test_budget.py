@@ -99,6 +99,8 @@ def test_a_budgeted_sweep_runs_in_rounds_skips_the_rest_and_continues_where_it_s
     assert again.returncode == 0 and "every round has run" in again.stdout
     without_budget = nsl("launch", *BUDGETED[:5], f"sweep_dir={sweep_dir}")  # would run the skipped tasks
     assert without_budget.returncode != 0 and "is a budgeted sweep" in without_budget.stderr
+    other_rounds = nsl("launch", *args, "budget.levels_per_round=2")  # the rounds stay as decided
+    assert other_rounds.returncode != 0 and "decided with budget.levels_per_round=1" in other_rounds.stderr
     assert {path: path.stat().st_mtime_ns for path in row_files(sweep_dir)} == mtimes  # no task ran twice
 
     # stopped in round 3 before its decisions were written, with one task of round 2 unfinished: the relaunch runs

@@ -21,12 +21,12 @@ from nsl_hpc.sweep.plan import (
     Pack,
     check_signal_delay,
     compiles,
-    group_seconds,
     job_time,
     lockstep_groups,
     make_packs,
     padded_width,
     plan_jobs,
+    planned_group,
     planned_groups,
     predicted_seconds,
 )
@@ -116,7 +116,7 @@ def test_milestone_tasks_of_one_model_stay_in_one_group_and_cost_their_longest_r
         assert len({t["seed"] for t in group}) == len(group) // 3
     one = [t for t in tasks if t["seed"] == 0]
     per_step = predicted_seconds("unstructured", 1, 100, COST) - COST["startup_s"]
-    assert group_seconds(one, COST, lockstep(model_keys=["seed"])) == pytest.approx(2.0 + 400 * per_step)
+    assert planned_group(one, COST, lockstep(model_keys=["seed"])).seconds == pytest.approx(2.0 + 400 * per_step)
 
 
 def test_a_group_compiles_where_the_predicted_saving_exceeds_the_compile_time():
@@ -145,20 +145,21 @@ def test_a_compiled_group_may_go_without_a_heartbeat_three_times_its_compile_tim
     assert compile_allowance(launch, "subnet") == 1200.0 and compile_allowance(launch, "narx") == 0.0
 
 
-def test_group_seconds_charge_the_extra_share_while_more_models_train():
+def test_a_groups_seconds_charge_the_extra_share_while_more_models_train():
     tasks = [task("a", steps=100), task("b", steps=300)]
     per_step = predicted_seconds("unstructured", 1, 100, COST) - COST["startup_s"]
     expected = 2.0 + 100 * per_step * 1.5 + 200 * per_step
-    assert group_seconds(tasks, COST, lockstep()) == pytest.approx(expected)
+    assert planned_group(tasks, COST, lockstep()).seconds == pytest.approx(expected)
 
 
-def test_group_seconds_charge_scoring_each_task_on_its_test_set():
+def test_a_groups_seconds_charge_scoring_each_task_on_its_test_set():
     """A test set of 1e6 samples costs each task of 100 parameters 0.1 s at 1e-9 s per sample and parameter (the
     100x100s test set froze 81 of 779 small tasks when the planner left scoring out)."""
     tasks = [{**task("a", steps=100), "test_points": 1_000_000}, {**task("b", steps=300), "test_points": 1_000_000}]
-    unscored = group_seconds([task("a", steps=100), task("b", steps=300)], COST, lockstep())
-    assert group_seconds(tasks, {**COST, "score_seconds": 1e-9}, lockstep()) == pytest.approx(unscored + 2 * 0.1)
-    assert group_seconds(tasks, COST, lockstep()) == pytest.approx(unscored)  # a run.yaml from before
+    unscored = planned_group([task("a", steps=100), task("b", steps=300)], COST, lockstep()).seconds
+    scored = planned_group(tasks, {**COST, "score_seconds": 1e-9}, lockstep()).seconds
+    assert scored == pytest.approx(unscored + 2 * 0.1)
+    assert planned_group(tasks, COST, lockstep()).seconds == pytest.approx(unscored)  # a run.yaml from before
 
 
 def test_packs_carry_whole_groups_short_ones_fill_packs_long_ones_run_alone():

@@ -3,10 +3,10 @@ input-output: iter_multiplier), so that a budget is spent where the lower envelo
 
 The rule. The grid's values of the cost axis are levels (2, 4, ..., 16384 epochs: 14 levels). Round 1 runs every
 task at the cheapest levels: as many as the planner predicts within ``budget.first_share`` of the budget, at most
-``budget.first_levels`` and at least one; each later round takes the next ``budget.levels_per_round``.
-A task of a later round has a line (its task with every coordinate equal but the cost axis) and an ancestor: the
-line's latest task that an earlier round ran (a line the budget left out of a round may come back in a later
-one, from its latest row). It runs only if its ancestor has a row and, for some
+``budget.first_levels`` and at least one (fixed when round 1 is decided); each later round takes the next
+``budget.levels_per_round``. A task of a later round has a line (its task with every coordinate equal but the
+cost axis) and an ancestor: the line's latest task that an earlier round ran (a line the budget left out of a
+round may come back in a later one). It runs only if its ancestor has a row (not failed) and, for some
 resource (compute, data, model) and metric that the sweep's fits use (conf/nsl), the ancestor's error divided
 by ``budget.margin`` is below the lower envelope (Definition 1's step envelope of every row of its (system,
 arch) so far) at the task's own resource value: trained longer, it could still lower that envelope. The
@@ -34,7 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.atomic import write_parquet, write_text
 from nsl_hpc.config import plain
-from nsl_hpc.errors import ConfigError, damaged_file, require_number, require_positive_int
+from nsl_hpc.errors import ConfigError, RunError, damaged_file, require_number, require_positive_int
 from nsl_hpc.studies.base import Study
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.layout import row_path
@@ -212,16 +212,17 @@ class Envelopes:
 
 def describe_first_round(budget: Budget, rounds: Rounds, planned_s: Callable[[Sequence[str]], float]) -> str:
     """A line: round 1's tasks, their predicted core-hours and share of the budget (a warning where it is most of
-    it: the later rounds, which decide the envelopes, share the rest)."""
+    over its ``budget.first_share``: the later rounds, which decide the envelopes, share the rest)."""
     tasks = rounds.tasks_of(1)
     seconds = planned_s(tasks)
     values = rounds.values[:rounds.first_levels]
     line = (f"budget: round 1 is the {len(tasks):,} tasks at {rounds.axis} {values[0]}"
             + (f"-{values[-1]}" if len(values) > 1 else "")
             + f", {seconds / 3600:,.3g} predicted core-hours ({seconds / budget.seconds:.0%} of the budget)")
-    if seconds > budget.seconds / 2 and rounds.count > 1:
-        line += (f"; rounds 2-{rounds.count} share the rest and will run few tasks: raise the budget (on a small "
-                 "grid the tasks' fixed costs, start-up and scoring, dominate)")
+    if seconds > budget.first_share * budget.seconds and rounds.count > 1:  # one level alone is over its share
+        later = "round 2 gets" if rounds.count == 2 else f"rounds 2-{rounds.count} share"
+        line += (f"; {later} the rest and will run few tasks: raise the budget (on a small grid the tasks' fixed "
+                 "costs, start-up and scoring, dominate)")
     return line
 
 
@@ -396,6 +397,9 @@ def decide_next_round(sweep_dir: Path, number: int, rounds: Rounds, manifest: Ma
                       planned_s: Callable[[Sequence[str]], float], budget: Budget) -> None:
     """Decide round ``number`` from the rows of the rounds before (and what they left of the budget) and write its
     decisions."""
+    if decided_structure(sweep_dir) not in (None, (rounds.first_levels, rounds.levels_per_round)):
+        raise RunError(f"another launch decided round 1 of sweep_dir={str(sweep_dir)!r} with other rounds while "
+                       "this one waited for the sweep: launch again")
     decisions = read_decisions(sweep_dir)
     chosen = sorted(d["task_id"] for d in decisions if d["run"])
     rows = {task_id: {**manifest[task_id], **row} for task_id, row in done_rows(sweep_dir, chosen).items()}

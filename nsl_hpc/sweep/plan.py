@@ -105,11 +105,6 @@ def fixed_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any]) -
                                                                     for task in group)
 
 
-def group_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any], lockstep: Mapping[str, Any]) -> float:
-    """Predicted wall time (s) of a lockstep group trained eagerly: start-up, training and scoring."""
-    return fixed_seconds(group, cost) + training_seconds(group, cost, lockstep)
-
-
 def compiles(arch: str, eager_seconds: float, cost: Mapping[str, Any], mode: str) -> bool:
     """Whether a lockstep group of ``arch`` predicted at ``eager_seconds`` compiles its step (``compile``: always,
     never, or auto: when the predicted saving, eager_seconds (1 - 1 / cost.compile_speedup[arch]), exceeds what
