@@ -65,6 +65,20 @@ def test_a_round_runs_the_tasks_whose_cheaper_run_came_near_an_envelope_most_pro
     assert sum(d["cost_s"] for d in tight.values()) == pytest.approx(10.0)
 
 
+def test_a_candidate_that_does_not_fit_is_passed_over_for_a_cheaper_one_behind_it():
+    costs = {"s0w2e4": 30.0, "s0w4e4": 10.0}  # the most promising costs more than the round's 15 s
+
+    def planned(ids):
+        return sum(costs[task_id] for task_id in ids)
+
+    rounds = Rounds(TASKS, STUDY, 1, 1)
+    rows = {task_id: {**BY_ID[task_id], "nmae": error} for task_id, error in ERRORS.items()}
+    decisions = {d["task_id"]: d for d in decide_round(2, rounds, BY_ID, set(ERRORS), rows, planned, 15.0,
+                                                      budget(15.0))}
+    assert [t for t, d in decisions.items() if d["run"]] == ["s0w4e4"] and decisions["s0w4e4"]["cost_s"] == 10.0
+    assert decisions["s0w2e4"]["reason"] == "budget spent"
+
+
 def test_a_rounds_decisions_depend_only_on_the_rows_not_on_the_order_of_tasks_or_rows():
     shuffled, rows_order = TASKS[:], list(ERRORS)
     random.Random(3).shuffle(shuffled)

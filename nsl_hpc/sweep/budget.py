@@ -13,10 +13,11 @@ arch) so far) at the task's own resource value: trained longer, it could still l
 candidates run in the order of that ratio (its smallest over resources and metrics: most promising first)
 as long as the planner's prediction of them (``cost.*``: their lockstep groups' seconds, planned as the round
 runs them) fits in the round's allowance: with ``budget.spread`` its equal share of what the budget has left for
-it and the rounds after it (so the long rounds are reached), else all that is left; the others are skipped,
-each with its reason. ``budget.share`` is a share of the planner's prediction for the whole sweep. Every
-decision depends only on the rows of earlier rounds; a round's decisions are written (``budget/round-<r>.parquet``)
-before its tasks run, so a launch that stops anywhere continues with the same decisions.
+it and the rounds after it (so the long rounds are reached), else all that is left; a candidate that does not
+fit is passed over for later ones that do (``affordable``); the others are skipped, each with its reason.
+``budget.share`` is a share of the planner's prediction for the whole sweep. Every decision depends only on the rows
+of earlier rounds; a round's decisions are written (``budget/round-<r>.parquet``) before its tasks run, so a launch
+that stops anywhere continues with the same decisions.
 """
 
 import json
@@ -242,14 +243,39 @@ def promise(task: Mapping[str, Any], ancestor_row: Mapping[str, Any], envelopes:
     return min(finite) if finite else math.inf
 
 
+def longest_prefix(task_ids: Sequence[str], planned_s: Callable[[Sequence[str]], float], left_s: float,
+                   at_least: int = 0) -> int:
+    """The length of the longest prefix of ``task_ids`` (not shorter than ``at_least``, which must fit) whose
+    predicted seconds fit in ``left_s`` (binary search: the prediction grows with the prefix)."""
+    low, high = at_least, len(task_ids)
+    while low < high:
+        middle = (low + high + 1) // 2
+        low, high = (middle, high) if planned_s(task_ids[:middle]) <= left_s else (low, middle - 1)
+    return low
+
+
+def affordable(ranked: Sequence[str], planned_s: Callable[[Sequence[str]], float], left_s: float) -> list[str]:
+    """The tasks of ``ranked`` (most promising first) that run within ``left_s`` predicted seconds: the longest
+    prefix that fits, then, passing over the first that did not, each later one whose own prediction fits what
+    is left (so one long task does not end a round), as far as their lockstep groups together still fit."""
+    first = longest_prefix(ranked, planned_s, left_s)
+    chosen = list(ranked[:first])
+    spare = left_s - (planned_s(chosen) if chosen else 0.0)
+    for task_id in ranked[first + 1:]:
+        if (alone := planned_s([task_id])) <= spare:
+            chosen.append(task_id)
+            spare -= alone
+    return chosen[:longest_prefix(chosen, planned_s, left_s, at_least=first)]
+
+
 def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, Any]], ran: Collection[str],
                  rows: Mapping[str, Mapping[str, Any]], planned_s: Callable[[Sequence[str]], float], left_s: float,
                  budget: Budget) -> list[dict[str, Any]]:
     """The decisions (DECISION_SCHEMA) of round ``number`` (``ran``: the tasks earlier rounds ran; ``rows``: the
     rows of those that finished): round 1 runs all its tasks; a later round the
-    promising ones (``promise`` below 1), most promising first, as many as the planner's prediction of them
-    (``planned_s`` of their ids: lockstep groups and all) fits in ``left_s``. ``cost_s``: a run task's share of
-    the round's predicted seconds."""
+    promising ones (``promise`` below 1), most promising first, those that ``affordable`` fits in ``left_s`` (by
+    ``planned_s`` of their ids: lockstep groups and all). ``cost_s``: a run task's share of the round's
+    predicted seconds."""
     candidates = sorted(rounds.tasks_of(number))
     scored = []
     if number == 1:
@@ -263,12 +289,9 @@ def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, A
         scored.append((value, task_id, "its ancestor did not finish" if row is None else "far above the envelope"))
     scored.sort(key=lambda item: (item[0], item[1]))
     promising = [task_id for value, task_id, _ in scored if value < 1]
-    low, high = 0, len(promising)  # the longest prefix of the promising tasks that the budget left holds
-    while low < high:
-        middle = (low + high + 1) // 2
-        low, high = (middle, high) if planned_s(promising[:middle]) <= left_s else (low, middle - 1)
-    run = set(promising[:low])
-    seconds = planned_s(promising[:low]) if run else 0.0
+    chosen = affordable(promising, planned_s, left_s)
+    run = set(chosen)
+    seconds = planned_s(chosen) if run else 0.0
     weights = {task_id: tasks[task_id]["steps"] * tasks[task_id]["params"] + 1.0 for task_id in run}
     total = sum(weights.values())
     return [{"task_id": task_id, "round": number, "run": task_id in run,
