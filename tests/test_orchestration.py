@@ -35,8 +35,8 @@ from nsl_hpc.sweep.task_states import ACCOUNTING_LAG_S, read_sweep_state, task_s
 from tests.sweeps import TINY_GRID, nsl
 
 GOLDEN = Path(__file__).parent / "golden"
-COST = {"startup_s": 2.0, "step_seconds": {"unstructured": 1e-3}, "params_per_overhead": {"unstructured": 1000},
-        "lockstep_extra": {"unstructured": 0.5}}
+COST = {"startup_s": 2.0, "group_start_s": 2.0, "step_seconds": {"unstructured": 1e-3},
+        "params_per_overhead": {"unstructured": 1000}, "lockstep_extra": {"unstructured": 0.5}}
 PACKING = {"enabled": True, "short_task_minutes": 5, "pack_minutes": 20, "time_safety": 3.0,
            "time_classes_minutes": [20, 60, 240]}
 
@@ -280,7 +280,7 @@ def test_status_time_left_is_the_planned_groups_work_over_the_cores_training(tmp
     s1 <= s2 <= s3; over the cores that train (a job per core), not over the tasks (before: each task's cost
     alone, divided by the running tasks, ~32x too optimistic for a group of 32)."""
     sweep_dir = tmp_path / "sweep"
-    cost = ["cost.startup_s=0", "cost.step_seconds.input_affine=1000", "cost.params_per_overhead.input_affine=1e12",
+    cost = ["cost.group_start_s=0", "cost.step_seconds.input_affine=1000", "cost.params_per_overhead.input_affine=1e12",
             "cost.lockstep_extra.input_affine=0.5", "cost.score_seconds=0"]
     grid = [*TINY_GRID, "sweep.grid.seed=[3]", "sweep.grid.epochs=[2,4,8]"]  # the later values win
     assert nsl("launch", *grid, *cost, "lockstep.width_buckets=[4]", "compile=never", "launcher=debug",

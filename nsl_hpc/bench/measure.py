@@ -44,7 +44,7 @@ def study_manifest(sweep: str, *overrides: str) -> tuple[DictConfig, list[dict[s
 def planner_core_hours(launch: DictConfig, manifest: list[dict[str, Any]]) -> float:
     """The core-hours ``launch +sweep=<its sweep> launcher=slurm dry_run=true`` predicts (``cost.*``)."""
     packing = packing_for(launch.packing, {"name": "slurm"})
-    packs = make_packs(sweep_groups(manifest, launch, packing), packing)
+    packs = make_packs(sweep_groups(manifest, launch, packing), packing, launch.cost.startup_s)
     return sum(pack.seconds for pack in packs) / 3600
 
 

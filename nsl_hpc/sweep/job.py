@@ -205,7 +205,7 @@ class JobRunner:
         or not) in a child process under the watchdog (``launch.watchdog``), renewing ``lock``; returns ok,
         failed, frozen (the outcome of each of its tasks) or stopped."""
         cfgs = [task_config(sweep, task) for task in group]
-        predicted = planned.seconds
+        predicted = launch.cost.startup_s + planned.seconds  # the job's start-up: a floor for short groups
         for cfg in cfgs:
             cfg.compile = "always" if planned.compiled else "never"  # as planned (auto resolved)
             if cfg.fault.once and failure_path(sweep, cfg.task_id).exists():

@@ -98,11 +98,11 @@ def training_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any]
 
 
 def fixed_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any]) -> float:
-    """Predicted seconds of a lockstep group's start-up (``cost.startup_s``) and of scoring each task,
-    ``cost.score_seconds`` per test sample and parameter (its ``test_points``: none for a study, or a sweep from
-    before, whose manifest has no such column)."""
-    return cost["startup_s"] + cost.get("score_seconds", 0.0) * sum(task.get("test_points", 0) * task["params"]
-                                                                    for task in group)
+    """Predicted seconds of a lockstep group's own start in its job (``cost.group_start_s``; 0 in the run settings
+    of a sweep from before it) and of scoring each task, ``cost.score_seconds`` per test sample and parameter (its
+    ``test_points``: none for a study, or a sweep from before, whose manifest has no such column)."""
+    return cost.get("group_start_s", 0.0) + cost.get("score_seconds", 0.0) * sum(
+        task.get("test_points", 0) * task["params"] for task in group)
 
 
 def compiles(arch: str, eager_seconds: float, cost: Mapping[str, Any], mode: str) -> bool:
@@ -230,6 +230,7 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
     for limit in launch["packing"]["time_classes_minutes"]:
         require_number("packing.time_classes_minutes value", limit, 0, 525600, low_open=True)
     require_number("cost.startup_s", launch["cost"]["startup_s"], 0, 3600)
+    require_number("cost.group_start_s", launch["cost"].get("group_start_s", 0.0), 0, 3600)
     for key, high in (("step_seconds", 3600), ("params_per_overhead", 1e12), ("lockstep_extra", 100)):
         for arch, value in launch["cost"][key].items():
             require_number(f"cost.{key}.{arch}", value, 0, high, low_open=True)
@@ -294,17 +295,17 @@ def packing_for(packing: Mapping[str, Any], launcher: Mapping[str, Any], time_fa
             "max_time_minutes": cap}
 
 
-def make_packs(groups: Sequence[Group], packing: Mapping[str, Any]) -> list[Pack]:
+def make_packs(groups: Sequence[Group], packing: Mapping[str, Any], startup_s: float = 0.0) -> list[Pack]:
     """Put lockstep groups (``planned_groups``) into packs that run one after another in a job: short groups
     (under ``short_task_minutes``) fill packs of about ``pack_minutes`` of predicted work; longer ones (or
-    all, with packing disabled) run alone."""
+    all, with packing disabled) run alone. A pack's seconds are its groups' plus the job's ``startup_s``."""
     short_limit = packing["short_task_minutes"] * 60 if packing["enabled"] else 0.0
     packs: list[Pack] = []
     current: list[Group] = []
     total = 0.0
 
     def close(members: list[Group], seconds: float) -> None:
-        packs.append(Pack(tuple(members), seconds, *job_time(seconds, packing)))
+        packs.append(Pack(tuple(members), startup_s + seconds, *job_time(startup_s + seconds, packing)))
 
     for group in sorted(groups, key=lambda group: group.seconds):  # stable: equal times keep their order
         if group.seconds >= short_limit:
@@ -327,7 +328,7 @@ def plan_jobs(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, time_facto
     task ids (training order) of groups with a checkpoint: those among ``tasks`` stay one group, so that it
     continues from there."""
     packing = packing_for(launch.packing, launch.launcher, time_factor)
-    return make_packs(sweep_groups(tasks, launch, packing, saved), packing)
+    return make_packs(sweep_groups(tasks, launch, packing, saved), packing, launch.cost.startup_s)
 
 
 def sweep_groups(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, packing: Mapping[str, Any],
@@ -340,6 +341,6 @@ def sweep_groups(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, packing
     kept = [list(ids) for ids in saved if all(task_id in by_id for task_id in ids)]
     taken = {task_id for ids in kept for task_id in ids}
     longest_s = math.inf if packing["max_time_minutes"] else \
-        60 * max(packing["time_classes_minutes"]) / packing["time_safety"]
+        60 * max(packing["time_classes_minutes"]) / packing["time_safety"] - cost["startup_s"]  # a job of one
     return ([planned_group([by_id[task_id] for task_id in ids], cost, lockstep) for ids in kept]
             + planned_groups([task for task in tasks if task["task_id"] not in taken], lockstep, cost, longest_s))
