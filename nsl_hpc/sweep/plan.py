@@ -328,7 +328,8 @@ def plan_jobs(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, time_facto
     task ids (training order) of groups with a checkpoint: those among ``tasks`` stay one group, so that it
     continues from there."""
     packing = packing_for(launch.packing, launch.launcher, time_factor)
-    return make_packs(sweep_groups(tasks, launch, packing, saved), packing, launch.cost.startup_s)
+    slurm = isinstance(launcher_from(launch.launcher), SlurmLauncher)  # local workers start once each, not per pack
+    return make_packs(sweep_groups(tasks, launch, packing, saved), packing, launch.cost.startup_s if slurm else 0.0)
 
 
 def sweep_groups(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, packing: Mapping[str, Any],
