@@ -79,6 +79,23 @@ def test_a_candidate_that_does_not_fit_is_passed_over_for_a_cheaper_one_behind_i
     assert decisions["s0w2e4"]["reason"] == "budget spent"
 
 
+def test_of_equally_promising_tasks_the_one_nearer_more_envelopes_runs_first():
+    """Both ancestors are on an envelope (ratio 1 / margin = 0.5): z's on compute and model size, b's on model size
+    alone (compute: 1.0); with room for one task, z's line continues whatever the ids' order."""
+    def task(name: str, width_tier: int, epochs: int, params: int) -> dict:
+        return {"task_id": f"{name}{epochs}", "system": "ball", "arch": "unstructured", "seed": 0, "epochs": epochs,
+                "data_tier": 2, "width_tier": width_tier, "depth_tier": 2, "steps": epochs, "params": params,
+                "flops": float(epochs), "train_points": 100}
+
+    tasks = [task("z", 4, 2, 10), task("z", 4, 4, 10), task("b", 2, 2, 5), task("b", 2, 4, 5)]
+    by_id = {t["task_id"]: t for t in tasks}
+    rows = {"z2": {**by_id["z2"], "nmae": 0.1}, "b2": {**by_id["b2"], "nmae": 0.2}}
+    decided = decide_round(2, Rounds(tasks, STUDY, 1, 1), by_id, set(rows), rows, lambda ids: 10.0 * len(ids), 15.0,
+                           budget(15.0))
+    assert [d["task_id"] for d in decided if d["run"]] == ["z4"]
+    assert {d["task_id"]: d["promise"] for d in decided} == {"z4": 0.5, "b4": 0.5}
+
+
 def test_a_rounds_decisions_depend_only_on_the_rows_not_on_the_order_of_tasks_or_rows():
     shuffled, rows_order = TASKS[:], list(ERRORS)
     random.Random(3).shuffle(shuffled)

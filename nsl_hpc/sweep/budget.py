@@ -10,7 +10,8 @@ round may come back in a later one). It runs only if its ancestor has a row (not
 resource (compute, data, model) and metric that the sweep's fits use (conf/nsl), the ancestor's error divided
 by ``budget.margin`` is below the lower envelope (Definition 1's step envelope of every row of its (system,
 arch) so far) at the task's own resource value: trained longer, it could still lower that envelope. The
-candidates run in the order of that ratio (its smallest over resources and metrics: most promising first)
+candidates run in the order of that ratio (its smallest over resources and metrics: most promising first; of
+equal ones, common at 1 / margin, the one with the smaller geometric mean of all its ratios first)
 as long as the planner's prediction of them (``cost.*``: their lockstep groups' seconds, planned as the round
 runs them) fits in the round's allowance: with ``budget.spread`` its equal share of what the budget has left for
 it and the rounds after it (so the long rounds are reached), else all that is left; a candidate that does not
@@ -233,14 +234,17 @@ def fitted_columns(nsl: Mapping[str, Any]) -> tuple[list[str], list[str]]:
 
 
 def promise(task: Mapping[str, Any], ancestor_row: Mapping[str, Any], envelopes: Envelopes, margin: float,
-            resources: Sequence[str], metrics: Sequence[str]) -> float:
+            resources: Sequence[str], metrics: Sequence[str]) -> tuple[float, float]:
     """The smallest, over resources and metrics, of the ancestor's error / margin over the envelope at the task's
-    own resource value; below 1, the task could lower an envelope."""
+    own resource value (below 1, the task could lower an envelope), and the geometric mean of those ratios (of
+    tasks as promising, the one near more envelopes first: many tie at 1 / margin, their ancestor on one)."""
     ratios = [float(ancestor_row[metric]) / margin / envelopes.at(task["system"], task["arch"], resource, metric,
                                                                   float(task[resource]))
               for resource in resources for metric in metrics]
     finite = [ratio for ratio in ratios if not math.isnan(ratio)]
-    return min(finite) if finite else math.inf
+    if not finite:
+        return math.inf, math.inf
+    return min(finite), math.exp(float(np.mean(np.log(np.maximum(finite, 1e-300)))))
 
 
 def longest_prefix(task_ids: Sequence[str], planned_s: Callable[[Sequence[str]], float], left_s: float,
@@ -277,18 +281,18 @@ def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, A
     ``planned_s`` of their ids: lockstep groups and all). ``cost_s``: a run task's share of the round's
     predicted seconds."""
     candidates = sorted(rounds.tasks_of(number))
-    scored = []
+    scored: list[tuple[tuple[float, float], str, str]] = []
     if number == 1:
-        scored = [(0.0, task_id, "") for task_id in candidates]
+        scored = [((0.0, 0.0), task_id, "") for task_id in candidates]
     envelopes = Envelopes(list(rows.values()), budget.resources, budget.metrics)
     for task_id in candidates if number > 1 else ():
         ancestor = rounds.ancestor(task_id, ran)
         row = rows.get(ancestor) if ancestor is not None else None
-        value = math.inf if row is None else promise(tasks[task_id], row, envelopes, budget.margin,
-                                                     budget.resources, budget.metrics)
+        value = (math.inf, math.inf) if row is None else promise(tasks[task_id], row, envelopes, budget.margin,
+                                                                 budget.resources, budget.metrics)
         scored.append((value, task_id, "its ancestor did not finish" if row is None else "far above the envelope"))
     scored.sort(key=lambda item: (item[0], item[1]))
-    promising = [task_id for value, task_id, _ in scored if value < 1]
+    promising = [task_id for value, task_id, _ in scored if value[0] < 1]
     chosen = affordable(promising, planned_s, left_s)
     run = set(chosen)
     seconds = planned_s(chosen) if run else 0.0
@@ -296,7 +300,7 @@ def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, A
     total = sum(weights.values())
     return [{"task_id": task_id, "round": number, "run": task_id in run,
              "reason": ("first round" if number == 1 else "promising") if task_id in run
-             else "budget spent" if value < 1 else reason, "promise": value,
+             else "budget spent" if value[0] < 1 else reason, "promise": value[0],
              "cost_s": seconds * weights[task_id] / total if task_id in run else 0.0}
             for value, task_id, reason in scored]
 
