@@ -214,14 +214,15 @@ class Envelopes:
 
 def describe_first_round(budget: Budget, rounds: Rounds, planned_s: Callable[[Sequence[str]], float]) -> str:
     """A line: round 1's tasks, their predicted core-hours and share of the budget (a warning where it is most of
-    over its ``budget.first_share``: the later rounds, which decide the envelopes, share the rest)."""
+    over its ``budget.first_share`` and half the budget: the later rounds, which decide the envelopes, share the
+    rest)."""
     tasks = rounds.tasks_of(1)
     seconds = planned_s(tasks)
     values = rounds.values[:rounds.first_levels]
     line = (f"budget: round 1 is the {len(tasks):,} tasks at {rounds.axis} {values[0]}"
             + (f"-{values[-1]}" if len(values) > 1 else "")
             + f", {seconds / 3600:,.3g} predicted core-hours ({seconds / budget.seconds:.0%} of the budget)")
-    if seconds > budget.first_share * budget.seconds and rounds.count > 1:  # one level alone is over its share
+    if seconds > max(budget.first_share, 0.5) * budget.seconds and rounds.count > 1:  # one level alone, most of it
         later = "round 2 gets" if rounds.count == 2 else f"rounds 2-{rounds.count} share"
         line += (f"; {later} the rest and will run few tasks: raise the budget (on a small grid the tasks' fixed "
                  "costs, start-up and scoring, dominate)")
