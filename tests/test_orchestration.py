@@ -97,6 +97,18 @@ def test_a_group_predicted_longer_than_allowed_is_halved_until_it_fits_or_holds_
     assert sorted(len(group.task_ids) for group in alone) == [1] * 8
 
 
+def test_a_job_pays_its_start_up_once_whatever_its_groups_and_only_on_slurm():
+    (pack,) = make_packs([Group(("a",), 10.0), Group(("b",), 20.0)], PACKING, startup_s=2.0)
+    assert pack.seconds == 32.0
+    tasks = [task(f"t{i}", steps=1000 + i, width=1 + i % 16, depth=1 + i % 3) for i in range(50)]
+    plans = {launcher: plan_jobs(tasks, compose_config(["+sweep=demo", f"launcher={launcher}", "cost.startup_s=100",
+                                                        "packing.enabled=false"], "launch"))
+             for launcher in ("local", "slurm")}
+    assert [p.task_ids for p in plans["slurm"]] == [p.task_ids for p in plans["local"]]
+    assert all(job.seconds == pytest.approx(alone.seconds + 100)
+               for job, alone in zip(plans["slurm"], plans["local"], strict=True))
+
+
 def test_a_group_holds_no_more_models_than_its_largest_fits_in_the_memory_budget():
     """Models of 100 MB (steps 0..5) then 300 MB (6..9) in a 1,000 MB budget: 10 of the first fit, 3 of the
     second; a model larger than the budget still trains (alone)."""

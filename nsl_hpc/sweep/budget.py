@@ -239,8 +239,8 @@ def promise(task: Mapping[str, Any], ancestor_row: Mapping[str, Any], envelopes:
     """The smallest, over resources and metrics, of the ancestor's error / margin over the envelope at the task's
     own resource value (below 1, the task could lower an envelope), and the geometric mean of those ratios (of
     tasks as promising, the one near more envelopes first: many tie at 1 / margin, their ancestor on one)."""
-    ratios = [float(ancestor_row[metric]) / margin / envelopes.at(task["system"], task["arch"], resource, metric,
-                                                                  float(task[resource]))
+    ratios = [float(ancestor_row[metric]) / envelopes.at(task["system"], task["arch"], resource, metric,
+                                                         float(task[resource])) / margin  # on it: 1 / margin exactly
               for resource in resources for metric in metrics]
     finite = [ratio for ratio in ratios if not math.isnan(ratio)]
     if not finite:

@@ -341,7 +341,12 @@ def sweep_groups(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, packing
     by_id = {task["task_id"]: task for task in tasks}
     kept = [list(ids) for ids in saved if all(task_id in by_id for task_id in ids)]
     taken = {task_id for ids in kept for task_id in ids}
+    slurm = isinstance(launcher_from(launch.launcher), SlurmLauncher)
     longest_s = math.inf if packing["max_time_minutes"] else \
-        60 * max(packing["time_classes_minutes"]) / packing["time_safety"] - cost["startup_s"]  # a job of one
+        60 * max(packing["time_classes_minutes"]) / packing["time_safety"] - (cost["startup_s"] if slurm else 0.0)
+    if longest_s <= 0:
+        raise ConfigError(f"cost.startup_s={cost['startup_s']} leaves no time for a job's groups in the largest of "
+                          f"packing.time_classes_minutes={list(packing['time_classes_minutes'])} with time_safety="
+                          f"{packing['time_safety']}: lower it or add a larger class")
     return ([planned_group([by_id[task_id] for task_id in ids], cost, lockstep) for ids in kept]
             + planned_groups([task for task in tasks if task["task_id"] not in taken], lockstep, cost, longest_s))
