@@ -328,8 +328,13 @@ def plan_jobs(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, time_facto
     task ids (training order) of groups with a checkpoint: those among ``tasks`` stay one group, so that it
     continues from there."""
     packing = packing_for(launch.packing, launch.launcher, time_factor)
-    slurm = isinstance(launcher_from(launch.launcher), SlurmLauncher)  # local workers start once each, not per pack
-    return make_packs(sweep_groups(tasks, launch, packing, saved), packing, launch.cost.startup_s if slurm else 0.0)
+    return make_packs(sweep_groups(tasks, launch, packing, saved), packing, job_startup_s(launch))
+
+
+def job_startup_s(launch: DictConfig) -> float:
+    """A job's predicted start-up: ``cost.startup_s`` where each job is its own process (SLURM); 0 for local
+    workers, which start once each, not once per pack."""
+    return launch.cost.startup_s if isinstance(launcher_from(launch.launcher), SlurmLauncher) else 0.0
 
 
 def sweep_groups(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, packing: Mapping[str, Any],
@@ -341,9 +346,8 @@ def sweep_groups(tasks: Sequence[Mapping[str, Any]], launch: DictConfig, packing
     by_id = {task["task_id"]: task for task in tasks}
     kept = [list(ids) for ids in saved if all(task_id in by_id for task_id in ids)]
     taken = {task_id for ids in kept for task_id in ids}
-    slurm = isinstance(launcher_from(launch.launcher), SlurmLauncher)
     longest_s = math.inf if packing["max_time_minutes"] else \
-        60 * max(packing["time_classes_minutes"]) / packing["time_safety"] - (cost["startup_s"] if slurm else 0.0)
+        60 * max(packing["time_classes_minutes"]) / packing["time_safety"] - job_startup_s(launch)
     if longest_s <= 0:
         raise ConfigError(f"cost.startup_s={cost['startup_s']} leaves no time for a job's groups in the largest of "
                           f"packing.time_classes_minutes={list(packing['time_classes_minutes'])} with time_safety="
