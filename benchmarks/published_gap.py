@@ -4,13 +4,18 @@ controlled experiments of docs/reproduction.md ("What each change moved") read i
 
     python benchmarks/published_gap.py runs/exp/plateau_10s [more sweep dirs] \
         [--law ball/input_affine/compute/nmae] [--at 3e4 1e5 3e5 1e6 3e6 1e7 2e7] \
-        [--columns nmae_scalar nmae_per_column] [--below 0.25] [--resource-column flops_paper]
+        [--columns nmae_scalar nmae_per_column] [--below 0.25] [--resource-column flops_paper] [--repeat 8]
 
 Each sweep must be merged (results.parquet). The published law is the one of ``--law`` in
 conf/published_laws.yaml; ``--columns`` are results columns of the same metric (default: every column whose
 name starts with the law's metric). A cell is envelope / law at that resource; "-" where no outcome lies at or
 below it. The last column is the least resource at which the envelope is below ``--below`` (the published law's
 in the header).
+
+``--repeat R`` reads each outcome as the authors' 2026 ``--repeat R`` would have logged it: their main.py
+concatenates the training set R times and trains the given epochs over it, while the compute formula counts the
+epochs alone. A task of n_e epochs then stands for a logged run of n_e / R epochs (tasks with n_e / R below the
+grid's smallest epoch count, 2, are left out) and its resource is divided by R (compute) or kept (data, model).
 """
 
 import argparse
@@ -41,6 +46,8 @@ def main() -> None:
     parser.add_argument("--below", type=float, default=0.25)
     parser.add_argument("--resource-column", help="results column of the resource (default: flops, train_points "
                         "or params); e.g. flops_paper, the compute on the paper's 4 n_d n_h^2 parameters")
+    parser.add_argument("--repeat", type=int, default=1, help="read outcomes as runs of n_e / R logged epochs "
+                        "over the data repeated R times (compute divided by R)")
     args = parser.parse_args()
     system, arch, resource, metric = args.law.split("/")
     law = published_laws()[system, arch, resource, metric].law
@@ -51,12 +58,15 @@ def main() -> None:
           + f"; first below {args.below:g} (published: {'-' if crossing is None else f'{crossing:.2g}'})")
     for sweep in args.sweeps:
         results = pq.read_table(sweep / "results.parquet").to_pylist()
-        rows = [row for row in results if row["system"] == system and row["arch"] == arch and row["status"] == "ok"]
+        rows = [row for row in results if row["system"] == system and row["arch"] == arch and row["status"] == "ok"
+                and row["epochs"] >= 2 * args.repeat]
         if not rows:
             print(f"| {sweep.name} | no {system} / {arch} outcomes |")
             continue
         columns = args.columns or sorted(key for key in rows[0] if key.startswith(metric))
         r = np.array([row[args.resource_column or RESOURCE_COLUMNS[resource]] for row in rows], dtype=float)
+        if resource == "compute":
+            r = r / args.repeat
         for column in columns:
             e = np.array([row.get(column, np.nan) for row in rows], dtype=float)
             ratios = step_envelope_at(r, e, at) / law.predict(at)

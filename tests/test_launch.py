@@ -63,6 +63,7 @@ def test_dry_run_writes_manifest_and_plan_only(tmp_path):
     (["+sweep=demo", "lockstep.width_buckets=[4,x]"], "lockstep.width_buckets value='x' must be a positive integer"),
     (["+sweep=demo", "lockstep.memory_mb=0"], "lockstep.memory_mb=0 must be a finite number in (0, 100000]"),
     (["+sweep=demo", "train.schedule=linear"], "train.schedule='linear' is unknown; choose one of"),
+    (["+sweep=demo", "train.repeat=0"], "train.repeat=0 must be a positive integer"),
 ])
 def test_bad_launches_fail_before_anything_is_written(args, message, tmp_path):
     sweep_dir = tmp_path / "sweep"

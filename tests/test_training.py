@@ -11,6 +11,7 @@ from omegaconf import OmegaConf
 from nsl_hpc.models import build_model
 from nsl_hpc.studies.input_state.data import Dataset, build_test_set, build_training_set
 from nsl_hpc.studies.input_state.lockstep import (
+    BatchPlan,
     Member,
     loss_weights,
     predict_derivatives,
@@ -196,9 +197,20 @@ def test_static_stacks_shrink_by_powers_of_two_topped_up_with_finished_rows():
     assert stack_rows([3], 4, static=True) == [3]
 
 
-def milestone_run(compose, cache, schedule: str, epochs: int, milestones=(), schedule_epochs: int = 0):
+def test_a_repeated_pass_takes_every_sample_repeat_times_in_batches_of_the_concatenation():
+    """The authors' --repeat R: one epoch is one shuffled pass over the training set concatenated R times."""
+    plan = BatchPlan(10, 8, epochs=2, seed=0, width=8, pad=99, repeat=3)
+    assert plan.steps == 2 * 4  # ceil(30 / 8) batches per epoch
+    batches = plan.next_pass()
+    assert batches.shape == (4, 8)
+    taken = batches[batches != 99]
+    assert len(taken) == 30 and torch.equal(torch.bincount(taken, minlength=10), torch.full((10,), 3))
+    assert (batches[-1] == 99).sum() == 2  # the last batch holds 6 samples, padded to the width
+
+
+def milestone_run(compose, cache, schedule: str, epochs: int, milestones=(), schedule_epochs: int = 0, *overrides):
     """Snapshots of one spring / input-affine model trained for ``epochs`` (1.3 trajectories, 6 batches per epoch)."""
-    cfg = compose("system=spring", "arch=input_affine", f"train.schedule={schedule}")
+    cfg = compose("system=spring", "arch=input_affine", f"train.schedule={schedule}", *overrides)
     data = build_training_set(OmegaConf.to_container(cfg.system, resolve=True), 0, 1.3, cache)
     torch.manual_seed(0)
     model = build_model(cfg.arch, 4, 2, width=6, depth=2)
@@ -214,6 +226,13 @@ def test_epoch_milestones_with_a_constant_learning_rate_are_the_separate_runs(co
         assert snapshot.outcome.steps == alone.outcome.steps == snapshot.epochs * 6
         assert snapshot.outcome.final_loss == pytest.approx(alone.outcome.final_loss, rel=1e-6)
         torch.testing.assert_close(snapshot.theta, alone.theta, rtol=1e-6, atol=1e-7)
+
+
+def test_an_epoch_over_repeated_data_takes_the_batches_of_the_repeated_set(compose, cache):
+    (once,) = milestone_run(compose, cache, "constant", 2)
+    (twice,) = milestone_run(compose, cache, "constant", 2, (), 0, "train.repeat=2")
+    assert once.outcome.steps == 2 * 6 and twice.outcome.steps == 2 * 11  # 1,300 and 2,600 samples, batches of 256
+    assert (once.theta - twice.theta).abs().max() > 1e-3
 
 
 def test_epoch_milestones_with_warmup_cosine_follow_the_longer_schedule(compose, cache):

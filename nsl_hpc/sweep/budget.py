@@ -21,6 +21,7 @@ of earlier rounds; a round's decisions are written (``budget/round-<r>.parquet``
 that stops anywhere continues with the same decisions.
 """
 
+import functools
 import json
 import math
 from collections import defaultdict
@@ -127,9 +128,15 @@ def budget_of(launch: DictConfig, full_seconds: float) -> Budget | None:
 
 def planned_seconds(tasks: Mapping[str, Mapping[str, Any]], launch: DictConfig) -> Callable[[Sequence[str]], float]:
     """The planner's predicted core-seconds of running some of ``tasks`` (by id) as one launch: their lockstep
-    groups' seconds (``cost.*``)."""
+    groups' seconds (``cost.*``). Remembered per set of ids: a launch asks for round 1's to size it, to refuse a
+    budget below it and to print it."""
     packing = packing_for(launch.packing, launch.launcher)
-    return lambda task_ids: sum(group.seconds for group in sweep_groups([tasks[t] for t in task_ids], launch, packing))
+
+    @functools.cache
+    def seconds_of(task_ids: frozenset[str]) -> float:
+        return sum(group.seconds for group in sweep_groups([tasks[t] for t in sorted(task_ids)], launch, packing))
+
+    return lambda task_ids: seconds_of(frozenset(task_ids))
 
 
 def round_of_level(level: int, first_levels: int, levels_per_round: int) -> int:

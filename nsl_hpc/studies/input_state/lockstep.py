@@ -78,21 +78,22 @@ class Snapshot:
 
 
 class BatchPlan(BatchOrder):
-    """The mini-batches of one member, step after step: each epoch a new permutation of its samples
-    (``torch.randperm`` on its own generator) cut into ``batch_bounds`` slices, padded to ``width`` rows
-    with the index ``pad``; once its ``steps`` are taken, only padding."""
+    """The mini-batches of one member, step after step: each epoch a new permutation of its samples, each
+    taken ``repeat`` times (the authors' ``--repeat``: the training set concatenated R times), by
+    ``torch.randperm`` on its own generator, cut into ``batch_bounds`` slices, padded to ``width`` rows with the
+    index ``pad``; once its ``steps`` are taken, only padding."""
 
-    def __init__(self, samples: int, batch_size: int, epochs: int, seed: int, width: int, pad: int):
-        bounds = batch_bounds(samples, batch_size)
-        self.samples, self.fill, self.width = samples, pad, width
+    def __init__(self, samples: int, batch_size: int, epochs: int, seed: int, width: int, pad: int, repeat: int):
+        bounds = batch_bounds(samples * repeat, batch_size)
+        self.samples, self.repeat, self.fill, self.width = samples, repeat, pad, width
         self.steps = self.remaining = epochs * len(bounds)
-        self.slots = torch.full((len(bounds), width), samples)  # position in the permutation; `samples`: padding
+        self.slots = torch.full((len(bounds), width), samples * repeat)  # position in the permutation; last: padding
         for j, (start, stop) in enumerate(bounds):
             self.slots[j, :stop - start] = torch.arange(start, stop)
         self.start(seed)
 
     def next_pass(self) -> torch.Tensor:
-        order = torch.randperm(self.samples, generator=self.generator)
+        order = torch.randperm(self.samples * self.repeat, generator=self.generator) % self.samples
         return torch.cat([order, order.new_tensor([self.fill])])[self.slots]
 
     def stop(self) -> None:
@@ -154,9 +155,10 @@ class Lockstep:
         self.optimizer = Adam(self.stack.theta, cfg["grad_clip_norm"])
         self.data = stacked_data(members, self.dtype)
         self.pad = self.data.shape[1] - 1
-        width = max(max(stop - start for start, stop in batch_bounds(len(mb.data), cfg["batch_size"]))
+        repeat = cfg["repeat"]
+        width = max(max(stop - start for start, stop in batch_bounds(len(mb.data) * repeat, cfg["batch_size"]))
                     for mb in members)
-        self.plans = [BatchPlan(len(mb.data), cfg["batch_size"], mb.epochs, mb.shuffle_seed, width, self.pad)
+        self.plans = [BatchPlan(len(mb.data), cfg["batch_size"], mb.epochs, mb.shuffle_seed, width, self.pad, repeat)
                       for mb in members]
         self.totals = np.array([plan.steps for plan in self.plans])
         self.schedules = np.array([(mb.schedule_epochs or mb.epochs) * len(plan.slots)

@@ -57,6 +57,7 @@ class InputState(Study):
                 if train[setting] not in allowed:
                     raise ConfigError(f"train.{setting}={train[setting]!r} is unknown; choose one of: "
                                       f"{', '.join(allowed)}")
+            require_positive_int("train.repeat", train["repeat"])
             if train["schedule_epochs"] is not None:
                 require_positive_int("train.schedule_epochs", train["schedule_epochs"])
                 if base["draws"] != "shared_across_epochs":
@@ -84,7 +85,8 @@ class InputState(Study):
     def training_length(self, task: Mapping[str, Any], drawn: Mapping[str, Any],
                         base: Mapping[str, Any]) -> dict[str, Any]:
         points, test_set = drawn["train_points"], base["system"]["test_set"]
-        return {"steps": task["epochs"] * batch_count(points, base["train"]["batch_size"]),
+        train = base["train"]
+        return {"steps": task["epochs"] * batch_count(points * train["repeat"], train["batch_size"]),
                 "flops": float(drawn["params"]) * task["epochs"] * points,
                 # the same with the paper's "approximately 4 n_d n_h^2" parameters (docs/reproduction.md)
                 "flops_paper": 4.0 * drawn["depth"] * drawn["width"] ** 2 * task["epochs"] * points,
