@@ -96,31 +96,6 @@ def test_of_equally_promising_tasks_the_one_nearer_more_envelopes_runs_first():
     assert {d["task_id"]: d["promise"] for d in decided} == {"z4": 0.5, "b4": 0.5}
 
 
-def test_each_envelope_takes_its_most_promising_task_in_turn():
-    """Ball's two candidates are more promising (ratios 0.5, 0.6) than spring's one (0.8); with room for two tasks,
-    one ranking runs both of ball's, the envelopes in turn one of each."""
-    def task(name: str, system: str, epochs: int, flops: float) -> dict:
-        return {"task_id": f"{name}{epochs}", "system": system, "arch": "unstructured", "seed": 0, "epochs": epochs,
-                "data_tier": 2, "width_tier": {"a": 2, "b": 4, "c": 2, "d": 4}[name], "depth_tier": 2,
-                "steps": epochs, "params": 10, "flops": flops, "train_points": 100}
-
-    tasks = [task("a", "ball", 2, 2.0), task("a", "ball", 4, 4.0), task("b", "ball", 2, 2.0),
-             task("b", "ball", 4, 4.0), task("c", "spring", 2, 2.0), task("c", "spring", 4, 4.0),
-             task("d", "spring", 2, 1.0)]
-    by_id = {t["task_id"]: t for t in tasks}
-    errors = {"a2": 0.1, "b2": 0.12, "c2": 0.5, "d2": 0.3125}
-    rows = {task_id: {**by_id[task_id], "nmae": error} for task_id, error in errors.items()}
-
-    def run(ranking: str) -> list[str]:
-        settings = Budget(25.0, 2e9, 1, 0.25, 1, 2.0, ("flops",), ("nmae",), ranking=ranking)
-        decided = decide_round(2, Rounds(tasks, STUDY, 1, 1), by_id, set(rows), rows, lambda ids: 10.0 * len(ids),
-                               25.0, settings)
-        return sorted(d["task_id"] for d in decided if d["run"])
-
-    assert run("most_promising") == ["a4", "b4"]
-    assert run("by_envelope") == ["a4", "c4"]
-
-
 def test_a_rounds_decisions_depend_only_on_the_rows_not_on_the_order_of_tasks_or_rows():
     shuffled, rows_order = TASKS[:], list(ERRORS)
     random.Random(3).shuffle(shuffled)

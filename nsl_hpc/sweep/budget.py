@@ -9,15 +9,13 @@ cost axis) and an ancestor: the line's latest task that an earlier round ran (a 
 round may come back in a later one). It runs only if its ancestor has a row (not failed) and, for some
 resource (compute, data, model) and metric that the sweep's fits use (conf/nsl), the ancestor's error divided
 by ``budget.margin`` is below the lower envelope (Definition 1's step envelope of every row of its (system,
-arch) so far) at the task's own resource value: trained longer, it could still lower that envelope. Each
-envelope ranks the candidates that could lower it by that ratio (of equal ones, common at 1 / margin, the one
-with the smaller geometric mean of all its ratios first), and the envelopes take their next candidate in turn
-(``budget.ranking: by_envelope``; ``most_promising``: one ranking by the smallest ratio over all envelopes).
-They run in that order as long as the planner's prediction of them (``cost.*``: their lockstep groups' seconds,
-planned as the round runs them) fits in the round's allowance: with ``budget.spread`` its equal share of what
-the budget has left for it and the rounds after it (so the long rounds are reached), else all that is left; a
-candidate that does not fit is passed over for later ones that do (``affordable``); the others are skipped,
-each with its reason.
+arch) so far) at the task's own resource value: trained longer, it could still lower that envelope. The
+candidates run in the order of that ratio (its smallest over resources and metrics: most promising first; of
+equal ones, common at 1 / margin, the one with the smaller geometric mean of all its ratios first)
+as long as the planner's prediction of them (``cost.*``: their lockstep groups' seconds, planned as the round
+runs them) fits in the round's allowance: with ``budget.spread`` its equal share of what the budget has left for
+it and the rounds after it (so the long rounds are reached), else all that is left; a candidate that does not
+fit is passed over for later ones that do (``affordable``); the others are skipped, each with its reason.
 ``budget.share`` is a share of the planner's prediction for the whole sweep. Every decision depends only on the rows
 of earlier rounds; a round's decisions are written (``budget/round-<r>.parquet``) before its tasks run, so a launch
 that stops anywhere continues with the same decisions.
@@ -39,7 +37,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.atomic import write_parquet, write_text
 from nsl_hpc.config import plain
-from nsl_hpc.errors import ConfigError, RunError, damaged_file, require_choice, require_number, require_positive_int
+from nsl_hpc.errors import ConfigError, RunError, damaged_file, require_number, require_positive_int
 from nsl_hpc.studies.base import Study
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.layout import row_path
@@ -48,7 +46,6 @@ from nsl_hpc.sweep.rows import read_row, row_state
 from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES, job_states, slurm_command
 
 # one row per task of a decided round; cost_s: the predicted core-seconds it is charged (0 when skipped)
-RANKINGS = ("by_envelope", "most_promising")
 DECISION_SCHEMA = pa.schema([("task_id", pa.string()), ("round", pa.int64()), ("run", pa.bool_()),
                              ("reason", pa.string()), ("promise", pa.float64()), ("cost_s", pa.float64())])
 
@@ -67,7 +64,6 @@ class Budget:
     resources: tuple[str, ...]  # the result columns of the fits' resources (flops, train_points, params)
     metrics: tuple[str, ...]  # and their metrics (nmae, nmse)
     spread: bool = True  # a later round spends at most its equal share of what is left (else all it can)
-    ranking: str = "by_envelope"  # each envelope takes its most promising task in turn; most_promising: one ranking
 
 
 def budget_requested(launch: DictConfig) -> bool:
@@ -121,14 +117,13 @@ def budget_of(launch: DictConfig, full_seconds: float) -> Budget | None:
     require_positive_int("budget.round_job_minutes", settings["round_job_minutes"])
     if not isinstance(settings["spread"], bool):
         raise ConfigError(f"budget.spread={settings['spread']!r}: true or false")
-    require_choice("budget.ranking", settings["ranking"], RANKINGS)
     seconds = 3600 * float(hours) if hours is not None else float(share or 0) * full_seconds
     if seconds >= full_seconds:
         return None
     resources, metrics = fitted_columns(plain(launch.nsl))
     return Budget(seconds, full_seconds, settings["first_levels"], settings["first_share"],
                   settings["levels_per_round"], settings["margin"], tuple(resources), tuple(metrics),
-                  settings["spread"], settings["ranking"])
+                  settings["spread"])
 
 
 def planned_seconds(tasks: Mapping[str, Mapping[str, Any]], launch: DictConfig) -> Callable[[Sequence[str]], float]:
@@ -246,55 +241,18 @@ def fitted_columns(nsl: Mapping[str, Any]) -> tuple[list[str], list[str]]:
     return [spec["column"] for spec in nsl["resources"].values()], list(nsl["metrics"])
 
 
-def envelope_ratios(task: Mapping[str, Any], ancestor_row: Mapping[str, Any], envelopes: Envelopes, margin: float,
-                    resources: Sequence[str], metrics: Sequence[str]) -> dict[tuple[str, str], float]:
-    """Per (resource, metric): the ancestor's error / margin over the envelope at the task's own resource value
-    (below 1, the task could lower that envelope; on it: 1 / margin exactly); NaN ones left out."""
-    ratios = {(resource, metric): float(ancestor_row[metric]) / envelopes.at(
-        task["system"], task["arch"], resource, metric, float(task[resource])) / margin
-        for resource in resources for metric in metrics}
-    return {key: ratio for key, ratio in ratios.items() if not math.isnan(ratio)}
-
-
-def promise(ratios: Mapping[tuple[str, str], float]) -> tuple[float, float]:
-    """The smallest of a task's ``envelope_ratios`` and their geometric mean (of tasks as promising, the one near
-    more envelopes first: many tie at 1 / margin, their ancestor on one); inf without any."""
-    if not ratios:
+def promise(task: Mapping[str, Any], ancestor_row: Mapping[str, Any], envelopes: Envelopes, margin: float,
+            resources: Sequence[str], metrics: Sequence[str]) -> tuple[float, float]:
+    """The smallest, over resources and metrics, of the ancestor's error / margin over the envelope at the task's
+    own resource value (below 1, the task could lower an envelope), and the geometric mean of those ratios (of
+    tasks as promising, the one near more envelopes first: many tie at 1 / margin, their ancestor on one)."""
+    ratios = [float(ancestor_row[metric]) / envelopes.at(task["system"], task["arch"], resource, metric,
+                                                         float(task[resource])) / margin  # on it: 1 / margin exactly
+              for resource in resources for metric in metrics]
+    finite = [ratio for ratio in ratios if not math.isnan(ratio)]
+    if not finite:
         return math.inf, math.inf
-    values = list(ratios.values())
-    return min(values), math.exp(float(np.mean(np.log(np.maximum(values, 1e-300)))))
-
-
-def by_envelope(promising: Sequence[str], tasks: Mapping[str, Mapping[str, Any]],
-                ratios: Mapping[str, Mapping[tuple[str, str], float]],
-                values: Mapping[str, tuple[float, float]]) -> list[str]:
-    """``promising`` (most promising first) re-ordered so that every envelope gets its turn: each (system, arch,
-    resource, metric) ranks the tasks that could lower it (ratio below 1) by that ratio, and the envelopes take
-    their next task in turn, so the compute envelopes, whose candidates are the most numerous, do not take a
-    round's whole allowance from the data and model ones."""
-    queues: dict[tuple[str, str, str, str], list[str]] = defaultdict(list)
-    for task_id in promising:
-        task = tasks[task_id]
-        for (resource, metric), ratio in ratios[task_id].items():
-            if ratio < 1:
-                queues[task["system"], task["arch"], resource, metric].append(task_id)
-    for key, queue in queues.items():
-        column = key[2], key[3]
-        queue.sort(key=lambda task_id: (ratios[task_id][column], values[task_id], task_id))
-    order: list[str] = []
-    taken: set[str] = set()
-    heads = dict.fromkeys(sorted(queues), 0)
-    while heads:
-        for key in list(heads):
-            queue = queues[key]
-            while heads[key] < len(queue) and queue[heads[key]] in taken:
-                heads[key] += 1
-            if heads[key] == len(queue):
-                del heads[key]
-                continue
-            order.append(queue[heads[key]])
-            taken.add(queue[heads[key]])
-    return order
+    return min(finite), math.exp(float(np.mean(np.log(np.maximum(finite, 1e-300)))))
 
 
 def longest_prefix(task_ids: Sequence[str], planned_s: Callable[[Sequence[str]], float], left_s: float,
@@ -335,18 +293,14 @@ def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, A
     if number == 1:
         scored = [((0.0, 0.0), task_id, "") for task_id in candidates]
     envelopes = Envelopes(list(rows.values()), budget.resources, budget.metrics)
-    ratios: dict[str, dict[tuple[str, str], float]] = {}
     for task_id in candidates if number > 1 else ():
         ancestor = rounds.ancestor(task_id, ran)
         row = rows.get(ancestor) if ancestor is not None else None
-        ratios[task_id] = {} if row is None else envelope_ratios(tasks[task_id], row, envelopes, budget.margin,
+        value = (math.inf, math.inf) if row is None else promise(tasks[task_id], row, envelopes, budget.margin,
                                                                  budget.resources, budget.metrics)
-        scored.append((promise(ratios[task_id]), task_id,
-                       "its ancestor did not finish" if row is None else "far above the envelope"))
+        scored.append((value, task_id, "its ancestor did not finish" if row is None else "far above the envelope"))
     scored.sort(key=lambda item: (item[0], item[1]))
     promising = [task_id for value, task_id, _ in scored if value[0] < 1]
-    if number > 1 and budget.ranking == "by_envelope":
-        promising = by_envelope(promising, tasks, ratios, {task_id: value for value, task_id, _ in scored})
     chosen = affordable(promising, planned_s, left_s)
     run = set(chosen)
     seconds = planned_s(chosen) if run else 0.0
