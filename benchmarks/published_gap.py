@@ -12,10 +12,13 @@ name starts with the law's metric). A cell is envelope / law at that resource; "
 below it. The last column is the least resource at which the envelope is below ``--below`` (the published law's
 in the header).
 
-``--repeat R`` reads each outcome as the authors' 2026 ``--repeat R`` would have logged it: their main.py
-concatenates the training set R times and trains the given epochs over it, while the compute formula counts the
-epochs alone. A task of n_e epochs then stands for a logged run of n_e / R epochs (tasks with n_e / R below the
-grid's smallest epoch count, 2, are left out) and its resource is divided by R (compute) or kept (data, model).
+``--repeat R`` (input-state sweeps of one pass per epoch) reads each outcome approximately as the authors' 2026
+``--repeat R`` would have logged it: their main.py concatenates the training set R times and trains the given
+epochs over it, while the compute formula counts the epochs alone. A task of n_e epochs then stands for a logged
+run of n_e / R epochs (tasks with n_e / R below the grid's smallest epoch count, 2, are left out) and its
+resource is divided by R (compute) or kept (data, model). Approximately: n_e epochs take n_e ceil(N / B) steps,
+n_e / R epochs over the joined data (n_e / R) ceil(R N / B), the same only where B divides N (not below N = 256).
+A sweep trained with ``train.repeat`` > 1 is read as it is, without this option.
 """
 
 import argparse
@@ -50,6 +53,8 @@ def main() -> None:
                         "over the data repeated R times (compute divided by R)")
     args = parser.parse_args()
     system, arch, resource, metric = args.law.split("/")
+    if args.repeat < 1:
+        parser.error(f"--repeat {args.repeat}: a positive integer")
     law = published_laws()[system, arch, resource, metric].law
     at = np.asarray(args.at)
     dense = np.geomspace(1e2, 1e13, 4000)
@@ -58,8 +63,11 @@ def main() -> None:
           + f"; first below {args.below:g} (published: {'-' if crossing is None else f'{crossing:.2g}'})")
     for sweep in args.sweeps:
         results = pq.read_table(sweep / "results.parquet").to_pylist()
-        rows = [row for row in results if row["system"] == system and row["arch"] == arch and row["status"] == "ok"
-                and row["epochs"] >= 2 * args.repeat]
+        rows = [row for row in results if row["system"] == system and row["arch"] == arch and row["status"] == "ok"]
+        if args.repeat > 1:
+            if any("epochs" not in row or (row.get("repeat") or 1) != 1 for row in rows):
+                parser.error(f"--repeat reads input-state rows of one pass per epoch; {sweep} holds others")
+            rows = [row for row in rows if row["epochs"] >= 2 * args.repeat]
         if not rows:
             print(f"| {sweep.name} | no {system} / {arch} outcomes |")
             continue

@@ -104,6 +104,16 @@ def test_a_lockstep_group_stopped_and_resumed_gives_its_snapshots_bit_for_bit(co
     assert_same_snapshots(expected, resumed)
 
 
+def test_a_group_over_repeated_data_stopped_and_resumed_gives_its_snapshots_bit_for_bit(compose, cache, tmp_path):
+    """train.repeat=2: 11 batches per epoch of 1,300 samples taken twice (66 and 33 steps, blocks of 32)."""
+    members, train_cfg = ph_members(compose, cache, [(6, 6, (3,)), (3, 3, ())])
+    train = lockstep_trainer(members, {**train_cfg, "repeat": 2})
+    expected = train(lambda: None)
+    assert [[s.outcome.steps for s in member] for member in expected] == [[33, 66], [33]]
+    (resumed, _) = interrupted(train, tmp_path / "group.pt")
+    assert_same_snapshots(expected, resumed)
+
+
 def stopped_once(train, path) -> None:
     """Train until the first block's checkpoint is written, then stop."""
     checkpoint = Checkpointer(path, every_s=3600, task_ids=["a", "b", "c"])

@@ -67,6 +67,15 @@ def test_manifest_ids_and_sizes_match_the_single_task_path(demo_manifest):
 
 
 
+def test_a_setting_added_later_changes_task_ids_only_away_from_its_neutral_value():
+    """train.repeat=1 trains as before it existed: a sweep made then keeps its ids; another value is another task."""
+    overrides = ["system=ball", "arch=input_affine", "epochs=4", "data_tier=2"]
+    cfg = compose_config(overrides)
+    before = OmegaConf.create(OmegaConf.to_container(cfg))
+    del before.train.repeat
+    assert task_id(before) == task_id(cfg) != task_id(compose_config([*overrides, "train.repeat=2"]))
+
+
 def sizes_by_all_but_epochs(rows: list[dict]) -> dict[tuple, list[tuple]]:
     """The drawn (d, n_h, n_d) of the tasks that differ only in epochs, grouped."""
     groups: dict[tuple, list[tuple]] = {}

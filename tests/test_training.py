@@ -208,8 +208,10 @@ def test_a_repeated_pass_takes_every_sample_repeat_times_in_batches_of_the_conca
     assert (batches[-1] == 99).sum() == 2  # the last batch holds 6 samples, padded to the width
 
 
-def milestone_run(compose, cache, schedule: str, epochs: int, milestones=(), schedule_epochs: int = 0, *overrides):
-    """Snapshots of one spring / input-affine model trained for ``epochs`` (1.3 trajectories, 6 batches per epoch)."""
+def milestone_run(compose, cache, schedule: str, epochs: int, milestones=(), schedule_epochs: int = 0,
+                  overrides: tuple[str, ...] = ()):
+    """Snapshots of one spring / input-affine model trained for ``epochs`` (1.3 trajectories: 1,300 samples, 6
+    batches per epoch of one pass)."""
     cfg = compose("system=spring", "arch=input_affine", f"train.schedule={schedule}", *overrides)
     data = build_training_set(OmegaConf.to_container(cfg.system, resolve=True), 0, 1.3, cache)
     torch.manual_seed(0)
@@ -230,7 +232,7 @@ def test_epoch_milestones_with_a_constant_learning_rate_are_the_separate_runs(co
 
 def test_an_epoch_over_repeated_data_takes_the_batches_of_the_repeated_set(compose, cache):
     (once,) = milestone_run(compose, cache, "constant", 2)
-    (twice,) = milestone_run(compose, cache, "constant", 2, (), 0, "train.repeat=2")
+    (twice,) = milestone_run(compose, cache, "constant", 2, overrides=("train.repeat=2",))
     assert once.outcome.steps == 2 * 6 and twice.outcome.steps == 2 * 11  # 1,300 and 2,600 samples, batches of 256
     assert (once.theta - twice.theta).abs().max() > 1e-3
 

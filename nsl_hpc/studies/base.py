@@ -29,6 +29,8 @@ class Study:
     length_axis: str  # the axis of training length (with shared draws, longer runs of the same model)
     shared_keys: tuple[str, ...]  # config groups and keys that change the outcome of every task of a pair
     lockstep: bool = False  # train_and_score_group trains same-shape tasks together (in lockstep)
+    # (shared group, key, value): settings added after task ids existed, at the value that trains as before
+    neutral: tuple[tuple[str, str, Any], ...] = ()
 
     @property
     def size_axes(self) -> tuple[str, ...]:
@@ -64,8 +66,13 @@ class Study:
         return stable_seed(purpose, *(task[key] for key in self.draw_keys(draws)))
 
     def shared_identity(self, values: Mapping[str, Any]) -> str:
-        """Hash of the shared outcome-changing groups of a plain config dict (paths left out)."""
-        return stable_hash({key: without_paths(values[key]) for key in self.shared_keys})
+        """Hash of the shared outcome-changing groups of a plain config dict (paths left out, and the settings of
+        ``neutral`` at their neutral value: a sweep made before such a setting existed keeps its task ids)."""
+        shared = {key: without_paths(values[key]) for key in self.shared_keys}
+        for group, key, value in self.neutral:
+            if shared[group].get(key, value) == value:
+                shared[group].pop(key, None)
+        return stable_hash(shared)
 
     def check_coordinate(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
         """Raise ConfigError when ``value`` is not allowed for coordinate ``key`` (``label`` names it), or, for

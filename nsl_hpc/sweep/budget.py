@@ -132,7 +132,7 @@ def planned_seconds(tasks: Mapping[str, Mapping[str, Any]], launch: DictConfig) 
     budget below it and to print it."""
     packing = packing_for(launch.packing, launch.launcher)
 
-    @functools.cache
+    @functools.lru_cache(maxsize=8)
     def seconds_of(task_ids: frozenset[str]) -> float:
         return sum(group.seconds for group in sweep_groups([tasks[t] for t in sorted(task_ids)], launch, packing))
 
