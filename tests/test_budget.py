@@ -6,8 +6,10 @@ import random
 import pyarrow.parquet as pq
 import pytest
 
+from nsl_hpc.config import compose_config
 from nsl_hpc.studies import study_named
-from nsl_hpc.sweep.budget import Budget, Rounds, decide_round, first_round_levels, read_decisions
+from nsl_hpc.sweep import budget as budget_module
+from nsl_hpc.sweep.budget import Budget, Rounds, decide_round, first_round_levels, planned_seconds, read_decisions
 from tests.sweeps import nsl, row_files
 
 STUDY = study_named("input_state")
@@ -94,6 +96,15 @@ def test_of_equally_promising_tasks_the_one_nearer_more_envelopes_runs_first():
                            budget(15.0))
     assert [d["task_id"] for d in decided if d["run"]] == ["z4"]
     assert {d["task_id"]: d["promise"] for d in decided} == {"z4": 0.5, "b4": 0.5}
+
+
+def test_the_planned_seconds_of_a_set_of_tasks_are_planned_once_whatever_their_order(monkeypatch):
+    planned = []
+    monkeypatch.setattr(budget_module, "sweep_groups",
+                        lambda tasks, launch, packing: planned.append([t["task_id"] for t in tasks]) or [])
+    seconds = planned_seconds(BY_ID, compose_config(["+sweep=demo"], "launch"))
+    assert seconds(["s1w2e2", "s0w2e2"]) == seconds(["s0w2e2", "s1w2e2"]) == 0.0
+    assert planned == [["s0w2e2", "s1w2e2"]]  # once, in the order of the ids
 
 
 def test_a_rounds_decisions_depend_only_on_the_rows_not_on_the_order_of_tasks_or_rows():
