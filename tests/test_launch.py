@@ -7,6 +7,7 @@ import pytest
 from nsl_hpc.config import compose_config
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.input_state.study import model_parameters
+from nsl_hpc.sweep.manifest import read_base_config
 from nsl_hpc.sweep.rows import read_row
 from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
 
@@ -71,6 +72,16 @@ def test_bad_launches_fail_before_anything_is_written(args, message, tmp_path):
     assert result.returncode == 2
     assert result.stderr.startswith("error: ") and message in result.stderr
     assert not (sweep_dir / "rows").exists()
+
+
+def test_a_sweep_stored_before_a_setting_existed_reads_it_at_its_neutral_value(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    assert nsl("launch", *TINY_GRID, f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0
+    (stored,) = (sweep_dir / "configs").glob("*.yaml")
+    stored.write_text(stored.read_text().replace("  repeat: 1\n", ""))  # as stored before train.repeat existed
+    assert "repeat" not in stored.read_text()
+    system, arch = stored.stem.split("__")
+    assert read_base_config(sweep_dir, system, arch).train.repeat == 1
 
 
 def test_launch_on_a_directory_of_another_grid_is_refused(tmp_path):

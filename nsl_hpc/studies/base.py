@@ -74,6 +74,14 @@ class Study:
                 shared[group].pop(key, None)
         return stable_hash(shared)
 
+    def with_neutral_settings(self, cfg: DictConfig) -> DictConfig:
+        """``cfg``, a pair's stored config, with the ``neutral`` settings it lacks (it was stored before they
+        existed) at their neutral value."""
+        for group, key, value in self.neutral:
+            if key not in cfg[group]:
+                cfg[group][key] = value
+        return cfg
+
     def check_coordinate(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
         """Raise ConfigError when ``value`` is not allowed for coordinate ``key`` (``label`` names it), or, for
         the training length, when the settings that go with it are not."""

@@ -25,6 +25,7 @@ from omegaconf.errors import OmegaConfBaseException
 from nsl_hpc.atomic import create_parquet, write_text
 from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, damaged_file
+from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.directory import portable_paths
 from nsl_hpc.sweep.layout import base_config_path
@@ -86,8 +87,10 @@ def read_manifest(sweep_dir: Path, columns: list[str] | None = None) -> pa.Table
 
 
 def read_base_config(sweep_dir: Path, system: str, arch: str) -> DictConfig:
-    """The task config shared by the tasks of (system, arch)."""
-    return read_yaml(base_config_path(sweep_dir, system, arch), sweep_dir)
+    """The task config shared by the tasks of (system, arch), with the settings added since it was stored at
+    their neutral value (``Study.neutral``)."""
+    cfg = read_yaml(base_config_path(sweep_dir, system, arch), sweep_dir)
+    return study_named(cfg.study.name).with_neutral_settings(cfg)
 
 
 def read_launch_config(sweep_dir: Path) -> DictConfig:

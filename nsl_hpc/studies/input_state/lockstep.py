@@ -155,7 +155,7 @@ class Lockstep:
         self.optimizer = Adam(self.stack.theta, cfg["grad_clip_norm"])
         self.data = stacked_data(members, self.dtype)
         self.pad = self.data.shape[1] - 1
-        repeat = cfg.get("repeat", 1)  # absent from the configs of sweeps made before it existed
+        repeat = cfg["repeat"]
         width = max(max(stop - start for start, stop in batch_bounds(len(mb.data) * repeat, cfg["batch_size"]))
                     for mb in members)
         self.plans = [BatchPlan(len(mb.data), cfg["batch_size"], mb.epochs, mb.shuffle_seed, width, self.pad, repeat)

@@ -58,7 +58,7 @@ class InputState(Study):
                 if train[setting] not in allowed:
                     raise ConfigError(f"train.{setting}={train[setting]!r} is unknown; choose one of: "
                                       f"{', '.join(allowed)}")
-            require_positive_int("train.repeat", train.get("repeat", 1))
+            require_positive_int("train.repeat", train["repeat"])
             if train["schedule_epochs"] is not None:
                 require_positive_int("train.schedule_epochs", train["schedule_epochs"])
                 if base["draws"] != "shared_across_epochs":
@@ -87,7 +87,7 @@ class InputState(Study):
                         base: Mapping[str, Any]) -> dict[str, Any]:
         points, test_set = drawn["train_points"], base["system"]["test_set"]
         train = base["train"]
-        return {"steps": task["epochs"] * batch_count(points * train.get("repeat", 1), train["batch_size"]),
+        return {"steps": task["epochs"] * batch_count(points * train["repeat"], train["batch_size"]),
                 "flops": float(drawn["params"]) * task["epochs"] * points,
                 # the same with the paper's "approximately 4 n_d n_h^2" parameters (docs/reproduction.md)
                 "flops_paper": 4.0 * drawn["depth"] * drawn["width"] ** 2 * task["epochs"] * points,
@@ -129,7 +129,7 @@ class InputState(Study):
         return [{**model_scores, "steps": snapshot.outcome.steps,
                  "final_loss": snapshot.outcome.final_loss, "finite": snapshot.outcome.finite,
                  "train_seconds": train_seconds, "milestone": cfg.train.schedule_epochs is not None,
-                 "repeat": cfg.train.get("repeat", 1),
+                 "repeat": cfg.train.repeat,
                  "compiled": compiler.enabled}
                 for model_scores, (_, snapshot) in zip(scores, kept, strict=True)]
 
