@@ -44,11 +44,13 @@ def envelope_at(results, system: str, arch: str, column: str, metric: str, grid:
     return np.where(index >= 0, e[np.maximum(index, 0)], np.inf)
 
 
-def law_rows(full, full_fits, budgeted, budgeted_fits, nsl: dict, goal: float) -> list[str]:
+def law_ratios(full, full_fits, budgeted, budgeted_fits, nsl: dict) -> list[dict]:
+    """Per law of the full sweep's fits: its key (system, arch, resource, metric), the budgeted envelope over the
+    full one at the full sweep's K envelope points (``ratio``), the budgeted fit's last slope (nan without one)
+    and the full fit's with its 90% interval."""
     columns = {name: spec["column"] for name, spec in nsl["resources"].items()}
     by_key = {(f["system"], f["arch"], f["resource"], f["metric"]): f for f in budgeted_fits}
-    lines = [f"| law | budgeted / full envelope: largest (median) | points within {goal}x | last slope budgeted | "
-             "full (90% interval) | inside |", "|---|---:|---:|---:|---:|---|"]
+    laws = []
     for fit in full_fits:
         key = (fit["system"], fit["arch"], fit["resource"], fit["metric"])
         column = columns[fit["resource"]]
@@ -56,13 +58,40 @@ def law_rows(full, full_fits, budgeted, budgeted_fits, nsl: dict, goal: float) -
         keep = fittable(subset, column, fit["metric"])
         grid, full_envelope = lower_envelope(subset[column].to_numpy().astype(float)[keep],
                                              subset[fit["metric"]].to_numpy().astype(float)[keep], nsl["K"])
-        ratio = envelope_at(budgeted, *key[:2], column, fit["metric"], grid) / full_envelope
         other = by_key.get(key)
-        slope = other["last_slope"] if other else float("nan")
-        low, high = fit.get("last_slope_lo", np.nan), fit.get("last_slope_hi", np.nan)
-        lines.append(f"| {' / '.join(key)} | {np.max(ratio):.2f} ({np.median(ratio):.2f}) | "
-                     f"{np.mean(ratio <= goal):.0%} | {slope:.2f} | {fit['last_slope']:.2f} ({low:.2f} .. {high:.2f}) "
-                     f"| {'yes' if low <= slope <= high else 'no'} |")
+        laws.append({"key": key, "ratio": envelope_at(budgeted, *key[:2], column, fit["metric"], grid) / full_envelope,
+                     "slope": other["last_slope"] if other else float("nan"), "full_slope": fit["last_slope"],
+                     "low": fit.get("last_slope_lo", np.nan), "high": fit.get("last_slope_hi", np.nan)})
+    return laws
+
+
+def inside(law: dict) -> bool:
+    return bool(law["low"] <= law["slope"] <= law["high"])
+
+
+def law_rows(laws: list[dict], goal: float) -> list[str]:
+    lines = [f"| law | budgeted / full envelope: largest (median) | points within {goal}x | last slope budgeted | "
+             "full (90% interval) | inside |", "|---|---:|---:|---:|---:|---|"]
+    for law in laws:
+        ratio = law["ratio"]
+        lines.append(f"| {' / '.join(law['key'])} | {np.max(ratio):.2f} ({np.median(ratio):.2f}) | "
+                     f"{np.mean(ratio <= goal):.0%} | {law['slope']:.2f} | {law['full_slope']:.2f} "
+                     f"({law['low']:.2f} .. {law['high']:.2f}) | {'yes' if inside(law) else 'no'} |")
+    return lines
+
+
+def summary_rows(laws: list[dict], goal: float, fits: bool = True) -> list[str]:
+    """One line per resource: the range of its laws' median and largest ratios, the mean share of points within
+    ``goal`` and (``fits``) how many last slopes lie inside the full fits' intervals."""
+    lines = [f"| resource | median | largest | within {goal}x |" + (" slopes inside |" if fits else ""),
+             "|---|---|---|---:|" + ("---:|" if fits else "")]
+    for resource in dict.fromkeys(law["key"][2] for law in laws):
+        of = [law for law in laws if law["key"][2] == resource]
+        medians = [float(np.median(law["ratio"])) for law in of]
+        largest = [float(np.max(law["ratio"])) for law in of]
+        within = np.mean([np.mean(law["ratio"] <= goal) for law in of])
+        lines.append(f"| {resource} | {min(medians):.2f}-{max(medians):.2f} | {min(largest):.2f}-{max(largest):.2f} "
+                     f"| {within:.0%} |" + (f" {sum(map(inside, of))}/{len(of)} |" if fits else ""))
     return lines
 
 
@@ -96,7 +125,9 @@ def main() -> None:
                for name, table in (("full", full), ("budgeted", budgeted))}
     print(f"Tasks with a row: full {full.num_rows:,}, budgeted {budgeted.num_rows:,}; trained core-hours: full "
           f"{trained['full']:.3f}, budgeted {trained['budgeted']:.3f} ({trained['budgeted'] / trained['full']:.0%})\n")
-    print("\n".join(law_rows(full, full_fits, budgeted, budgeted_fits, nsl, args.goal)) + "\n")
+    laws = law_ratios(full, full_fits, budgeted, budgeted_fits, nsl)
+    print("\n".join(summary_rows(laws, args.goal)) + "\n")
+    print("\n".join(law_rows(laws, args.goal)) + "\n")
     print("\n".join(round_rows(args.budgeted, budgeted)))
 
 

@@ -428,18 +428,26 @@ def done_rows(sweep_dir: Path, task_ids: Sequence[str]) -> dict[str, dict[str, A
     return rows
 
 
+def next_round(number: int, rounds: Rounds, manifest: Mapping[str, Mapping[str, Any]],
+               decisions: Sequence[Mapping[str, Any]], rows: Mapping[str, Mapping[str, Any]],
+               planned_s: Callable[[Sequence[str]], float], budget: Budget) -> list[dict[str, Any]]:
+    """The decisions of round ``number`` from those of the rounds before (``decisions``), the rows of their run
+    tasks that finished (``rows``, by task id) and what they left of the budget."""
+    chosen = {d["task_id"] for d in decisions if d["run"]}
+    rows = {task_id: {**manifest[task_id], **row} for task_id, row in rows.items() if task_id in chosen}
+    left = budget.seconds - sum(d["cost_s"] for d in decisions)
+    if budget.spread and number > 1:  # this round's equal share of what is left to it and the rounds after it
+        left /= rounds.count - number + 1
+    return decide_round(number, rounds, manifest, chosen, rows, planned_s, left, budget)
+
+
 def decide_next_round(sweep_dir: Path, number: int, rounds: Rounds, manifest: Mapping[str, Mapping[str, Any]],
                       planned_s: Callable[[Sequence[str]], float], budget: Budget) -> None:
-    """Decide round ``number`` from the rows of the rounds before (and what they left of the budget) and write its
-    decisions."""
+    """Decide round ``number`` from the rows of the rounds before (``next_round``) and write its decisions."""
     if decided_structure(sweep_dir) not in (None, (rounds.first_levels, rounds.levels_per_round)):
         raise RunError(f"another launch decided round 1 of sweep_dir={str(sweep_dir)!r} with other rounds while "
                        "this one waited for the sweep: launch again")
     decisions = read_decisions(sweep_dir)
-    chosen = sorted(d["task_id"] for d in decisions if d["run"])
-    rows = {task_id: {**manifest[task_id], **row} for task_id, row in done_rows(sweep_dir, chosen).items()}
-    left = budget.seconds - sum(d["cost_s"] for d in decisions)
-    if budget.spread and number > 1:  # this round's equal share of what is left to it and the rounds after it
-        left /= rounds.count - number + 1
-    decided = decide_round(number, rounds, manifest, set(chosen), rows, planned_s, left, budget)
-    write_decisions(sweep_dir, number, decided, rounds)
+    rows = done_rows(sweep_dir, sorted(d["task_id"] for d in decisions if d["run"]))
+    write_decisions(sweep_dir, number, next_round(number, rounds, manifest, decisions, rows, planned_s, budget),
+                    rounds)
