@@ -1,59 +1,75 @@
 """Replay a budget's rounds on a finished full sweep, without training: what the rule (nsl_hpc/sweep/budget.py)
-would run, and what its envelopes and fits would be against the full sweep's.
+would run, and its envelopes and fits against the full sweep's; or (``--oracle``) what a chooser that knew every
+outcome would need.
 
     python benchmarks/budget_replay.py FULL_SWEEP_DIR +sweep=repro 'repro.seeds=[0]' sweep.max_flops=3e8 \\
-        budget.share=0.2 [--goal 1.15] [--no-fits]
+        budget.share=0.2 [--goal 1.15] [--laws] [--no-fits]
+    python benchmarks/budget_replay.py FULL_SWEEP_DIR +sweep=repro 'repro.seeds=[0]' sweep.max_flops=3e8 --oracle
 
-The overrides are the launch's (those of the full sweep plus a budget). A task's outcome depends only on its
+The overrides are the launch's: those of the full sweep, plus a budget. A task's outcome depends only on its
 config and seed, so a budgeted sweep's rows are the full sweep's rows of the tasks it runs: each round is decided
 by the rule's own code (``next_round``) from the full sweep's rows of the tasks run before it, in seconds instead
 of a sweep's minutes. With lockstep packing a row may differ from the full sweep's in its last digits (the
 groups differ), so a real budgeted run can decide a close call differently. Prints markdown: the rounds, one line
 per resource (the range of the laws' median and largest envelope ratios, the share of points within ``--goal``,
 the last slopes inside the full fits' 90% intervals) and, with ``--laws``, every law.
+
+``--oracle``: the tasks a chooser that knew every outcome would run to bring every law within 1.15x, 1.5x and 2x
+of the full envelope at its K points (greedily: the largest fall of the laws' excess over the goal per predicted
+second of the task alone), and the planner's prediction for them as a share of the whole sweep's: a floor under
+what any rule can reach with a budget on this grid.
 """
 
 import argparse
-from collections import defaultdict
+from collections import Counter, defaultdict
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 from budget_comparison import fitted, law_ratios, law_rows, summary_rows
 
-from nsl_hpc.analysis.fitting import fit_sweep
+from nsl_hpc.analysis.broken_law import lower_envelope
+from nsl_hpc.analysis.fitting import fit_sweep, fittable, pair_outcomes
 from nsl_hpc.config import compose_config, plain
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.sweep.budget import Rounds, budget_of, first_round_levels, next_round, planned_seconds
 from nsl_hpc.sweep.prepare import build_sweep
 
+OracleLaw = tuple[list[str], np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # ids, resources, errors, grid, full
 
-def replay(full, overrides: list[str]) -> tuple[list[dict], dict[str, float]]:
-    """The decisions of every round of the budget in ``overrides`` on the rows of ``full`` (a results table), and
-    each run task's trained seconds in the full sweep."""
+
+def sweep_of(full: pa.Table, overrides: list[str]) -> tuple[Any, Any, dict[str, dict], Callable]:
+    """(launch config, study, manifest by task id, the planner's seconds of any of its tasks) of ``overrides``,
+    whose every task must have a row in ``full``."""
     cfg = compose_config(overrides, "launch")
     built = build_sweep(cfg, overrides)
     manifest = {task["task_id"]: task for task in built.manifest.to_pylist()}
-    ok = full.filter(pc.equal(full["status"], "ok")).to_pylist()
-    rows = {row["task_id"]: row for row in ok}
-    if missing := len(set(manifest) - {row["task_id"] for row in full.to_pylist()}):
+    if missing := len(set(manifest) - set(full["task_id"].to_pylist())):
         raise ConfigError(f"{missing:,} of the {len(manifest):,} tasks of these overrides have no row in the full "
-                          "sweep: give the full sweep's own overrides (and a budget)")
-    planned_s = planned_seconds(manifest, cfg)
+                          "sweep: give the full sweep's own overrides")
+    return cfg, built.study, manifest, planned_seconds(manifest, cfg)
+
+
+def replay(full: pa.Table, overrides: list[str]) -> list[dict]:
+    """The decisions of every round of the budget in ``overrides`` on the rows of ``full`` (a results table)."""
+    cfg, study, manifest, planned_s = sweep_of(full, overrides)
+    rows = {row["task_id"]: row for row in full.filter(pc.equal(full["status"], "ok")).to_pylist()}
     budget = budget_of(cfg, planned_s(list(manifest)))
     if budget is None:
         raise ConfigError("give a budget below the whole sweep: budget.share=<0..1) or budget.core_hours=<B>")
     tasks = list(manifest.values())
-    rounds = Rounds(tasks, built.study, first_round_levels(tasks, built.study, budget, planned_s),
-                    budget.levels_per_round)
+    rounds = Rounds(tasks, study, first_round_levels(tasks, study, budget, planned_s), budget.levels_per_round)
     decisions: list[dict] = []
     for number in range(1, rounds.count + 1):
         decisions += next_round(number, rounds, manifest, decisions, rows, planned_s, budget)
-    return decisions, {task_id: float(row["train_seconds"]) for task_id, row in rows.items()}
+    return decisions
 
 
-def round_lines(decisions: list[dict], seconds: dict[str, float]) -> list[str]:
+def round_lines(decisions: Sequence[dict], seconds: dict[str, float]) -> list[str]:
+    """Per round: tasks run of its candidates, predicted and (in the full sweep) trained core-hours."""
     by_round: dict[int, list[dict]] = defaultdict(list)
     for decision in decisions:
         by_round[decision["round"]].append(decision)
@@ -61,34 +77,107 @@ def round_lines(decisions: list[dict], seconds: dict[str, float]) -> list[str]:
     for number, chosen in sorted(by_round.items()):
         run = [d for d in chosen if d["run"]]
         lines.append(f"| {number} | {len(run):,} of {len(chosen):,} | {sum(d['cost_s'] for d in run) / 3600:.3f} / "
-                     f"{sum(seconds[d['task_id']] for d in run) / 3600:.3f} |")
+                     f"{sum(seconds.get(d['task_id'], 0.0) for d in run) / 3600:.3f} |")
+    return lines
+
+
+def oracle_laws(full: pa.Table, full_fits: Sequence[dict], nsl: dict, manifest: dict[str, dict]) -> list[OracleLaw]:
+    """Per law of the full fits: the ids, resources and errors of the manifest's tasks with a fittable outcome,
+    and the full envelope at its K points."""
+    columns = {name: spec["column"] for name, spec in nsl["resources"].items()}
+    full = full.filter(pc.is_in(full["task_id"], value_set=pa.array(sorted(manifest), pa.string())))
+    laws = []
+    for fit in full_fits:
+        subset = pair_outcomes(full, fit["system"], fit["arch"])
+        keep = fittable(subset, columns[fit["resource"]], fit["metric"])
+        resources = subset[columns[fit["resource"]]].to_numpy().astype(float)[keep]
+        errors = subset[fit["metric"]].to_numpy().astype(float)[keep]
+        grid, envelope = lower_envelope(resources, errors, nsl["K"])
+        laws.append(([t for t, k in zip(subset["task_id"].to_pylist(), keep, strict=True) if k], resources, errors,
+                     grid, envelope))
+    return laws
+
+
+def excess(envelope: np.ndarray, full: np.ndarray, goal: float) -> np.ndarray:
+    """log of how far an envelope lies above ``goal`` x the full one, point by point (0 within it; an envelope
+    without an outcome yet counts as 1e6 x the full one)."""
+    return np.log(np.maximum(np.minimum(envelope, 1e6 * full) / (goal * full), 1.0))
+
+
+def oracle(laws: Sequence[OracleLaw], costs: dict[str, float], goal: float) -> list[str]:
+    """The tasks, in the order chosen, that a chooser knowing every outcome runs to bring every law within
+    ``goal`` of the full envelope: each time the one with the largest fall of the summed ``excess`` per predicted
+    second alone (``costs``)."""
+    envelopes = [np.full(grid.shape, np.inf) for *_, grid, _ in laws]
+    chosen: list[str] = []
+    while True:
+        falls: dict[str, float] = defaultdict(float)
+        for (ids, resources, errors, grid, full), envelope in zip(laws, envelopes, strict=True):
+            now = excess(envelope, full, goal)
+            if now.any():
+                after = excess(np.minimum(envelope[None, :], errors[:, None]), full[None, :], goal)
+                fall = np.where(grid[None, :] >= resources[:, None], now[None, :] - after, 0.0).sum(axis=1)
+                for task_id, value in zip(ids, fall, strict=True):
+                    falls[task_id] += value
+        falls = {task_id: value for task_id, value in falls.items() if value > 0}
+        if not falls:
+            return chosen
+        best = max(sorted(falls), key=lambda task_id: falls[task_id] / costs[task_id])
+        chosen.append(best)
+        for (ids, resources, errors, grid, _), envelope in zip(laws, envelopes, strict=True):
+            if best in ids:
+                reached = grid >= resources[ids.index(best)]
+                envelope[reached] = np.minimum(envelope[reached], errors[ids.index(best)])
+
+
+def oracle_lines(full: pa.Table, full_fits: Sequence[dict], nsl: dict, overrides: list[str]) -> list[str]:
+    """The ``oracle``'s tasks and their predicted share of the sweep at goals 1.15, 1.5 and 2, and where the
+    1.15x one's tasks sit on the cost axis."""
+    _, study, manifest, planned_s = sweep_of(full, overrides)
+    laws = oracle_laws(full, full_fits, nsl, manifest)
+    costs = {task_id: planned_s([task_id]) for task_id in manifest}
+    whole = planned_s(list(manifest))
+    lines = ["| goal | tasks | predicted share of the sweep |", "|---:|---:|---:|"]
+    picks: dict[float, list[str]] = {}
+    for goal in (1.15, 1.5, 2.0):
+        picks[goal] = oracle(laws, costs, goal)
+        lines.append(f"| {goal}x | {len(picks[goal]):,} | {planned_s(picks[goal]) / whole:.1%} |")
+    axis = study.length_axis
+    counts = Counter(manifest[task_id][axis] for task_id in picks[1.15])
+    lines.append(f"\n1.15x: tasks by {axis}: " + ", ".join(f"{value}: {n}" for value, n in sorted(counts.items())))
     return lines
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("full", help="a finished full sweep's directory (merged and fitted where it is not yet)")
-    parser.add_argument("overrides", nargs="+", help="the launch's overrides, a budget among them")
+    parser.add_argument("full", type=Path, help="a finished full sweep's directory (merged and fitted first where "
+                                                "it is not yet)")
+    parser.add_argument("overrides", nargs="+", help="the launch's overrides (a budget among them unless --oracle)")
     parser.add_argument("--goal", type=float, default=1.15, help="the envelope ratio the budget should stay within")
     parser.add_argument("--laws", action="store_true", help="print every law's line as well")
     parser.add_argument("--no-fits", action="store_true", help="envelopes only (no bootstrap fits: seconds)")
+    parser.add_argument("--oracle", action="store_true", help="what a chooser that knew every outcome would need")
     args = parser.parse_args()
-    full, full_fits = fitted(Path(args.full))
-    decisions, seconds = replay(full, args.overrides)
-    ran = sorted(d["task_id"] for d in decisions if d["run"])
-    budgeted = full.filter(pc.is_in(full["task_id"], value_set=pa.array(ran, pa.string())))
+    full, full_fits = fitted(args.full)
     fit_cfg = compose_config([f"sweep_dir={args.full}"], "fit")
     nsl = plain(fit_cfg.nsl)
-    budgeted_fits = [] if args.no_fits else fit_sweep(budgeted, fit_cfg.nsl, None)
-    trained = sum(seconds.get(task_id, 0.0) for task_id in ran) / 3600
+    if args.oracle:
+        print("\n".join(oracle_lines(full, full_fits, nsl, args.overrides)))
+        return
+    decisions = replay(full, args.overrides)
+    ran = sorted(d["task_id"] for d in decisions if d["run"])
+    budgeted = full.filter(pc.is_in(full["task_id"], value_set=pa.array(ran, pa.string())))
+    seconds = dict(zip(full["task_id"].to_pylist(), full["train_seconds"].to_pylist(), strict=True))
+    trained = sum(seconds[task_id] for task_id in ran) / 3600
     total = float(np.nansum(full["train_seconds"].to_numpy(zero_copy_only=False))) / 3600
-    print(f"replayed: {len(ran):,} of {full.num_rows:,} tasks run, trained core-hours {trained:.3f} of {total:.3f} "
-          f"({trained / total:.0%})\n")
+    print(f"replayed: {len(ran):,} of {full.num_rows:,} tasks run, trained core-hours (in the full sweep) "
+          f"{trained:.3f} of {total:.3f} ({trained / total:.0%})\n")
     print("\n".join(round_lines(decisions, seconds)) + "\n")
-    ratios = law_ratios(full, full_fits, budgeted, budgeted_fits, nsl)
-    print("\n".join(summary_rows(ratios, args.goal, fits=not args.no_fits)))
+    budgeted_fits = [] if args.no_fits else fit_sweep(budgeted, fit_cfg.nsl, None)
+    laws = law_ratios(full, full_fits, budgeted, budgeted_fits, nsl)
+    print("\n".join(summary_rows(laws, args.goal, fits=not args.no_fits)))
     if args.laws:
-        print("\n" + "\n".join(law_rows(ratios, args.goal)))
+        print("\n" + "\n".join(law_rows(laws, args.goal)))
 
 
 if __name__ == "__main__":
