@@ -21,7 +21,7 @@ from nsl_hpc.analysis.broken_law import lower_envelope
 from nsl_hpc.analysis.fitting import fittable, pair_outcomes
 from nsl_hpc.config import compose_config, plain
 from nsl_hpc.sweep import layout
-from nsl_hpc.sweep.budget import read_decisions
+from nsl_hpc.sweep.decisions import read_decisions
 
 
 def fitted(sweep_dir: Path) -> tuple:

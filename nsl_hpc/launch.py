@@ -30,17 +30,14 @@ from nsl_hpc.sweep.budget import (
     Rounds,
     budget_of,
     budget_requested,
-    cancel_round_job,
     decide_next_round,
-    decision_files,
     describe_budget,
     describe_first_round,
     planned_seconds,
-    read_decisions,
-    record_round_job,
     sweep_rounds,
 )
 from nsl_hpc.sweep.checkpoints import saved_groups
+from nsl_hpc.sweep.decisions import cancel_round_job, decision_files, read_decisions, record_round_job
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 from nsl_hpc.sweep.executors import run_jobs, submit_next_round
 from nsl_hpc.sweep.failures import read_failures

@@ -9,7 +9,8 @@ import pytest
 from nsl_hpc.config import compose_config
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import budget as budget_module
-from nsl_hpc.sweep.budget import Budget, Rounds, decide_round, first_round_levels, planned_seconds, read_decisions
+from nsl_hpc.sweep.budget import Budget, Rounds, decide_round, first_round_levels, planned_seconds
+from nsl_hpc.sweep.decisions import read_decisions
 from tests.sweeps import nsl, row_files
 
 STUDY = study_named("input_state")

@@ -17,8 +17,8 @@ import pyarrow.parquet as pq
 
 from nsl_hpc.atomic import write_parquet, write_text
 from nsl_hpc.sweep import layout
-from nsl_hpc.sweep.budget import budget_states, read_decisions, skip_reasons, without_row_state
 from nsl_hpc.sweep.checkpoints import running_task_ids
+from nsl_hpc.sweep.decisions import budget_states, read_decisions, skip_reasons, without_row_state
 from nsl_hpc.sweep.directory import launch_running
 from nsl_hpc.sweep.failures import FAILURE_STATES, read_failures
 from nsl_hpc.sweep.manifest import read_manifest

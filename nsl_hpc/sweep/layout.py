@@ -14,7 +14,7 @@
       submissions/<array id>.json         what was submitted to SLURM
       cache/                              simulated trajectories (cache_dir)
       compile_cache/                      Inductor's compiled training steps (compile_cache_dir)
-      budget/round-<r>.parquet            a budgeted sweep's decisions: which tasks of round r run (sweep/budget.py)
+      budget/round-<r>.parquet            a budgeted sweep's decisions: which tasks of round r run (sweep/decisions.py)
       budget/round_job.json               the SLURM job that launches its next round
       .lock                               the command that changes the sweep now (launch, resubmit, clean)
       results.parquet, merge_summary.json, .merge_cache.parquet   merge

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from nsl_hpc.sweep.budget import budget_states, without_row_state
 from nsl_hpc.sweep.checkpoints import running_task_ids
+from nsl_hpc.sweep.decisions import budget_states, without_row_state
 from nsl_hpc.sweep.directory import launch_running
 from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.layout import row_path

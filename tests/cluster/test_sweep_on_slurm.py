@@ -9,7 +9,7 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from nsl_hpc.sweep.budget import read_decisions
+from nsl_hpc.sweep.decisions import read_decisions
 from tests.cluster.requeues import releasing
 from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
 
