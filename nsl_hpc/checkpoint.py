@@ -53,6 +53,19 @@ def trained_before(checkpoint: "Checkpointer | None") -> float:
     return 0.0 if checkpoint is None else checkpoint.trained_before_s
 
 
+def scoring_progress(checkpoint: "Checkpointer | None", on_progress: Callable[[], None]) -> Callable[[], None]:
+    """The heartbeat of the scoring after training: ``on_progress``, then, once a stop was asked, the end of
+    training written (``Checkpointer.training_done``) and TrainingStopped, so that a resumed run only scores."""
+    if checkpoint is None:
+        return on_progress
+
+    def heartbeat() -> None:
+        on_progress()
+        checkpoint.stop_after_training()
+
+    return heartbeat
+
+
 def encoded(payload: dict[str, Any]) -> bytes:
     """``payload`` as a checkpoint file's bytes: the header line with the SHA-256 of torch.save's bytes, then them."""
     buffer = io.BytesIO()
@@ -92,6 +105,7 @@ class Checkpointer:
         self.resumes = 0
         self.writes, self.write_seconds = 0, 0.0
         self.made_for: dict[str, Any] = {"format": FORMAT}
+        self.trained: tuple[Callable[[], dict[str, Any]], int] | None = None  # the end of training: state, steps
 
     def ask_to_stop(self, *_: Any) -> None:
         """Write a checkpoint at the next block boundary and stop (a signal handler)."""
@@ -132,6 +146,18 @@ class Checkpointer:
         if self.stop_asked or time.monotonic() - self.last_write >= self.every_s:
             self.save(state(), step, total_steps)
         if self.stop_asked:
+            raise TrainingStopped
+
+    def training_done(self, state: Callable[[], dict[str, Any]], total_steps: int) -> None:
+        """Training has ended after ``total_steps``; ``state()`` is its state then (a run resumed from it trains no
+        more): a stop asked while the models are scored writes it (``stop_after_training``)."""
+        self.trained = (state, total_steps)
+
+    def stop_after_training(self) -> None:
+        """When a stop was asked after training ended: write the end of training and stop (TrainingStopped)."""
+        if self.stop_asked and self.trained is not None:
+            state, steps = self.trained
+            self.save(state(), steps, steps)
             raise TrainingStopped
 
     def save(self, state: dict[str, Any], step: int, total_steps: int) -> None:

@@ -15,7 +15,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info
+from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info, scoring_progress
 from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models import build_model
@@ -112,6 +112,43 @@ def test_a_group_over_repeated_data_stopped_and_resumed_gives_its_snapshots_bit_
     assert [[s.outcome.steps for s in member] for member in expected] == [[33, 66], [33]]
     (resumed, _) = interrupted(train, tmp_path / "group.pt")
     assert_same_snapshots(expected, resumed)
+
+
+def stopped_while_scoring(train, path) -> tuple[object, list[int]]:
+    """Train to the end, then ask to stop as scoring does (``scoring_progress``): the end of training is written and
+    training stops; a resumed run returns what it trained without a block. Returns that and the resumed run's
+    heartbeats."""
+    checkpoint = Checkpointer(path, every_s=3600, task_ids=["a", "b", "c"])
+    train(lambda: None, checkpoint)
+    scoring = scoring_progress(checkpoint, checkpoint.ask_to_stop)
+    with pytest.raises(TrainingStopped):
+        scoring()
+    assert read_info(path)["step"] == read_info(path)["total_steps"] > 0
+    beats: list[int] = []
+    return train(lambda: beats.append(1), Checkpointer(path, every_s=3600, task_ids=["a", "b", "c"])), beats
+
+
+def test_a_stop_while_scoring_keeps_the_trained_models_and_the_resumed_run_only_scores(compose, cache, tmp_path):
+    """A time limit's warning after training (while the test set is scored) writes the end of training: the
+    resumed group trains no block and has the same models, for both studies' loops."""
+    members, train_cfg = ph_members(compose, cache, [(6, 6, (3,)), (3, 3, ())])
+    train = lockstep_trainer(members, train_cfg)
+    resumed, beats = stopped_while_scoring(train, tmp_path / "state.pt")
+    assert beats == []
+    assert_same_snapshots(train(lambda: None), resumed)
+
+    cfg = compose("study=input_output", "system=silverbox_sim", "arch=narx")
+    base = {"system": OmegaConf.to_container(cfg.system, resolve=True), "arch": OmegaConf.to_container(cfg.arch)}
+    io_members = members_of(cfg, cache, [(700, 40, 4, 0), (400, 20, 3, 1)])
+
+    def io_train(on_progress, checkpoint=None):
+        return io_lockstep.train_lockstep(copy.deepcopy(io_members), OmegaConf.to_container(cfg.train),
+                                          horizon(base), on_progress, checkpoint)[1:]
+
+    (final, outcomes), beats = stopped_while_scoring(io_train, tmp_path / "io.pt")
+    assert beats == []
+    expected_final, expected_outcomes = io_train(lambda: None)
+    assert outcomes == expected_outcomes and torch.equal(final, expected_final)
 
 
 def stopped_once(train, path) -> None:

@@ -13,9 +13,10 @@ signal (a time limit ahead or a preemption; submitit calls ``checkpoint``) the r
 its state and stop (SIGUSR1), and the job is requeued with the running group and those it has not started: a
 group longer than a job's time limit runs as a chain of requeued jobs. A SIGTERM (``scontrol requeue``, a
 preemption without warning, ``scancel``) makes the child write its state and stop too; the job then ends, and
-its group continues where it stopped when the job runs again or is resubmitted. A group that does not stop
-that way (it hangs, or it is scoring after training), and any group without checkpoints, is recorded as
-timeout at the warning and the job is requeued with the groups it has not started.
+its group continues where it stopped when the job runs again or is resubmitted; asked while its models are
+scored, the child writes the end of training, and the group only scores when it runs again. A group that does not
+stop that way (it hangs, or it is scoring an input-output test set), and any group without checkpoints, is
+recorded as timeout at the warning and the job is requeued with the groups it has not started.
 
 A job trains a group only while it holds the group's lock: a second job (a resubmitted one beside a requeued
 one) leaves a group that a live job trains to it.
@@ -259,8 +260,8 @@ class JobRunner:
 
     def checkpoint(self, sweep_dir: str, groups: Sequence[Group]) -> submitit.helpers.DelayedSubmission | None:
         """On SLURM's warning signal (time limit or preemption): with checkpoints, have the running group write
-        its state and stop, and requeue it with the groups not started; a group that does not stop so (no
-        checkpoint: it hangs, or it is scoring after training), and any without checkpoints, is recorded as
+        its state and stop, and requeue it with the groups not started; a group that does not stop so (it hangs,
+        or it is scoring an input-output test set), and any without checkpoints, is recorded as
         timeout and not requeued (none left: no requeue, which SLURM would delay by minutes for nothing)."""
         resumed = [self.current] if self.current is not None else []  # stopped, or not started yet
         if self.running is not None:

@@ -282,7 +282,8 @@ def train_lockstep(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon:
     """Train every member as if alone (``cfg`` is the ``train`` group; ``horizon``: SUBNET's T); returns the
     group, each member's trained parameters (K, P) (rows of its ``theta`` layout) and outcomes. ``on_progress``
     is called after every block of ``BLOCK_STEPS`` iterations (a heartbeat); ``checkpoint`` continues from its
-    state, if any, and gets the state after each block (a resumed run gives the same outcomes, bit for bit).
+    state, if any, and gets the state after each block (a resumed run gives the same outcomes, bit for bit) and,
+    at the end, the state a stop during scoring writes (``Checkpointer.training_done``).
     With an enabled ``compiler`` the step is compiled, and the stack keeps static shapes (``stack_rows``)."""
     dtype = getattr(torch, cfg["dtype"])
     compiler = compiler or StepCompiler(False)
@@ -349,6 +350,8 @@ def train_lockstep(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon:
         on_progress()
         if checkpoint is not None and live:
             checkpoint.block_done(functools.partial(state, start), start, total)
+    if checkpoint is not None:
+        checkpoint.training_done(functools.partial(state, start), start)
     return nets, final, cast(list[TrainingOutcome], outcomes)  # every model has settled
 
 

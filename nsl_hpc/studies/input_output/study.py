@@ -19,7 +19,7 @@ import torch
 from omegaconf import DictConfig
 
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.checkpoint import Checkpointer, trained_before
+from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
 from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, require_member
 from nsl_hpc.models.blocks import require_block
@@ -147,7 +147,7 @@ class InputOutput(Study):
         nets, theta, outcomes = train_lockstep(members, plain(cfg.train, resolve=False), horizon(base), on_progress,
                                                checkpoint, compiler)
         train_seconds = (time.perf_counter() - started + trained_before(checkpoint)) / len(items)
-        on_progress()
+        scoring_progress(checkpoint, on_progress)()  # a stop asked by now keeps the trained models
         scores = score_records(members[0].model, numpy_mlps(nets, theta), [member.scaling for member in members],
                                benchmark.tests, system_cfg["init_samples"], system_cfg["mv_per_unit"])
         default = f"free_run_{system_cfg['score_on']}"

@@ -236,8 +236,9 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progres
     snapshots, by epochs (the last after its ``epochs``). Models that have finished leave the stack at the
     end of a block, so the stack holds the models that trained longest. ``on_progress`` is called after
     every block of ``BLOCK_STEPS`` steps (a heartbeat); ``checkpoint`` continues from its state, if any, and
-    gets the state after each block (a resumed run gives the same snapshots, bit for bit). With an enabled
-    ``compiler`` the step is compiled, and the stack keeps static shapes (``stack_rows``)."""
+    gets the state after each block (a resumed run gives the same snapshots, bit for bit) and, at the end, the state
+    a stop during scoring writes (``Checkpointer.training_done``). With an enabled ``compiler`` the step is compiled,
+    and the stack keeps static shapes (``stack_rows``)."""
     run = Lockstep(members, cfg, compiler)
     pending = [sorted({*member.milestones, member.epochs}) for member in members]  # epochs not yet kept, per member
     due: dict[int, list[tuple[int, int]]] = {}  # step index -> (member, epochs) kept after it
@@ -296,6 +297,8 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progres
             on_progress()
             if checkpoint is not None and start + size < total:
                 checkpoint.block_done(functools.partial(state, start + size), start + size, total)
+    if checkpoint is not None:
+        checkpoint.training_done(functools.partial(state, total), total)
     return run.stack, [[with_divergence(snapshot, outcome) for snapshot in member_snapshots]
                        for member_snapshots, outcome in zip(snapshots, outcomes, strict=True)]
 

@@ -16,7 +16,7 @@ import torch
 from omegaconf import DictConfig
 
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.checkpoint import Checkpointer, trained_before
+from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
 from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, require_choice, require_member, require_positive_int
 from nsl_hpc.models import build_model
@@ -121,11 +121,12 @@ class InputState(Study):
                 kept_at[i] = (k, by_epochs[items[i][1]["epochs"]])
         kept = [kept_at[i] for i in range(len(items))]
         test_data = build_test_set(plain(cfg.system), ArrayCache(cfg.cache_dir))
-        on_progress()
+        scoring = scoring_progress(checkpoint, on_progress)  # a stop from now on keeps the trained models
+        scoring()
         theta = torch.stack([snapshot.theta for _, snapshot in kept])
         scores = score_derivatives(stack, test_data, [members[k].scaling for k, _ in kept],
                                    getattr(torch, cfg.train.dtype), theta, [k for k, _ in kept],
-                                   cfg.metric.normalization, on_progress)
+                                   cfg.metric.normalization, scoring)
         return [{**model_scores, "steps": snapshot.outcome.steps,
                  "final_loss": snapshot.outcome.final_loss, "finite": snapshot.outcome.finite,
                  "train_seconds": train_seconds, "milestone": cfg.train.schedule_epochs is not None,
