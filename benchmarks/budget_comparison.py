@@ -95,10 +95,16 @@ def summary_rows(laws: list[dict], goal: float, fits: bool = True) -> list[str]:
     return lines
 
 
-def round_rows(budgeted_dir: Path, budgeted) -> list[str]:
-    seconds = dict(zip(budgeted["task_id"].to_pylist(), budgeted["train_seconds"].to_pylist(), strict=True))
+def task_seconds(results) -> dict[str, float]:
+    """Task id -> its trained seconds (``train_seconds``) in a results table."""
+    return dict(zip(results["task_id"].to_pylist(), results["train_seconds"].to_pylist(), strict=True))
+
+
+def round_rows(decisions: list[dict], seconds: dict[str, float]) -> list[str]:
+    """Per round of ``decisions``: its tasks, those run, those skipped and why, and the run ones' predicted and
+    trained (``seconds``) core-hours."""
     rounds: dict[int, list[dict]] = defaultdict(list)
-    for decision in read_decisions(budgeted_dir):
+    for decision in decisions:
         rounds[decision["round"]].append(decision)
     lines = ["| round | tasks | run | skipped (why) | predicted core-hours | trained core-hours |",
              "|---:|---:|---:|---|---:|---:|"]
@@ -128,7 +134,7 @@ def main() -> None:
     laws = law_ratios(full, full_fits, budgeted, budgeted_fits, nsl)
     print("\n".join(summary_rows(laws, args.goal)) + "\n")
     print("\n".join(law_rows(laws, args.goal)) + "\n")
-    print("\n".join(round_rows(args.budgeted, budgeted)))
+    print("\n".join(round_rows(read_decisions(args.budgeted), task_seconds(budgeted))))
 
 
 if __name__ == "__main__":

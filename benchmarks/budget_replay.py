@@ -21,7 +21,7 @@ can reach with a budget on this grid.
 """
 
 import argparse
-from collections import Counter, defaultdict
+from collections import Counter
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-from budget_comparison import fitted, law_ratios, law_rows, summary_rows
+from budget_comparison import fitted, law_ratios, law_rows, round_rows, summary_rows, task_seconds
 from scipy import sparse
 from scipy.optimize import Bounds, LinearConstraint, milp
 
@@ -68,19 +68,6 @@ def replay(full: pa.Table, overrides: list[str]) -> list[dict]:
     for number in range(1, rounds.count + 1):
         decisions += next_round(number, rounds, manifest, decisions, rows, planned_s, budget)
     return decisions
-
-
-def round_lines(decisions: Sequence[dict], seconds: dict[str, float]) -> list[str]:
-    """Per round: tasks run of its candidates, predicted and (in the full sweep) trained core-hours."""
-    by_round: dict[int, list[dict]] = defaultdict(list)
-    for decision in decisions:
-        by_round[decision["round"]].append(decision)
-    lines = ["| round | run of candidates | predicted / trained core-hours |", "|---:|---:|---:|"]
-    for number, chosen in sorted(by_round.items()):
-        run = [d for d in chosen if d["run"]]
-        lines.append(f"| {number} | {len(run):,} of {len(chosen):,} | {sum(d['cost_s'] for d in run) / 3600:.3f} / "
-                     f"{sum(seconds.get(d['task_id'], 0.0) for d in run) / 3600:.3f} |")
-    return lines
 
 
 def oracle_laws(full: pa.Table, full_fits: Sequence[dict], nsl: dict, manifest: dict[str, dict]) -> list[OracleLaw]:
@@ -162,12 +149,12 @@ def main() -> None:
     decisions = replay(full, args.overrides)
     ran = sorted(d["task_id"] for d in decisions if d["run"])
     budgeted = full.filter(pc.is_in(full["task_id"], value_set=pa.array(ran, pa.string())))
-    seconds = dict(zip(full["task_id"].to_pylist(), full["train_seconds"].to_pylist(), strict=True))
+    seconds = task_seconds(full)
     trained = sum(seconds[task_id] for task_id in ran) / 3600
     total = float(np.nansum(full["train_seconds"].to_numpy(zero_copy_only=False))) / 3600
     print(f"replayed: {len(ran):,} of {full.num_rows:,} tasks run, trained core-hours (in the full sweep) "
           f"{trained:.3f} of {total:.3f} ({trained / total:.0%})\n")
-    print("\n".join(round_lines(decisions, seconds)) + "\n")
+    print("\n".join(round_rows(decisions, seconds)) + "\n")
     budgeted_fits = [] if args.no_fits else fit_sweep(budgeted, fit_cfg.nsl, None)
     laws = law_ratios(full, full_fits, budgeted, budgeted_fits, nsl)
     print("\n".join(summary_rows(laws, args.goal, fits=not args.no_fits)))
