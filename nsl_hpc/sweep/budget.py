@@ -159,6 +159,11 @@ class Rounds:
         """The latest task of ``task_id``'s line that an earlier round ran (``ran``), if any."""
         return next((earlier for earlier in self.earlier[task_id] if earlier in ran), None)
 
+    @property
+    def structure(self) -> tuple[int, int]:
+        """(levels of round 1, levels per later round): what the decisions record and a relaunch must match."""
+        return self.first_levels, self.levels_per_round
+
     def tasks_of(self, number: int) -> list[str]:
         return [task_id for task_id, r in self.round.items() if r == number]
 
@@ -333,10 +338,10 @@ def next_round(number: int, rounds: Rounds, manifest: Mapping[str, Mapping[str, 
 def decide_next_round(sweep_dir: Path, number: int, rounds: Rounds, manifest: Mapping[str, Mapping[str, Any]],
                       planned_s: Callable[[Sequence[str]], float], budget: Budget) -> None:
     """Decide round ``number`` from the rows of the rounds before (``next_round``) and write its decisions."""
-    if decided_structure(sweep_dir) not in (None, (rounds.first_levels, rounds.levels_per_round)):
+    if decided_structure(sweep_dir) not in (None, rounds.structure):
         raise RunError(f"another launch decided round 1 of sweep_dir={str(sweep_dir)!r} with other rounds while "
                        "this one waited for the sweep: launch again")
     decisions = read_decisions(sweep_dir)
     rows = done_rows(sweep_dir, sorted(d["task_id"] for d in decisions if d["run"]))
     write_decisions(sweep_dir, number, next_round(number, rounds, manifest, decisions, rows, planned_s, budget),
-                    (rounds.first_levels, rounds.levels_per_round))
+                    rounds.structure)
