@@ -35,15 +35,16 @@ def mlp(in_dim: int, out_dim: int, width: int, depth: int, block: str) -> nn.Seq
     return nn.Sequential(*layers)
 
 
-def masked_layer_norm(a: torch.Tensor, mask: torch.Tensor | None, inverse: torch.Tensor
+def masked_layer_norm(a: torch.Tensor, mask: torch.Tensor | None, inverse: torch.Tensor, dim: int = -1
                       ) -> tuple[torch.Tensor, torch.Tensor]:
-    """LayerNorm without its affine part of a (..., width) over each model's own units, and 1 / the spread
-    (..., 1): ``inverse`` (..., 1) is 1 / their number, ``mask`` (..., width) 1 on them (None: all units are
-    its own). Padded units of ``a`` must be 0; they stay 0."""
-    centered = a - a.sum(dim=-1, keepdim=True) * inverse
+    """LayerNorm without its affine part of ``a`` over each model's own units along ``dim`` (a (..., width)
+    by default; a feature-major (..., width, B) with dim=-2), and 1 / the spread (size 1 along ``dim``):
+    ``inverse`` is 1 / their number, ``mask`` 1 on them (None: all units are its own), both broadcasting
+    against ``a``. Padded units of ``a`` must be 0; they stay 0."""
+    centered = a - a.sum(dim=dim, keepdim=True) * inverse
     if mask is not None:
         centered = centered * mask
-    spread = (centered.square().sum(dim=-1, keepdim=True) * inverse + LAYER_NORM_EPS).rsqrt()
+    spread = (centered.square().sum(dim=dim, keepdim=True) * inverse + LAYER_NORM_EPS).rsqrt()
     return centered * spread, spread
 
 

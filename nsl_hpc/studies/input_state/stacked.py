@@ -8,6 +8,10 @@ there are (a per-model, per-head loop costs M K times as many small operations, 
 of an operation is its overhead, not its arithmetic). The outputs then go through the architecture's own
 ``assemble``, the code the modules run.
 
+A chain computes feature-major: its activations are (K M, width, B), so a LayerNorm reduces over ``width`` rows
+of B contiguous samples rather than over rows of 2-16 units (2.5-3x faster steps at n_h 2-8 in
+benchmarks/feature_major.py, eager and compiled); inputs and outputs are (K, B, .) as elsewhere.
+
 Heads (and models) narrower or with fewer inputs or outputs than the widest of their chain are zero-padded;
 LayerNorm averages over each model's own units only, padded units compute exactly zero, and
 ``parameter_gradient`` masks their entries' gradients to exactly zero, so a padded model computes and learns
@@ -24,7 +28,7 @@ from typing import cast
 import torch
 from torch.nn import functional
 
-from nsl_hpc.models.blocks import LAYER_NORM_EPS, Head, masked_layer_norm
+from nsl_hpc.models.blocks import Head, masked_layer_norm
 from nsl_hpc.models.state_space import StateSpaceModel
 
 # Heads of different widths get chains of their own when K n_h (n_h of the widest) reaches this: measured
@@ -42,7 +46,7 @@ def shape_of(model: StateSpaceModel) -> tuple:
 
 @dataclass(frozen=True)
 class Units:
-    """Each model's own hidden units in a chain: ``mask`` (K, M_c, 1, width) 1 on them, ``inverse``
+    """Each model's own hidden units in a chain: ``mask`` (K, M_c, width, 1) 1 on them, ``inverse``
     (K, M_c, 1, 1) 1 / their number."""
 
     mask: torch.Tensor
@@ -51,7 +55,7 @@ class Units:
     @classmethod
     def of(cls, chain: "Chain", model_heads: list[list[Head]], dtype: torch.dtype) -> "Units":
         units = torch.tensor([[heads[h].width for h in chain.heads] for heads in model_heads], dtype=dtype)
-        return cls((torch.arange(chain.width) < units[..., None]).to(dtype)[:, :, None], (1.0 / units)[..., None, None])
+        return cls((torch.arange(chain.width) < units[..., None]).to(dtype)[..., None], (1.0 / units)[..., None, None])
 
     def rows(self, models: torch.Tensor) -> "Units":
         return Units(self.mask[models], self.inverse[models])
@@ -66,6 +70,12 @@ class Chain:
     in_dim: int
     width: int
     out_dim: int
+
+
+def feature_major(tensor: torch.Tensor) -> torch.Tensor:
+    """A layer's (K, M_c, rows, columns) tensor as (K M_c, columns, rows): a weight as it multiplies a
+    feature-major (K M_c, in, B) activation, a bias or LayerNorm affine as a (K M_c, out, 1) column."""
+    return tensor.flatten(0, 1).transpose(1, 2)
 
 
 class StackedModels:
@@ -90,9 +100,6 @@ class StackedModels:
         self.masked = bool((mask == 0).any())  # some entry is padding
         self.model_units = [Units.of(chain, model_heads, dtype) for chain in self.chains]  # of every model given
         self.padded = [bool((units.mask == 0).any()) for units in self.model_units]
-        energy = [self.architecture.energy_head in {self.heads[h].name for h in chain.heads} for chain in self.chains]
-        self.fused_norm = [not padded and not has_energy  # torch's layer_norm serves
-                           for padded, has_energy in zip(self.padded, energy, strict=True)]
         self.models = torch.arange(len(models))  # the models of the rows of theta
         self.units = self.model_units
 
@@ -180,50 +187,38 @@ class StackedModels:
                             tensor_mask[k, position, :value.shape[0], :value.shape[1]] = 1.0
 
     def heads_forward(self, zv: torch.Tensor, theta: torch.Tensor | None, units: list[Units]
-                      ) -> tuple[list[torch.Tensor], list[list[tuple[torch.Tensor | None, ...]]]]:
+                      ) -> tuple[list[torch.Tensor], list[list[tuple[torch.Tensor, ...]]]]:
         """Output (K, B, out) of every head for zv = (z, v) (K, B, n + m), with the trained parameters or the
         rows of ``theta`` (K, P) (models with hidden ``units``); and per chain, what each hidden layer keeps for
-        ``energy_gradient``: its activation's input t (K M_c, B, width) and, with LayerNorm, the normalised
-        units and 1 / their spread (K M_c, B, 1)."""
+        ``energy_gradient``, feature-major: its activation's input t (K M_c, width, B) and, with LayerNorm, the
+        normalised units and 1 / their spread (K M_c, 1, B)."""
         outputs: list[torch.Tensor | None] = [None] * len(self.heads)
-        kept: list[list[tuple[torch.Tensor | None, ...]]] = []
-        z = zv[..., :self.n]
+        kept: list[list[tuple[torch.Tensor, ...]]] = []
+        columns = zv.transpose(1, 2)  # (K, n + m, B)
         chains = self.chain_parameters() if theta is None else self.layers(theta)
         for c, (chain, layers) in enumerate(zip(self.chains, chains, strict=True)):
-            x = zv if chain.in_dim > self.n else z
-            x = x.unsqueeze(1).expand(-1, len(chain.heads), -1, -1).flatten(0, 1)  # (K M_c, B, in)
-            mask, inverse = units[c].mask.flatten(0, 1), units[c].inverse.flatten(0, 1)
-            chain_kept: list[tuple[torch.Tensor | None, ...]] = []
+            x = columns if chain.in_dim > self.n else columns[:, :self.n]
+            x = x.unsqueeze(1).expand(-1, len(chain.heads), -1, -1).flatten(0, 1)  # (K M_c, in, B)
+            mask = units[c].mask.flatten(0, 1) if self.padded[c] else None
+            inverse = units[c].inverse.flatten(0, 1)
+            chain_kept: list[tuple[torch.Tensor, ...]] = []
             for weight, bias, *norm in layers[:-1]:
-                a = torch.baddbmm(bias.flatten(0, 1), x, weight.flatten(0, 1))
+                a = torch.baddbmm(feature_major(bias), feature_major(weight), x)
                 if not norm:
                     x = torch.tanh(a)
                     chain_kept.append((x,))
                     continue
-                if a.shape[0] == 1 and self.fused_norm[c]:  # one model, one head: torch's LayerNorm as it is
-                    t = functional.layer_norm(a, a.shape[-1:], norm[0].view(-1), norm[1].view(-1), LAYER_NORM_EPS)
-                    normalized = spread = None
-                else:
-                    normalized, spread = self.normalize(a, c, mask, inverse)
-                    t = torch.addcmul(norm[1].flatten(0, 1), normalized, norm[0].flatten(0, 1))
+                normalized, spread = masked_layer_norm(a, mask, inverse, dim=-2)
+                t = torch.addcmul(feature_major(norm[1]), normalized, feature_major(norm[0]))
                 x = functional.silu(t)
                 chain_kept.append((t, normalized, spread))
             weight, bias = layers[-1]
-            out = torch.baddbmm(bias.flatten(0, 1), x, weight.flatten(0, 1)).view(zv.shape[0], len(chain.heads),
-                                                                                   zv.shape[1], -1)
+            out = torch.baddbmm(feature_major(bias), feature_major(weight), x).view(
+                zv.shape[0], len(chain.heads), -1, zv.shape[1])
             for h, head_out in zip(chain.heads, out.unbind(1), strict=True):
-                outputs[h] = head_out[..., :self.heads[h].out_dim]
+                outputs[h] = head_out[:, :self.heads[h].out_dim].transpose(1, 2)
             kept.append(chain_kept)
         return cast(list[torch.Tensor], outputs), kept  # every head is one chain's
-
-    def normalize(self, a: torch.Tensor, c: int, mask: torch.Tensor, inverse: torch.Tensor
-                  ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """LayerNorm without its affine part of a (K M_c, B, width) over each model's own units of chain c, and
-        1 / the spread (K M_c, B, 1) (None when no energy gradient needs it). Chains without padding or energy
-        head use torch's fused layer_norm; padded units of ``a`` are 0 and stay 0."""
-        if self.fused_norm[c]:
-            return functional.layer_norm(a, a.shape[-1:], eps=LAYER_NORM_EPS), None
-        return masked_layer_norm(a, mask if self.padded[c] else None, inverse)
 
     def forward(self, zv: torch.Tensor, theta: torch.Tensor | None = None,
                 models: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -250,19 +245,19 @@ class StackedModels:
         layers = (self.chain_parameters() if theta is None else self.layers(theta))[c]
         per_head = lambda tensor: tensor.view(-1, len(chain.heads), *tensor.shape[1:])[:, position]  # noqa: E731
         out_weight = layers[-1][0][:, position, :, :energy_out.shape[-1]]  # (K, width, k)
-        g = self.architecture.energy_slope(energy_out) @ out_weight.transpose(1, 2)  # (K, B, width)
+        g = out_weight @ self.architecture.energy_slope(energy_out).transpose(1, 2)  # (K, width, B)
         inverse = units[c].inverse[:, position]  # (K, 1, 1)
         for (weight, _, *norm), saved in zip(layers[-2::-1], kept[c][::-1], strict=True):
             if norm:
                 t, normalized, spread = (per_head(tensor) for tensor in saved)
                 s = torch.sigmoid(t)
-                g_hat = g * (s * (1 + t * (1 - s))) * norm[0][:, position]
-                mean_g = g_hat.sum(dim=-1, keepdim=True) * inverse
-                mean_gx = (g_hat * normalized).sum(dim=-1, keepdim=True) * inverse
+                g_hat = g * (s * (1 + t * (1 - s))) * norm[0][:, position].transpose(1, 2)
+                mean_g = g_hat.sum(dim=-2, keepdim=True) * inverse
+                mean_gx = (g_hat * normalized).sum(dim=-2, keepdim=True) * inverse
                 g = (g_hat - mean_g - normalized * mean_gx) * spread
             else:
                 x = per_head(saved[0])
                 g = g * (1 - x.square())
-            g = g @ weight[:, position].transpose(1, 2)
-        return g[..., :self.n]
+            g = weight[:, position] @ g  # (K, in, B)
+        return g[:, :self.n].transpose(1, 2)
 
