@@ -29,7 +29,7 @@ from typing import cast
 import torch
 from torch.nn import functional
 
-from nsl_hpc.models.blocks import Head, masked_layer_norm
+from nsl_hpc.models.blocks import LAYER_NORM_EPS, Head, masked_layer_norm
 from nsl_hpc.models.state_space import StateSpaceModel
 
 # Heads of different widths get chains of their own when K n_h (n_h of the widest) reaches this: measured
@@ -101,6 +101,9 @@ class StackedModels:
         self.masked = bool((mask == 0).any())  # some entry is padding
         self.model_units = [Units.of(chain, model_heads, dtype) for chain in self.chains]  # of every model given
         self.padded = [bool((units.mask == 0).any()) for units in self.model_units]
+        energy = [self.architecture.energy_head in {self.heads[h].name for h in chain.heads} for chain in self.chains]
+        self.fused_norm = [not padded and not has_energy  # torch's layer_norm serves a chain of one model and head
+                           for padded, has_energy in zip(self.padded, energy, strict=True)]
         self.models = torch.arange(len(models))  # the models of the rows of theta
         self.units = self.model_units
 
@@ -188,13 +191,14 @@ class StackedModels:
                             tensor_mask[k, position, :value.shape[0], :value.shape[1]] = 1.0
 
     def heads_forward(self, zv: torch.Tensor, theta: torch.Tensor | None, units: list[Units]
-                      ) -> tuple[list[torch.Tensor], list[list[tuple[torch.Tensor, ...]]]]:
+                      ) -> tuple[list[torch.Tensor], list[list[tuple[torch.Tensor | None, ...]]]]:
         """Output (K, B, out) of every head for zv = (z, v) (K, B, n + m), with the trained parameters or the
         rows of ``theta`` (K, P) (models with hidden ``units``); and per chain, what each hidden layer keeps for
         ``energy_gradient``, feature-major: its activation's input t (K M_c, width, B) and, with LayerNorm, the
-        normalised units and 1 / their spread (K M_c, 1, B)."""
+        normalised units and 1 / their spread (K M_c, 1, B) (None where torch's layer_norm served: a chain of one
+        model and head, without padding or energy head)."""
         outputs: list[torch.Tensor | None] = [None] * len(self.heads)
-        kept: list[list[tuple[torch.Tensor, ...]]] = []
+        kept: list[list[tuple[torch.Tensor | None, ...]]] = []
         columns = zv.transpose(1, 2)  # (K, n + m, B)
         chains = self.chain_parameters() if theta is None else self.layers(theta)
         for c, (chain, layers) in enumerate(zip(self.chains, chains, strict=True)):
@@ -202,15 +206,20 @@ class StackedModels:
             x = x.unsqueeze(1).expand(-1, len(chain.heads), -1, -1).flatten(0, 1)  # (K M_c, in, B)
             mask = units[c].mask.flatten(0, 1) if self.padded[c] else None
             inverse = units[c].inverse.flatten(0, 1)
-            chain_kept: list[tuple[torch.Tensor, ...]] = []
+            chain_kept: list[tuple[torch.Tensor | None, ...]] = []
             for weight, bias, *norm in layers[:-1]:
                 a = torch.baddbmm(feature_major(bias), feature_major(weight), x)
                 if not norm:
                     x = torch.tanh(a)
                     chain_kept.append((x,))
                     continue
-                normalized, spread = masked_layer_norm(a, mask, inverse, dim=-2)
-                t = torch.addcmul(feature_major(norm[1]), normalized, feature_major(norm[0]))
+                if a.shape[0] == 1 and self.fused_norm[c]:  # one model, one head: torch's LayerNorm as it is
+                    t = functional.layer_norm(a.transpose(1, 2), a.shape[1:2], norm[0].view(-1), norm[1].view(-1),
+                                              LAYER_NORM_EPS).transpose(1, 2)
+                    normalized = spread = None
+                else:
+                    normalized, spread = masked_layer_norm(a, mask, inverse, dim=-2)
+                    t = torch.addcmul(feature_major(norm[1]), normalized, feature_major(norm[0]))
                 x = functional.silu(t)
                 chain_kept.append((t, normalized, spread))
             weight, bias = layers[-1]
