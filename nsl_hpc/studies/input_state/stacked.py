@@ -101,9 +101,12 @@ class StackedModels:
         self.masked = bool((mask == 0).any())  # some entry is padding
         self.model_units = [Units.of(chain, model_heads, dtype) for chain in self.chains]  # of every model given
         self.padded = [bool((units.mask == 0).any()) for units in self.model_units]
-        energy = [self.architecture.energy_head in {self.heads[h].name for h in chain.heads} for chain in self.chains]
-        self.fused_norm = [not padded and not has_energy  # torch's layer_norm serves a chain of one model and head
-                           for padded, has_energy in zip(self.padded, energy, strict=True)]
+        # torch's layer_norm (over a transposed view) serves a stack of one model, in a chain of one head without
+        # energy head: faster for one model alone. Decided by the stack's models, not by the rows a forward pass
+        # has, so that a model's rounding never depends on how many others are still training or being scored.
+        self.fused_norm = [len(models) == 1 and len(chain.heads) == 1 and not padded
+                           and self.architecture.energy_head != self.heads[chain.heads[0]].name
+                           for chain, padded in zip(self.chains, self.padded, strict=True)]
         self.models = torch.arange(len(models))  # the models of the rows of theta
         self.units = self.model_units
 
@@ -195,8 +198,8 @@ class StackedModels:
         """Output (K, B, out) of every head for zv = (z, v) (K, B, n + m), with the trained parameters or the
         rows of ``theta`` (K, P) (models with hidden ``units``); and per chain, what each hidden layer keeps for
         ``energy_gradient``, feature-major: its activation's input t (K M_c, width, B) and, with LayerNorm, the
-        normalised units and 1 / their spread (K M_c, 1, B) (None where torch's layer_norm served: a chain of one
-        model and head, without padding or energy head)."""
+        normalised units and 1 / their spread (K M_c, 1, B) (None where torch's layer_norm served:
+        ``fused_norm``)."""
         outputs: list[torch.Tensor | None] = [None] * len(self.heads)
         kept: list[list[tuple[torch.Tensor | None, ...]]] = []
         columns = zv.transpose(1, 2)  # (K, n + m, B)
@@ -213,13 +216,12 @@ class StackedModels:
                     x = torch.tanh(a)
                     chain_kept.append((x,))
                     continue
-                if a.shape[0] == 1 and self.fused_norm[c]:  # one model, one head: torch's LayerNorm as it is
-                    t = functional.layer_norm(a.transpose(1, 2), a.shape[1:2], norm[0].view(-1), norm[1].view(-1),
-                                              LAYER_NORM_EPS).transpose(1, 2)
-                    normalized = spread = None
+                if self.fused_norm[c]:
+                    normalized = functional.layer_norm(a.transpose(1, 2), a.shape[1:2], eps=LAYER_NORM_EPS)
+                    normalized, spread = normalized.transpose(1, 2), None
                 else:
                     normalized, spread = masked_layer_norm(a, mask, inverse, dim=-2)
-                    t = torch.addcmul(feature_major(norm[1]), normalized, feature_major(norm[0]))
+                t = torch.addcmul(feature_major(norm[1]), normalized, feature_major(norm[0]))
                 x = functional.silu(t)
                 chain_kept.append((t, normalized, spread))
             weight, bias = layers[-1]
