@@ -29,7 +29,7 @@ from typing import cast
 import torch
 from torch.nn import functional
 
-from nsl_hpc.models.blocks import LAYER_NORM_EPS, Head, masked_layer_norm
+from nsl_hpc.models.blocks import Head, masked_layer_norm
 from nsl_hpc.models.state_space import StateSpaceModel
 
 # Heads of different widths get chains of their own when K n_h (n_h of the widest) reaches this: measured
@@ -101,12 +101,6 @@ class StackedModels:
         self.masked = bool((mask == 0).any())  # some entry is padding
         self.model_units = [Units.of(chain, model_heads, dtype) for chain in self.chains]  # of every model given
         self.padded = [bool((units.mask == 0).any()) for units in self.model_units]
-        # torch's layer_norm (over a transposed view) serves a stack of one model, in a chain of one head without
-        # energy head: faster for one model alone. Decided by the stack's models, not by the rows a forward pass
-        # has, so that a model's rounding never depends on how many others are still training or being scored.
-        self.fused_norm = [len(models) == 1 and len(chain.heads) == 1 and not padded
-                           and self.architecture.energy_head != self.heads[chain.heads[0]].name
-                           for chain, padded in zip(self.chains, self.padded, strict=True)]
         self.models = torch.arange(len(models))  # the models of the rows of theta
         self.units = self.model_units
 
@@ -194,14 +188,14 @@ class StackedModels:
                             tensor_mask[k, position, :value.shape[0], :value.shape[1]] = 1.0
 
     def heads_forward(self, zv: torch.Tensor, theta: torch.Tensor | None, units: list[Units]
-                      ) -> tuple[list[torch.Tensor], list[list[tuple[torch.Tensor | None, ...]]]]:
+                      ) -> tuple[list[torch.Tensor], list[list[tuple[torch.Tensor, ...]]]]:
         """Output (K, B, out) of every head for zv = (z, v) (K, B, n + m), with the trained parameters or the
         rows of ``theta`` (K, P) (models with hidden ``units``); and per chain, what each hidden layer keeps for
         ``energy_gradient``, feature-major: its activation's input t (K M_c, width, B) and, with LayerNorm, the
-        normalised units and 1 / their spread (K M_c, 1, B) (None where torch's layer_norm served:
-        ``fused_norm``)."""
+        normalised units and 1 / their spread (K M_c, 1, B). One formula for every number of rows: a model's
+        rounding never depends on how many others train or are scored beside it."""
         outputs: list[torch.Tensor | None] = [None] * len(self.heads)
-        kept: list[list[tuple[torch.Tensor | None, ...]]] = []
+        kept: list[list[tuple[torch.Tensor, ...]]] = []
         columns = zv.transpose(1, 2)  # (K, n + m, B)
         chains = self.chain_parameters() if theta is None else self.layers(theta)
         for c, (chain, layers) in enumerate(zip(self.chains, chains, strict=True)):
@@ -209,18 +203,14 @@ class StackedModels:
             x = x.unsqueeze(1).expand(-1, len(chain.heads), -1, -1).flatten(0, 1)  # (K M_c, in, B)
             mask = units[c].mask.flatten(0, 1) if self.padded[c] else None
             inverse = units[c].inverse.flatten(0, 1)
-            chain_kept: list[tuple[torch.Tensor | None, ...]] = []
+            chain_kept: list[tuple[torch.Tensor, ...]] = []
             for weight, bias, *norm in layers[:-1]:
                 a = torch.baddbmm(feature_major(bias), feature_major(weight), x)
                 if not norm:
                     x = torch.tanh(a)
                     chain_kept.append((x,))
                     continue
-                if self.fused_norm[c]:
-                    normalized = functional.layer_norm(a.transpose(1, 2), a.shape[1:2], eps=LAYER_NORM_EPS)
-                    normalized, spread = normalized.transpose(1, 2), None
-                else:
-                    normalized, spread = masked_layer_norm(a, mask, inverse, dim=-2)
+                normalized, spread = masked_layer_norm(a, mask, inverse, dim=-2)
                 t = torch.addcmul(feature_major(norm[1]), normalized, feature_major(norm[0]))
                 x = functional.silu(t)
                 chain_kept.append((t, normalized, spread))
