@@ -11,11 +11,12 @@ that they compute the same gradients.
 """
 
 import argparse
-import time
 from collections.abc import Callable
 
 import torch
 from torch.nn import functional
+
+from nsl_hpc.bench.measure import timed
 
 EPS = 1e-5
 BATCH, IN_DIM, OUT_DIM = 256, 3, 2  # spring: z, v in; dz/dt out
@@ -64,15 +65,9 @@ def gradient_step(loss: Callable[..., torch.Tensor]) -> Callable[..., list[torch
 def seconds_per_step(step: Callable[..., list[torch.Tensor]], args: list[torch.Tensor], repeats: int,
                      steps: int = 32) -> float:
     """The fastest of ``repeats`` blocks of ``steps`` calls, per call (s); one block first, untimed."""
-    for _ in range(steps):
-        step(*args)
-    best = float("inf")
-    for _ in range(repeats):
-        started = time.perf_counter()
-        for _ in range(steps):
-            step(*args)
-        best = min(best, (time.perf_counter() - started) / steps)
-    return best
+    block = lambda: [step(*args) for _ in range(steps)]  # noqa: E731
+    block()
+    return min(timed(block)[1] for _ in range(repeats)) / steps
 
 
 def main() -> None:

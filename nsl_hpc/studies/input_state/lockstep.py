@@ -212,8 +212,9 @@ class Lockstep:
         n, m, cfg, dtype = self.stack.n, self.stack.m, self.cfg, self.dtype
         rows = torch.stack([plan.take(size) for plan in self.plans])  # (K, L, W)
         offsets = (torch.arange(len(self.plans)) * self.data.shape[1])[:, None, None]
-        batches = self.data.flatten(0, 1).index_select(0, (rows + offsets).transpose(0, 1).reshape(-1)).view(
-            *rows.transpose(0, 1).shape, -1)  # (L, K, W, 2n + 2m); index_select: 3-4x faster than indexing
+        index = (rows + offsets).transpose(0, 1)  # (L, K, W) rows of the flattened data
+        batches = self.data.flatten(0, 1).index_select(0, index.reshape(-1)).view(
+            *index.shape, -1)  # (L, K, W, 2n + 2m); index_select: 3-4x faster than indexing
         inputs, targets = batches[..., :n + m], batches[..., n + m:]
         weights = loss_weights(targets, (rows != self.pad).transpose(0, 1).unsqueeze(-1).to(dtype), m, cfg["loss"],
                                cfg["output_weight"], cfg["loss_std_eps"])
