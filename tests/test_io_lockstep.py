@@ -46,22 +46,26 @@ def parameters_of(nets: StackedMLPs, theta: torch.Tensor, model: torch.nn.Module
     return cut
 
 
-@pytest.mark.parametrize(("arch", "compiled"), [
-    ("narx", False), ("subnet", False),
-    pytest.param("narx", True, marks=pytest.mark.slow), pytest.param("subnet", True, marks=pytest.mark.slow),
+@pytest.mark.parametrize(("arch", "compiled", "layout"), [
+    ("narx", False, "feature_major"), ("subnet", False, "feature_major"),
+    ("narx", False, "batch_major"), ("subnet", False, "batch_major"),
+    pytest.param("narx", True, "feature_major", marks=pytest.mark.slow),
+    pytest.param("subnet", True, "feature_major", marks=pytest.mark.slow),
 ])
-def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, compiled, compose, cache):
+def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, compiled, layout, compose, cache):
     """Eager, or compiled (``StepCompiler``, the first two models: one shape to compile; the compiled stack's
-    shrinking is tests/test_checkpoints.py's), each model of the pack trains as the plain loop trains it alone.
+    shrinking is tests/test_checkpoints.py's), each model of the pack trains as the plain loop trains it alone,
+    its activations stored either way (``train.feature_major_width``: the widths here are 3-6).
     Compiled SUBNET simulates T = 4 steps (Inductor takes minutes per shape to compile the study's unrolled 150)."""
-    cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}")
+    width = 8 if layout == "feature_major" else 0
+    cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}", f"train.feature_major_width={width}")
     base = {"system": OmegaConf.to_container(cfg.system, resolve=True), "arch": OmegaConf.to_container(cfg.arch)}
     steps = 4 if compiled else horizon(base)
     members = members_of(cfg, cache, MEMBERS[:2] if compiled else MEMBERS)  # compiled: 2 shapes to compile
     alone = [copy.deepcopy(member.model) for member in members]
     compiler = StepCompiler(compiled)
     nets, theta, outcomes = train_lockstep(members, OmegaConf.to_container(cfg.train), steps, compiler=compiler)
-    assert compiler.enabled == compiled
+    assert compiler.enabled == compiled and nets.feature_major == (layout == "feature_major")
     for k, (member, model) in enumerate(zip(members, alone, strict=True)):
         single = train_io_model(model, member.record, member.scaling, cfg.train, member.iterations, steps,
                                 member.shuffle_seed)

@@ -12,8 +12,12 @@ leaves at the end of the block (a compiled step keeps such models while that kee
 
 The MLPs of all K models (``model.mlps()``) are batched MLPs, weights (K, in, n_h), zero-padded to the widest
 n_h: LayerNorm averages over each model's own units and padded entries get exactly zero gradient, so a padded
-model computes and learns what it does alone. All parameters of a model are one row of ``theta`` (K, P):
-clipping and Adam are a few operations on (K, P) tensors (``studies.training.Adam``). SUBNET's T-step rollout
+model computes and learns what it does alone. A stack of several models no wider than
+``train.feature_major_width`` stores activations feature-major, (K, n_h, B), so a LayerNorm reduces over n_h
+rows of B contiguous windows rather than over rows of 2-8 units (as the input-state chains:
+``input_state.stacked``); a model alone, or wider ones, batch-major, (K, B, n_h), where torch's fused LayerNorm
+and fewer operations are faster. All parameters of a model are one row of ``theta`` (K, P): clipping and Adam
+are a few operations on (K, P) tensors (``studies.training.Adam``). SUBNET's T-step rollout
 advances all K models at once, and the inputs' part of f's first layer is computed for all T steps at once.
 """
 
@@ -73,9 +77,10 @@ def mlp_shape(net: nn.Sequential) -> tuple[int, int, int, bool]:
 
 class StackedMLPs:
     """The MLPs of K models of one architecture, depth and block as batched MLPs; ``theta`` (K, P) holds every
-    parameter, zero-padded to the widest hidden width ``width``."""
+    parameter, zero-padded to the widest hidden width ``width``. Their activations are stored feature-major when
+    there are several models no wider than ``feature_major_width``, batch-major otherwise."""
 
-    def __init__(self, models: Sequence[NARX | SUBNET], dtype: torch.dtype):
+    def __init__(self, models: Sequence[NARX | SUBNET], dtype: torch.dtype, feature_major_width: int = 0):
         first = models[0].mlps()
         self.shapes = {name: mlp_shape(net) for name, net in first.items()}
         if any({name: mlp_shape(net) for name, net in model.mlps().items()} != self.shapes for model in models):
@@ -83,6 +88,10 @@ class StackedMLPs:
                              f"MLPs {self.shapes}); widths may differ")
         own = [cast(nn.Linear, next(iter(model.mlps().values()))[0]).out_features for model in models]
         self.width = max(own)
+        self.alone = len(models) == 1
+        self.feature_major = not self.alone and self.width <= feature_major_width  # for the group's whole life
+        # an activation's dimensions of the units and of the B windows
+        self.features, self.samples = (-2, -1) if self.feature_major else (-1, -2)
         size = sum(rows * columns for name in self.shapes for layer in self.tensor_shapes(name)
                    for rows, columns in layer)
         self.use_theta(torch.zeros(len(models), size, dtype=dtype))
@@ -92,10 +101,16 @@ class StackedMLPs:
                 self.load(k, model, mask)
         self.gradient_mask = mask  # (K, P): 0 on padding
         units = torch.tensor(own, dtype=dtype)
+        # mask (K, 1, width) of each model's own units, 1 / their number (K, 1, 1): every model built from
         self.model_units = (torch.arange(self.width) < units[:, None]).to(dtype)[:, None], (1.0 / units)[:, None, None]
-        self.models = torch.arange(len(models))  # the models of the rows of theta
-        self.units = self.model_units
-        self.padded = bool((self.units[0] == 0).any())  # some model training is narrower than ``width``
+        self.train_models(torch.arange(len(models)))
+
+    def train_models(self, models: torch.Tensor) -> None:
+        """The rows of ``theta`` hold ``models`` (K',), indices of the models the stack was built from."""
+        self.models = models
+        mask, inverse = self.model_units
+        self.padded = bool((mask[models] == 0).any())  # some model training is narrower than ``width``
+        self.units = (self.orient(mask[models]) if self.padded else None, inverse[models])
 
     def tensor_shapes(self, name: str) -> list[list[tuple[int, int]]]:
         """(rows, columns) of each tensor of each layer of MLP ``name``."""
@@ -145,40 +160,51 @@ class StackedMLPs:
         """Keep only the models of ``rows`` (K',): ``theta`` becomes a new (K', P) tensor."""
         self.use_theta(self.theta.detach()[rows])
         self.gradient_mask = self.gradient_mask[rows]
-        self.models = self.models[rows]
-        mask, inverse = self.model_units
-        self.units = (mask[self.models], inverse[self.models])
-        self.padded = bool((self.units[0] == 0).any())
+        self.train_models(self.models[rows])
 
     def parameter_gradient(self, loss: torch.Tensor) -> torch.Tensor:
         """d loss / d parameters (K, P), exactly 0 on padding entries."""
         grads = torch.autograd.grad(loss, self.parameters, materialize_grads=True)
         return torch.cat([grad.reshape(len(self.theta), -1) for grad in grads], dim=1).mul_(self.gradient_mask)
 
-    def run(self, name: str, x: torch.Tensor, first: torch.Tensor | None = None,
-            layers: list[Layer] | None = None) -> torch.Tensor:
-        """Output (K, B, out) of the trained MLP ``name`` (or of its ``layers``, views of another theta) for x
-        (K, B, in), or from its first layer's pre-activation ``first`` (K, B, width) (then x is not read)."""
-        layers = self.trained[name] if layers is None else layers
+    def orient(self, tensor: torch.Tensor) -> torch.Tensor:
+        """A parameter tensor (K, rows, columns) as the stack's layout multiplies or adds it: transposed when
+        feature-major (a weight (K, out, in), a bias or LayerNorm affine (K, out, 1))."""
+        return tensor.mT if self.feature_major else tensor
+
+    def oriented(self, layers: Mapping[str, list[Layer]]) -> dict[str, list[Layer]]:
+        """``layers`` (as ``layers`` gives them) with every tensor oriented: what ``run`` takes."""
+        return {name: [tuple(self.orient(tensor) for tensor in layer) for layer in mlp] for name, mlp in layers.items()}
+
+    def activations(self, x: torch.Tensor) -> torch.Tensor:
+        """Inputs x (K, in, B) in the stack's layout: as they are, or (K, B, in) batch-major."""
+        return x if self.feature_major else x.mT
+
+    def run(self, x: torch.Tensor, layers: list[Layer], first: torch.Tensor | None = None) -> torch.Tensor:
+        """Output of one MLP, its ``layers`` oriented, for inputs x, or from its first layer's pre-activation
+        ``first`` (then x is not read); activations in the stack's layout: (K, features, B) or (K, B, features)."""
         for weight, bias, *norm in layers[:-1]:
-            a = torch.baddbmm(bias, x, weight) if first is None else first
+            a = self.linear(x, weight, bias) if first is None else first
             first, x = None, self.activate(a, norm)
         weight, bias = layers[-1]
-        return torch.baddbmm(bias, x, weight)
+        return self.linear(x, weight, bias)
+
+    def linear(self, x: torch.Tensor, weight: torch.Tensor, added: torch.Tensor) -> torch.Tensor:
+        """An oriented ``weight`` applied to x plus ``added`` (an oriented bias, or a pre-activation part)."""
+        return torch.baddbmm(added, weight, x) if self.feature_major else torch.baddbmm(added, x, weight)
 
     def activate(self, a: torch.Tensor, norm: list[torch.Tensor]) -> torch.Tensor:
-        """A hidden layer's activation of its pre-activation a (K, B, width): tanh, or LayerNorm over each
-        model's own units with its scale and shift, then SiLU."""
+        """A hidden layer's activation of its pre-activation a: tanh, or LayerNorm over each model's own units
+        with its oriented scale and shift, then SiLU. A model alone takes torch's fused LayerNorm (as its
+        module); a stack one formula whatever its rows, so a model's rounding does not depend on how many
+        others are left beside it."""
         if not norm:
             return torch.tanh(a)
         scale, shift = norm
-        if len(a) == 1 and not self.padded:  # one model: torch's fused LayerNorm as the module computes it
+        if self.alone:  # batch-major and never padded
             return functional.silu(functional.layer_norm(a, a.shape[-1:], scale.view(-1), shift.view(-1),
                                                          LAYER_NORM_EPS))
-        if self.padded:
-            normalized, _ = masked_layer_norm(a, self.units[0], self.units[1])
-        else:
-            normalized = functional.layer_norm(a, a.shape[-1:], eps=LAYER_NORM_EPS)
+        normalized, _ = masked_layer_norm(a, self.units[0], self.units[1], dim=self.features)
         return functional.silu(torch.addcmul(shift, normalized, scale))
 
 
@@ -217,36 +243,38 @@ class Windows:
             self.signals = self.signals[rows]
 
     def gather(self, signal: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:
-        """signal (K, N') at ``offsets`` after each of ``starts`` (K, B): (K, B, len(offsets))."""
-        index = (starts[..., None] + self.offsets).flatten(1)
-        return signal.gather(1, index).view(*starts.shape, len(self.offsets))
+        """signal (K, N') at ``offsets`` after each of ``starts`` (K, B), feature-major: (K, len(offsets), B)."""
+        index = (starts[:, None] + self.offsets[:, None]).flatten(1)
+        return signal.gather(1, index).view(len(starts), len(self.offsets), -1)
 
     def losses(self, nets: StackedMLPs, starts: torch.Tensor, weights: torch.Tensor,
                theta: torch.Tensor | None = None) -> torch.Tensor:
         """The loss (K,) of each model on its windows ``starts`` (K, B): the sum of ``weights`` (K, B) times the
         squared error of each window (NARX: one step ahead; SUBNET: summed over its T simulated steps), with
         the trained parameters or ``theta`` (K, P)."""
-        layers = nets.trained if theta is None else nets.layers(theta)
+        stored = nets.trained if theta is None else nets.layers(theta)
+        layers = nets.oriented(stored)
         if self.signals is not None:  # NARX
-            predicted = nets.run("net", self.gather(self.signals, starts), layers=layers["net"])[..., 0]
+            regressors = nets.activations(self.gather(self.signals, starts))
+            predicted = nets.run(regressors, layers["net"]).flatten(1)  # (K, B)
             target = self.y.gather(1, starts + self.past)
             return ((predicted - target).square() * weights).sum(dim=1)
-        u, y = self.gather(self.u, starts), self.gather(self.y, starts)  # (K, B, P + T)
-        past = self.past
-        x = nets.run("encoder", torch.cat([u[..., :past], y[..., :past]], dim=-1), layers=layers["encoder"])
-        weight, bias, *_ = layers["f"][0]
-        from_inputs = torch.addcmul(bias[:, None], u[..., past:].transpose(1, 2)[..., None],
-                                    weight[:, None, self.state_dim:])  # (K, T, B, width): u's part, every step
-        w_x = weight[:, :self.state_dim]
+        u, y = self.gather(self.u, starts), self.gather(self.y, starts)  # (K, P + T, B)
+        past, (models, batch) = self.past, weights.shape
+        x = nets.run(nets.activations(torch.cat([u[:, :past], y[:, :past]], dim=1)), layers["encoder"])  # n_x, B
+        weight, bias, *_ = stored["f"][0]
+        w_x, w_u, bias = (nets.orient(tensor) for tensor in (weight[:, :self.state_dim], weight[:, self.state_dim:],
+                                                              bias))
+        from_inputs = torch.addcmul(bias[:, None], u[:, past:].unsqueeze(nets.features),
+                                    w_u[:, None])  # (K, T, width, B) or (K, T, B, width): u's part, every step
         states = []
-        for from_input in from_inputs.unbind(1):  # unbind: one backward for all T (a slice's fills (K, T, B, width))
+        for from_input in from_inputs.unbind(1):  # unbind: one backward for all T (a slice's fills all T)
             states.append(x)
-            x = x + nets.run("f", x, first=torch.baddbmm(from_input, x, w_x), layers=layers["f"])
-        steps = max(1, H_CHUNK_VALUES // (x.shape[0] * x.shape[1] * nets.width))  # h of this many steps at once
-        target = y[..., past:].transpose(1, 2)  # (K, T, B)
-        simulated = torch.cat([nets.run("h", torch.cat(states[k:k + steps], dim=1), layers=layers["h"])
-                               for k in range(0, self.horizon, steps)], dim=1).view(target.shape)  # (K, T, B)
-        return ((simulated - target).square().sum(dim=1) * weights).sum(dim=1)
+            x = x + nets.run(x, layers["f"], first=nets.linear(x, w_x, from_input))
+        steps = max(1, H_CHUNK_VALUES // (models * batch * nets.width))  # h of this many steps at once
+        simulated = torch.cat([nets.run(torch.cat(states[k:k + steps], dim=nets.samples), layers["h"])
+                               .view(models, -1, batch) for k in range(0, self.horizon, steps)], dim=1)  # (K, T, B)
+        return ((simulated - y[:, past:]).square().sum(dim=1) * weights).sum(dim=1)
 
 
 class WindowOrder(BatchOrder):
@@ -287,7 +315,7 @@ def train_lockstep(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon:
     With an enabled ``compiler`` the step is compiled, and the stack keeps static shapes (``stack_rows``)."""
     dtype = getattr(torch, cfg["dtype"])
     compiler = compiler or StepCompiler(False)
-    nets = StackedMLPs([member.model for member in members], dtype)
+    nets = StackedMLPs([member.model for member in members], dtype, cfg["feature_major_width"])
     optimizer = Adam(nets.theta, cfg["grad_clip_norm"])
     windows = Windows(members, horizon, dtype)
     compiled_losses = compiler.wrap(functools.partial(compiled_step, windows, nets))
