@@ -195,16 +195,19 @@ class StackedMLPs:
 
     def activate(self, a: torch.Tensor, norm: list[torch.Tensor]) -> torch.Tensor:
         """A hidden layer's activation of its pre-activation a: tanh, or LayerNorm over each model's own units
-        with its oriented scale and shift, then SiLU. A model alone takes torch's fused LayerNorm (as its
-        module); a stack one formula whatever its rows, so a model's rounding does not depend on how many
-        others are left beside it."""
+        with its oriented scale and shift, then SiLU: torch's fused LayerNorm where every model uses all units
+        of a batch-major stack (with the affine part for a model alone, as its module), else the masked
+        formula of ``masked_layer_norm``."""
         if not norm:
             return torch.tanh(a)
         scale, shift = norm
         if self.alone:  # batch-major and never padded
             return functional.silu(functional.layer_norm(a, a.shape[-1:], scale.view(-1), shift.view(-1),
                                                          LAYER_NORM_EPS))
-        normalized, _ = masked_layer_norm(a, self.units[0], self.units[1], dim=self.features)
+        if self.feature_major or self.padded:
+            normalized, _ = masked_layer_norm(a, self.units[0], self.units[1], dim=self.features)
+        else:  # batch-major, every model as wide as the stack: torch's fused LayerNorm without its affine part
+            normalized = functional.layer_norm(a, a.shape[-1:], eps=LAYER_NORM_EPS)
         return functional.silu(torch.addcmul(shift, normalized, scale))
 
 
