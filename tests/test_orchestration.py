@@ -109,12 +109,22 @@ def test_a_job_pays_its_start_up_once_whatever_its_groups_and_only_on_slurm():
                for job, alone in zip(plans["slurm"], plans["local"], strict=True))
 
 
+def test_groups_fill_from_the_longest_models_down():
+    """33 models in groups of up to 32: the 32 longest train together and the shortest alone (filled from the
+    shortest up, the longest would run alone for the longest time); groups and their models ascend by steps."""
+    tasks = [task(f"t{i}", steps=10 + i) for i in range(33)]
+    groups = lockstep_groups(tasks[::-1], lockstep(size=32))
+    assert [[t["task_id"] for t in g] for g in groups] == [["t0"], [f"t{i}" for i in range(1, 33)]]
+
+
 def test_a_group_holds_no_more_models_than_its_largest_fits_in_the_memory_budget():
-    """Models of 100 MB (steps 0..5) then 300 MB (6..9) in a 1,000 MB budget: 10 of the first fit, 3 of the
-    second; a model larger than the budget still trains (alone)."""
+    """Models of 100 MB (steps 0..5) then 300 MB (6..9) in a 1,000 MB budget, filled from the longest: 3 of
+    300 MB, then t6 with two of 100 MB (3 x 300 MB), then the rest; a model larger than the budget still trains
+    (alone)."""
     tasks = [{**task(f"t{i}", steps=i), "train_memory_mb": 100.0 if i < 6 else 300.0} for i in range(10)]
     groups = lockstep_groups(tasks, lockstep(size=32, memory_mb=1000))
-    assert [[t["task_id"] for t in g] for g in groups] == [[f"t{i}" for i in range(6)], ["t6", "t7", "t8"], ["t9"]]
+    assert [[t["task_id"] for t in g] for g in groups] == [["t0", "t1", "t2", "t3"], ["t4", "t5", "t6"],
+                                                          ["t7", "t8", "t9"]]
     huge = [{**task("big"), "train_memory_mb": 5000.0}]
     assert [[t["task_id"] for t in g] for g in lockstep_groups(huge, lockstep(memory_mb=1000))] == [["big"]]
 

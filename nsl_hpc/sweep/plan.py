@@ -43,7 +43,10 @@ def lockstep_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, A
     """Manifest rows in groups of the tasks of at most ``lockstep["size"]`` models (``model_of``) of one
     ``lockstep_key`` that train in lockstep, by step count so that a group's models run about equally long, and
     so that their number times the largest's ``train_memory_mb`` stays within ``lockstep["memory_mb"]`` (a
-    model alone may exceed it); size 1 trains every model alone."""
+    model alone may exceed it); size 1 trains every model alone. Groups fill from the longest models down, so
+    the one left short holds the shortest: a key's groups then take the fewest steps in all (the input-state
+    study's 17% fewer than filling from the shortest up), and much of a step's cost does not depend on how
+    many models it carries. Each group, and a key's groups, in ascending step order."""
     runs: dict[tuple, list[Mapping[str, Any]]] = {}
     for task in tasks:
         runs.setdefault(model_of(task, lockstep["model_keys"]), []).append(task)
@@ -52,16 +55,16 @@ def lockstep_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, A
         by_key.setdefault(lockstep_key(run[0], lockstep["width_buckets"]), []).append(run)
     groups = []
     for key in sorted(by_key, key=str):
-        members = sorted(by_key[key], key=lambda run: (max(task["steps"] for task in run), run[0]["task_id"]))
-        group: list[list[Mapping[str, Any]]] = []
+        members = sorted(by_key[key], key=lambda run: (max(task["steps"] for task in run), run[0]["task_id"]),
+                         reverse=True)
+        key_groups: list[list[list[Mapping[str, Any]]]] = [[]]
         for run in members:
+            group = key_groups[-1]
             if group and (len(group) == lockstep["size"] or (len(group) + 1) * max(
                     memory_mb(member) for member in [*group, run]) > lockstep["memory_mb"]):
-                groups.append([task for member in group for task in member])
-                group = []
+                key_groups.append(group := [])
             group.append(run)
-        if group:
-            groups.append([task for member in group for task in member])
+        groups += [[task for member in reversed(group) for task in member] for group in reversed(key_groups)]
     return groups
 
 
