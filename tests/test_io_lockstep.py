@@ -58,7 +58,8 @@ def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, 
     its activations stored either way (``train.feature_major_width``: the widths here are 3-6).
     Compiled SUBNET simulates T = 4 steps (Inductor takes minutes per shape to compile the study's unrolled 150)."""
     width = 8 if layout == "feature_major" else 0
-    cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}", f"train.feature_major_width={width}")
+    cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}",
+                  f"train.feature_major_width.{arch}={width}")
     base = {"system": OmegaConf.to_container(cfg.system, resolve=True), "arch": OmegaConf.to_container(cfg.arch)}
     steps = 4 if compiled else horizon(base)
     members = members_of(cfg, cache, MEMBERS[:2] if compiled else MEMBERS)  # compiled: 2 shapes to compile

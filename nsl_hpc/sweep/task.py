@@ -68,8 +68,8 @@ def check_settings(values: Mapping[str, Any]) -> None:
         raise ConfigError(f"train.warmup_fraction={train['warmup_fraction']!r} must be in [0, 1)")
     if train["dtype"] not in ("float32", "float64"):
         raise ConfigError(f"train.dtype={train['dtype']!r} is unknown; choose one of: float32, float64")
-    if "feature_major_width" in train:  # the input-output lockstep's layout
-        require_non_negative_int("train.feature_major_width", train["feature_major_width"])
+    for arch, width in train.get("feature_major_width", {}).items():  # the input-output lockstep's layouts
+        require_non_negative_int(f"train.feature_major_width.{arch}", width)
 
 
 def task_id_from(study: Study, shared: str, values: Mapping[str, Any]) -> str:

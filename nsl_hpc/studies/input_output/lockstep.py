@@ -12,9 +12,9 @@ leaves at the end of the block (a compiled step keeps such models while that kee
 
 The MLPs of all K models (``model.mlps()``) are batched MLPs, weights (K, in, n_h), zero-padded to the widest
 n_h: LayerNorm averages over each model's own units and padded entries get exactly zero gradient, so a padded
-model computes and learns what it does alone. A stack of several models no wider than
+model computes and learns what it does alone. A stack of several models no wider than its architecture's
 ``train.feature_major_width`` stores activations feature-major, (K, n_h, B), so a LayerNorm reduces over n_h
-rows of B contiguous windows rather than over rows of 2-8 units (as the input-state chains:
+rows of B contiguous windows rather than over rows of a few units (as the input-state chains:
 ``input_state.stacked``); a model alone, or wider ones, batch-major, (K, B, n_h), where torch's fused LayerNorm
 and fewer operations are faster. All parameters of a model are one row of ``theta`` (K, P): clipping and Adam
 are a few operations on (K, P) tensors (``studies.training.Adam``). SUBNET's T-step rollout
@@ -318,9 +318,10 @@ def train_lockstep(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon:
     With an enabled ``compiler`` the step is compiled, and the stack keeps static shapes (``stack_rows``)."""
     dtype = getattr(torch, cfg["dtype"])
     compiler = compiler or StepCompiler(False)
-    nets = StackedMLPs([member.model for member in members], dtype, cfg["feature_major_width"])
-    optimizer = Adam(nets.theta, cfg["grad_clip_norm"])
     windows = Windows(members, horizon, dtype)
+    nets = StackedMLPs([member.model for member in members], dtype,
+                       cfg["feature_major_width"]["narx" if windows.narx else "subnet"])
+    optimizer = Adam(nets.theta, cfg["grad_clip_norm"])
     compiled_losses = compiler.wrap(functools.partial(compiled_step, windows, nets))
     batches = [min(cfg["batch_size"], count) for count in windows.counts]
     orders = [WindowOrder(count, batch, member.iterations, member.shuffle_seed, max(batches))
