@@ -68,7 +68,11 @@ def check_settings(values: Mapping[str, Any]) -> None:
         raise ConfigError(f"train.warmup_fraction={train['warmup_fraction']!r} must be in [0, 1)")
     if train["dtype"] not in ("float32", "float64"):
         raise ConfigError(f"train.dtype={train['dtype']!r} is unknown; choose one of: float32, float64")
-    for arch, width in train.get("feature_major_width", {}).items():  # the input-output lockstep's layouts
+    widths = train.get("feature_major_width", {})  # the input-output lockstep's layouts
+    if not isinstance(widths, Mapping):
+        raise ConfigError(f"train.feature_major_width={widths!r} must map each architecture to a width, e.g. "
+                          "{narx: 64, subnet: 8}")
+    for arch, width in widths.items():
         require_non_negative_int(f"train.feature_major_width.{arch}", width)
 
 

@@ -264,14 +264,14 @@ class Windows:
             return ((predicted - target).square() * weights).sum(dim=1)
         u, y = self.gather(self.u, starts), self.gather(self.y, starts)  # (K, P + T, B)
         past, (models, batch) = self.past, weights.shape
-        x = nets.run(nets.activations(torch.cat([u[:, :past], y[:, :past]], dim=1)), layers["encoder"])  # n_x, B
+        x = nets.run(nets.activations(torch.cat([u[:, :past], y[:, :past]], dim=1)), layers["encoder"])  # n_x by B
         weight, bias, *_ = stored["f"][0]
         w_x, w_u, bias = (nets.orient(tensor) for tensor in (weight[:, :self.state_dim], weight[:, self.state_dim:],
                                                               bias))
         from_inputs = torch.addcmul(bias[:, None], u[:, past:].unsqueeze(nets.features),
                                     w_u[:, None])  # (K, T, width, B) or (K, T, B, width): u's part, every step
         states = []
-        for from_input in from_inputs.unbind(1):  # unbind: one backward for all T (a slice's fills all T)
+        for from_input in from_inputs.unbind(1):  # unbind: one backward for all T (a slice's zero-fills all T)
             states.append(x)
             x = x + nets.run(x, layers["f"], first=nets.linear(x, w_x, from_input))
         steps = max(1, H_CHUNK_VALUES // (models * batch * nets.width))  # h of this many steps at once
