@@ -159,12 +159,12 @@ def test_stacked_models_compute_what_each_model_computes(arch, variant, state_di
     stack = StackedModels(models, torch.float64)
     z = torch.randn(count, 7, state_dim, dtype=torch.float64)
     v = torch.randn(count, 7, input_dim, dtype=torch.float64)
-    dz, y = stack.forward(torch.cat([z, v], dim=-1))
+    dz, y = stack.forward(torch.cat([z, v], dim=-1).transpose(1, 2))  # feature-major in and out
     grad = stack.parameter_gradient(dz.square().sum() + y.square().sum())
     for k, model in enumerate(models):
         expected_dz, expected_y = model(z[k], v[k])
-        torch.testing.assert_close(dz[k], expected_dz, rtol=1e-12, atol=1e-12)
-        torch.testing.assert_close(y[k], expected_y, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(dz[k].T, expected_dz, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(y[k].T, expected_y, rtol=1e-12, atol=1e-12)
         grads = torch.autograd.grad(expected_dz.square().sum() + expected_y.square().sum(), list(model.parameters()),
                                     materialize_grads=True)  # the H head's last bias does not enter grad H
         expected = torch.cat([g.flatten() for g in grads])

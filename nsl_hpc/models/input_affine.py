@@ -7,6 +7,7 @@ The study's form is the paper's: three MLPs of width n_h. The authors' code adds
 import torch
 
 from nsl_hpc.models.blocks import Head
+from nsl_hpc.models.layout import BATCH_MAJOR, Layout
 from nsl_hpc.models.state_space import Outputs, StateSpaceArchitecture
 
 
@@ -20,12 +21,11 @@ class InputAffine(StateSpaceArchitecture):
         heads = [Head("h", False, n, width), Head("j", False, n * m, width), Head("k", False, m, width)]
         return [*heads, Head("d", False, m * m, width)] if self.feedthrough else heads
 
-    def assemble(self, outputs: Outputs, v: torch.Tensor, grad_energy: torch.Tensor | None
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
-        n, m = self.n, self.m
-        gain = outputs["j"].unflatten(-1, (n, m))  # (B, n, m)
-        dz = outputs["h"] + (gain @ v.unsqueeze(-1)).squeeze(-1)
+    def assemble(self, outputs: Outputs, v: torch.Tensor, grad_energy: torch.Tensor | None,
+                 layout: Layout = BATCH_MAJOR) -> tuple[torch.Tensor, torch.Tensor]:
+        n, m, u = self.n, self.m, layout.column(v)
+        dz = outputs["h"] + layout.vector(layout.matmul(layout.matrix(outputs["j"], n, m), u))
         y = outputs["k"]
         if self.feedthrough:
-            y = y + (outputs["d"].unflatten(-1, (m, m)) @ v.unsqueeze(-1)).squeeze(-1)
+            y = y + layout.vector(layout.matmul(layout.matrix(outputs["d"], m, m), u))
         return dz, y

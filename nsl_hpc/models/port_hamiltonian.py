@@ -14,6 +14,7 @@ import torch
 
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models.blocks import Head
+from nsl_hpc.models.layout import BATCH_MAJOR, Layout
 from nsl_hpc.models.state_space import Outputs, StateSpaceArchitecture
 
 HAMILTONIANS = ("abs", "plain", "half_square")
@@ -61,23 +62,25 @@ class PortHamiltonian(StateSpaceArchitecture):
             return output
         return output.sign() if self.hamiltonian == "abs" else torch.ones_like(output)
 
-    def matrices(self, outputs: Outputs) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """J (B, n, n) skew-symmetric, R (B, n, n) symmetric PSD and G (B, n, m) from the heads' outputs."""
+    def matrices(self, outputs: Outputs, layout: Layout = BATCH_MAJOR
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """J (n x n) skew-symmetric, R (n x n) symmetric PSD and G (n x m) per sample from the heads' outputs:
+        (B, n, n) and (B, n, m) batch-major, (n, n, B) and (n, m, B) feature-major."""
         n, dtype = self.n, outputs["J"].dtype
         if dtype not in self.maps:
             self.maps[dtype] = (entries_to_matrix(n, "strict_upper", dtype),
                                 entries_to_matrix(n, "full" if self.dissipation == "square" else "lower", dtype))
         skew, factor = self.maps[dtype]
-        interconnection = (outputs["J"] @ skew).unflatten(-1, (n, n))
-        q = (outputs["R"] @ factor).unflatten(-1, (n, n))
-        dissipation = q @ q.transpose(-1, -2) / math.sqrt(n)
-        return interconnection, dissipation, outputs["G"].unflatten(-1, (n, self.m))
+        interconnection = layout.matrix(layout.linear(outputs["J"], skew), n, n)
+        q = layout.matrix(layout.linear(outputs["R"], factor), n, n)
+        dissipation = layout.matmul(q, layout.transposed(q)) / math.sqrt(n)
+        return interconnection, dissipation, layout.matrix(outputs["G"], n, self.m)
 
-    def assemble(self, outputs: Outputs, v: torch.Tensor, grad_energy: torch.Tensor | None
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    def assemble(self, outputs: Outputs, v: torch.Tensor, grad_energy: torch.Tensor | None,
+                 layout: Layout = BATCH_MAJOR) -> tuple[torch.Tensor, torch.Tensor]:
         if grad_energy is None:
             raise TypeError("a port-Hamiltonian model's dynamics need grad H")
-        interconnection, dissipation, gain = self.matrices(outputs)
-        grad = grad_energy.unsqueeze(-1)  # (B, n, 1)
-        dz = (interconnection - dissipation) @ grad + gain @ v.unsqueeze(-1)
-        return dz.squeeze(-1), (gain.transpose(-1, -2) @ grad).squeeze(-1)
+        interconnection, dissipation, gain = self.matrices(outputs, layout)
+        grad = layout.column(grad_energy)  # n x 1
+        dz = layout.matmul(interconnection - dissipation, grad) + layout.matmul(gain, layout.column(v))
+        return layout.vector(dz), layout.vector(layout.matmul(layout.transposed(gain), grad))

@@ -15,6 +15,7 @@ from torch import nn
 
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models.blocks import Head, mlp
+from nsl_hpc.models.layout import BATCH_MAJOR, Layout
 
 Outputs = Mapping[str, torch.Tensor]  # head name -> its output (B, out_dim)
 
@@ -44,10 +45,10 @@ class StateSpaceArchitecture(ABC):
         """The MLPs, in a fixed order."""
 
     @abstractmethod
-    def assemble(self, outputs: Outputs, v: torch.Tensor, grad_energy: torch.Tensor | None
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    def assemble(self, outputs: Outputs, v: torch.Tensor, grad_energy: torch.Tensor | None,
+                 layout: Layout = BATCH_MAJOR) -> tuple[torch.Tensor, torch.Tensor]:
         """dz/dt (B, n) and y (B, m) from the outputs of the heads (the energy head's aside), v (B, m) and
-        grad H (B, n) (None without an energy head)."""
+        grad H (B, n) (None without an energy head); with a feature-major ``layout`` each (B, k) is (k, B)."""
 
     def energy(self, output: torch.Tensor) -> torch.Tensor:
         """H (B,) from the energy head's output (B, k)."""

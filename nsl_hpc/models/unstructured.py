@@ -9,6 +9,7 @@ import torch
 
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models.blocks import Head
+from nsl_hpc.models.layout import BATCH_MAJOR, Layout
 from nsl_hpc.models.state_space import Outputs, StateSpaceArchitecture
 
 FORMS = ("joint", "split")
@@ -26,8 +27,8 @@ class Unstructured(StateSpaceArchitecture):
             return [Head("f", True, self.n + self.m, self.f_width)]
         return [Head("f", True, self.n, self.f_width), Head("g", False, self.m, self.width)]
 
-    def assemble(self, outputs: Outputs, v: torch.Tensor, grad_energy: torch.Tensor | None
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    def assemble(self, outputs: Outputs, v: torch.Tensor, grad_energy: torch.Tensor | None,
+                 layout: Layout = BATCH_MAJOR) -> tuple[torch.Tensor, torch.Tensor]:
         if self.form == "joint":
-            return outputs["f"][..., :self.n], outputs["f"][..., self.n:]
+            return layout.take(outputs["f"], 0, self.n), layout.take(outputs["f"], self.n, self.n + self.m)
         return outputs["f"], outputs["g"]

@@ -190,9 +190,9 @@ class Lockstep:
 
     def losses(self, theta: torch.Tensor | None, inputs: torch.Tensor, weighted_targets: torch.Tensor,
                weights: torch.Tensor) -> torch.Tensor:
-        """Each row's loss (K,) on one step's batch (inputs (K, W, n + m), the targets times -r and r (K, W, n + m):
-        ``loss_weights``), with the stack's parameters or ``theta`` (K, P)."""
-        predicted = torch.cat(self.stack.forward(inputs, theta), dim=-1)
+        """Each row's loss (K,) on one step's batch (feature-major: inputs (K, n + m, W), the targets times -r and
+        r (K, n + m, W): ``loss_weights``), with the stack's parameters or ``theta`` (K, P)."""
+        predicted = torch.cat(self.stack.forward(inputs, theta), dim=1)
         return torch.addcmul(weighted_targets, predicted, weights).square().sum(dim=(1, 2))
 
     def gradient(self, inputs: torch.Tensor, weighted_targets: torch.Tensor,
@@ -218,7 +218,9 @@ class Lockstep:
         inputs, targets = batches[..., :n + m], batches[..., n + m:]
         weights = loss_weights(targets, (rows != self.pad).transpose(0, 1).unsqueeze(-1).to(dtype), m, cfg["loss"],
                                cfg["output_weight"], cfg["loss_std_eps"])
-        weighted_targets = -targets * weights
+        # feature-major, (L, K, n + m, W), as the stack computes
+        inputs, weights = inputs.transpose(-1, -2).contiguous(), weights.transpose(-1, -2).contiguous()
+        weighted_targets = -targets.transpose(-1, -2) * weights
         steps = np.arange(start, start + size)[:, None]
         scheduled = learning_rate_at(steps, self.schedules, cfg["schedule"], cfg["warmup_fraction"], cfg["lr"])
         rates = torch.as_tensor(scheduled * (steps < self.totals), dtype=dtype).unsqueeze(-1)  # (L, K, 1)
@@ -337,9 +339,10 @@ def derivative_chunks(stack: StackedModels, data: Dataset, scalings: Sequence[Sc
     units = np.stack([scaling.derivative_unit for scaling in scalings])[:, None, :]  # (R, 1, n)
     for start in range(0, len(data), chunk):
         part = data.rows(start, start + chunk)
-        zv = torch.stack([torch.cat(scaling.model_inputs(part, dtype), dim=1) for scaling in scalings])
+        zv = torch.stack([torch.cat(scaling.model_inputs(part, dtype), dim=1).T
+                          for scaling in scalings])  # (R, n + m, c)
         with torch.no_grad():
-            predicted = stack.forward(zv, theta, rows)[0].double().numpy()
+            predicted = stack.forward(zv, theta, rows)[0].transpose(1, 2).double().numpy()
         on_progress()
         yield slice(start, start + len(part)), predicted * units
 

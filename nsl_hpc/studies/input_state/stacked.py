@@ -10,8 +10,10 @@ of an operation is its overhead, not its arithmetic). The outputs then go throug
 
 A chain computes feature-major: its activations are (K M, width, B), so a LayerNorm reduces over ``width`` rows
 of B contiguous samples rather than over rows of 2-16 units (benchmarks/feature_major.py, one chain at K = 32:
-1.7-2.5x faster eager and 2.7-3x compiled at n_h 2-8, about even at n_h 16 x 4 and wider); inputs and outputs
-are (K, B, .) as elsewhere.
+1.7-2.5x faster eager and 2.7-3x compiled at n_h 2-8, about even at n_h 16 x 4 and wider). Inputs and outputs
+are feature-major too, (K, features, B), and the architecture assembles its outputs feature-major
+(``models.layout``): the per-sample matrix products of the port-Hamiltonian and input-affine models are then
+elementwise operations over rows of B samples, not batched matmuls of K B tiny matrices.
 
 Heads (and models) narrower or with fewer inputs or outputs than the widest of their chain are zero-padded;
 LayerNorm averages over each model's own units only, padded units compute exactly zero, and
@@ -30,6 +32,7 @@ import torch
 from torch.nn import functional
 
 from nsl_hpc.models.blocks import Head, masked_layer_norm
+from nsl_hpc.models.layout import FEATURE_MAJOR
 from nsl_hpc.models.state_space import StateSpaceModel
 
 # Heads of different widths get chains of their own when K n_h (n_h of the widest) reaches this: measured
@@ -189,17 +192,16 @@ class StackedModels:
 
     def heads_forward(self, zv: torch.Tensor, theta: torch.Tensor | None, units: list[Units]
                       ) -> tuple[list[torch.Tensor], list[list[tuple[torch.Tensor, ...]]]]:
-        """Output (K, B, out) of every head for zv = (z, v) (K, B, n + m), with the trained parameters or the
+        """Output (K, out, B) of every head for zv = (z, v) (K, n + m, B), with the trained parameters or the
         rows of ``theta`` (K, P) (models with hidden ``units``); and per chain, what each hidden layer keeps for
         ``energy_gradient``, feature-major: its activation's input t (K M_c, width, B) and, with LayerNorm, the
         normalised units and 1 / their spread (K M_c, 1, B). One formula for every number of rows: a model's
         rounding never depends on how many others train or are scored beside it."""
         outputs: list[torch.Tensor | None] = [None] * len(self.heads)
         kept: list[list[tuple[torch.Tensor, ...]]] = []
-        columns = zv.transpose(1, 2)  # (K, n + m, B)
         chains = self.chain_parameters() if theta is None else self.layers(theta)
         for c, (chain, layers) in enumerate(zip(self.chains, chains, strict=True)):
-            x = columns if chain.in_dim > self.n else columns[:, :self.n]
+            x = zv if chain.in_dim > self.n else zv[:, :self.n]
             x = x.unsqueeze(1).expand(-1, len(chain.heads), -1, -1).flatten(0, 1)  # (K M_c, in, B)
             mask = units[c].mask.flatten(0, 1) if self.padded[c] else None
             inverse = units[c].inverse.flatten(0, 1)
@@ -216,29 +218,29 @@ class StackedModels:
                 chain_kept.append((t, normalized, spread))
             weight, bias = layers[-1]
             out = torch.baddbmm(feature_major(bias), feature_major(weight), x).view(
-                zv.shape[0], len(chain.heads), -1, zv.shape[1])
+                zv.shape[0], len(chain.heads), -1, zv.shape[2])
             for h, head_out in zip(chain.heads, out.unbind(1), strict=True):
-                outputs[h] = head_out[:, :self.heads[h].out_dim].transpose(1, 2)
+                outputs[h] = head_out[:, :self.heads[h].out_dim]
             kept.append(chain_kept)
         return cast(list[torch.Tensor], outputs), kept  # every head is one chain's
 
     def forward(self, zv: torch.Tensor, theta: torch.Tensor | None = None,
                 models: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """dz/dt (K, B, n) and y (K, B, m) for zv = (z, v) (K, B, n + m) of every model training, or of
+        """dz/dt (K, n, B) and y (K, m, B) for zv = (z, v) (K, n + m, B) of every model training, or of
         parameters ``theta`` (K, P) of the given ``models`` (indices of the models the stack was built from;
         default: those training)."""
         units = self.units if models is None else [model_units.rows(models) for model_units in self.model_units]
         outputs, kept = self.heads_forward(zv, theta, units)
-        v = zv[..., self.n:]
+        v = zv[:, self.n:]
         named = {head.name: out for head, out in zip(self.heads, outputs, strict=True)}
         grad = None
         if self.architecture.energy_head is not None:
             grad = self.energy_gradient(named.pop(self.architecture.energy_head), kept, theta, units)
-        return self.architecture.assemble(named, v, grad)
+        return self.architecture.assemble(named, v, grad, FEATURE_MAJOR)
 
     def energy_gradient(self, energy_out: torch.Tensor, kept: list, theta: torch.Tensor | None,
                         units: list[Units]) -> torch.Tensor:
-        """grad_z H (K, B, n), back-propagated through the energy head from its output (K, B, k): per hidden
+        """grad_z H (K, n, B), back-propagated through the energy head from its output (K, k, B): per hidden
         layer, SiLU' (t) = s (1 + t (1 - s)) with s = sigmoid(t) (tanh' = 1 - tanh^2), and LayerNorm's
         backward g -> (g^ - mean g^ - x^ mean(g^ x^)) / spread with g^ = g scale, means over the model's units."""
         h = next(index for index, head in enumerate(self.heads) if head.name == self.architecture.energy_head)
@@ -246,8 +248,8 @@ class StackedModels:
         position, chain = self.chains[c].heads.index(h), self.chains[c]
         layers = (self.chain_parameters() if theta is None else self.layers(theta))[c]
         per_head = lambda tensor: tensor.view(-1, len(chain.heads), *tensor.shape[1:])[:, position]  # noqa: E731
-        out_weight = layers[-1][0][:, position, :, :energy_out.shape[-1]]  # (K, width, k)
-        g = out_weight @ self.architecture.energy_slope(energy_out).transpose(1, 2)  # (K, width, B)
+        out_weight = layers[-1][0][:, position, :, :energy_out.shape[1]]  # (K, width, k)
+        g = out_weight @ self.architecture.energy_slope(energy_out)  # (K, width, B)
         inverse = units[c].inverse[:, position]  # (K, 1, 1)
         for (weight, _, *norm), saved in zip(layers[-2::-1], kept[c][::-1], strict=True):
             if norm:
@@ -261,5 +263,5 @@ class StackedModels:
                 x = per_head(saved[0])
                 g = g * (1 - x.square())
             g = weight[:, position] @ g  # (K, in, B)
-        return g[:, :self.n].transpose(1, 2)
+        return g[:, :self.n]
 
