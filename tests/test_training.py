@@ -53,9 +53,9 @@ def test_per_column_loss_divides_by_the_spread_of_each_column_of_the_unmasked_ba
     target = torch.tensor([[0.0, 0.0, 1.0], [2.0, 20.0, 5.0], [50.0, -7.0, 3.0]])
     predicted = target + torch.tensor([[1.0, 10.0, 2.0], [1.0, 10.0, 2.0], [99.0, 99.0, 99.0]])
     mask = torch.tensor([[1.0], [1.0], [0.0]])
-    weights = loss_weights(target, mask, outputs=1, loss="per_column", output_weight=0.25, eps=1e-6)
-    assert ((predicted - target) * weights).square().sum().item() == pytest.approx(1.25)
-    assert not loss_weights(target, torch.zeros(3, 1), 1, "per_column", 0.25, 1e-6).any()
+    weights = loss_weights(target.T, mask.T, outputs=1, loss="per_column", output_weight=0.25, eps=1e-6)
+    assert ((predicted - target).T * weights).square().sum().item() == pytest.approx(1.25)
+    assert not loss_weights(target.T, torch.zeros(1, 3), 1, "per_column", 0.25, 1e-6).any()
 
 
 def authors_normalized_mse(x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -71,8 +71,8 @@ def test_normalised_mse_divides_by_one_std_of_the_whole_target_of_the_unmasked_b
     predicted = target + torch.tensor([[1.0, -1.0, 2.0], [1.0, 1.0, -2.0], [-1.0, 1.0, 2.0], [9.0, 9.0, 9.0]],
                                       dtype=torch.float64)
     mask = torch.tensor([[1.0], [1.0], [1.0], [0.0]], dtype=torch.float64)
-    weights = loss_weights(target, mask, outputs=1, loss="normalised_mse", output_weight=0.25, eps=1e-6)
-    loss = ((predicted - target) * weights).square().sum().item()
+    weights = loss_weights(target.T, mask.T, outputs=1, loss="normalised_mse", output_weight=0.25, eps=1e-6)
+    loss = ((predicted - target).T * weights).square().sum().item()
     assert loss == pytest.approx(1 / 7.2 + 0.25 * 4 / 7, rel=1e-6)
     expected = (authors_normalized_mse(predicted[:3, :2], target[:3, :2])
                 + 0.25 * authors_normalized_mse(predicted[:3, 2:], target[:3, 2:]))

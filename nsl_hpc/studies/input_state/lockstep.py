@@ -106,29 +106,29 @@ LOSSES = ("normalised_mse", "per_column")
 
 def loss_weights(targets: torch.Tensor, mask: torch.Tensor, outputs: int, loss: str, output_weight: float,
                  eps: float) -> torch.Tensor:
-    """r (..., B, c) such that the loss of a batch is sum over b, c of ((predicted - target) r)^2. targets
-    (..., B, c): the state columns, then ``outputs`` output columns; mask (..., B, 1) of 0 / 1 (a batch with no
-    unmasked sample gets r = 0).
+    """r (..., c, B) such that the loss of a batch is sum over c, b of ((predicted - target) r)^2. targets
+    (..., c, B), feature-major: the state rows, then ``outputs`` output rows; mask (..., 1, B) of 0 / 1 (a batch
+    with no unmasked sample gets r = 0).
 
-    normalised_mse (the authors'): the mean over the unmasked entries of the state columns of
+    normalised_mse (the authors'): the mean over the unmasked entries of the state rows of
     ((predicted - target) / (s + eps))^2, s the standard deviation (ddof 1) of all those entries of the target,
-    plus ``output_weight`` times the same for the output columns. per_column: the mean over the unmasked
-    samples and the state columns of ((predicted - target) / s_j)^2, s_j the spread (ddof 0, at least eps) of
-    target column j, plus ``output_weight`` times that mean over the output columns."""
-    samples = mask.sum(dim=-2, keepdim=True).clamp_min(1.0)  # (..., 1, 1)
-    states = targets.shape[-1] - outputs
-    weights = []
-    for block, share in ((targets[..., :states], 1.0), (targets[..., states:], output_weight)):
-        entries = samples * block.shape[-1]
+    plus ``output_weight`` times the same for the output rows. per_column: the mean over the unmasked
+    samples and the state rows of ((predicted - target) / s_j)^2, s_j the spread (ddof 0, at least eps) of
+    target row j, plus ``output_weight`` times that mean over the output rows."""
+    samples = mask.sum(dim=-1, keepdim=True).clamp_min(1.0)  # (..., 1, 1)
+    states = targets.shape[-2] - outputs
+    scales = []
+    for block, share in ((targets[..., :states, :], 1.0), (targets[..., states:, :], output_weight)):
+        entries = samples * block.shape[-2]
         if loss == "per_column":
-            mean = (block * mask).sum(dim=-2, keepdim=True) / samples
-            spread = (((block - mean) * mask).square().sum(dim=-2, keepdim=True) / samples).sqrt().clamp_min(eps)
+            mean = (block * mask).sum(dim=-1, keepdim=True) / samples
+            spread = (((block - mean) * mask).square().sum(dim=-1, keepdim=True) / samples).sqrt().clamp_min(eps)
         else:
             mean = (block * mask).sum(dim=(-2, -1), keepdim=True) / entries
             deviation = ((block - mean) * mask).square().sum(dim=(-2, -1), keepdim=True)
             spread = (deviation / (entries - 1).clamp_min(1.0)).sqrt() + eps
-        weights.append((mask * (share / entries).sqrt() / spread).expand_as(block))
-    return torch.cat(weights, dim=-1)
+        scales.append(((share / entries).sqrt() / spread).expand(*block.shape[:-1], 1))  # (..., c_block, 1)
+    return torch.cat(scales, dim=-2) * mask
 
 
 def stacked_data(members: Sequence[Member], dtype: torch.dtype) -> torch.Tensor:
@@ -213,14 +213,13 @@ class Lockstep:
         rows = torch.stack([plan.take(size) for plan in self.plans])  # (K, L, W)
         offsets = (torch.arange(len(self.plans)) * self.data.shape[1])[:, None, None]
         index = (rows + offsets).transpose(0, 1)  # (L, K, W) rows of the flattened data
-        batches = self.data.flatten(0, 1).index_select(0, index.reshape(-1)).view(
-            *index.shape, -1)  # (L, K, W, 2n + 2m); index_select: 3-4x faster than indexing
-        inputs, targets = batches[..., :n + m], batches[..., n + m:]
-        weights = loss_weights(targets, (rows != self.pad).transpose(0, 1).unsqueeze(-1).to(dtype), m, cfg["loss"],
+        rows_taken = self.data.flatten(0, 1).index_select(0, index.reshape(-1))  # 3-4x faster than indexing
+        # (L, K, 2n + 2m, W): feature-major, as the stack computes
+        batches = rows_taken.view(*index.shape, -1).transpose(-1, -2).contiguous()
+        inputs, targets = batches[:, :, :n + m], batches[:, :, n + m:]
+        weights = loss_weights(targets, (rows != self.pad).transpose(0, 1).unsqueeze(-2).to(dtype), m, cfg["loss"],
                                cfg["output_weight"], cfg["loss_std_eps"])
-        # feature-major, (L, K, n + m, W), as the stack computes
-        inputs, weights = inputs.transpose(-1, -2).contiguous(), weights.transpose(-1, -2).contiguous()
-        weighted_targets = -targets.transpose(-1, -2) * weights
+        weighted_targets = -targets * weights
         steps = np.arange(start, start + size)[:, None]
         scheduled = learning_rate_at(steps, self.schedules, cfg["schedule"], cfg["warmup_fraction"], cfg["lr"])
         rates = torch.as_tensor(scheduled * (steps < self.totals), dtype=dtype).unsqueeze(-1)  # (L, K, 1)
