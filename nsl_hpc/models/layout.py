@@ -15,6 +15,8 @@ import torch
 
 @dataclass(frozen=True)
 class Layout:
+    """Features last (batch-major) or, with ``feature_major``, before the samples."""
+
     feature_major: bool
 
     @property
