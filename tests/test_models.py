@@ -11,6 +11,7 @@ from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import mlp, mlp_parameter_count, parameter_count
+from nsl_hpc.models.layout import BATCH_MAJOR, FEATURE_MAJOR
 from nsl_hpc.studies.input_state.stacked import StackedModels
 from nsl_hpc.systems import SYSTEMS
 from tests.helpers import ARCH_NAMES, SYSTEM_NAMES
@@ -170,3 +171,24 @@ def test_stacked_models_compute_what_each_model_computes(arch, variant, state_di
         expected = torch.cat([g.flatten() for g in grads])
         torch.testing.assert_close(grad[k][grad[k] != 0].abs().sort().values,  # padding entries are exactly 0
                                    expected[expected != 0].abs().sort().values, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize(("rows", "inner", "columns"), [(2, 2, 1), (3, 3, 3), (3, 2, 1)])
+def test_feature_major_products_equal_the_batch_major_ones_sample_by_sample(rows, inner, columns):
+    """Per-sample matrices as the stacked path holds them, (K, r, c, B), multiply, transpose and map as the
+    modules' (K, B, r, c) do, to float64 rounding."""
+    a = torch.randn(4, 9, rows * inner, dtype=torch.float64)  # (K, B, features) batch-major
+    b = torch.randn(4, 9, inner * columns, dtype=torch.float64)
+    mapping = torch.randn(rows * inner, 5, dtype=torch.float64)
+    as_feature_major = lambda x: x.transpose(1, 2)  # noqa: E731
+    batch = BATCH_MAJOR.matmul(BATCH_MAJOR.matrix(a, rows, inner), BATCH_MAJOR.matrix(b, inner, columns))
+    feature = FEATURE_MAJOR.matmul(FEATURE_MAJOR.matrix(as_feature_major(a), rows, inner),
+                                   FEATURE_MAJOR.matrix(as_feature_major(b), inner, columns))
+    torch.testing.assert_close(feature.permute(0, 3, 1, 2), batch, rtol=1e-12, atol=1e-12)
+    square = BATCH_MAJOR.matrix(a, rows, inner)
+    torch.testing.assert_close(FEATURE_MAJOR.transposed(FEATURE_MAJOR.matrix(as_feature_major(a), rows, inner))
+                               .permute(0, 3, 1, 2), BATCH_MAJOR.transposed(square))
+    torch.testing.assert_close(FEATURE_MAJOR.linear(as_feature_major(a), mapping),
+                               as_feature_major(BATCH_MAJOR.linear(a, mapping)), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(FEATURE_MAJOR.vector(FEATURE_MAJOR.column(as_feature_major(a))), as_feature_major(a))
+    torch.testing.assert_close(FEATURE_MAJOR.take(as_feature_major(a), 1, 2), as_feature_major(a[..., 1:2]))
