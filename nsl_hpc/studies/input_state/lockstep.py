@@ -213,9 +213,9 @@ class Lockstep:
         rows = torch.stack([plan.take(size) for plan in self.plans])  # (K, L, W)
         offsets = (torch.arange(len(self.plans)) * self.data.shape[1])[:, None, None]
         index = (rows + offsets).transpose(0, 1)  # (L, K, W) rows of the flattened data
-        rows_taken = self.data.flatten(0, 1).index_select(0, index.reshape(-1))  # 3-4x faster than indexing
+        gathered = self.data.flatten(0, 1).index_select(0, index.reshape(-1))  # 3-4x faster than indexing
         # (L, K, 2n + 2m, W): feature-major, as the stack computes
-        batches = rows_taken.view(*index.shape, -1).transpose(-1, -2).contiguous()
+        batches = gathered.view(*index.shape, -1).transpose(-1, -2).contiguous()
         inputs, targets = batches[:, :, :n + m], batches[:, :, n + m:]
         weights = loss_weights(targets, (rows != self.pad).transpose(0, 1).unsqueeze(-2).to(dtype), m, cfg["loss"],
                                cfg["output_weight"], cfg["loss_std_eps"])
