@@ -23,7 +23,7 @@ from nsl_hpc.models import build_model
 from nsl_hpc.studies.input_state.data import build_training_set
 from nsl_hpc.studies.input_state.lockstep import BLOCK_STEPS, Member, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
-from nsl_hpc.studies.training import batch_count
+from nsl_hpc.studies.settings import batch_count
 
 
 def main() -> None:

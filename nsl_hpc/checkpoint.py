@@ -23,8 +23,6 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from nsl_hpc.atomic import replacing, write_text
 
 FORMAT = 2  # 1: torch.save's bytes alone; 2: a header line with their SHA-256 first, and the run's layout inside
@@ -68,6 +66,8 @@ def scoring_progress(checkpoint: "Checkpointer | None", on_progress: Callable[[]
 
 def encoded(payload: dict[str, Any]) -> bytes:
     """``payload`` as a checkpoint file's bytes: the header line with the SHA-256 of torch.save's bytes, then them."""
+    import torch  # here, not with the module: the commands that read a sweep only read checkpoints' descriptions
+
     buffer = io.BytesIO()
     torch.save(payload, buffer)
     body = buffer.getvalue()
@@ -82,6 +82,8 @@ def decoded(raw: bytes) -> dict[str, Any]:
         raise ValueError("no checksum header (not a checkpoint of this format)")
     if hashlib.sha256(body).hexdigest().encode() != header[len(HEADER):]:
         raise ValueError("checksum mismatch: the file was changed after it was written")
+    import torch
+
     return torch.load(io.BytesIO(body), weights_only=True)
 
 

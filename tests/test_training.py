@@ -20,7 +20,8 @@ from nsl_hpc.studies.input_state.lockstep import (
 )
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.metrics import normalized_errors, scores_both_ways
-from nsl_hpc.studies.training import StepCompiler, batch_bounds, batch_count, stack_rows, warmup_cosine
+from nsl_hpc.studies.settings import batch_bounds, batch_count, warmup_cosine
+from nsl_hpc.studies.training import StepCompiler, stack_rows
 from nsl_hpc.systems import SYSTEMS
 from tests.helpers import ARCH_NAMES, SYSTEM_NAMES
 

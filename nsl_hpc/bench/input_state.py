@@ -40,7 +40,7 @@ from nsl_hpc.studies.input_state.data import build_test_set, build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, predict_derivatives, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.metrics import normalized_errors
-from nsl_hpc.studies.training import batch_count, warmup_cosine
+from nsl_hpc.studies.settings import batch_count, warmup_cosine
 from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments, with_compile
 from nsl_hpc.sweep.rows import write_row_atomically
 from nsl_hpc.systems import SYSTEMS

@@ -1,6 +1,7 @@
-"""What the training loops share: mini-batch bounds, the learning-rate schedule,
-the outcome record, Adam on the rows of a stack of models and the compiled step. The loops are ``input_state.lockstep``
-(input-state models) and ``input_output.lockstep`` (NARX and SUBNET), each alone or K in lockstep.
+"""What the training loops share: the outcome record, the batch order, Adam on the rows of a stack of models and
+the compiled step (mini-batch bounds and the learning-rate schedules: ``studies.settings``). The loops are
+``input_state.lockstep`` (input-state models) and ``input_output.lockstep`` (NARX and SUBNET), each alone or K in
+lockstep.
 """
 
 import math
@@ -17,41 +18,7 @@ def nonzero(scale: np.ndarray | float) -> np.ndarray:
     return np.where(scale > 0, scale, 1.0)
 
 
-def batch_count(samples: int, batch_size: int) -> int:
-    """Mini-batches per epoch: ceil(samples / batch_size), less one when a single sample would trail."""
-    count = -(-samples // batch_size)
-    return count - 1 if count > 1 and samples % batch_size == 1 else count
-
-
-def batch_bounds(samples: int, batch_size: int) -> list[tuple[int, int]]:
-    """[start, stop) of each of the ``batch_count`` mini-batches; a trailing single sample joins the last."""
-    starts = [i * batch_size for i in range(batch_count(samples, batch_size))]
-    return [(start, stop) for start, stop in zip(starts, [*starts[1:], samples], strict=True)]
-
-
-SCHEDULES = ("warmup_cosine", "constant")
 ADAM_BETAS, ADAM_EPS, CLIP_EPS = (0.9, 0.999), 1e-8, 1e-6  # torch.optim.Adam and clip_grad_norm_ defaults
-
-
-def warmup_cosine(total_steps: int, warmup_fraction: float, lr: float) -> np.ndarray:
-    """Learning rate of each step (total_steps,): linear warm-up from 0 over the first fraction, then cosine
-    decay to 0."""
-    return learning_rate_at(np.arange(total_steps), np.asarray(total_steps), "warmup_cosine", warmup_fraction, lr)
-
-
-def learning_rate_at(step: np.ndarray, total_steps: np.ndarray, schedule: str, warmup_fraction: float,
-                     lr: float) -> np.ndarray:
-    """The learning rate of ``schedule`` (one of SCHEDULES) at steps ``step`` of schedules ``total_steps`` steps
-    long (broadcast together); 0 at and after a schedule's end. warmup_cosine is the authors' LambdaLR factor
-    (stepped per batch): s / (w T) while s < w T, then (1 + cos(pi (s - w T) / ((1 - w) T))) / 2."""
-    if schedule == "constant":
-        rate = np.full(np.broadcast(step, total_steps).shape, lr)
-    else:
-        warmup = warmup_fraction * np.asarray(total_steps, dtype=float)
-        rising = lr * step / np.maximum(warmup, 1e-12)
-        progress = (step - warmup) / np.maximum(total_steps - warmup, 1e-12)
-        rate = np.where(step < warmup, rising, lr * 0.5 * (1 + np.cos(np.pi * progress)))
-    return np.where(step < total_steps, rate, 0.0)
 
 
 @dataclass(frozen=True)
@@ -157,7 +124,6 @@ class Adam:
         self.theta.addcdiv_(self.first * step_size, denominator, value=-1.0)
 
 
-COMPILE_MODES = ("auto", "always", "never")
 RECOMPILE_LIMIT = 64  # compiled variants of one step function per process (a group needs at most 1 + log2 K)
 
 

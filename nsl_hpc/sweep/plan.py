@@ -15,7 +15,7 @@ from nsl_hpc.config.launchers import SlurmLauncher, launcher_from
 from nsl_hpc.errors import ConfigError, require_choice, require_int, require_number, require_positive_int
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import model_of
-from nsl_hpc.studies.training import COMPILE_MODES
+from nsl_hpc.studies.settings import COMPILE_MODES
 from nsl_hpc.sweep.checkpoints import RENEW_S, STALE_S
 
 SBATCH_MEMORY = re.compile(r"[1-9][0-9]*[KMGT]?")  # sbatch --mem: megabytes, or with a unit

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import torch
 from omegaconf import DictConfig
 
 import nsl_hpc
@@ -24,7 +23,7 @@ from nsl_hpc.errors import ConfigError, require_choice, require_non_negative_int
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_of
 from nsl_hpc.studies.base import Study
-from nsl_hpc.studies.training import COMPILE_MODES
+from nsl_hpc.studies.settings import COMPILE_MODES
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.rows import write_row_atomically
 
@@ -157,6 +156,8 @@ def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lamb
         return results
     for i in todo:
         ensure_writable_dir(Path(cfgs[i].out_dir))
+    import torch  # here, not with the module: launch and resubmit plan with this module's checks without torch
+
     torch.set_num_threads(cfgs[todo[0]].threads)
     if cfgs[todo[0]].get("compile_cache_dir"):  # Inductor reads it when it first compiles
         os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(Path(cfgs[todo[0]].compile_cache_dir).resolve())

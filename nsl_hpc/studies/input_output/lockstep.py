@@ -38,13 +38,13 @@ from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.data import Signals
 from nsl_hpc.studies.input_output.training import SignalScaling
+from nsl_hpc.studies.settings import learning_rate_at
 from nsl_hpc.studies.training import (
     Adam,
     BatchOrder,
     StepCompiler,
     TrainingOutcome,
     compiled_gradient,
-    learning_rate_at,
     stack_rows,
 )
 

@@ -8,34 +8,39 @@ order depend on every coordinate (``draws: per_task``, Algorithm 2), or on all b
 (``shared_across_epochs``: tasks that differ only in m train the same model on the same data for longer);
 n_i = m n_l iterations of B windows. Compute c = p n_i B (NARX) or p n_i B T (SUBNET,
 whose p leaves out the encoder); data = n_l; model size = p.
+
+The models and the training code (torch: ~1.5 s to import) are imported by the functions that build or train a
+model, so that the commands that only read or check a sweep (status, merge, clean, resubmit) start without them.
 """
 
 import time
 from collections.abc import Callable, Mapping, Sequence
 from functools import cache
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
+import numpy as np
 from omegaconf import DictConfig
 
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
 from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, require_member
-from nsl_hpc.models.blocks import require_block
-from nsl_hpc.models.narx import NARX
-from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.base import Study, draw_tier
 from nsl_hpc.studies.input_output.data import Benchmark, load_benchmark, require_files
-from nsl_hpc.studies.input_output.lockstep import IOMember, train_lockstep
-from nsl_hpc.studies.input_output.scoring import numpy_mlps, score_records
-from nsl_hpc.studies.input_output.training import SignalScaling
-from nsl_hpc.studies.training import StepCompiler
+
+if TYPE_CHECKING:
+    from nsl_hpc.models.narx import NARX
+    from nsl_hpc.models.subnet import SUBNET
+    from nsl_hpc.studies.input_output.lockstep import IOMember
 
 
 def build_io_model(arch_cfg: Mapping[str, Any], system_cfg: Mapping[str, Any], width: int, depth: int
-                   ) -> NARX | SUBNET:
+                   ) -> "NARX | SUBNET":
     """The architecture ``arch_cfg.name`` (narx or subnet) with n_h = width, n_d = depth."""
+    from nsl_hpc.models.blocks import require_block
+    from nsl_hpc.models.narx import NARX
+    from nsl_hpc.models.subnet import SUBNET
+
     require_block(arch_cfg["block"])
     if arch_cfg["name"] == "narx":
         return NARX(arch_cfg["past_outputs"], arch_cfg["past_inputs"], width, depth, arch_cfg["block"])
@@ -67,7 +72,7 @@ def training_memory_mb(base: Mapping[str, Any], width: int, depth: int) -> float
     hidden layer, per window of the batch, for every MLP evaluation (NARX: F once; SUBNET: f and h at each of
     its T steps), plus the NARX regressors. Measured: a lockstep group of 16 SUBNETs at n_h 32, n_d 3, T 150 holds
     2.6 GB, 165 MB each (estimate 177)."""
-    batch, dtype_bytes = base["train"]["batch_size"], torch.finfo(getattr(torch, base["train"]["dtype"])).bits // 8
+    batch, dtype_bytes = base["train"]["batch_size"], np.dtype(base["train"]["dtype"]).itemsize
     if base["arch"]["name"] == "narx":
         values = 6 * width * depth + past_window(base["arch"]) + 2
     else:
@@ -137,6 +142,10 @@ class InputOutput(Study):
         record: nmae, nmse and rmse_mv are the free-run scores on ``system.score_on``, the others extra columns
         (``scoring``). train_seconds is the training time (over every resume from ``checkpoint``) divided among the
         items; compiled: whether the step ran compiled (``compile``)."""
+        from nsl_hpc.studies.input_output.lockstep import train_lockstep
+        from nsl_hpc.studies.input_output.scoring import numpy_mlps, score_records
+        from nsl_hpc.studies.training import StepCompiler
+
         cfg = items[0][0]
         system_cfg = plain(cfg.system)
         benchmark = load_benchmark(system_cfg, ArrayCache(cfg.cache_dir))
@@ -157,8 +166,13 @@ class InputOutput(Study):
                 for row, outcome in zip(scores, outcomes, strict=True)]
 
     def member(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
-               system_cfg: Mapping[str, Any], benchmark: Benchmark) -> IOMember:
+               system_cfg: Mapping[str, Any], benchmark: Benchmark) -> "IOMember":
         """The task's initialised model and training prefix, ready for ``train_lockstep``."""
+        import torch
+
+        from nsl_hpc.studies.input_output.lockstep import IOMember
+        from nsl_hpc.studies.input_output.training import SignalScaling
+
         torch.manual_seed(self.seed_for("init", task, cfg.draws))
         model = build_io_model(cfg.arch, system_cfg, sizes["width"], task["depth"])
         record = benchmark.train.head(sizes["train_points"])

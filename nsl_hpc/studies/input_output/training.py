@@ -21,7 +21,8 @@ from tqdm import tqdm
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.data import Signals
-from nsl_hpc.studies.training import TrainingOutcome, nonzero, warmup_cosine
+from nsl_hpc.studies.settings import warmup_cosine
+from nsl_hpc.studies.training import TrainingOutcome, nonzero
 
 
 @dataclass(frozen=True)

@@ -31,14 +31,13 @@ from nsl_hpc.studies.input_state.data import Dataset
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.input_state.stacked import StackedModels
 from nsl_hpc.studies.metrics import ErrorSums, spreads
+from nsl_hpc.studies.settings import batch_bounds, learning_rate_at
 from nsl_hpc.studies.training import (
     Adam,
     BatchOrder,
     StepCompiler,
     TrainingOutcome,
-    batch_bounds,
     compiled_gradient,
-    learning_rate_at,
     stack_rows,
 )
 
@@ -99,9 +98,6 @@ class BatchPlan(BatchOrder):
     def stop(self) -> None:
         """Take no more batches (the model diverged)."""
         self.remaining = 0
-
-
-LOSSES = ("normalised_mse", "per_column")
 
 
 def loss_weights(targets: torch.Tensor, mask: torch.Tensor, outputs: int, loss: str, output_weight: float,

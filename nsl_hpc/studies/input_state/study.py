@@ -5,29 +5,30 @@ n_h an integer in [n_h~/2, n_h~], n_d an integer in [n_d~/2, n_d~]. The draws, t
 batch order depend on every coordinate (``draws: per_task``, Algorithm 1), or on all but the epoch count
 (``shared_across_epochs``: tasks that differ only in n_e train the same model on the same data for longer).
 Compute c = p n_e N (flops column; N training points), data = N, model size = p.
+
+The models and the training code (torch: ~1.5 s to import) are imported by the functions that build or train a
+model, so that the commands that only read or check a sweep (status, merge, clean, resubmit) start without them.
 """
 
 import time
 from collections.abc import Callable, Mapping, Sequence
 from functools import cache
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
 from omegaconf import DictConfig
 
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
 from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, require_choice, require_member, require_positive_int
-from nsl_hpc.models import build_model
-from nsl_hpc.models.blocks import parameter_count
 from nsl_hpc.studies.base import Study, draw_tier, model_of
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set, points_per_trajectory, training_points
-from nsl_hpc.studies.input_state.lockstep import LOSSES, Member, Snapshot, score_derivatives, train_lockstep
-from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.metrics import NORMALIZATIONS
-from nsl_hpc.studies.training import SCHEDULES, StepCompiler, batch_count
+from nsl_hpc.studies.settings import LOSSES, SCHEDULES, batch_count
 from nsl_hpc.systems import SYSTEMS
+
+if TYPE_CHECKING:
+    from nsl_hpc.studies.input_state.lockstep import Member
 
 TIER_OF = {"data_tier": "data", "width_tier": "width", "depth_tier": "depth"}
 
@@ -35,6 +36,9 @@ TIER_OF = {"data_tier": "data", "width_tier": "width", "depth_tier": "depth"}
 @cache
 def model_parameters(arch_items: tuple, system: str, width: int, depth: int) -> int:
     """Parameter count of one architecture, built once per distinct shape."""
+    from nsl_hpc.models import build_model
+    from nsl_hpc.models.blocks import parameter_count
+
     system_class = SYSTEMS[system]
     model = build_model(dict(arch_items), system_class.state_dim, system_class.input_dim, width, depth)
     return parameter_count(model)
@@ -105,6 +109,11 @@ class InputState(Study):
         system's test set; with epoch milestones (train.schedule_epochs), items that differ only in epochs are
         one model, scored after each one's epochs. train_seconds is the training time (over every resume from
         ``checkpoint``) divided among the items; compiled: whether the step ran compiled (``compile``)."""
+        import torch
+
+        from nsl_hpc.studies.input_state.lockstep import Snapshot, score_derivatives, train_lockstep
+        from nsl_hpc.studies.training import StepCompiler
+
         runs: dict[tuple, list[int]] = {}
         for i, (cfg, task, _) in enumerate(items):
             runs.setdefault(model_of(task, self.model_keys(cfg)), []).append(i)
@@ -135,9 +144,15 @@ class InputState(Study):
                 for model_scores, (_, snapshot) in zip(scores, kept, strict=True)]
 
     def member(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
-               epochs: Sequence[int]) -> Member:
+               epochs: Sequence[int]) -> "Member":
         """The task's initialised model and training data, ready for ``train_lockstep``, trained to the largest
         of ``epochs`` and kept after each."""
+        import torch
+
+        from nsl_hpc.models import build_model
+        from nsl_hpc.studies.input_state.lockstep import Member
+        from nsl_hpc.studies.input_state.scaling import Scaling
+
         system_class = SYSTEMS[task["system"]]
         torch.manual_seed(self.seed_for("init", task, cfg.draws))
         model = build_model(cfg.arch, system_class.state_dim, system_class.input_dim, sizes["width"], sizes["depth"])

@@ -1,0 +1,43 @@
+"""The training settings a config names, and the step arithmetic a plan needs, without torch: the commands that
+check a config, plan a sweep or read one (launch's checks, status, merge, clean, resubmit) import this module,
+not the training loops (``studies.training``; torch alone is ~1.5 s of a command's start).
+"""
+
+import numpy as np
+
+SCHEDULES = ("warmup_cosine", "constant")
+LOSSES = ("normalised_mse", "per_column")  # input-state training losses (``input_state.lockstep.loss_weights``)
+COMPILE_MODES = ("auto", "always", "never")  # ``compile``: a sweep's planner resolves auto per group
+
+
+def batch_count(samples: int, batch_size: int) -> int:
+    """Mini-batches per epoch: ceil(samples / batch_size), less one when a single sample would trail."""
+    count = -(-samples // batch_size)
+    return count - 1 if count > 1 and samples % batch_size == 1 else count
+
+
+def batch_bounds(samples: int, batch_size: int) -> list[tuple[int, int]]:
+    """[start, stop) of each of the ``batch_count`` mini-batches; a trailing single sample joins the last."""
+    starts = [i * batch_size for i in range(batch_count(samples, batch_size))]
+    return [(start, stop) for start, stop in zip(starts, [*starts[1:], samples], strict=True)]
+
+
+def warmup_cosine(total_steps: int, warmup_fraction: float, lr: float) -> np.ndarray:
+    """Learning rate of each step (total_steps,): linear warm-up from 0 over the first fraction, then cosine
+    decay to 0."""
+    return learning_rate_at(np.arange(total_steps), np.asarray(total_steps), "warmup_cosine", warmup_fraction, lr)
+
+
+def learning_rate_at(step: np.ndarray, total_steps: np.ndarray, schedule: str, warmup_fraction: float,
+                     lr: float) -> np.ndarray:
+    """The learning rate of ``schedule`` (one of SCHEDULES) at steps ``step`` of schedules ``total_steps`` steps
+    long (broadcast together); 0 at and after a schedule's end. warmup_cosine is the authors' LambdaLR factor
+    (stepped per batch): s / (w T) while s < w T, then (1 + cos(pi (s - w T) / ((1 - w) T))) / 2."""
+    if schedule == "constant":
+        rate = np.full(np.broadcast(step, total_steps).shape, lr)
+    else:
+        warmup = warmup_fraction * np.asarray(total_steps, dtype=float)
+        rising = lr * step / np.maximum(warmup, 1e-12)
+        progress = (step - warmup) / np.maximum(total_steps - warmup, 1e-12)
+        rate = np.where(step < warmup, rising, lr * 0.5 * (1 + np.cos(np.pi * progress)))
+    return np.where(step < total_steps, rate, 0.0)
