@@ -6,6 +6,7 @@ manifests, launching, merging, fitting) is shared.
     input_output   silverbox, wiener_hammerstein and their *_sim stand-ins; narx, subnet  (.input_output)
 """
 
+import importlib
 from collections.abc import Mapping
 from typing import Any
 
@@ -13,6 +14,18 @@ from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies.base import Study
 from nsl_hpc.studies.input_output.study import InputOutput
 from nsl_hpc.studies.input_state.study import InputState
+
+# what the studies import where they build or train a model (their modules import none of it: a command that only
+# reads a sweep starts without torch)
+TRAINING_MODULES = ("nsl_hpc.models", "nsl_hpc.studies.input_state.lockstep", "nsl_hpc.studies.input_state.scaling",
+                    "nsl_hpc.studies.input_output.lockstep", "nsl_hpc.studies.input_output.scoring")
+
+
+def import_training_code() -> None:
+    """Import torch, the models and the training loops now (~1.5 s): a job does, once, before it forks a process
+    per lockstep group, each of which would import them again."""
+    for module in TRAINING_MODULES:
+        importlib.import_module(module)
 
 
 def studies() -> dict[str, Study]:

@@ -43,7 +43,7 @@ import submitit
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info, remove_checkpoint
-from nsl_hpc.studies import study_named
+from nsl_hpc.studies import import_training_code, study_named
 from nsl_hpc.sweep.checkpoints import GroupLock, checkpoint_path
 from nsl_hpc.sweep.directory import process_alive
 from nsl_hpc.sweep.failures import record_failure
@@ -161,6 +161,7 @@ class JobRunner:
         trains the group), stopped (asked to stop; the job ends)."""
         sweep = Path(sweep_dir)
         launch = read_launch_config(sweep)
+        import_training_code()  # once, not in each group's forked process
         self.checkpointing = checkpoint_seconds(launch) > 0
         self.stop_wait_s = launch.launcher.get("signal_delay_s", 60) / 2
         rows = manifest_rows(sweep, [task_id for group in groups for task_id in group.task_ids])
