@@ -75,9 +75,10 @@ def test_every_command_a_message_or_doc_names_exists():
         assert 'if __name__ == "__main__":' in Path(spec.origin).read_text(), f"{module} is no command"
 
 
-def test_the_commands_that_read_or_plan_a_sweep_start_without_torch():
-    """status, merge, clean, resubmit and launch import no torch (~1.5 s of their start) until a task trains."""
-    verbs = ("status", "merge", "clean", "resubmit", "launch")
+def test_the_commands_that_read_plan_or_fit_a_sweep_start_without_torch():
+    """The commands import no torch (~1.5 s of their start) until a task trains (launch, resubmit) or a fit by
+    nsl.objective=study runs."""
+    verbs = ("status", "merge", "clean", "resubmit", "launch", "fit", "report", "predict")
     code = (f"import sys; import {', '.join(f'nsl_hpc.{verb}' for verb in verbs)}; "
             "print(sorted(name for name in sys.modules if name == 'torch' or name.startswith('torch.')))")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -25,7 +25,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import torch
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.special import expit
@@ -264,6 +263,8 @@ def refine_study(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, settings: 
     delta_i)...], unbounded but for phi_i: held at ``study_phi`` (the published laws' 0.2) or, with
     study_phi = null, kept >= phi_min (the study's max(phi_i, 0.2)). Returns the iterate of least loss (the
     loss is piecewise linear: a constant-rate Adam circles its minimum instead of settling)."""
+    import torch  # here, not with the module: fits by the default objective (margin) start without it
+
     theta = theta.copy()
     phis = np.zeros(len(theta), dtype=bool)
     phis[4::3] = True
