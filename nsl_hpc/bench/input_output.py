@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from nsl_hpc.bench.measure import interpolate, planner_core_hours, study_manifest, timed
+from nsl_hpc.bench.measure import TASK_IMPORTS, interpolate, planner_core_hours, study_manifest, timed
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config, plain
 from nsl_hpc.errors import ConfigError
@@ -222,7 +222,7 @@ def report(rows: list[dict[str, Any]], projected: Mapping[str, Any], io: DictCon
 def input_output_part(cfg: DictConfig, root: Path) -> tuple[str, dict[str, Any]]:
     """The input-output table and its headline figures."""
     python = [sys.executable, "-c"]
-    _, process_s = timed(lambda: subprocess.run([*python, "import nsl_hpc.sweep.task"], check=True))
+    _, process_s = timed(lambda: subprocess.run([*python, TASK_IMPORTS], check=True))
     bench = IOBench(cfg, ArrayCache(root / "io-cache"))
     rows = speed_rows(bench)
     projected = projection(bench, process_s)

@@ -30,7 +30,14 @@ import torch
 from omegaconf import DictConfig
 from torch import nn
 
-from nsl_hpc.bench.measure import interpolate, matmul_peak_flops, planner_core_hours, study_manifest, timed
+from nsl_hpc.bench.measure import (
+    TASK_IMPORTS,
+    interpolate,
+    matmul_peak_flops,
+    planner_core_hours,
+    study_manifest,
+    timed,
+)
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config, plain
 from nsl_hpc.models import build_model
@@ -154,7 +161,7 @@ def task_breakdown(bench: Bench, cfg: DictConfig, root: Path) -> dict[str, float
     task = cfg.typical_task
     python = [sys.executable, "-c"]
     _, interpreter_s = timed(lambda: subprocess.run([*python, "pass"], check=True))
-    _, imports_s = timed(lambda: subprocess.run([*python, "import nsl_hpc.sweep.task"], check=True))
+    _, imports_s = timed(lambda: subprocess.run([*python, TASK_IMPORTS], check=True))
     miss_cache = ArrayCache(root / "miss")
     (data, _), miss_s = timed(lambda: (build_training_set(bench.system_cfg, 1, task.n_traj, miss_cache),
                                        build_test_set(bench.system_cfg, miss_cache)))

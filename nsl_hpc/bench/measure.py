@@ -15,6 +15,9 @@ from nsl_hpc.sweep.grid import build_manifest
 from nsl_hpc.sweep.plan import make_packs, packing_for, sweep_groups
 from nsl_hpc.sweep.prepare import pair_configs
 
+# what a process that trains tasks imports (python -c): the task runner and the training code it imports later
+TASK_IMPORTS = "import nsl_hpc.sweep.task, nsl_hpc.studies; nsl_hpc.studies.import_training_code()"
+
 
 def timed(function: Callable[..., Any], *args: Any) -> tuple[Any, float]:
     """(function(*args), the wall-clock seconds it took)."""
