@@ -9,7 +9,7 @@ import torch
 from omegaconf import OmegaConf
 
 from nsl_hpc.studies.input_output.data import Signals, load_benchmark
-from nsl_hpc.studies.input_output.lockstep import IOMember, StackedMLPs, train_lockstep
+from nsl_hpc.studies.input_output.lockstep import IOMember, StackedMLPs, Windows, step_gradient, train_lockstep
 from nsl_hpc.studies.input_output.study import build_io_model, horizon
 from nsl_hpc.studies.input_output.training import SignalScaling, train_io_model
 from nsl_hpc.studies.training import StepCompiler
@@ -46,20 +46,23 @@ def parameters_of(nets: StackedMLPs, theta: torch.Tensor, model: torch.nn.Module
     return cut
 
 
-@pytest.mark.parametrize(("arch", "compiled", "layout"), [
-    ("narx", False, "feature_major"), ("subnet", False, "feature_major"),
-    ("narx", False, "batch_major"), ("subnet", False, "batch_major"),
-    pytest.param("narx", True, "feature_major", marks=pytest.mark.slow),
-    pytest.param("subnet", True, "feature_major", marks=pytest.mark.slow),
+@pytest.mark.parametrize(("arch", "compiled", "layout", "segment"), [
+    ("narx", False, "feature_major", 0), ("subnet", False, "feature_major", 0),
+    ("narx", False, "batch_major", 0), ("subnet", False, "batch_major", 0),
+    pytest.param("narx", True, "feature_major", 0, marks=pytest.mark.slow),
+    pytest.param("subnet", True, "feature_major", 0, marks=pytest.mark.slow),
+    pytest.param("subnet", True, "batch_major", 3, marks=pytest.mark.slow),
 ])
-def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, compiled, layout, compose, cache):
+def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, compiled, layout, segment, compose,
+                                                                          cache):
     """Eager, or compiled (``StepCompiler``, the first two models: one shape to compile; the compiled stack's
     shrinking is tests/test_checkpoints.py's), each model of the pack trains as the plain loop trains it alone,
     its activations stored either way (``train.feature_major_width``: the widths here are 3-6).
-    Compiled SUBNET simulates T = 4 steps (Inductor takes minutes per shape to compile the study's unrolled 150)."""
+    Compiled SUBNET simulates T = 4 steps (Inductor takes a minute or more per shape to compile the study's
+    segments), in one graph or recomputed in segments of 3 and 1 steps (``train.rollout_segment``)."""
     width = 8 if layout == "feature_major" else 0
     cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}",
-                  f"train.feature_major_width.{arch}={width}")
+                  f"train.feature_major_width.{arch}={width}", f"train.rollout_segment={segment}")
     base = {"system": OmegaConf.to_container(cfg.system, resolve=True), "arch": OmegaConf.to_container(cfg.arch)}
     steps = 4 if compiled else horizon(base)
     members = members_of(cfg, cache, MEMBERS[:2] if compiled else MEMBERS)  # compiled: 2 shapes to compile
@@ -76,6 +79,29 @@ def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, 
         for packed, own in zip(parameters_of(nets, theta[k:k + 1], model),
                                parameters_of(trained_alone, trained_alone.theta.detach(), model), strict=True):
             torch.testing.assert_close(packed, own, rtol=PACKED_RTOL, atol=1e-6)
+
+
+@pytest.mark.parametrize("layout", ["feature_major", "batch_major"])
+def test_a_rollout_recomputed_in_segments_has_the_losses_and_gradient_of_the_whole_rollout(layout, compose, cache):
+    """``segmented_gradient`` (eager here: the function a compiled SUBNET step runs, its parts uncompiled) gives
+    each model's loss and gradient as one backward through all T steps does, with segments that divide T or
+    leave a shorter last one, and one longer than T."""
+    cfg = compose("study=input_output", "system=silverbox_sim", "arch=subnet")
+    members = members_of(cfg, cache, MEMBERS)
+    steps = 7
+    windows = Windows(members, steps, torch.float32)
+    nets = StackedMLPs([member.model for member in members], torch.float32, 8 if layout == "feature_major" else 0)
+    starts = torch.stack([torch.randperm(count, generator=torch.Generator().manual_seed(k))[:16]
+                          for k, count in enumerate(windows.counts)])
+    weights = torch.rand(len(members), 16, generator=torch.Generator().manual_seed(5))
+    whole = step_gradient(windows, nets, StepCompiler(False), 0)(nets.theta, nets.gradient_mask, starts, weights)
+    assert whole[1].abs().sum() > 0
+    for segment in (1, 3, 7, 10):
+        losses, grad = step_gradient(windows, nets, StepCompiler(False), segment)(nets.theta, nets.gradient_mask,
+                                                                                 starts, weights)
+        torch.testing.assert_close(losses, whole[0], rtol=1e-5, atol=0)
+        # float32 sums in another order: entries far below the largest differ by more than their own 1e-4
+        torch.testing.assert_close(grad, whole[1], rtol=1e-4, atol=1e-5 * float(whole[1].abs().max()))
 
 
 def test_a_diverging_model_leaves_the_others_of_its_pack_as_they_are_alone(compose, cache):

@@ -8,6 +8,7 @@ import math
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any, TypeVar, cast
 
 import numpy as np
 import torch
@@ -124,6 +125,7 @@ class Adam:
         self.theta.addcdiv_(self.first * step_size, denominator, value=-1.0)
 
 
+Step = TypeVar("Step", bound=Callable[..., Any])  # a function of tensors a StepCompiler compiles
 RECOMPILE_LIMIT = 64  # compiled variants of one step function per process (a group needs at most 1 + log2 K)
 
 
@@ -137,7 +139,7 @@ class StepCompiler:
     def __init__(self, enabled: bool):
         self.enabled = enabled
 
-    def wrap(self, step: Callable[..., torch.Tensor]) -> Callable[..., torch.Tensor]:
+    def wrap(self, step: Step) -> Step:
         """``step``, compiled while ``enabled``."""
         if not self.enabled:
             return step
@@ -150,7 +152,7 @@ class StepCompiler:
         torch._dynamo.config.fail_on_recompile_limit_hit = True
         compiled = torch.compile(step, dynamic=False, fullgraph=True)
 
-        def call(*args: torch.Tensor) -> torch.Tensor:
+        def call(*args: torch.Tensor) -> Any:
             if self.enabled:
                 try:
                     return compiled(*args)
@@ -161,7 +163,7 @@ class StepCompiler:
                           file=sys.stderr, flush=True)
             return step(*args)
 
-        return call
+        return cast(Step, call)
 
 
 def compiled_gradient(losses_of: Callable[..., torch.Tensor], theta: torch.Tensor, mask: torch.Tensor,

@@ -73,6 +73,8 @@ def check_settings(values: Mapping[str, Any]) -> None:
                           "{narx: 64, subnet: 8}")
     for arch, width in widths.items():
         require_non_negative_int(f"train.feature_major_width.{arch}", width)
+    if "rollout_segment" in train:  # the input-output study's
+        require_non_negative_int("train.rollout_segment", train["rollout_segment"])
 
 
 def task_id_from(study: Study, shared: str, values: Mapping[str, Any]) -> str:

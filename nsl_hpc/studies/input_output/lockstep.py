@@ -18,7 +18,9 @@ rows of B contiguous windows rather than over rows of a few units (as the input-
 ``input_state.stacked``); a model alone, or wider ones, batch-major, (K, B, n_h), where torch's fused LayerNorm
 and fewer operations are faster. All parameters of a model are one row of ``theta`` (K, P): clipping and Adam
 are a few operations on (K, P) tensors (``studies.training.Adam``). SUBNET's T-step rollout
-advances all K models at once, and the inputs' part of f's first layer is computed for all T steps at once.
+advances all K models at once, and the inputs' part of f's first layer is computed for all T steps at once;
+compiled, it is recomputed ``train.rollout_segment`` steps at a time (``segmented_gradient``), so a backward
+reads the activations of a few steps, still in cache, rather than those of all T.
 """
 
 import functools
@@ -263,21 +265,35 @@ class Windows:
             target = self.y.gather(1, starts + self.past)
             return ((predicted - target).square() * weights).sum(dim=1)
         u, y = self.gather(self.u, starts), self.gather(self.y, starts)  # (K, P + T, B)
-        past, (models, batch) = self.past, weights.shape
-        x = nets.run(nets.activations(torch.cat([u[:, :past], y[:, :past]], dim=1)), layers["encoder"])  # n_x by B
+        x = self.encode(nets, layers, u, y)
+        return self.simulate(nets, stored, layers, x, u[:, self.past:], y[:, self.past:], weights)[0]
+
+    def encode(self, nets: StackedMLPs, layers: Mapping[str, list[Layer]], u: torch.Tensor,
+               y: torch.Tensor) -> torch.Tensor:
+        """SUBNET's initial states of windows u, y (K, P + ..., B), from their first P samples: (K, n_x, B) or
+        (K, B, n_x)."""
+        return nets.run(nets.activations(torch.cat([u[:, :self.past], y[:, :self.past]], dim=1)), layers["encoder"])
+
+    def simulate(self, nets: StackedMLPs, stored: Mapping[str, list[Layer]], layers: Mapping[str, list[Layer]],
+                 x: torch.Tensor, u: torch.Tensor, y: torch.Tensor, weights: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+        """SUBNET's loss (K,) over the S steps of inputs u and targets y (K, S, B) simulated from states x, and
+        the state after them."""
+        models, batch = weights.shape
         weight, bias, *_ = stored["f"][0]
         w_x, w_u, bias = (nets.orient(tensor) for tensor in (weight[:, :self.state_dim], weight[:, self.state_dim:],
                                                               bias))
-        from_inputs = torch.addcmul(bias[:, None], u[:, past:].unsqueeze(nets.features),
-                                    w_u[:, None])  # (K, T, width, B) or (K, T, B, width): u's part, every step
+        from_inputs = torch.addcmul(bias[:, None], u.unsqueeze(nets.features),
+                                    w_u[:, None])  # (K, S, width, B) or (K, S, B, width): u's part, every step
         states = []
-        for from_input in from_inputs.unbind(1):  # unbind: one backward for all T (a slice's zero-fills all T)
+        for from_input in from_inputs.unbind(1):  # unbind: one backward for all S (a slice's zero-fills all S)
             states.append(x)
             x = x + nets.run(x, layers["f"], first=nets.linear(x, w_x, from_input))
+        horizon = len(states)
         steps = max(1, H_CHUNK_VALUES // (models * batch * nets.width))  # h of this many steps at once
         simulated = torch.cat([nets.run(torch.cat(states[k:k + steps], dim=nets.samples), layers["h"])
-                               .view(models, -1, batch) for k in range(0, self.horizon, steps)], dim=1)  # (K, T, B)
-        return ((simulated - y[:, past:]).square().sum(dim=1) * weights).sum(dim=1)
+                               .view(models, -1, batch) for k in range(0, horizon, steps)], dim=1)  # (K, S, B)
+        return ((simulated - y).square().sum(dim=1) * weights).sum(dim=1), x
 
 
 class WindowOrder(BatchOrder):
@@ -322,7 +338,7 @@ def train_lockstep(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon:
     nets = StackedMLPs([member.model for member in members], dtype,
                        cfg["feature_major_width"]["narx" if windows.narx else "subnet"])
     optimizer = Adam(nets.theta, cfg["grad_clip_norm"])
-    compiled_losses = compiler.wrap(functools.partial(compiled_step, windows, nets))
+    compiled_gradient_of = step_gradient(windows, nets, compiler, 0 if windows.narx else cfg["rollout_segment"])
     batches = [min(cfg["batch_size"], count) for count in windows.counts]
     orders = [WindowOrder(count, batch, member.iterations, member.shuffle_seed, max(batches))
               for count, batch, member in zip(windows.counts, batches, members, strict=True)]
@@ -361,8 +377,8 @@ def train_lockstep(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon:
         losses = torch.empty(size, len(rows), dtype=dtype)
         for i in range(size):
             if compiler.enabled:
-                step_losses, grad = compiled_gradient(compiled_losses, nets.theta, nets.gradient_mask,
-                                                      starts[i].clamp_min(0), weights[i])
+                step_losses, grad = compiled_gradient_of(nets.theta, nets.gradient_mask, starts[i].clamp_min(0),
+                                                         weights[i])
             else:
                 step_losses = windows.losses(nets, starts[i].clamp_min(0), weights[i])
                 grad = nets.parameter_gradient(step_losses.sum())
@@ -387,10 +403,68 @@ def train_lockstep(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon:
     return nets, final, cast(list[TrainingOutcome], outcomes)  # every model has settled
 
 
+def step_gradient(windows: Windows, nets: StackedMLPs, compiler: StepCompiler,
+                  segment: int) -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
+    """``gradient(theta, mask, starts, weights)``: the losses (K,) of a compiled step and their gradient (K, P),
+    0 where ``mask`` is; with ``segment`` > 0 (SUBNET) the rollout is compiled and recomputed that many steps
+    at a time (``segmented_gradient``), else the step is one compiled function (``compiled_step``)."""
+    if segment:
+        return functools.partial(segmented_gradient, windows, compiler.wrap(functools.partial(encode_step, windows,
+                                                                                               nets)),
+                                 compiler.wrap(functools.partial(simulate_step, windows, nets)), segment)
+    return functools.partial(compiled_gradient, compiler.wrap(functools.partial(compiled_step, windows, nets)))
+
+
 def compiled_step(windows: Windows, nets: StackedMLPs, theta: torch.Tensor, starts: torch.Tensor,
                   weights: torch.Tensor) -> torch.Tensor:
     """``Windows.losses`` with parameters ``theta``: the function a ``StepCompiler`` compiles."""
     return windows.losses(nets, starts, weights, theta)
+
+
+def encode_step(windows: Windows, nets: StackedMLPs, theta: torch.Tensor, u: torch.Tensor,
+                y: torch.Tensor) -> torch.Tensor:
+    """``Windows.encode`` with parameters ``theta``: a function a ``StepCompiler`` compiles."""
+    return windows.encode(nets, nets.oriented(nets.layers(theta)), u, y)
+
+
+def simulate_step(windows: Windows, nets: StackedMLPs, theta: torch.Tensor, x: torch.Tensor, u: torch.Tensor,
+                  y: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``Windows.simulate`` with parameters ``theta``: a function a ``StepCompiler`` compiles."""
+    stored = nets.layers(theta)
+    return windows.simulate(nets, stored, nets.oriented(stored), x, u, y, weights)
+
+
+def segmented_gradient(windows: Windows, encode: Callable[..., torch.Tensor], simulate: Callable[..., Any],
+                       segment: int, theta: torch.Tensor, mask: torch.Tensor, starts: torch.Tensor,
+                       weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """SUBNET's losses (K,) and their gradient (K, P) (0 where ``mask`` is), the rollout recomputed ``segment``
+    steps at a time: a forward pass without gradients keeps the states where segments start, then each segment,
+    last first, runs again and back-propagates, so a backward reads the activations of one segment only."""
+    u, y = windows.gather(windows.u, starts), windows.gather(windows.y, starts)  # (K, P + T, B)
+    past = windows.past
+    leaf = theta.detach().requires_grad_(True)
+    first = encode(leaf, u, y)
+    bounds = list(range(past, past + windows.horizon, segment))
+    states = [first.detach()]
+    with torch.no_grad():
+        for start in bounds[:-1]:
+            states.append(simulate(leaf, states[-1], u[:, start:start + segment], y[:, start:start + segment],
+                                   weights)[1])
+    grad, losses, upstream = torch.zeros_like(theta), torch.zeros(len(theta), dtype=theta.dtype), None
+    for start, state in zip(reversed(bounds), reversed(states), strict=True):
+        state = state.requires_grad_(True)
+        segment_losses, end = simulate(leaf, state, u[:, start:start + segment], y[:, start:start + segment],
+                                       weights)
+        outputs: list[torch.Tensor] = [segment_losses.sum()]
+        upstreams: list[torch.Tensor | None] = [None]
+        if upstream is not None:
+            outputs.append(end)
+            upstreams.append(upstream)
+        theta_grad, upstream = torch.autograd.grad(outputs, [leaf, state], upstreams)
+        grad += theta_grad
+        losses += segment_losses.detach()
+    (theta_grad,) = torch.autograd.grad(first, leaf, upstream)
+    return losses, grad.add_(theta_grad).mul_(mask)
 
 
 def leave(nets: StackedMLPs, optimizer: Adam, windows: Windows, rows: list[int]) -> None:
