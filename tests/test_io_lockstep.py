@@ -50,8 +50,8 @@ def parameters_of(nets: StackedMLPs, theta: torch.Tensor, model: torch.nn.Module
     ("narx", False, "feature_major", 0), ("subnet", False, "feature_major", 0),
     ("narx", False, "batch_major", 0), ("subnet", False, "batch_major", 0),
     pytest.param("narx", True, "feature_major", 0, marks=pytest.mark.slow),
-    pytest.param("subnet", True, "feature_major", 0, marks=pytest.mark.slow),
-    pytest.param("subnet", True, "batch_major", 3, marks=pytest.mark.slow),
+    pytest.param("subnet", True, "feature_major", 3, marks=pytest.mark.slow),
+    pytest.param("subnet", True, "batch_major", 0, marks=pytest.mark.slow),
 ])
 def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, compiled, layout, segment, compose,
                                                                           cache):
@@ -62,7 +62,7 @@ def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, 
     segments), in one graph or recomputed in segments of 3 and 1 steps (``train.rollout_segment``)."""
     width = 8 if layout == "feature_major" else 0
     cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}",
-                  f"train.feature_major_width.{arch}={width}", f"train.rollout_segment={segment}")
+                  f"train.feature_major_width.{arch}={width}", f"train.rollout_segment.{layout}={segment}")
     base = {"system": OmegaConf.to_container(cfg.system, resolve=True), "arch": OmegaConf.to_container(cfg.arch)}
     steps = 4 if compiled else horizon(base)
     members = members_of(cfg, cache, MEMBERS[:2] if compiled else MEMBERS)  # compiled: 2 shapes to compile

@@ -19,8 +19,8 @@ rows of B contiguous windows rather than over rows of a few units (as the input-
 and fewer operations are faster. All parameters of a model are one row of ``theta`` (K, P): clipping and Adam
 are a few operations on (K, P) tensors (``studies.training.Adam``). SUBNET's T-step rollout
 advances all K models at once, and the inputs' part of f's first layer is computed for all T steps at once;
-compiled, it is recomputed ``train.rollout_segment`` steps at a time (``segmented_gradient``), so a backward
-reads the activations of a few steps, still in cache, rather than those of all T.
+compiled, a feature-major stack's is recomputed ``train.rollout_segment`` steps at a time (``segmented_gradient``),
+so a backward reads the activations of a few steps, still in cache, rather than those of all T.
 """
 
 import functools
@@ -338,7 +338,8 @@ def train_lockstep(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon:
     nets = StackedMLPs([member.model for member in members], dtype,
                        cfg["feature_major_width"]["narx" if windows.narx else "subnet"])
     optimizer = Adam(nets.theta, cfg["grad_clip_norm"])
-    compiled_gradient_of = step_gradient(windows, nets, compiler, 0 if windows.narx else cfg["rollout_segment"])
+    segment = 0 if windows.narx else cfg["rollout_segment"]["feature_major" if nets.feature_major else "batch_major"]
+    compiled_gradient_of = step_gradient(windows, nets, compiler, segment)
     batches = [min(cfg["batch_size"], count) for count in windows.counts]
     orders = [WindowOrder(count, batch, member.iterations, member.shuffle_seed, max(batches))
               for count, batch, member in zip(windows.counts, batches, members, strict=True)]
