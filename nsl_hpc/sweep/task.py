@@ -73,12 +73,13 @@ def check_settings(values: Mapping[str, Any]) -> None:
                           "{narx: 64, subnet: 8}")
     for arch, width in widths.items():
         require_non_negative_int(f"train.feature_major_width.{arch}", width)
-    segments = train.get("rollout_segment", {"feature_major": 0, "batch_major": 0})  # the input-output study's
-    if not (isinstance(segments, Mapping) and set(segments) == {"feature_major", "batch_major"}):
-        raise ConfigError(f"train.rollout_segment={segments!r} must give a segment length (0: none) per stack "
-                          "layout, e.g. {feature_major: 10, batch_major: 0}")
-    for layout, length in segments.items():
-        require_non_negative_int(f"train.rollout_segment.{layout}", length)
+    if "rollout_segment" in train:  # the input-output study's
+        segments = train["rollout_segment"]
+        if not (isinstance(segments, Mapping) and set(segments) == {"feature_major", "batch_major"}):
+            raise ConfigError(f"train.rollout_segment={segments!r} must give a segment length (0: none) per stack "
+                              "layout, e.g. {feature_major: 10, batch_major: 0}")
+        for layout, length in segments.items():
+            require_non_negative_int(f"train.rollout_segment.{layout}", length)
 
 
 def task_id_from(study: Study, shared: str, values: Mapping[str, Any]) -> str:

@@ -264,9 +264,13 @@ class Windows:
             predicted = nets.run(regressors, layers["net"]).flatten(1)  # (K, B)
             target = self.y.gather(1, starts + self.past)
             return ((predicted - target).square() * weights).sum(dim=1)
-        u, y = self.gather(self.u, starts), self.gather(self.y, starts)  # (K, P + T, B)
+        u, y = self.sequences(starts)
         x = self.encode(nets, layers, u, y)
         return self.simulate(nets, stored, layers, x, u[:, self.past:], y[:, self.past:], weights)[0]
+
+    def sequences(self, starts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """SUBNET's sub-sequences u, y (K, P + T, B) of the windows ``starts`` (K, B)."""
+        return self.gather(self.u, starts), self.gather(self.y, starts)
 
     def encode(self, nets: StackedMLPs, layers: Mapping[str, list[Layer]], u: torch.Tensor,
                y: torch.Tensor) -> torch.Tensor:
@@ -441,7 +445,7 @@ def segmented_gradient(windows: Windows, encode: Callable[..., torch.Tensor], si
     """SUBNET's losses (K,) and their gradient (K, P) (0 where ``mask`` is), the rollout recomputed ``segment``
     steps at a time: a forward pass without gradients keeps the states where segments start, then each segment,
     last first, runs again and back-propagates, so a backward reads the activations of one segment only."""
-    u, y = windows.gather(windows.u, starts), windows.gather(windows.y, starts)  # (K, P + T, B)
+    u, y = windows.sequences(starts)
     past = windows.past
     leaf = theta.detach().requires_grad_(True)
     first = encode(leaf, u, y)
