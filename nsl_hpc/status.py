@@ -99,9 +99,11 @@ def main(cfg: DictConfig) -> int:
             print(f"budget: {describe_rounds(decisions)}", flush=True)
         active = state.counts()["running"] + state.counts()["pending"] + (
             state.counts()["waiting"] if round_job_queued(cfg.sweep_dir) else 0)  # the next round comes
-        if not cfg.wait or (not active and (confirming or not state.counts()["missing"])):
+        unsettled = state.counts()["missing"] + state.counts()["waiting"]
+        if not cfg.wait or (not active and (confirming or not unsettled)):
             break
-        if not active:  # a job being requeued can look ended for a moment: look again before calling it missing
+        if not active:  # a job being requeued, or a round job sacct does not list yet, can look ended for a
+            # moment: look again before calling its tasks missing or left waiting
             confirming = True
             time.sleep(cfg.settle_s)
             continue
