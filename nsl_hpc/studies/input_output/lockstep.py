@@ -16,7 +16,8 @@ model computes and learns what it does alone. A stack of several models no wider
 ``train.feature_major_width`` stores activations feature-major, (K, n_h, B), so a LayerNorm reduces over n_h
 rows of B contiguous windows rather than over rows of a few units (as the input-state chains:
 ``input_state.stacked``); a model alone, or wider ones, batch-major, (K, B, n_h), where torch's fused LayerNorm
-and fewer operations are faster. All parameters of a model are one row of ``theta`` (K, P): clipping and Adam
+and fewer operations are faster. A feature-major or compiled stack computes a LayerNorm layer from its weights
+centred over each model's units (``StackedMLPs.computed``): one reduction fewer per layer. All parameters of a model are one row of ``theta`` (K, P): clipping and Adam
 are a few operations on (K, P) tensors (``studies.training.Adam``). SUBNET's T-step rollout
 advances all K models at once, and the inputs' part of f's first layer is computed for all T steps at once;
 compiled, a feature-major stack's is recomputed ``train.rollout_segment`` steps at a time (``segmented_gradient``),
@@ -80,9 +81,11 @@ def mlp_shape(net: nn.Sequential) -> tuple[int, int, int, bool]:
 class StackedMLPs:
     """The MLPs of K models of one architecture, depth and block as batched MLPs; ``theta`` (K, P) holds every
     parameter, zero-padded to the widest hidden width ``width``. Their activations are stored feature-major when
-    there are several models no wider than ``feature_major_width``, batch-major otherwise."""
+    there are several models no wider than ``feature_major_width``, batch-major otherwise; a feature-major stack,
+    or one whose step is ``compiled``, computes with ``centred`` LayerNorm weights."""
 
-    def __init__(self, models: Sequence[NARX | SUBNET], dtype: torch.dtype, feature_major_width: int = 0):
+    def __init__(self, models: Sequence[NARX | SUBNET], dtype: torch.dtype, feature_major_width: int = 0,
+                 compiled: bool = False):
         first = models[0].mlps()
         self.shapes = {name: mlp_shape(net) for name, net in first.items()}
         if any({name: mlp_shape(net) for name, net in model.mlps().items()} != self.shapes for model in models):
@@ -92,6 +95,8 @@ class StackedMLPs:
         self.width = max(own)
         self.alone = len(models) == 1
         self.feature_major = not self.alone and self.width <= feature_major_width  # for the group's whole life
+        # LayerNorm layers compute from centred weights (``computed``), but where torch's fused LayerNorm is faster
+        self.centred = self.feature_major or compiled
         # an activation's dimensions of the units and of the B windows
         self.features, self.samples = (-2, -1) if self.feature_major else (-1, -2)
         size = sum(rows * columns for name in self.shapes for layer in self.tensor_shapes(name)
@@ -112,7 +117,7 @@ class StackedMLPs:
         self.models = models
         mask, inverse = self.model_units
         self.padded = bool((mask[models] == 0).any())  # some model training is narrower than ``width``
-        self.units = (self.orient(mask[models]) if self.padded else None, inverse[models])
+        self.units = (mask[models] if self.padded else None, inverse[models])
 
     def tensor_shapes(self, name: str) -> list[list[tuple[int, int]]]:
         """(rows, columns) of each tensor of each layer of MLP ``name``."""
@@ -135,6 +140,25 @@ class StackedMLPs:
                 layers.append(tuple(tensors))
             views[name] = layers
         return views
+
+    def computed(self, theta: torch.Tensor | None = None) -> dict[str, list[Layer]]:
+        """The layers as the stack computes with them: ``trained``, or views of ``theta`` (K, P); when ``centred``,
+        each LayerNorm layer's weight and bias centred over each model's own units (padding stays 0). The mean over
+        a model's units of x W + b is x (W 1 / n) + mean(b), so the LayerNorm of x W + b is x W_c + b_c over its
+        root mean square: one reduction fewer per hidden layer, forward and backward; only rounding differs."""
+        layers = self.trained if theta is None else self.layers(theta)
+        if not self.centred:
+            return dict(layers)
+        mask, inverse = self.units
+        return {name: [tuple(self.centre(tensor, mask, inverse) for tensor in layer[:2]) + layer[2:]
+                       if len(layer) == 4 else layer for layer in mlp] for name, mlp in layers.items()}
+
+    @staticmethod
+    def centre(tensor: torch.Tensor, mask: torch.Tensor | None, inverse: torch.Tensor) -> torch.Tensor:
+        """A weight (K, in, width) or bias (K, 1, width) less its mean over each model's own units (``mask``
+        (K, 1, width), None: all; ``inverse`` (K, 1, 1): 1 / their number); padded columns, 0, stay 0."""
+        centred = tensor - tensor.sum(dim=-1, keepdim=True) * inverse
+        return centred if mask is None else centred * mask
 
     def use_theta(self, theta: torch.Tensor) -> None:
         """Hold the parameters in ``theta`` (K, P); the trained layers are leaf views into it."""
@@ -197,18 +221,22 @@ class StackedMLPs:
 
     def activate(self, a: torch.Tensor, norm: list[torch.Tensor]) -> torch.Tensor:
         """A hidden layer's activation of its pre-activation a: tanh, or LayerNorm over each model's own units
-        with its oriented scale and shift, then SiLU: torch's fused LayerNorm where every model uses all units
-        of a batch-major stack (with the affine part for a model alone, as its module), else the masked
+        with its oriented scale and shift, then SiLU. When ``centred`` a is already centred (``computed``) and
+        the LayerNorm divides it by its root mean square; else (batch-major, eager) torch's fused LayerNorm where
+        every model uses all units (with the affine part for a model alone, as its module), or the masked
         formula of ``masked_layer_norm``."""
         if not norm:
             return torch.tanh(a)
         scale, shift = norm
-        if self.alone:  # batch-major and never padded
+        if self.centred:  # padded units of a are 0
+            mean_square = a.square().sum(dim=self.features, keepdim=True) * self.units[1]
+            normalized = a * (mean_square + LAYER_NORM_EPS).rsqrt()
+        elif self.alone:
             return functional.silu(functional.layer_norm(a, a.shape[-1:], scale.view(-1), shift.view(-1),
                                                          LAYER_NORM_EPS))
-        if self.feature_major or self.padded:
-            normalized, _ = masked_layer_norm(a, self.units[0], self.units[1], dim=self.features)
-        else:  # batch-major, every model as wide as the stack: torch's fused LayerNorm without its affine part
+        elif self.padded:
+            normalized, _ = masked_layer_norm(a, self.units[0], self.units[1])
+        else:  # every model as wide as the stack: torch's fused LayerNorm without its affine part
             normalized = functional.layer_norm(a, a.shape[-1:], eps=LAYER_NORM_EPS)
         return functional.silu(torch.addcmul(shift, normalized, scale))
 
@@ -257,7 +285,7 @@ class Windows:
         """The loss (K,) of each model on its windows ``starts`` (K, B): the sum of ``weights`` (K, B) times the
         squared error of each window (NARX: one step ahead; SUBNET: summed over its T simulated steps), with
         the trained parameters or ``theta`` (K, P)."""
-        stored = nets.trained if theta is None else nets.layers(theta)
+        stored = nets.computed(theta)
         layers = nets.oriented(stored)
         if self.signals is not None:  # NARX
             regressors = nets.activations(self.gather(self.signals, starts))
@@ -340,7 +368,7 @@ def train_lockstep(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon:
     compiler = compiler or StepCompiler(False)
     windows = Windows(members, horizon, dtype)
     nets = StackedMLPs([member.model for member in members], dtype,
-                       cfg["feature_major_width"]["narx" if windows.narx else "subnet"])
+                       cfg["feature_major_width"]["narx" if windows.narx else "subnet"], compiler.enabled)
     optimizer = Adam(nets.theta, cfg["grad_clip_norm"])
     segment = 0 if windows.narx else cfg["rollout_segment"]["feature_major" if nets.feature_major else "batch_major"]
     compiled_gradient_of = step_gradient(windows, nets, compiler, segment)
@@ -429,13 +457,13 @@ def compiled_step(windows: Windows, nets: StackedMLPs, theta: torch.Tensor, star
 def encode_step(windows: Windows, nets: StackedMLPs, theta: torch.Tensor, u: torch.Tensor,
                 y: torch.Tensor) -> torch.Tensor:
     """``Windows.encode`` with parameters ``theta``: a function a ``StepCompiler`` compiles."""
-    return windows.encode(nets, nets.oriented(nets.layers(theta)), u, y)
+    return windows.encode(nets, nets.oriented(nets.computed(theta)), u, y)
 
 
 def simulate_step(windows: Windows, nets: StackedMLPs, theta: torch.Tensor, x: torch.Tensor, u: torch.Tensor,
                   y: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``Windows.simulate`` with parameters ``theta``: a function a ``StepCompiler`` compiles."""
-    stored = nets.layers(theta)
+    stored = nets.computed(theta)
     return windows.simulate(nets, stored, nets.oriented(stored), x, u, y, weights)
 
 
