@@ -17,11 +17,12 @@ model computes and learns what it does alone. A stack of several models no wider
 rows of B contiguous windows rather than over rows of a few units (as the input-state chains:
 ``input_state.stacked``); a model alone, or wider ones, batch-major, (K, B, n_h), where torch's fused LayerNorm
 and fewer operations are faster. A feature-major or compiled stack computes a LayerNorm layer from its weights
-centred over each model's units (``StackedMLPs.computed``): one reduction fewer per layer. All parameters of a model are one row of ``theta`` (K, P): clipping and Adam
-are a few operations on (K, P) tensors (``studies.training.Adam``). SUBNET's T-step rollout
-advances all K models at once, and the inputs' part of f's first layer is computed for all T steps at once;
-compiled, a feature-major stack's is recomputed ``train.rollout_segment`` steps at a time (``segmented_gradient``),
-so a backward reads the activations of a few steps, still in cache, rather than those of all T.
+centred over each model's units (``StackedMLPs.computed``): one reduction fewer per layer. All parameters of a
+model are one row of ``theta`` (K, P): clipping and Adam are a few operations on (K, P) tensors
+(``studies.training.Adam``). SUBNET's T-step rollout advances all K models at once, and the inputs' part of f's
+first layer is computed for all T steps at once; compiled, it is recomputed ``train.rollout_segment`` steps at a
+time (``segmented_gradient``), so a backward reads the activations of a few steps, still in cache, rather than
+those of all T.
 """
 
 import functools
