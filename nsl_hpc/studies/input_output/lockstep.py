@@ -313,6 +313,18 @@ class Windows:
         """SUBNET's loss (K,) over the S steps of inputs u and targets y (K, S, B) simulated from states x, and
         the state after them."""
         models, batch = weights.shape
+        states, x = self.rollout(nets, stored, layers, x, u)
+        horizon = len(states)
+        steps = max(1, H_CHUNK_VALUES // (models * batch * nets.width))  # h of this many steps at once
+        simulated = torch.cat([nets.run(torch.cat(states[k:k + steps], dim=nets.samples), layers["h"])
+                               .view(models, -1, batch) for k in range(0, horizon, steps)], dim=1)  # (K, S, B)
+        return ((simulated - y).square().sum(dim=1) * weights).sum(dim=1), x
+
+
+    def rollout(self, nets: StackedMLPs, stored: Mapping[str, list[Layer]], layers: Mapping[str, list[Layer]],
+                x: torch.Tensor, u: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """SUBNET's states over the S steps of inputs u (K, S, B) from states x: the S states its steps start
+        from, and the state after them."""
         weight, bias, *_ = stored["f"][0]
         w_x, w_u, bias = (nets.orient(tensor) for tensor in (weight[:, :self.state_dim], weight[:, self.state_dim:],
                                                               bias))
@@ -322,11 +334,7 @@ class Windows:
         for from_input in from_inputs.unbind(1):  # unbind: one backward for all S (a slice's zero-fills all S)
             states.append(x)
             x = x + nets.run(x, layers["f"], first=nets.linear(x, w_x, from_input))
-        horizon = len(states)
-        steps = max(1, H_CHUNK_VALUES // (models * batch * nets.width))  # h of this many steps at once
-        simulated = torch.cat([nets.run(torch.cat(states[k:k + steps], dim=nets.samples), layers["h"])
-                               .view(models, -1, batch) for k in range(0, horizon, steps)], dim=1)  # (K, S, B)
-        return ((simulated - y).square().sum(dim=1) * weights).sum(dim=1), x
+        return states, x
 
 
 class WindowOrder(BatchOrder):
@@ -443,8 +451,9 @@ def step_gradient(windows: Windows, nets: StackedMLPs, compiler: StepCompiler,
     0 where ``mask`` is; with ``segment`` > 0 (SUBNET) the rollout is compiled and recomputed that many steps
     at a time (``segmented_gradient``), else the step is one compiled function (``compiled_step``)."""
     if segment:
-        return functools.partial(segmented_gradient, windows, compiler.wrap(functools.partial(encode_step, windows,
-                                                                                               nets)),
+        return functools.partial(segmented_gradient, windows,
+                                 compiler.wrap(functools.partial(encode_step, windows, nets)),
+                                 compiler.wrap(functools.partial(advance_step, windows, nets)),
                                  compiler.wrap(functools.partial(simulate_step, windows, nets)), segment)
     return functools.partial(compiled_gradient, compiler.wrap(functools.partial(compiled_step, windows, nets)))
 
@@ -461,6 +470,14 @@ def encode_step(windows: Windows, nets: StackedMLPs, theta: torch.Tensor, u: tor
     return windows.encode(nets, nets.oriented(nets.computed(theta)), u, y)
 
 
+def advance_step(windows: Windows, nets: StackedMLPs, theta: torch.Tensor, x: torch.Tensor,
+                 u: torch.Tensor) -> torch.Tensor:
+    """The state after SUBNET's steps of inputs u from states x, with parameters ``theta`` (``Windows.rollout``;
+    no output map, no loss): a function a ``StepCompiler`` compiles."""
+    stored = nets.computed(theta)
+    return windows.rollout(nets, stored, nets.oriented(stored), x, u)[1]
+
+
 def simulate_step(windows: Windows, nets: StackedMLPs, theta: torch.Tensor, x: torch.Tensor, u: torch.Tensor,
                   y: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``Windows.simulate`` with parameters ``theta``: a function a ``StepCompiler`` compiles."""
@@ -468,12 +485,13 @@ def simulate_step(windows: Windows, nets: StackedMLPs, theta: torch.Tensor, x: t
     return windows.simulate(nets, stored, nets.oriented(stored), x, u, y, weights)
 
 
-def segmented_gradient(windows: Windows, encode: Callable[..., torch.Tensor], simulate: Callable[..., Any],
-                       segment: int, theta: torch.Tensor, mask: torch.Tensor, starts: torch.Tensor,
-                       weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def segmented_gradient(windows: Windows, encode: Callable[..., torch.Tensor], advance: Callable[..., torch.Tensor],
+                       simulate: Callable[..., Any], segment: int, theta: torch.Tensor, mask: torch.Tensor,
+                       starts: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """SUBNET's losses (K,) and their gradient (K, P) (0 where ``mask`` is), the rollout recomputed ``segment``
-    steps at a time: a forward pass without gradients keeps the states where segments start, then each segment,
-    last first, runs again and back-propagates, so a backward reads the activations of one segment only."""
+    steps at a time: a forward pass without gradients (``advance``: states only) keeps the states where segments
+    start, then each segment, last first, runs again and back-propagates, so a backward reads the activations of
+    one segment only."""
     u, y = windows.sequences(starts)
     past = windows.past
     leaf = theta.detach().requires_grad_(True)
@@ -482,8 +500,7 @@ def segmented_gradient(windows: Windows, encode: Callable[..., torch.Tensor], si
     states = [first.detach()]
     with torch.no_grad():
         for start in bounds[:-1]:
-            states.append(simulate(leaf, states[-1], u[:, start:start + segment], y[:, start:start + segment],
-                                   weights)[1])
+            states.append(advance(leaf, states[-1], u[:, start:start + segment]))
     grad, losses, upstream = torch.zeros_like(theta), torch.zeros(len(theta), dtype=theta.dtype), None
     for start, state in zip(reversed(bounds), reversed(states), strict=True):
         state = state.requires_grad_(True)
