@@ -96,7 +96,8 @@ class StackedMLPs:
         self.width = max(own)
         self.alone = len(models) == 1
         self.feature_major = not self.alone and self.width <= feature_major_width  # for the group's whole life
-        # LayerNorm layers compute from centred weights (``computed``), but where torch's fused LayerNorm is faster
+        # LayerNorm layers compute from centred weights (``computed``), except eager batch-major stacks: torch's
+        # fused LayerNorm is faster there
         self.centred = self.feature_major or compiled
         # an activation's dimensions of the units and of the B windows
         self.features, self.samples = (-2, -1) if self.feature_major else (-1, -2)
@@ -319,7 +320,6 @@ class Windows:
         simulated = torch.cat([nets.run(torch.cat(states[k:k + steps], dim=nets.samples), layers["h"])
                                .view(models, -1, batch) for k in range(0, horizon, steps)], dim=1)  # (K, S, B)
         return ((simulated - y).square().sum(dim=1) * weights).sum(dim=1), x
-
 
     def rollout(self, nets: StackedMLPs, stored: Mapping[str, list[Layer]], layers: Mapping[str, list[Layer]],
                 x: torch.Tensor, u: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
