@@ -9,6 +9,7 @@ import os
 import signal
 import socket
 import subprocess
+import threading
 import time
 
 import pytest
@@ -26,6 +27,7 @@ from nsl_hpc.studies.input_state.lockstep import Member, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.training import StepCompiler
 from nsl_hpc.sweep.checkpoints import GroupLock, checkpoint_path
+from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.job import JobRunner
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import Group, check_run_settings, make_packs, packing_for, plan_jobs
@@ -283,6 +285,34 @@ def test_a_finished_groups_checkpoint_goes_whether_its_job_was_stopped_after_the
     finished.join()
     runner.checkpointing, runner.running, runner.started = True, (sweep_dir, ids, finished), set(groups)
     assert runner.checkpoint(str(sweep_dir), groups) is None and not path.exists()  # warned as it finished
+
+
+def test_a_warned_job_keeps_its_timeout_record_and_stops_even_when_the_warnings_exception_is_lost(tmp_path):
+    """SLURM's warning comes with a SIGCONT, whose submitit handler logs; logging swallows the exception the
+    nested warning handler raises. The runner must still stop, and the hanging group it killed stays timeout
+    (it was recorded failed, killed by SIGKILL)."""
+    sweep_dir = tmp_path / "sweep"
+    assert nsl("launch", *TINY_GRID, "sweep.grid.seed=[0,1]", "lockstep.enabled=false", "launcher=slurm",
+               f"sweep_dir={sweep_dir}", "packing.time_classes_minutes=[1]", "launcher.signal_delay_s=2",
+               "fault.kind=hang", "dry_run=true").returncode == 0
+    groups = [group for pack in plan_jobs(read_manifest(sweep_dir).to_pylist(), read_launch_config(sweep_dir))
+              for group in pack.groups]
+    assert len(groups) == 2
+    runner = JobRunner()
+
+    def warned_and_lost(*_) -> None:
+        assert runner.checkpoint(str(sweep_dir), groups) is not None  # the second group is requeued
+    previous = signal.signal(signal.SIGUSR2, warned_and_lost)
+    timer = threading.Timer(3.0, os.kill, (os.getpid(), signal.SIGUSR2))
+    timer.start()
+    try:
+        assert runner(str(sweep_dir), groups) == {"stopped": 1}
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGUSR2, previous)
+    failures = read_failures(sweep_dir)
+    assert [record["status"] for record in failures.values()] == ["timeout"], failures
+    assert set(failures) == set(groups[0].task_ids) and not row_files(sweep_dir)
 
 
 def test_a_site_time_cap_makes_a_long_group_a_chain_of_jobs_and_needs_checkpoints():

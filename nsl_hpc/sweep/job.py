@@ -151,6 +151,7 @@ class JobRunner:
         self.current: Group | None = None  # the group being run (from before its process starts to its end)
         self.started: set[Group] = set()
         self.checkpointing, self.stop_wait_s = False, 30.0
+        self.warned = False  # SLURM's warning came: checkpoint() has dealt with the running group
 
     def launcher_gone(self) -> bool:
         return self.launcher_pid is not None and not process_alive(self.launcher_pid)
@@ -161,6 +162,9 @@ class JobRunner:
         trains the group), stopped (asked to stop; the job ends)."""
         sweep = Path(sweep_dir)
         launch = read_launch_config(sweep)
+        # SLURM sends SIGCONT with its warning; submitit's handler for it logs, and logging swallows the exception
+        # a warning handler nested in it raises (the job would go on as if not warned)
+        signal.signal(signal.SIGCONT, signal.SIG_DFL)
         import_training_code()  # once, not in each group's forked process
         self.checkpointing = checkpoint_seconds(launch) > 0
         self.stop_wait_s = launch.launcher.get("signal_delay_s", 60) / 2
@@ -170,6 +174,8 @@ class JobRunner:
         for group in groups:
             if self.launcher_gone():
                 os._exit(1)
+            if self.warned:
+                break
             self.started.add(group)
             self.current = group
             todo = []
@@ -244,7 +250,7 @@ class JobRunner:
                 log.parent.rmdir()
             remove_checkpoint(checkpoint_path(sweep, ids))
             return "ok"
-        if child.exitcode == EXIT_STOPPED:
+        if child.exitcode == EXIT_STOPPED or self.warned:  # warned: checkpoint() recorded its outcome (timeout)
             return "stopped"
         exitcode = child.exitcode if child.exitcode is not None else -signal.SIGKILL  # None: it has not ended
         reason = (f"exit status {exitcode}" if exitcode >= 0 else f"killed by signal {signal.Signals(-exitcode).name}")
@@ -264,6 +270,7 @@ class JobRunner:
         its state and stop, and requeue it with the groups not started; a group that does not stop so (it hangs,
         or it is scoring an input-output test set), and any without checkpoints, is recorded as
         timeout and not requeued (none left: no requeue, which SLURM would delay by minutes for nothing)."""
+        self.warned = True
         resumed = [self.current] if self.current is not None else []  # stopped, or not started yet
         if self.running is not None:
             sweep, ids, child = self.running
