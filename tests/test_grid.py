@@ -76,6 +76,17 @@ def test_a_setting_added_later_changes_task_ids_only_away_from_its_neutral_value
     assert task_id(before) == task_id(cfg) != task_id(compose_config([*overrides, "train.repeat=2"]))
 
 
+def test_a_setting_that_changes_only_rounding_is_in_no_task_id():
+    """train.rollout_segment (how a compiled SUBNET step recomputes its rollout) leaves the ids of the tasks, at
+    any value and in a config stored before it existed; the learning rate does not."""
+    overrides = ["study=input_output", "system=silverbox_sim", "arch=subnet"]
+    cfg = compose_config(overrides)
+    before = OmegaConf.create(OmegaConf.to_container(cfg))
+    del before.train.rollout_segment
+    ids = {task_id(compose_config([*overrides, f"train.rollout_segment.batch_major={length}"])) for length in (0, 3)}
+    assert ids == {task_id(cfg)} == {task_id(before)} != {task_id(compose_config([*overrides, "train.lr=0.01"]))}
+
+
 def sizes_by_all_but_epochs(rows: list[dict]) -> dict[tuple, list[tuple]]:
     """The drawn (d, n_h, n_d) of the tasks that differ only in epochs, grouped."""
     groups: dict[tuple, list[tuple]] = {}

@@ -31,6 +31,9 @@ class Study:
     lockstep: bool = False  # train_and_score_group trains same-shape tasks together (in lockstep)
     # (shared group, key, value): settings added after task ids existed, at the value that trains as before
     neutral: tuple[tuple[str, str, Any], ...] = ()
+    # (shared group, key, value): settings that change only float rounding (how a step is computed), in no task's
+    # id at any value; a config stored before one existed runs with ``value``
+    rounding_only: tuple[tuple[str, str, Any], ...] = ()
 
     @property
     def size_axes(self) -> tuple[str, ...]:
@@ -67,17 +70,20 @@ class Study:
 
     def shared_identity(self, values: Mapping[str, Any]) -> str:
         """Hash of the shared outcome-changing groups of a plain config dict (paths left out, and the settings of
-        ``neutral`` at their neutral value: a sweep made before such a setting existed keeps its task ids)."""
+        ``neutral`` at their neutral value: a sweep made before such a setting existed keeps its task ids; the
+        ``rounding_only`` ones at any value)."""
         shared = {key: without_paths(values[key]) for key in self.shared_keys}
         for group, key, value in self.neutral:
             if shared[group].get(key, value) == value:
                 shared[group].pop(key, None)
+        for group, key, _ in self.rounding_only:
+            shared[group].pop(key, None)
         return stable_hash(shared)
 
     def with_neutral_settings(self, cfg: DictConfig) -> DictConfig:
-        """``cfg``, a pair's stored config, with the ``neutral`` settings it lacks (it was stored before they
-        existed) at their neutral value."""
-        for group, key, value in self.neutral:
+        """``cfg``, a pair's stored config, with the ``neutral`` and ``rounding_only`` settings it lacks (it was
+        stored before they existed) at their stated value."""
+        for group, key, value in (*self.neutral, *self.rounding_only):
             if key not in cfg[group]:
                 cfg[group][key] = value
         return cfg

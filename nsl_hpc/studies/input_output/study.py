@@ -86,7 +86,7 @@ class InputOutput(Study):
     length_axis = "iter_multiplier"
     lockstep = True
     shared_keys = ("system", "arch", "train", "draws")
-    neutral = (("train", "rollout_segment", {"feature_major": 10, "batch_major": 0}),)
+    rounding_only = (("train", "rollout_segment", {"feature_major": 10, "batch_major": 10}),)
 
     def check_size(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
         allowed = {"data_tier": base["system"]["data_tiers"], "width_tier": base["tiers"]["width"],
