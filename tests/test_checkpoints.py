@@ -31,7 +31,7 @@ from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.job import JobRunner
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import Group, check_run_settings, make_packs, packing_for, plan_jobs
-from tests.sweeps import TINY_GRID, nsl, row_files
+from tests.sweeps import ALONE, TINY_GRID, nsl, row_files
 from tests.test_io_lockstep import members_of
 
 
@@ -292,7 +292,7 @@ def test_a_warned_job_keeps_its_timeout_record_and_stops_even_when_the_warnings_
     nested warning handler raises. The runner must still stop, and the hanging group it killed stays timeout
     (it was recorded failed, killed by SIGKILL)."""
     sweep_dir = tmp_path / "sweep"
-    assert nsl("launch", *TINY_GRID, "sweep.grid.seed=[0,1]", "lockstep.enabled=false", "launcher=slurm",
+    assert nsl("launch", *TINY_GRID, "sweep.grid.seed=[0,1]", ALONE, "launcher=slurm",
                f"sweep_dir={sweep_dir}", "packing.time_classes_minutes=[1]", "launcher.signal_delay_s=2",
                "fault.kind=hang", "dry_run=true").returncode == 0
     groups = [group for pack in plan_jobs(read_manifest(sweep_dir).to_pylist(), read_launch_config(sweep_dir))
