@@ -104,6 +104,29 @@ def test_a_rollout_recomputed_in_segments_has_the_losses_and_gradient_of_the_who
         torch.testing.assert_close(grad, whole[1], rtol=1e-4, atol=1e-5 * float(whole[1].abs().max()))
 
 
+@pytest.mark.parametrize("arch", ["narx", "subnet"])
+def test_a_stack_laid_out_for_compiling_computes_the_losses_and_gradient_of_the_eager_stack(arch, compose, cache):
+    """A batch-major stack built for a compiled step (centred LayerNorm weights; its products of few output
+    columns, f's and h's last layers or NARX's, computed as their transposes), here run eagerly, gives each
+    model's loss and gradient as the eager stack does."""
+    cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}")
+    members = members_of(cfg, cache, MEMBERS)
+    windows = Windows(members, 7, torch.float32)
+    starts = torch.stack([torch.randperm(count, generator=torch.Generator().manual_seed(k))[:16]
+                          for k, count in enumerate(windows.counts)])
+    weights = torch.rand(len(members), 16, generator=torch.Generator().manual_seed(5))
+    results = []
+    for compiled in (False, True):
+        nets = StackedMLPs([member.model for member in members], torch.float32, 0, compiled)
+        assert not nets.feature_major and nets.centred == compiled
+        results.append(step_gradient(windows, nets, StepCompiler(False), 0)(nets.theta, nets.gradient_mask, starts,
+                                                                            weights))
+    (losses, grad), (laid_out_losses, laid_out_grad) = results
+    assert grad.abs().sum() > 0
+    torch.testing.assert_close(laid_out_losses, losses, rtol=1e-5, atol=0)
+    torch.testing.assert_close(laid_out_grad, grad, rtol=1e-4, atol=1e-5 * float(grad.abs().max()))
+
+
 def test_a_diverging_model_leaves_the_others_of_its_pack_as_they_are_alone(compose, cache):
     """A NARX whose record holds a NaN has a NaN loss at the end of its first pass and stops there (as in the
     plain loop); the model packed with it trains as it does alone."""

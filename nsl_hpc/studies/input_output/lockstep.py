@@ -56,6 +56,11 @@ BLOCK_STEPS = 16  # iterations whose batch orders and learning rates are prepare
 # SUBNET's h runs on the states of this many (K, B, n_h) values at once: all T steps of a small group, while a
 # large one's tensors stay small enough to be reused (a (32, 256 x 150, 32) one was a fresh mapping, 3x slower).
 H_CHUNK_VALUES = 2**21
+# A compiled batch-major stack computes a product with at most this many output columns (f's and h's last layers:
+# n_x, 1) as its transpose, (K, columns, B): MKL's batched GEMM writes few long rows several times faster than many
+# rows of a few columns ((8, 256, 32) x (8, 32, 4): 62 against 14 us; its weight gradient 80 against 11 us); at 16
+# columns the two are even. Eagerly the transposed layouts it passes on cost more than that (K = 8, 32 x 3: 17% slower).
+NARROW_OUTPUTS = 8
 
 Layer = tuple[torch.Tensor, ...]  # weight (K, in, out), bias (K, 1, out)[, LayerNorm scale, shift (K, 1, out)]
 
@@ -99,6 +104,7 @@ class StackedMLPs:
         # LayerNorm layers compute from centred weights (``computed``), except eager batch-major stacks: torch's
         # fused LayerNorm is faster there
         self.centred = self.feature_major or compiled
+        self.compiled = compiled
         # an activation's dimensions of the units and of the B windows
         self.features, self.samples = (-2, -1) if self.feature_major else (-1, -2)
         size = sum(rows * columns for name in self.shapes for layer in self.tensor_shapes(name)
@@ -218,8 +224,13 @@ class StackedMLPs:
         return self.linear(x, weight, bias)
 
     def linear(self, x: torch.Tensor, weight: torch.Tensor, added: torch.Tensor) -> torch.Tensor:
-        """An oriented ``weight`` applied to x plus ``added`` (an oriented bias, or a pre-activation part)."""
-        return torch.baddbmm(added, weight, x) if self.feature_major else torch.baddbmm(added, x, weight)
+        """An oriented ``weight`` applied to x plus ``added`` (an oriented bias, or a pre-activation part); a
+        compiled batch-major stack computes a product of at most ``NARROW_OUTPUTS`` columns as its transpose."""
+        if self.feature_major:
+            return torch.baddbmm(added, weight, x)
+        if self.compiled and weight.shape[-1] <= NARROW_OUTPUTS:
+            return torch.baddbmm(added.mT, weight.mT, x.mT).mT
+        return torch.baddbmm(added, x, weight)
 
     def activate(self, a: torch.Tensor, norm: list[torch.Tensor]) -> torch.Tensor:
         """A hidden layer's activation of its pre-activation a: tanh, or LayerNorm over each model's own units
@@ -277,10 +288,13 @@ class Windows:
         if self.signals is not None:
             self.signals = self.signals[rows]
 
-    def gather(self, signal: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:
-        """signal (K, N') at ``offsets`` after each of ``starts`` (K, B), feature-major: (K, len(offsets), B)."""
-        index = (starts[:, None] + self.offsets[:, None]).flatten(1)
-        return signal.gather(1, index).view(len(starts), len(self.offsets), -1)
+    def index(self, starts: torch.Tensor) -> torch.Tensor:
+        """Positions (K, len(offsets) B) of the samples at ``offsets`` after each of ``starts`` (K, B)."""
+        return (starts[:, None] + self.offsets[:, None]).flatten(1)
+
+    def gather(self, signal: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        """signal (K, N') at the positions ``index`` (K, len(offsets) B), feature-major: (K, len(offsets), B)."""
+        return signal.gather(1, index).view(len(index), len(self.offsets), -1)
 
     def losses(self, nets: StackedMLPs, starts: torch.Tensor, weights: torch.Tensor,
                theta: torch.Tensor | None = None) -> torch.Tensor:
@@ -290,7 +304,7 @@ class Windows:
         stored = nets.computed(theta)
         layers = nets.oriented(stored)
         if self.signals is not None:  # NARX
-            regressors = nets.activations(self.gather(self.signals, starts))
+            regressors = nets.activations(self.gather(self.signals, self.index(starts)))
             predicted = nets.run(regressors, layers["net"]).flatten(1)  # (K, B)
             target = self.y.gather(1, starts + self.past)
             return ((predicted - target).square() * weights).sum(dim=1)
@@ -300,7 +314,8 @@ class Windows:
 
     def sequences(self, starts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """SUBNET's sub-sequences u, y (K, P + T, B) of the windows ``starts`` (K, B)."""
-        return self.gather(self.u, starts), self.gather(self.y, starts)
+        index = self.index(starts)
+        return self.gather(self.u, index), self.gather(self.y, index)
 
     def encode(self, nets: StackedMLPs, layers: Mapping[str, list[Layer]], u: torch.Tensor,
                y: torch.Tensor) -> torch.Tensor:
