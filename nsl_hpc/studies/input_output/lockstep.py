@@ -59,7 +59,8 @@ H_CHUNK_VALUES = 2**21
 # A compiled batch-major stack computes a product with at most this many output columns (f's and h's last layers:
 # n_x, 1) as its transpose, (K, columns, B): MKL's batched GEMM writes few long rows several times faster than many
 # rows of a few columns ((8, 256, 32) x (8, 32, 4): 62 against 14 us; its weight gradient 80 against 11 us); at 16
-# columns the two are even. Eagerly the transposed layouts it passes on cost more than that (K = 8, 32 x 3: 17% slower).
+# columns the two are even. Eagerly the transposed layouts it passes on cost more than that (K = 8, 32 x 3: 14-18%
+# slower).
 NARROW_OUTPUTS = 8
 
 Layer = tuple[torch.Tensor, ...]  # weight (K, in, out), bias (K, 1, out)[, LayerNorm scale, shift (K, 1, out)]
