@@ -92,7 +92,8 @@ class StackedMLPs:
     """The MLPs of K models of one architecture, depth and block as batched MLPs; ``theta`` (K, P) holds every
     parameter, zero-padded to the widest hidden width ``width``. Their activations are stored feature-major when
     there are several models no wider than ``feature_major_width``, batch-major otherwise; a feature-major stack,
-    or one whose step is ``compiled``, computes with ``centred`` LayerNorm weights."""
+    or one whose step is ``compiled``, computes with ``centred`` LayerNorm weights; a compiled batch-major stack
+    computes its products of few output columns as their transposes (``linear``)."""
 
     def __init__(self, models: Sequence[NARX | SUBNET], dtype: torch.dtype, feature_major_width: int = 0,
                  compiled: bool = False):
