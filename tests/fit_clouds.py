@@ -6,7 +6,15 @@ import math
 import numpy as np
 from scipy.optimize import least_squares
 
-from nsl_hpc.analysis.broken_law import Bounds, NSLFit, log_law, log_law_jacobian, lower_envelope
+from nsl_hpc.analysis.broken_law import (
+    Bounds,
+    NSLFit,
+    log_law,
+    lower_envelope,
+    slope_form,
+    slope_form_jacobian,
+    theta_of,
+)
 from nsl_hpc.analysis.published import published_laws
 from nsl_hpc.nsl import default_settings
 
@@ -62,14 +70,15 @@ def b_acceptable(chosen: int, true: int) -> bool:
 
 def direct_margin(r: np.ndarray, e: np.ndarray, b: int, starts: int = 60, K: int = 100,
                   envelope: str = "step") -> float:
-    """The reference: the least Definition-1 margin that bounded least squares of ln L on the envelope
-    reaches from ``starts`` random starts in the fit's box (no structured starts, a long budget)."""
+    """The reference: the least Definition-1 margin of a law in the fit's box (slopes in [-max_slope, max_rise]:
+    a law that does not rise) that bounded least squares of ln L on the envelope reaches from ``starts`` random
+    starts (no structured starts, a long budget)."""
     settings = default_settings()
     grid, envelope_e = lower_envelope(r, e, K, envelope)
     x, y = np.log(grid), np.log(envelope_e)
     middle = (x[0] + x[-1]) / 2
     x = x - middle
-    bounds = Bounds.for_grid(x, y, b, settings.max_slope, settings.edge, settings.phi_min)
+    bounds = Bounds.for_grid(x, y, b, settings)
     rng = np.random.default_rng(0)
     best = math.inf
     for _ in range(starts):
@@ -78,7 +87,8 @@ def direct_margin(r: np.ndarray, e: np.ndarray, b: int, starts: int = 60, K: int
         theta[2], theta[5::3], theta[4::3] = rng.uniform(-2, 1), rng.uniform(-4, 4, b), rng.uniform(0.2, 1, b)
         theta[3::3] = np.sort(theta[3::3])
         theta[1] = y[0] - theta[2] * x[0]
-        result = least_squares(lambda t: log_law(t, x) - y, bounds.clip(theta), bounds=(bounds.lower, bounds.upper),
-                               jac=lambda t: log_law_jacobian(t, x), x_scale="jac", max_nfev=400)
+        result = least_squares(lambda u: log_law(theta_of(u), x) - y, bounds.clip(slope_form(theta)),
+                               bounds=(bounds.lower, bounds.upper), jac=lambda u: slope_form_jacobian(u, x),
+                               x_scale="jac", max_nfev=400)
         best = min(best, float(np.mean(result.fun**2)))
     return best

@@ -16,6 +16,10 @@ from nsl_hpc.analysis.broken_law import (
     log_law,
     log_law_jacobian,
     lower_envelope,
+    slope_form,
+    slope_form_jacobian,
+    slopes,
+    theta_of,
     trimmed_margin,
 )
 from nsl_hpc.analysis.prediction import need_for, resource_for
@@ -83,13 +87,13 @@ def shape(delta0: float, *breaks: tuple[float, float, float], low: float) -> NSL
     return law(0.0, 10 / float(unit.predict(low)), delta0, *breaks)
 
 
-DIP, BUMP = 10**0.1, 10**0.2
+DIP, DROP = 10**0.1, 10**0.2
 HARD_SHAPES = {  # name: (law, smallest and largest resource, outcomes); errors stay in [1e-6, 10]
     "b0": (shape(-0.5, low=1e2), 1e2, 1e8, 300),
     "b1 to slope -5": (shape(-0.1, (1e4, 0.2, -4.9), low=1e2), 1e2, 10**5.2, 3000),
     "steep start, slope change +5": (shape(-4.0, (10**3.5, 0.2, 3.8), low=1e2), 1e2, 1e8, 3000),
     "dip: breaks 0.1 decades apart": (shape(-0.3, (1e5, 0.2, -3.0), (1e5 * DIP, 0.2, 3.0), low=1e2), 1e2, 1e9, 3000),
-    "bump: breaks 0.2 decades apart": (shape(-0.5, (1e5, 0.2, 3.0), (1e5 * BUMP, 0.2, -3.0), low=1e2), 1e2, 1e9, 300),
+    "drop: breaks 0.2 decades apart": (shape(-0.3, (1e5, 0.2, -2.7), (1e5 * DROP, 0.2, 2.7), low=1e2), 1e2, 1e9, 300),
     "plateau then steep fall": (shape(0.0, (1e5, 0.2, -5.0), (1e6, 0.2, 4.5), low=1e2), 1e2, 1e10, 30000),
     "b3": (shape(-0.02, (1e4, 0.3, -0.4), (1e7, 0.3, 0.3), (1e10, 0.3, -0.4), low=1e2), 1e2, 1e12, 3000),
     "b4": (shape(-0.2, (1e4, 0.2, -0.8), (1e6, 0.2, 0.6), (1e8, 0.2, -1.0), (1e10, 0.2, 0.8), low=1e2),
@@ -155,6 +159,59 @@ def test_a_sparse_staircase_envelope_leaves_no_slope_at_its_bound():
     e = 3 * r**-0.4 * (1 + rng.exponential(0.5, r.size))
     fit = fit_nsl(r, e)
     assert fit.b == 0 and abs(fit.delta0 + 0.4) < 0.1
+
+
+def test_the_slope_form_is_the_law_with_its_breaks_in_order_and_its_jacobian_is_exact():
+    theta = np.array([-4.0, 1.0, -0.3, 9.0, 0.5, 0.4, 4.0, 0.3, -2.0, 6.0, 0.2, 1.5])  # breaks out of order
+    u = slope_form(theta)
+    np.testing.assert_allclose(u[3::3], [4.0, 6.0, 9.0])
+    np.testing.assert_allclose(u[2::3], [-0.3, -2.3, -0.8, -0.4])  # s_k: the slopes after each break, by sigma
+    x = np.linspace(-2, 14, 60)
+    np.testing.assert_allclose(log_law(theta_of(u), x), log_law(theta, x), rtol=1e-12)
+    shuffled = u.copy()
+    shuffled[3::3] = [9.0, 4.0, 6.0]  # positions cross: the k-th corner and slope stay with the k-th position
+    np.testing.assert_allclose(theta_of(shuffled), theta_of(u))
+    numeric = np.stack([(log_law(theta_of(shuffled + h), x) - log_law(theta_of(shuffled - h), x)) / 2e-6
+                        for h in np.eye(len(u)) * 1e-6], axis=1)
+    np.testing.assert_allclose(slope_form_jacobian(shuffled, x), numeric, atol=1e-6)
+
+
+def test_no_fitted_law_rises_more_than_the_published_laws_do():
+    """The published laws rise at most +0.19 (ball / pH / model's delta0): nsl.max_rise. Outcomes whose best
+    models get worse with the resource (a rising cloud, a step, a bump) still give a law that never rises more,
+    and the published laws themselves lie inside the bound."""
+    settings = default_settings()
+    assert settings.max_rise == pytest.approx(max(s.max() for s in
+                                                  (slopes(p.law.parameters()) for p in published_laws().values())))
+    rng = np.random.default_rng(3)
+    bump = law(0.0, 3.0, -0.5, (1e5, 0.2, 3.0), (10**5.2, 0.2, -3.0))
+    r = np.exp(rng.uniform(np.log(1e2), np.log(1e9), 3000))
+    clouds = {"bump": (r, bump.predict(r) * (1 + rng.exponential(0.3, r.size))),
+              "staircase": (np.repeat([1e3, 1e4, 1e5, 1e6], 9), np.tile(np.geomspace(0.5, 0.1, 9), 4)
+                            * np.repeat([1.0, 0.3, 0.5, 0.2], 9))}
+    for r, e in clouds.values():
+        for breaks in (None, 2, 4):
+            fit = fit_nsl(r, e, breaks=breaks)
+            assert fit.slopes.max() <= settings.max_rise + 1e-9 and fit.slopes.min() >= -settings.max_slope - 1e-9
+            dense = np.geomspace(r.min(), r.max(), 2000)
+            local = np.diff(np.log(fit.predict(dense))) / np.diff(np.log(dense))
+            assert local.max() <= settings.max_rise + 0.05
+
+
+def test_a_segment_on_too_few_outcomes_is_not_chosen_and_is_reported_undetermined():
+    """36 outcomes in three tiers of resources whose best outcome at the largest resource drops 10x below the
+    rest: the best 1-break law follows that drop on two outcomes of the envelope. b is chosen among laws whose
+    every segment stands on min_segment_points (3) of them; a fit held at one break says that its last slope is
+    undetermined."""
+    rng = np.random.default_rng(4)
+    r = np.concatenate([rng.uniform(tier / 2, tier, 12) for tier in (200, 800, 3200)])
+    e = 3 * r**-0.4 * (1 + rng.exponential(0.5, r.size))
+    e[np.argmax(r)] /= 10
+    chosen, held = fit_nsl(r, e), fit_nsl(r, e, breaks=1)
+    assert chosen.b == 0 and all(n >= 3 for n in chosen.segment_points) and not chosen.undetermined
+    assert held.segment_points[-1] < 3 and list(held.undetermined) == [1]
+    assert held.undetermined_text() == (f"slope {held.slopes[-1]:.2f} beyond {held.breaks[0][0]:.2g}: "
+                                        f"on {held.segment_points[-1]} envelope outcomes")
 
 
 def test_saturating_alpha_is_recovered():

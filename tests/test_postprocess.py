@@ -124,9 +124,13 @@ def test_report_figures_and_mlflow_runs_are_updated_not_duplicated(sweep_copy):
     assert len(comparison) == 5 and comparison[2].startswith("| spring / input_affine / data / nmae | 2 / ")
     assert comparison[4].startswith("Scores: nMAE and nMSE divide every dx/dt column by one spread")  # which
     assert comparison[4].endswith("Fits: least squares of the log residuals on Definition 1's step envelope "
-                                  "(nsl.envelope=step); b chosen in 0..1: each break must cut the margin by 30%, "
-                                  "not counting the 5% of envelope points the law fits worst (nsl.min_gain, "
-                                  "nsl.choice_trim).")
+                                  "(nsl.envelope=step), every segment's slope in [-10, 0.19] (a law never rises "
+                                  "more than the published ones do; nsl.max_slope, nsl.max_rise); b chosen in 0..1 "
+                                  "among the laws whose every segment stands on at least 3 outcomes of the "
+                                  "envelope: each break must cut the margin by 30%, not counting the 5% of envelope "
+                                  "points the law fits worst (nsl.min_segment_points, nsl.min_gain, "
+                                  "nsl.choice_trim). A slope at -10 or on fewer outcomes of the envelope is "
+                                  "undetermined (marked ?, drawn grey).")
     assert "| 1e+02-5.1e+04 / " in comparison[2] and comparison[2].endswith("fig:data-nmae-aff-spring |")
     assert "What it takes" in report and "c needed [90%]" in report
     for png in (sweep_copy / "figures").rglob("*.png"):

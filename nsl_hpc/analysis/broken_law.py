@@ -3,7 +3,7 @@
 For outcomes (r_i, e_i) (r: compute, data or parameters; e: nMAE or nMSE):
 
 - lower envelope E(r) = min{e_i : r_i <= r}, sampled at K log-spaced resources r~_k from min r to max r
-  (or its log-log interpolation between the outcomes on it, the envelope the default fit follows);
+  (or its log-log interpolation between the outcomes on it, the study's named alternative);
 - law L(r) = alpha + beta r^delta0 prod_i [1 + (r / sigma_i)^(1 / phi_i)]^(delta_i phi_i),
   alpha, beta >= 0, sigma_i > 0, phi_i >= phi_min (conf/nsl/default.yaml);
 - margin M = mean_k (ln L(r~_k) - ln E(r~_k))^2 (natural logarithms).
@@ -11,11 +11,14 @@ For outcomes (r_i, e_i) (r: compute, data or parameters; e: nMAE or nMSE):
 Everything is evaluated in log space, ln L = logaddexp(ln alpha, ln beta + delta0 x
 + sum_i delta_i phi_i softplus((x - ln sigma_i) / phi_i)) with x = ln r, so resources up to 1e15 and errors
 down to 1e-8 neither overflow nor underflow. The law is piecewise linear in log-log space with smooth
-corners: the fit starts from piecewise-linear least-squares fits of the envelope with corners at every
-combination of candidate positions on the log grid and at the best segmentation of the grid, plus a few
-random starts and the best law with one break fewer plus a flat break (b = 0, 1, ... in turn), refines them with
-bounded least squares on the log residuals (which minimises M directly), and picks the number of breaks b by a
-penalised margin that leaves out the envelope points the law fits worst (choose_breaks).
+corners; its segments' slopes are s_0 = delta0 and s_k = delta0 + delta_1 + ... + delta_k (breaks in order of
+sigma). An envelope never rises, so neither may a law of it: the search runs over the slopes themselves (the
+slope form, see theta_of), boxed in [-max_slope, max_rise]. It starts from piecewise-linear least-squares fits
+of the envelope with corners at every combination of candidate positions on the log grid and at the best
+segmentation of the grid, plus a few random starts and the best law with one break fewer plus a flat break
+(b = 0, 1, ... in turn), refines them with bounded least squares on the log residuals (which minimises M
+directly), and picks the number of breaks b by a penalised margin that leaves out the envelope points the law
+fits worst, among the laws whose every segment stands on enough outcomes of the envelope (choose_breaks).
 """
 
 import itertools
@@ -31,6 +34,7 @@ from scipy.special import expit
 
 OBJECTIVES = ("margin", "study")
 ENVELOPES = ("step", "interpolated")
+SLOPE_AT_BOUND = 0.01  # a slope this close to -max_slope was stopped by the bound
 
 
 class NSLFitError(ValueError):
@@ -39,10 +43,11 @@ class NSLFitError(ValueError):
 
 @dataclass(frozen=True)
 class NSLFit:
-    """A fitted law; ``breaks`` holds (sigma, phi, delta) per break. ``margin``: M of Definition 1 (on the
-    step envelope, as the study reports it); ``envelope_r`` / ``envelope_e``: the K points of the ``envelope``
+    """A fitted law; ``breaks`` holds (sigma, phi, delta) per break, by sigma. ``margin``: M of Definition 1 (on
+    the step envelope, as the study reports it); ``envelope_r`` / ``envelope_e``: the K points of the ``envelope``
     the law was fitted to, ``fit_margin`` its margin there and ``margins`` the best such margin for each
-    number of breaks tried."""
+    number of breaks tried. ``segment_points``: the outcomes on the envelope under each of the b + 1 segments;
+    ``undetermined``: segment -> why the outcomes do not determine its slope (undetermined_segments)."""
 
     alpha: float
     beta: float
@@ -55,14 +60,38 @@ class NSLFit:
     objective: str = "margin"
     envelope: str = "step"
     fit_margin: float | None = None
+    segment_points: tuple[int, ...] = ()
+    undetermined: dict[int, str] = field(default_factory=dict)
 
     @property
     def b(self) -> int:
         return len(self.breaks)
 
+    @property
+    def slopes(self) -> np.ndarray:
+        """(b + 1,): the log-log slope of each segment (see slopes())."""
+        return slopes(self.parameters())
+
     def predict(self, r: np.ndarray | float) -> np.ndarray:
         """L(r) for resources ``r`` (any shape)."""
         return np.exp(log_law(self.parameters(), np.log(np.asarray(r, dtype=float))))
+
+    def segment_name(self, k: int) -> str:
+        """Where segment k lies: 'below 3.1e+07', '3.1e+07 to 4.9e+07', 'beyond 4.9e+07' (b = 0: 'all')."""
+        edges = [sigma for sigma, _, _ in self.breaks]
+        if not edges:
+            return "all"
+        if k == 0:
+            return f"below {edges[0]:.2g}"
+        return f"beyond {edges[-1]:.2g}" if k == len(edges) else f"{edges[k - 1]:.2g} to {edges[k]:.2g}"
+
+    def undetermined_text(self) -> str | None:
+        """The undetermined segments in words, e.g. 'slope -10 beyond 4.9e+07: at the slope bound -10 and on 1
+        envelope outcome'; None when the outcomes determine every slope."""
+        if not self.undetermined:
+            return None
+        return "; ".join(f"slope {self.slopes[k]:.2f} {self.segment_name(k)}: {why}"
+                         for k, why in sorted(self.undetermined.items()))
 
     def parameters(self) -> np.ndarray:
         """[ln alpha, ln beta, delta0, (ln sigma_i, phi_i, delta_i) ...]."""
@@ -139,31 +168,85 @@ def log_law_jacobian(theta: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.stack(columns, axis=1)
 
 
+def slopes(theta: np.ndarray) -> np.ndarray:
+    """(b + 1,): the log-log slopes s_0 = delta0, s_k = delta0 + delta_1 + ... + delta_k of the law's segments
+    (breaks in order of sigma); s_b is the slope beyond the last break."""
+    breaks = theta[3:].reshape(-1, 3)
+    ordered = breaks[np.argsort(breaks[:, 0], kind="stable"), 2]
+    return theta[2] + np.concatenate([[0.0], np.cumsum(ordered)])
+
+
+def slope_form(theta: np.ndarray) -> np.ndarray:
+    """u = [ln alpha, ln beta, s_0, (ln sigma_k, phi_k, s_k) ...] of theta, its breaks in order of sigma."""
+    breaks = theta[3:].reshape(-1, 3)
+    u = np.concatenate([theta[:3], breaks[np.argsort(breaks[:, 0], kind="stable")].ravel()])
+    u[2::3] = slopes(theta)
+    return u
+
+
+def theta_of(u: np.ndarray) -> np.ndarray:
+    """theta of the slope form u: the k-th break (corner phi_k, slope s_k beyond it) sits at the k-th smallest
+    position of u, delta_k = s_k - s_{k-1}. Positions that cross swap nothing else, so the law is continuous
+    in u and, boxed in [-max_slope, max_rise] on the slopes, can never rise faster than max_rise."""
+    theta = u.copy()
+    theta[3::3] = np.sort(u[3::3])
+    theta[5::3] = np.diff(u[2::3])
+    return theta
+
+
+def slope_form_jacobian(u: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """d ln L / d u, shape (len(x), len(u))."""
+    jacobian = log_law_jacobian(theta_of(u), x)
+    by_slope = jacobian.copy()
+    delta = jacobian[:, 2::3]  # d / d delta0, d / d delta_1, ...
+    by_slope[:, 2::3] = delta - np.pad(delta[:, 1:], ((0, 0), (0, 1)))
+    rank = np.argsort(np.argsort(u[3::3], kind="stable"), kind="stable")
+    by_slope[:, 3::3] = jacobian[:, 3::3][:, rank]
+    return by_slope
+
+
 def margin_of(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray) -> float:
     return float(np.mean((log_law(theta, x) - log_e) ** 2))
 
 
 @dataclass(frozen=True)
 class Bounds:
-    """Box bounds of theta for b breaks on the log grid ``x`` with log errors ``log_e``."""
+    """Box bounds of the slope form u (slope_form) for b breaks on the log grid ``x`` with log errors
+    ``log_e``."""
 
     lower: np.ndarray
     upper: np.ndarray
 
     @classmethod
-    def for_grid(cls, x: np.ndarray, log_e: np.ndarray, b: int, max_slope: float, edge: float,
-                 phi_min: float) -> "Bounds":
-        """Breaks stay ``edge`` of the log range inside it: a corner at the very end of the data is not
-        identifiable (it fits the scatter of the few outcomes that make the envelope there)."""
+    def for_grid(cls, x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings") -> "Bounds":
+        """Slopes in [-max_slope, max_rise]; breaks stay ``edge`` of the log range inside it: a corner at the
+        very end of the data is not identifiable (it fits the scatter of the few outcomes that make the
+        envelope there)."""
+        max_slope, phi_min = settings.max_slope, settings.phi_min
         span = max(x[-1] - x[0], phi_min)
         lower = [log_e.min() - 30, log_e.min() - 30 - max_slope * np.abs(x).max(), -max_slope]
-        upper = [log_e.max(), log_e.max() + 30 + max_slope * np.abs(x).max(), max_slope]
-        lower += [x[0] + edge * span, phi_min, -max_slope] * b
-        upper += [x[-1] - edge * span, max(span, phi_min * 1.01), max_slope] * b
+        upper = [log_e.max(), log_e.max() + 30 + max_slope * np.abs(x).max(), settings.max_rise]
+        lower += [x[0] + settings.edge * span, phi_min, -max_slope] * b
+        upper += [x[-1] - settings.edge * span, max(span, phi_min * 1.01), settings.max_rise] * b
         return cls(np.array(lower, dtype=float), np.array(upper, dtype=float))
 
     def clip(self, theta: np.ndarray) -> np.ndarray:
         return np.clip(theta, self.lower, self.upper)
+
+    def keeping_support(self, u: np.ndarray, x_on: np.ndarray, points: int) -> "Bounds":
+        """These bounds narrowed around the slope form ``u`` (positions in order) so that every segment keeps
+        ``points`` of the outcomes on the envelope (log resources ``x_on``, increasing): a break may take at most
+        half the spare outcomes of an inner segment beside it, and all of those of the first or last."""
+        counts = segment_points(u, x_on)
+        firsts = np.cumsum(counts)[:-1]  # index in x_on of the first outcome right of each break
+        spare = counts - points
+        lower, upper = self.lower.copy(), self.upper.copy()
+        for k, first in enumerate(firsts):
+            take_left = spare[k] if k == 0 else spare[k] // 2
+            take_right = spare[k + 1] if k == len(firsts) - 1 else spare[k + 1] // 2
+            lower[3 + 3 * k] = max(lower[3 + 3 * k], x_on[first - take_left - 1])  # an outcome at the break is left
+            upper[3 + 3 * k] = min(upper[3 + 3 * k], np.nextafter(x_on[first + take_right], -np.inf))
+        return Bounds(lower, np.maximum(upper, np.nextafter(lower, np.inf)))
 
 
 def segment_costs(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -199,12 +282,11 @@ def hinge_fit(x: np.ndarray, y: np.ndarray, corners: Sequence[float]) -> np.ndar
 
 
 def piecewise_linear_starts(x: np.ndarray, log_e: np.ndarray, b: int, positions: int,
-                            alpha_shares: Sequence[float], phi_min: float) -> list[tuple[float, np.ndarray]]:
+                            alpha_shares: Sequence[float], phi_min: float) -> list[np.ndarray]:
     """Initial thetas from continuous piecewise-linear least-squares fits of ln(e~ - alpha), alpha = 0 and
     alpha = each of ``alpha_shares`` * min e~, with corners (a) at every combination of b of ``positions`` evenly
     spaced inner points of the log grid and (b) at the boundaries of the best segmentation of the grid
-    (which finds breaks closer together than the even positions are); returned with their margin, best
-    first."""
+    (which finds breaks closer together than the even positions are)."""
     span = x[-1] - x[0]
     phi = max(phi_min, 0.03 * span)
     even = x[0] + span * np.arange(1, positions + 1) / (positions + 1)
@@ -217,15 +299,14 @@ def piecewise_linear_starts(x: np.ndarray, log_e: np.ndarray, b: int, positions:
         for corners in [*itertools.combinations(even, b), *segmented]:
             coef = hinge_fit(x, y, corners)
             breaks = [v for c, d in zip(corners, coef[2:], strict=True) for v in (c, phi, d)]
-            theta = np.array([log_alpha, coef[0], coef[1], *breaks])
-            starts.append((margin_of(theta, x, log_e), theta))
-    return sorted(starts, key=lambda start: start[0])
+            starts.append(np.array([log_alpha, coef[0], coef[1], *breaks]))
+    return starts
 
 
 def random_starts(x: np.ndarray, log_e: np.ndarray, b: int, count: int, bounds: Bounds, seed: int
                   ) -> list[np.ndarray]:
-    """``count`` random thetas in ``bounds`` (positions uniform in range, slopes and phi moderate, alpha 0 or
-    a share of min e~ drawn from U(0.5, 1)), each through the first envelope point: starts that no
+    """``count`` random slope forms in ``bounds`` (positions uniform in range, slope changes and phi moderate,
+    alpha 0 or a share of min e~ drawn from U(0.5, 1)), each through the first envelope point: starts that no
     structured guess supplies (e.g. a saturating alpha together with a break)."""
     rng = np.random.default_rng(seed)
     starts = []
@@ -235,44 +316,46 @@ def random_starts(x: np.ndarray, log_e: np.ndarray, b: int, count: int, bounds: 
                   for v in (position, rng.uniform(bounds.lower[4], 1.0), rng.uniform(-3, 3))] if b else []
         theta = np.array([log_alpha, 0.0, rng.uniform(-2, 1), *breaks])
         theta[1] = log_e[0] - log_power(theta, x[:1])[0]  # through (x_0, e~_0)
-        starts.append(bounds.clip(theta))
+        starts.append(bounds.clip(slope_form(theta)))
     return starts
 
 
-def refine_margin(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, bounds: Bounds, evaluations: int
+def refine_margin(u: np.ndarray, x: np.ndarray, log_e: np.ndarray, bounds: Bounds, evaluations: int
                   ) -> np.ndarray:
-    """Minimise the margin from ``theta`` (bounded trust-region least squares on the log residuals, at most
-    ``evaluations`` evaluations; stops when M changes by less than 1e-6 of itself)."""
-    result = least_squares(lambda t: log_law(t, x) - log_e, bounds.clip(theta),
-                           jac=lambda t: log_law_jacobian(t, x), bounds=(bounds.lower, bounds.upper),
+    """Minimise the margin from the slope form ``u`` (bounded trust-region least squares on the log residuals,
+    at most ``evaluations`` evaluations; stops when M changes by less than 1e-6 of itself)."""
+    result = least_squares(lambda v: log_law(theta_of(v), x) - log_e, bounds.clip(u),
+                           jac=lambda v: slope_form_jacobian(v, x), bounds=(bounds.lower, bounds.upper),
                            x_scale="jac", max_nfev=evaluations, ftol=1e-6)
     return result.x
 
 
-def study_loss(theta: np.ndarray, x: np.ndarray, e: np.ndarray, beta: float) -> tuple[float, np.ndarray]:
-    """Section 4.3's loss mean_k(beta max(L - e~, 0) + max(e~ - L, 0)) at theta, and its gradient."""
-    law = np.exp(log_law(theta, x))
+def study_loss(u: np.ndarray, x: np.ndarray, e: np.ndarray, beta: float) -> tuple[float, np.ndarray]:
+    """Section 4.3's loss mean_k(beta max(L - e~, 0) + max(e~ - L, 0)) at the slope form u, and its gradient."""
+    law = np.exp(log_law(theta_of(u), x))
     above = law > e
     loss = float(np.mean(np.where(above, beta * (law - e), e - law)))
     weight = np.where(above, beta, -1.0) / len(x)  # d loss / d L
-    return loss, (weight * law) @ log_law_jacobian(theta, x)
+    return loss, (weight * law) @ slope_form_jacobian(u, x)
 
 
-def refine_study(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, settings: "FitSettings") -> np.ndarray:
-    """Section 4.3 as written: Adam on the study's loss over [ln alpha, ln beta, delta0, (ln sigma_i, phi_i,
-    delta_i)...], unbounded but for phi_i: held at ``study_phi`` (the published laws' 0.2) or, with
-    study_phi = null, kept >= phi_min (the study's max(phi_i, 0.2)). Returns the iterate of least loss (the
-    loss is piecewise linear: a constant-rate Adam circles its minimum instead of settling)."""
+def refine_study(u: np.ndarray, x: np.ndarray, log_e: np.ndarray, settings: "FitSettings") -> np.ndarray:
+    """Section 4.3 as written: Adam on the study's loss over the slope form [ln alpha, ln beta, s_0,
+    (ln sigma_i, phi_i, s_i)...], unbounded but for phi_i, held at ``study_phi`` (the published laws' 0.2) or,
+    with study_phi = null, kept >= phi_min (the study's max(phi_i, 0.2)), and the slopes, kept <= max_rise.
+    Returns the iterate of least loss (the loss is piecewise linear: a constant-rate Adam circles its minimum
+    instead of settling)."""
     import torch  # here, not with the module: fits by the default objective (margin) start without it
 
-    theta = theta.copy()
-    phis = np.zeros(len(theta), dtype=bool)
-    phis[4::3] = True
-    theta[phis] = settings.study_phi if settings.study_phi is not None else np.maximum(theta[phis], settings.phi_min)
+    u = u.copy()
+    phis, rises = np.zeros(len(u), dtype=bool), np.zeros(len(u), dtype=bool)
+    phis[4::3], rises[2::3] = True, True
+    u[phis] = settings.study_phi if settings.study_phi is not None else np.maximum(u[phis], settings.phi_min)
+    u[rises] = np.minimum(u[rises], settings.max_rise)
     e = np.exp(log_e)
-    param = torch.nn.Parameter(torch.from_numpy(theta))
+    param = torch.nn.Parameter(torch.from_numpy(u))
     optimizer = torch.optim.Adam([param], lr=settings.study_lr)
-    best, best_loss = theta.copy(), math.inf
+    best, best_loss = u.copy(), math.inf
     for _ in range(settings.study_steps):
         loss, gradient = study_loss(param.detach().numpy(), x, e, settings.study_beta)
         if loss < best_loss:
@@ -283,16 +366,17 @@ def refine_study(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, settings: 
         optimizer.step()
         with torch.no_grad():
             param[torch.from_numpy(phis)] = param[torch.from_numpy(phis)].clamp(min=settings.phi_min)
+            param[torch.from_numpy(rises)] = param[torch.from_numpy(rises)].clamp(max=settings.max_rise)
     return best
 
 
-def refine(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings",
+def refine(u: np.ndarray, x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings",
            evaluations: int = 200) -> np.ndarray:
-    """theta refined by the settings' objective (``evaluations``: the margin objective's budget)."""
+    """The slope form ``u`` refined by the settings' objective (``evaluations``: the margin objective's
+    budget)."""
     if settings.objective == "study":
-        return refine_study(theta, x, log_e, settings)
-    bounds = Bounds.for_grid(x, log_e, b, settings.max_slope, settings.edge, settings.phi_min)
-    return refine_margin(theta, x, log_e, bounds, evaluations)
+        return refine_study(u, x, log_e, settings)
+    return refine_margin(u, x, log_e, Bounds.for_grid(x, log_e, b, settings), evaluations)
 
 
 def with_flat_break(theta: np.ndarray, x: np.ndarray, positions: int, phi_min: float) -> list[np.ndarray]:
@@ -303,28 +387,42 @@ def with_flat_break(theta: np.ndarray, x: np.ndarray, positions: int, phi_min: f
     return [np.concatenate([theta, [position, phi, 0.0]]) for position in even]
 
 
-def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings",
-               fewer: np.ndarray | None = None) -> np.ndarray:
-    """The best theta with b breaks from the top ``settings.starts`` piecewise-linear starts,
-    ``settings.random_starts`` random ones (seeded: a fit depends only on its outcomes and settings) and, given
-    ``fewer`` (the best theta with b - 1 breaks), that law with a flat break added, by the settings' objective:
-    each refined briefly (the study's Adam: ranked as they start), the best ``settings.finalists`` to the end."""
-    starts = piecewise_linear_starts(x, log_e, b, settings.positions, settings.alpha_shares, settings.phi_min)
-    bounds = Bounds.for_grid(x, log_e, b, settings.max_slope, settings.edge, settings.phi_min)
-    chosen = [theta for _, theta in starts[:settings.starts]]
-    chosen += random_starts(x, log_e, b, settings.random_starts, bounds, seed=b)
-    if fewer is not None:
-        chosen += [bounds.clip(theta) for theta in with_flat_break(fewer, x, 3, settings.phi_min)]
+def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings", x_on: np.ndarray,
+               fewer: Sequence[np.ndarray] = ()) -> tuple[np.ndarray, np.ndarray | None]:
+    """The best theta with b breaks, and the best whose every segment stands on ``settings.min_segment_points``
+    of the outcomes on the envelope (log resources ``x_on``; None when no finalist does), from the top
+    ``settings.starts`` piecewise-linear starts, ``settings.random_starts`` random ones (seeded: a fit depends only
+    on its outcomes and settings) and each law of ``fewer`` (laws with b - 1 breaks) with a flat break added, by
+    the settings' objective: each refined briefly (the study's Adam: ranked as they start), the best
+    ``settings.finalists`` and the best as many standing on enough outcomes to the end. Every start is put in the
+    bounds of the slope form first (a rising segment of a start is flattened)."""
+    bounds = Bounds.for_grid(x, log_e, b, settings)
 
-    def objective(theta: np.ndarray) -> float:
+    def objective(u: np.ndarray) -> float:
         if settings.objective == "study":
-            return study_loss(theta, x, np.exp(log_e), settings.study_beta)[0]
-        return margin_of(theta, x, log_e)
+            return study_loss(u, x, np.exp(log_e), settings.study_beta)[0]
+        return margin_of(theta_of(u), x, log_e)
 
+    def supported(u: np.ndarray) -> bool:
+        return bool(segment_points(u, x_on).min() >= settings.min_segment_points)
+
+    starts = [bounds.clip(slope_form(theta)) for theta in
+              piecewise_linear_starts(x, log_e, b, settings.positions, settings.alpha_shares, settings.phi_min)]
+    chosen = sorted(starts, key=lambda u: margin_of(theta_of(u), x, log_e))[:settings.starts]
+    chosen += random_starts(x, log_e, b, settings.random_starts, bounds, seed=b)
+    for law in fewer:
+        chosen += [bounds.clip(slope_form(theta)) for theta in with_flat_break(law, x, 3, settings.phi_min)]
     if settings.objective == "margin":  # a short refinement of every start ...
-        chosen = [refine(theta, x, log_e, b, settings, evaluations=30) for theta in chosen]
-    refined = [refine(theta, x, log_e, b, settings) for theta in sorted(chosen, key=objective)[:settings.finalists]]
-    return min(refined, key=objective)  # ... the best to the end
+        chosen = [refine(u, x, log_e, b, settings, evaluations=30) for u in chosen]
+    ranked = sorted(chosen, key=objective)
+    refined = sorted((refine(u, x, log_e, b, settings) for u in ranked[:settings.finalists]), key=objective)
+    standing = [u for u in refined if supported(u)]  # ... the best to the end, and the best standing ones kept
+    for u in [u for u in ranked if supported(u)][:settings.finalists]:  # standing while refined
+        u = slope_form(theta_of(u))
+        standing.append(refine_margin(u, x, log_e, bounds.keeping_support(u, x_on, settings.min_segment_points),
+                                      200) if settings.objective == "margin" else u)
+    standing.sort(key=objective)
+    return theta_of(refined[0]), theta_of(standing[0]) if standing else None
 
 
 @dataclass(frozen=True)
@@ -340,6 +438,8 @@ class FitSettings:
     finalists: int
     alpha_shares: tuple[float, ...]
     max_slope: float
+    max_rise: float
+    min_segment_points: int
     edge: float
     phi_min: float
     min_gain: float
@@ -375,6 +475,26 @@ def trimmed_margin(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, trim: fl
     squared = np.sort((log_law(theta, x) - log_e) ** 2)
     drop = math.ceil(trim * len(squared)) if trim > 0 else 0
     return float(np.mean(squared[:len(squared) - drop]))
+
+
+def segment_points(theta: np.ndarray, x_on: np.ndarray) -> np.ndarray:
+    """(b + 1,): how many of the outcomes on the envelope (log resources ``x_on``, pareto_points) each segment of
+    the law (theta or its slope form) stands on: below its first break, between consecutive breaks, beyond its
+    last."""
+    edges = np.sort(theta[3::3])
+    return np.bincount(np.searchsorted(edges, x_on), minlength=len(edges) + 1)
+
+
+def undetermined_segments(theta: np.ndarray, points: np.ndarray, settings: "FitSettings") -> dict[int, str]:
+    """Segment k -> why its slope is not determined by the outcomes: at the slope bound -max_slope (a cliff the
+    bound cut, not a measured slope), or standing on fewer than min_segment_points outcomes of the envelope."""
+    reasons: dict[int, list[str]] = {}
+    for k, (slope, count) in enumerate(zip(slopes(theta), points, strict=True)):
+        if slope <= -settings.max_slope + SLOPE_AT_BOUND:
+            reasons.setdefault(k, []).append(f"at the slope bound -{settings.max_slope:g}")
+        if count < settings.min_segment_points:
+            reasons.setdefault(k, []).append(f"on {count} envelope outcome{'' if count == 1 else 's'}")
+    return {k: " and ".join(why) for k, why in reasons.items()}
 
 
 def choose_breaks(margins: dict[int, float], min_gain: float, margin_floor: float) -> int:
@@ -429,18 +549,22 @@ def law_of(theta: np.ndarray, r: np.ndarray, e: np.ndarray, grid_r: np.ndarray, 
     if margin_of(np.concatenate([[-np.inf], theta[1:]]), x, np.log(grid_e)) <= \
             margin_of(theta, x, np.log(grid_e)) * (1 + 1e-9):
         alpha = 0.0  # a negligible alpha is reported as none
+    points = segment_points(theta, np.log(pareto_points(r, e)[0]))
     return NSLFit(alpha=alpha, beta=float(np.exp(theta[1])), delta0=float(theta[2]),
                   breaks=sorted((float(np.exp(s)), float(p), float(d)) for s, p, d in theta[3:].reshape(-1, 3)),
                   margin=margin_of(theta, x, np.log(step_e)), envelope_r=grid_r, envelope_e=grid_e,
                   margins=margins, objective=settings.objective, envelope=settings.fitted_envelope,
-                  fit_margin=margin_of(theta, x, np.log(grid_e)))
+                  fit_margin=margin_of(theta, x, np.log(grid_e)), segment_points=tuple(int(n) for n in points),
+                  undetermined=undetermined_segments(theta, points, settings))
 
 
 def fit_broken_law(resources: ArrayLike, errors: ArrayLike, breaks: int | None, max_breaks: int, K: int,
                    settings: FitSettings) -> NSLFit:
     """Fit a broken NSL to the lower envelope of the outcomes (resources[i], errors[i]).
 
-    ``breaks``: a fixed number of breaks b; None chooses b in 0..``max_breaks`` (see choose_breaks).
+    ``breaks``: a fixed number of breaks b (the best law with b breaks); None chooses b in 0..``max_breaks`` (see
+    choose_breaks) among the best laws whose every segment stands on at least ``settings.min_segment_points``
+    outcomes of the envelope (b = 0 always counts).
     ``K``: envelope points. ``settings``: the search.
     Raises NSLFitError for outcomes that cannot be fitted."""
     settings.check()
@@ -450,15 +574,21 @@ def fit_broken_law(resources: ArrayLike, errors: ArrayLike, breaks: int | None, 
     grid_r, grid_e = lower_envelope(r, e, K, settings.fitted_envelope)
     x, log_e = np.log(grid_r), np.log(grid_e)
     middle = (x[0] + x[-1]) / 2
-    centred_thetas: list[np.ndarray] = []  # b = 0, 1, ...: each search also starts from the last law
+    x_on = np.log(pareto_points(r, e)[0]) - middle
+    best: dict[int, np.ndarray] = {}  # b -> the best centred law ...
+    standing: dict[int, np.ndarray] = {}  # ... and the best standing on enough outcomes of the envelope
     for b in range((breaks if breaks is not None else max_breaks) + 1):
-        centred_thetas.append(fit_breaks(x - middle, log_e, b, settings, centred_thetas[-1] if b else None))
-    thetas = {b: uncentred(theta, middle) for b, theta in enumerate(centred_thetas)}
-    margins = {b: margin_of(theta, x, log_e) for b, theta in thetas.items()}
+        fewer = list({id(law): law for law in (best.get(b - 1), standing.get(b - 1)) if law is not None}.values())
+        best[b], found = fit_breaks(x - middle, log_e, b, settings, x_on, fewer)
+        if found is not None or b == 0:
+            standing[b] = best[b] if found is None else found
     if breaks is not None:
-        return law_of(thetas[breaks], r, e, grid_r, grid_e, settings, {breaks: margins[breaks]})
+        theta = uncentred(best[breaks], middle)
+        return law_of(theta, r, e, grid_r, grid_e, settings, {breaks: margin_of(theta, x, log_e)})
+    thetas = {b: uncentred(theta, middle) for b, theta in standing.items()}
     trimmed = {b: trimmed_margin(theta, x, log_e, settings.choice_trim) for b, theta in thetas.items()}
     chosen = choose_breaks(trimmed, settings.min_gain, settings.margin_floor)
+    margins = {b: margin_of(theta, x, log_e) for b, theta in thetas.items()}
     return law_of(thetas[chosen], r, e, grid_r, grid_e, settings, margins)
 
 
@@ -470,7 +600,8 @@ def refit(fit: NSLFit, resources: np.ndarray, errors: np.ndarray, K: int, settin
     with np.errstate(divide="ignore"):
         start = fit.parameters()
     start[0] = max(start[0], log_e.min() - 30)
-    return uncentred(refine(centred(start, middle), x - middle, log_e, fit.b, settings, evaluations=50), middle)
+    u = Bounds.for_grid(x - middle, log_e, fit.b, settings).clip(slope_form(centred(start, middle)))
+    return uncentred(theta_of(refine(u, x - middle, log_e, fit.b, settings, evaluations=50)), middle)
 
 
 @dataclass(frozen=True)

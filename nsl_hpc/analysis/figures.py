@@ -20,7 +20,7 @@ from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 from tqdm import tqdm
 
 from nsl_hpc.analysis.bootstrap import band, thetas_of
-from nsl_hpc.analysis.broken_law import lower_envelope
+from nsl_hpc.analysis.broken_law import NSLFit, lower_envelope
 from nsl_hpc.analysis.fitting import fit_from_row, fittable, pair_outcomes
 from nsl_hpc.analysis.published import KEY as PUBLISHED_KEY
 from nsl_hpc.analysis.published import published_laws
@@ -83,11 +83,17 @@ def draw_nsl(ax: Axes, data: Mapping[str, np.ndarray], row: Mapping[str, Any], n
             ax.plot(*lower_envelope(data["r"], data["e"], nsl["K"], "interpolated"), color="grey", lw=0.9,
                     label="interpolated envelope (the fitted one: the law may run below the steps)")
         formula = "\n".join(textwrap.wrap(row["formula"], figures["formula_width"]))
-        ax.plot(dense, fit.predict(dense), color="crimson", lw=1.8, label=f"{formula}\nM = {row['margin']:.2g}")
+        law, determined = fit.predict(dense), determined_mask(dense, fit, row)
+        ax.plot(dense, np.where(determined, law, np.nan), color="crimson", lw=1.8,
+                label=f"{formula}\nM = {row['margin']:.2g}")
+        if not determined.all():  # the segments the outcomes do not determine: no law there
+            ax.plot(dense, np.where(np.convolve(~determined, [1, 1, 1], "same") > 0, law, np.nan), color="grey",
+                    ls=":", lw=1.5, label="\n".join(textwrap.wrap(f"undetermined: {row['undetermined']}",
+                                                                 figures["formula_width"])))
         thetas = thetas_of(row)
         if len(thetas):
             low, high = band(thetas, dense, nsl["bootstrap_level"])
-            ax.fill_between(dense, low, high, color="crimson", alpha=0.15, lw=0,
+            ax.fill_between(dense, low, high, where=determined, color="crimson", alpha=0.15, lw=0,
                             label=f"{nsl['bootstrap_level']:.0%} band ({len(thetas)} resamples)")
         for i, (sigma, _, _) in enumerate(fit.breaks):
             ax.axvline(sigma, color="crimson", ls=":", lw=1, label="breaks" if i == 0 else None)
@@ -111,6 +117,13 @@ def draw_nsl(ax: Axes, data: Mapping[str, np.ndarray], row: Mapping[str, Any], n
     if legend:
         ax.figure.legend(loc="outside lower center", fontsize=8, ncols=2)
     return points
+
+
+def determined_mask(r: np.ndarray, fit: NSLFit, row: Mapping[str, Any]) -> np.ndarray:
+    """Which resources ``r`` lie in a segment of the law whose slope the outcomes determine (nsl_fits'
+    undetermined_segments)."""
+    segments = np.searchsorted([sigma for sigma, _, _ in fit.breaks], r)
+    return ~np.isin(segments, row.get("undetermined_segments") or [])
 
 
 def log_ticks(axis, low: float, high: float) -> None:
@@ -186,7 +199,8 @@ def overview_legend(axes: np.ndarray) -> tuple[list, list[str]]:
     """One legend entry per kind of line in the panels (envelope, law, band, breaks, published law): the first
     panel's of each; the formulas differ per panel and are in each panel's own figure."""
     kinds = {"interpolated": "interpolated envelope (fitted)", "envelope": "lower envelope", "band": None,
-             "breaks": "breaks", "published": "published law", "M = ": "fitted law"}
+             "breaks": "breaks", "published": "published law", "M = ": "fitted law",
+             "undetermined": "undetermined segment"}
     handles: dict[str, Any] = {}
     for ax in axes.flat:
         for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):

@@ -121,7 +121,8 @@ def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, ns
     row.update(b=fit.b, alpha=fit.alpha, beta=fit.beta, delta0=fit.delta0, margin=fit.margin,
                fit_margin=fit.fit_margin, envelope=fit.envelope, formula=fit.formula(symbol),
                margins_by_b=json.dumps(fit.margins), objective=fit.objective, r_min=float(r.min()),
-               r_max=float(r.max()))
+               r_max=float(r.max()), slopes=fit.slopes.tolist(), segment_points=list(fit.segment_points),
+               undetermined_segments=sorted(fit.undetermined), undetermined=fit.undetermined_text())
     for i, (sigma, phi, delta) in enumerate(padded, start=1):
         row.update({f"sigma_{i}": sigma, f"phi_{i}": phi, f"delta_{i}": delta})
     thetas = bootstrap_thetas(fit, r, e, nsl["bootstrap"], stable_seed("bootstrap", *key.values()), nsl["K"],
@@ -176,6 +177,12 @@ def fit_sweep(results: pa.Table, nsl: DictConfig, workers: int | None) -> list[d
         return [future.result() for future in tqdm(futures, desc="NSL fits", unit="fit", disable=None)]
 
 
+def last_slope_undetermined(row: Mapping[str, Any]) -> bool:
+    """Whether an nsl_fits row's slope beyond its last break is undetermined (broken_law.undetermined_segments):
+    what it extrapolates is then no law."""
+    return row["b"] in (row.get("undetermined_segments") or [])
+
+
 def describe_fit(row: dict[str, Any]) -> str:
     key = nsl_key(row).replace("/", " / ")
     if row["error"]:
@@ -185,11 +192,16 @@ def describe_fit(row: dict[str, Any]) -> str:
                 f"{row['backtest_final_ratio']:.2f})")
     excluded = f" ({row['excluded']:,} excluded: not ok or non-positive)" if row["excluded"] else ""
     lines = [f"{key}: b={row['b']} M={row['margin']:.2g} from {row['outcomes']:,} outcomes{excluded}{backtest}",
-             f"    {row['formula']}"]
+             f"    {row['formula']}",
+             f"    slopes {', '.join(f'{slope:.2f}' for slope in row['slopes'])} on "
+             f"{', '.join(str(n) for n in row['segment_points'])} outcomes of the envelope"]
+    if row["undetermined"]:
+        lines.append(f"    undetermined: {row['undetermined']}")
     if row.get("bootstrap"):
         breaks = "".join(f", sigma_{i} {row[f'sigma_{i}_lo']:.2g}..{row[f'sigma_{i}_hi']:.2g}"
                          for i in range(1, row["b"] + 1))
-        lines.append(f"    90% ({row['bootstrap']} resamples): last slope {row['last_slope']:.2f} "
+        last = "last slope" + (" (undetermined)" if last_slope_undetermined(row) else "")
+        lines.append(f"    90% ({row['bootstrap']} resamples): {last} {row['last_slope']:.2f} "
                      f"[{row['last_slope_lo']:.2f}, {row['last_slope_hi']:.2f}]{breaks}, "
                      f"L(r_max) {row['L_at_max']:.2g} [{row['L_at_max_lo']:.2g}, {row['L_at_max_hi']:.2g}], "
                      f"L(10 r_max) {row['L_at_10x']:.2g} [{row['L_at_10x_lo']:.2g}, {row['L_at_10x_hi']:.2g}]")

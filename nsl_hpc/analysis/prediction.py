@@ -33,13 +33,15 @@ def resource_for(theta: np.ndarray, target: float, start: float, decades: float,
 @dataclass(frozen=True)
 class Need:
     """The resource one NSL needs for a target error: point value and interval (inf: not reachable within
-    the law over the searched range), decades beyond the largest observed resource (0 inside it)."""
+    the law over the searched range), decades beyond the largest observed resource (0 inside it), and whether
+    the point value lies on a segment whose slope the outcomes do not determine."""
 
     target: float
     resource: float
     low: float
     high: float
     extrapolation_decades: float
+    undetermined: bool = False
 
     @property
     def reachable(self) -> bool:
@@ -49,7 +51,8 @@ class Need:
 def need_for(row: Mapping[str, Any], target: float, smallest: float, decades: float, level: float) -> Need:
     """The resource an nsl_fits row's law needs to reach ``target``, searched from ``smallest`` (the
     smallest observed resource) over ``decades`` decades; the interval from its bootstrap thetas."""
-    point = resource_for(fit_from_row(row).parameters(), target, smallest, decades)
+    fit = fit_from_row(row)
+    point = resource_for(fit.parameters(), target, smallest, decades)
     thetas = thetas_of(row)
     low = high = point
     if len(thetas):
@@ -57,7 +60,8 @@ def need_for(row: Mapping[str, Any], target: float, smallest: float, decades: fl
         tail = (1 - level) / 2
         low, high = (float(v) for v in np.quantile(needs, [tail, 1 - tail], method="inverted_cdf"))  # inf: last
     beyond = math.log10(point / row["r_max"]) if math.isfinite(point) and point > row["r_max"] else 0.0
-    return Need(target, point, low, high, beyond)
+    segment = int(np.searchsorted([sigma for sigma, _, _ in fit.breaks], point))
+    return Need(target, point, low, high, beyond, segment in (row.get("undetermined_segments") or []))
 
 
 def envelope_mix(compute: np.ndarray, errors: np.ndarray, params: np.ndarray, data: np.ndarray, needed: float,
@@ -78,7 +82,8 @@ def format_need(need: Need) -> str:
     interval = ("" if need.low == need.high else
                 f" [{need.low:.2g}, {'not reachable' if math.isinf(need.high) else f'{need.high:.2g}'}]")
     beyond = f", extrapolated {need.extrapolation_decades:.1f} decades" if need.extrapolation_decades else ""
-    return f"{need.resource:.3g}{interval}{beyond}"
+    unsure = ", on a slope the outcomes do not determine" if need.undetermined else ""
+    return f"{need.resource:.3g}{interval}{beyond}{unsure}"
 
 
 def what_it_takes(results: pa.Table, fits: Sequence[Mapping[str, Any]], resource: str, metric: str,

@@ -8,6 +8,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from nsl_hpc.analysis.fitting import last_slope_undetermined
 from nsl_hpc.analysis.merge import MergeSummary
 from nsl_hpc.analysis.mlflow_runs import flatten
 from nsl_hpc.analysis.prediction import format_need
@@ -38,9 +39,24 @@ def interval(row: Mapping[str, Any], name: str, digits: str = ".2f") -> str:
     return f"{row[name]:{digits}} [{row[f'{name}_lo']:{digits}}, {row[f'{name}_hi']:{digits}}]"
 
 
+def last_slope_cell(row: Mapping[str, Any]) -> str:
+    """The last slope with its interval, or 'undetermined' with the slope the fit stopped at."""
+    if last_slope_undetermined(row):
+        return f"undetermined ({row['last_slope']:.2f})"
+    return interval(row, "last_slope")
+
+
+def slopes_cell(row: Mapping[str, Any]) -> str:
+    """Each segment's slope with the outcomes of the envelope it stands on, '?' marking an undetermined one."""
+    undetermined = set(row.get("undetermined_segments") or [])
+    return ", ".join(f"{slope:.2f}{'?' if k in undetermined else ''} ({n})"
+                     for k, (slope, n) in enumerate(zip(row["slopes"], row["segment_points"], strict=True)))
+
+
 def nsl_table(rows: Sequence[Mapping[str, Any]]) -> str:
     head = ("<tr><th>system</th><th>arch</th><th>resource</th><th>metric</th><th>outcomes</th><th>b</th>"
-            "<th>M</th><th>last slope [90%]</th><th>backtest M</th><th>law</th></tr>")
+            "<th>M</th><th>slopes (outcomes of the envelope; ? undetermined)</th><th>last slope [90%]</th>"
+            "<th>backtest M</th><th>law</th></tr>")
     body = []
     for row in rows:
         fitted = row["error"] is None
@@ -48,7 +64,7 @@ def nsl_table(rows: Sequence[Mapping[str, Any]]) -> str:
         body.append("<tr>" + cells((
             row["system"], row["arch"], row["resource"], row["metric"], f"{row['outcomes']:,}",
             row["b"] if fitted else "", f"{row['margin']:.2g}" if fitted else "",
-            interval(row, "last_slope") if fitted else "",
+            slopes_cell(row) if fitted else "", last_slope_cell(row) if fitted else "",
             f"{backtest:.2g}" if fitted and backtest is not None else "")) +
             f"<td><code>{html.escape(row['formula'] if fitted else 'not fitted: ' + row['error'])}</code></td></tr>")
     return f"<table>{head}{''.join(body)}</table>"
@@ -84,7 +100,7 @@ def comparison_rows(rows: Sequence[Mapping[str, Any]]) -> list[tuple[str, ...]]:
             f"{number(row.get('paper_margin'), '.2g')} / {row['margin']:.2g}",
             number(row.get("paper_margin_on_ours"), ".2g"),
             by_b,
-            f"{number(row.get('paper_last_slope'), '.2f')} / {interval(row, 'last_slope') or MISSING}",
+            f"{number(row.get('paper_last_slope'), '.2f')} / {last_slope_cell(row) or MISSING}",
             MISSING if paper_breaks is None else ", ".join(f"{sigma:.2g}" for sigma in paper_breaks) or "none",
             ", ".join(interval(row, f"sigma_{i}", ".2g") for i in range(1, row["b"] + 1)) or "none",
             f"{MISSING if paper_range is None else f'{paper_range[0]:.2g}-{paper_range[1]:.2g}'} / "
@@ -122,10 +138,14 @@ def fit_note(nsl: Mapping[str, Any]) -> str:
     if nsl["breaks"] is not None:
         chosen = f"b fixed at {nsl['breaks']} (nsl.breaks)"
     else:
-        chosen = (f"b chosen in 0..{nsl['max_breaks']}: each break must cut the margin by {nsl['min_gain']:.0%}, "
-                  f"not counting the {nsl['choice_trim']:.0%} of envelope points the law fits worst "
-                  "(nsl.min_gain, nsl.choice_trim)")
-    return f"Fits: {how}; {chosen}."
+        chosen = (f"b chosen in 0..{nsl['max_breaks']} among the laws whose every segment stands on at least "
+                  f"{nsl['min_segment_points']} outcomes of the envelope: each break must cut the margin by "
+                  f"{nsl['min_gain']:.0%}, not counting the {nsl['choice_trim']:.0%} of envelope points the law fits "
+                  "worst (nsl.min_segment_points, nsl.min_gain, nsl.choice_trim)")
+    bound = f"-{nsl['max_slope']:g}"
+    return (f"Fits: {how}, every segment's slope in [{bound}, {nsl['max_rise']:g}] (a law never rises more than the "
+            f"published ones do; nsl.max_slope, nsl.max_rise); {chosen}. A slope at {bound} or on fewer outcomes of "
+            "the envelope is undetermined (marked ?, drawn grey).")
 
 
 def comparison_table(rows: Sequence[Mapping[str, Any]]) -> str:

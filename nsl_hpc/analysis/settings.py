@@ -30,6 +30,8 @@ def check_nsl(nsl: Mapping[str, Any]) -> None:
     for share in nsl["alpha_shares"]:
         require_number("nsl.alpha_shares value", share, 0, 1, high_open=True)
     require_number("nsl.max_slope", nsl["max_slope"], 0, low_open=True)
+    require_number("nsl.max_rise", nsl["max_rise"], 0, nsl["max_slope"])
+    require_int("nsl.min_segment_points", nsl["min_segment_points"], 1)
     require_number("nsl.edge", nsl["edge"], 0, 0.5, high_open=True)
     require_number("nsl.phi_min", nsl["phi_min"], 0, low_open=True)
     require_number("nsl.min_gain", nsl["min_gain"], 0, 1, high_open=True)
