@@ -39,10 +39,12 @@ def usage(doc: str, config_name: str) -> str:
 
 
 def run(main: Callable[..., int | None], doc: str, argv: Sequence[str] | None = None,
-        config_name: str = "config", pass_overrides: bool = False, per_pair: Sequence[str] = ()) -> None:
+        config_name: str = "config", pass_overrides: bool = False, per_pair: Sequence[str] = (),
+        composed_with: Sequence[str] = ()) -> None:
     """Parse ``argv`` (default ``sys.argv[1:]``), compose the config, call ``main(cfg)`` (or
     ``main(cfg, overrides)``) and exit with its status. Overrides of keys under ``per_pair`` (e.g. ``arch.``: a
-    sweep's (system, arch) pairs each compose their own) are left out of this config and reach only ``main``."""
+    sweep's (system, arch) pairs each compose their own) are left out of this config and reach only ``main``;
+    ``composed_with``: overrides applied before the user's in the config only (``main`` sees the user's)."""
     args = list(sys.argv[1:] if argv is None else argv)
     flags = {a for a in args if a.startswith("-")}
     overrides = [a for a in args if not a.startswith("-")]
@@ -54,7 +56,8 @@ def run(main: Callable[..., int | None], doc: str, argv: Sequence[str] | None = 
         if flags & {"-h", "--help"}:
             print(usage(doc, config_name), end="")
             sys.exit(0)
-        cfg = compose_config([o for o in overrides if not o.lstrip("+~").startswith(tuple(per_pair))], config_name)
+        shared = [o for o in overrides if not o.lstrip("+~").startswith(tuple(per_pair))]
+        cfg = compose_config([*composed_with, *shared], config_name)
         if "--cfg" in flags:
             print(OmegaConf.to_yaml(cfg), end="")
             sys.exit(0)

@@ -14,7 +14,9 @@ A group with a training checkpoint (its job crashed, was killed or lost its node
 group again and continues from the checkpoint.
 """
 
+import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 import pyarrow as pa
 import pyarrow.compute as pc
@@ -77,6 +79,8 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
         launch = with_named_settings(read_launch_config(sweep_dir), cfg, overrides)
         check_run_settings(launch)
         state = read_sweep_state(sweep_dir)
+        if note := state.accounting_note():
+            print(note)
         wanted = [task["task_id"] for task in state.manifest if state.states[task["task_id"]] in cfg.states]
         manifest = read_manifest(sweep_dir)
         selected = manifest.filter(pc.is_in(manifest["task_id"], value_set=pa.array(wanted, type=pa.string())))
@@ -98,5 +102,20 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
         return run_jobs(sweep_dir, launch, packs, tasks, configs)
 
 
+def sweeps_launcher(argv: Sequence[str]) -> list[str]:
+    """``["launcher=<the sweep's launcher>"]`` to compose the config with where ``argv`` names launcher keys but
+    no launcher (a ``launcher.partition=cpu`` changes the sweep's slurm launcher, not the default local one);
+    else none."""
+    overrides = [argument.lstrip("+~") for argument in argv]
+    sweep_dirs = [argument.split("=", 1)[1] for argument in overrides if argument.startswith("sweep_dir=")]
+    if not sweep_dirs or not any(argument.startswith("launcher.") for argument in overrides) or \
+            any(argument.startswith("launcher=") for argument in overrides):
+        return []
+    try:
+        return [f"launcher={read_launch_config(Path(sweep_dirs[-1])).launcher.name}"]
+    except (ConfigError, OSError, AttributeError):  # main refuses a bad sweep_dir in its own words
+        return []
+
+
 if __name__ == "__main__":
-    cli.run(main, __doc__, config_name="resubmit", pass_overrides=True)
+    cli.run(main, __doc__, config_name="resubmit", pass_overrides=True, composed_with=sweeps_launcher(sys.argv[1:]))

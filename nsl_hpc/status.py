@@ -95,6 +95,8 @@ def main(cfg: DictConfig) -> int:
         state = read_sweep_state(cfg.sweep_dir)
         print(summary(state, remaining_seconds(cfg.sweep_dir, state, launch), running_cores(cfg.sweep_dir, state)),
               flush=True)
+        if note := state.accounting_note():
+            print(note, flush=True)
         if decisions := read_decisions(cfg.sweep_dir):
             print(f"budget: {describe_rounds(decisions)}", flush=True)
         active = state.counts()["running"] + state.counts()["pending"] + (

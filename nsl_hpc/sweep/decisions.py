@@ -86,7 +86,7 @@ def queued_round_job(sweep_dir: Path) -> str | None:
         job_id = str(json.loads(path.read_text())["job_id"])
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise damaged_file(path, error) from None
-    return job_id if job_states([job_id]).get(job_id) in ACTIVE_JOB_STATES else None
+    return job_id if job_states([job_id]).states.get(job_id) in ACTIVE_JOB_STATES else None
 
 
 def round_job_queued(sweep_dir: Path) -> bool:

@@ -2,6 +2,7 @@
 submitted), or local / in-process executors in the foreground with a progress bar."""
 
 import contextlib
+import io
 import itertools
 import os
 import shutil
@@ -21,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from nsl_hpc.config.launchers import DebugLauncher, Launcher, LocalLauncher, SlurmLauncher, launcher_from
-from nsl_hpc.errors import RunError
+from nsl_hpc.errors import ConfigError, RunError
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.checkpoints import STALE_S, HeldLock, held_locks
@@ -33,7 +34,7 @@ from nsl_hpc.sweep.manifest import write_run_settings
 from nsl_hpc.sweep.plan import Group, Pack
 from nsl_hpc.sweep.prepare import prepare_shared_data
 from nsl_hpc.sweep.rows import row_state
-from nsl_hpc.sweep.slurm import queued_jobs, read_limits
+from nsl_hpc.sweep.slurm import queued_jobs, read_limits, refused_setting
 from nsl_hpc.sweep.submissions import record_submission
 
 FULL_DISK_BYTES = 64 * 2**20  # a local job that ended without its result with less free than this: the disk is full
@@ -46,6 +47,7 @@ class Submission:
     arrays: dict[str, int]
     left: list[Pack]
     refusal: str | None = None  # sbatch's message when it refused an array
+    unaccounted: str | None = None  # why the user's job limits could not be read (slurm.Limits)
 
 
 def submit_to_slurm(sweep_dir: Path, packs: Sequence[Pack], launcher: SlurmLauncher, name: str) -> Submission:
@@ -63,8 +65,8 @@ def submit_to_slurm(sweep_dir: Path, packs: Sequence[Pack], launcher: SlurmLaunc
             arrays[submit_array(sweep_dir, chunk, chunk[0].time_limit_min, launcher, name)] = len(chunk)
         except submitit.core.utils.FailedJobError as error:  # e.g. the controller is full: keep what went in
             refused = [pack for later in chunks[index:] for pack in later]
-            return Submission(arrays, refused + left, refusal=" ".join(str(error).split())[-300:])
-    return Submission(arrays, left)
+            return Submission(arrays, refused + left, " ".join(str(error).split())[-300:], limits.unaccounted)
+    return Submission(arrays, left, unaccounted=limits.unaccounted)
 
 
 def array_chunks(packs: Sequence[Pack], max_array_size: int) -> list[list[Pack]]:
@@ -129,7 +131,8 @@ def submit_array(sweep_dir: Path, packs: Sequence[Pack], time_limit_min: int, la
                  name: str) -> str:
     """One array of single-CPU elements, element i running ``packs[i]``; returns the array job id."""
     executor = slurm_executor(sweep_dir, time_limit_min, launcher, name, max(pack.chain for pack in packs))
-    jobs = executor.map_array(JobRunner(), [str(sweep_dir)] * len(packs), [list(pack.groups) for pack in packs])
+    with contextlib.redirect_stderr(io.StringIO()):  # submitit prints a refusal's sbatch lines: the error has them
+        jobs = executor.map_array(JobRunner(), [str(sweep_dir)] * len(packs), [list(pack.groups) for pack in packs])
     array_id = jobs[0].job_id.split("_")[0]  # a single element is a plain job: its id has no _<index>
     record_submission(sweep_dir, array_id, time_limit_min, [job.job_id for job in jobs],
                       [pack.task_ids for pack in packs])
@@ -260,6 +263,11 @@ def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Launcher, name: s
     if isinstance(launcher, SlurmLauncher):
         submission = submit_to_slurm(sweep_dir, packs, launcher, name)
         elements = sum(submission.arrays.values())
+        if submission.unaccounted:
+            print(f"the accounting database did not answer ({submission.unaccounted[:160]}): submitted without the "
+                  "user's MaxSubmitJobs (set launcher.max_submit_jobs to stay within it)")
+        if submission.refusal:
+            refuse_for_setting(sweep_dir, submission)
         print(f"submitted {elements:,} jobs in {len(submission.arrays)} arrays: {', '.join(submission.arrays)}")
         if submission.refusal:
             print(f"sbatch refused the next array: {submission.refusal}")
@@ -271,6 +279,21 @@ def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Launcher, name: s
     counts = run_locally(sweep_dir, packs, launcher, silence_s)
     print("finished: " + ", ".join(f"{n:,} {outcome}" for outcome, n in sorted(counts.items())))
     return 0 if set(counts) <= {"ok", "skipped"} else 1
+
+
+def refuse_for_setting(sweep_dir: Path, submission: Submission) -> None:
+    """Raise a ConfigError when sbatch refused an array for one of the launcher's settings (a partition, an
+    account, an array size the cluster does not take): one line with its reason, what went in before, and the
+    resubmit that runs the rest with the setting corrected. A refusal for room (job limits) returns."""
+    assert submission.refusal is not None
+    setting = refused_setting(submission.refusal, queued_jobs(user_only=True))
+    if setting is None:
+        return
+    went_in = (f"{sum(submission.arrays.values()):,} jobs in {', '.join(submission.arrays)} went in before it"
+               if submission.arrays else "nothing was submitted")
+    raise ConfigError(f"sbatch refused the jobs ({submission.refusal.replace('sbatch: error: ', '')}): change "
+                      f"{setting}; {went_in}: python -m nsl_hpc.resubmit sweep_dir={sweep_dir} {setting}=<value> "
+                      "runs the rest")
 
 
 def limit_threads(threads: int) -> None:

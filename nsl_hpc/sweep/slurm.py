@@ -22,21 +22,25 @@ def slurm_command(*args: str, retries: int = 3, backoff_s: float = 2.0) -> str:
             return result.stdout
         if attempt + 1 < retries:
             time.sleep(backoff_s * 2**attempt)
-    raise SlurmError(f"{' '.join(args[:3])} failed: {' '.join(result.stderr.split())}")
+    lines = [line.strip() for line in result.stderr.splitlines() if line.strip()] or ["no message"]
+    raise SlurmError(f"{args[0]} failed: {lines[-1].removeprefix(f'{args[0]}: ').removeprefix('error: ')}")
 
 
 @dataclass(frozen=True)
 class Limits:
     """What the cluster accepts: array indices < max_array_size; at most max_job_count jobs in the
-    system and max_submit_jobs of this user (array elements count one each)."""
+    system and max_submit_jobs of this user (array elements count one each). ``unaccounted``: why the user's
+    limits could not be read from the accounting database (then max_submit_jobs is None), None when they were."""
 
     max_array_size: int
     max_job_count: int
     max_submit_jobs: int | None
+    unaccounted: str | None = None
 
 
 def read_limits(launcher: SlurmLauncher) -> Limits:
-    """Limits from ``scontrol show config`` and ``sacctmgr``, unless set in the launcher config."""
+    """Limits from ``scontrol show config`` and ``sacctmgr``, unless set in the launcher config; a launcher
+    array size above the cluster's is refused."""
     config = slurm_command("scontrol", "show", "config")
 
     def setting(name: str) -> int:
@@ -45,13 +49,19 @@ def read_limits(launcher: SlurmLauncher) -> Limits:
             raise ConfigError(f"scontrol show config has no {name}; set it in the launcher config")
         return int(match.group(1))
 
-    max_submit = launcher.max_submit_jobs
+    if launcher.max_array_size is not None and launcher.max_array_size > setting("MaxArraySize"):
+        raise ConfigError(f"launcher.max_array_size={launcher.max_array_size} is above the cluster's MaxArraySize="
+                          f"{setting('MaxArraySize')}: leave it unset (null) or lower it")
+    max_submit, unaccounted = launcher.max_submit_jobs, None
     if max_submit is None:
-        values = slurm_command("sacctmgr", "-n", "-P", "show", "assoc", f"user={getpass.getuser()}",
-                               "format=MaxSubmitJobs").split()
-        max_submit = min((int(v) for v in values if v.isdigit()), default=None)
+        try:
+            values = slurm_command("sacctmgr", "-n", "-P", "show", "assoc", f"user={getpass.getuser()}",
+                                   "format=MaxSubmitJobs", retries=2).split()
+            max_submit = min((int(v) for v in values if v.isdigit()), default=None)
+        except SlurmError as error:
+            unaccounted = str(error)
     return Limits(launcher.max_array_size or setting("MaxArraySize"),
-                  launcher.max_job_count or setting("MaxJobCount"), max_submit)
+                  launcher.max_job_count or setting("MaxJobCount"), max_submit, unaccounted)
 
 
 def queued_jobs(user_only: bool) -> int:
@@ -67,12 +77,37 @@ ACTIVE_JOB_STATES = {"RUNNING": "running", "COMPLETING": "running", "PENDING": "
                      "CONFIGURING": "running", "RESIZING": "running", "SUSPENDED": "pending"}
 
 
-def job_states(job_ids: Iterable[str]) -> dict[str, str]:
-    """State of every array element of ``job_ids`` (array job ids), from one ``sacct`` call."""
-    ids = ",".join(job_ids)
+@dataclass(frozen=True)
+class JobStates:
+    """The state of every array element of some jobs: the controller's (``squeue``) while it holds them, the
+    accounting database's (``sacct``) once they ended; ``unaccounted``: why sacct did not answer (accounting
+    disabled or down: ended jobs then have no state), None when it did."""
+
+    states: dict[str, str]
+    unaccounted: str | None = None
+
+
+def job_states(job_ids: Iterable[str]) -> JobStates:
+    """State of every array element of ``job_ids`` (array job ids): one ``squeue`` call for this user's jobs (a
+    job the controller holds is never ended, whatever the accounting database says or does not say yet) and one
+    ``sacct`` call, whose failure is reported, not raised."""
+    ids = sorted(set(job_ids))
     if not ids:
-        return {}
-    output = slurm_command("sacct", "-n", "-P", "-X", "-j", ids, "--format=JobID,State")
+        return JobStates({})
+    try:
+        accounted = parse_states(slurm_command("sacct", "-n", "-P", "-X", "-j", ",".join(ids),
+                                               "--format=JobID,State", retries=2))
+        unaccounted = None
+    except SlurmError as error:
+        accounted, unaccounted = {}, str(error)
+    queued = parse_states(slurm_command("squeue", "-h", "-r", "-u", getpass.getuser(), "-o", "%i|%T"))
+    wanted = set(ids)
+    return JobStates(accounted | {element: state for element, state in queued.items()
+                                  if element.split("_")[0] in wanted}, unaccounted)
+
+
+def parse_states(output: str) -> dict[str, str]:
+    """Element id -> state of ``JobID|State`` lines (sacct, squeue), array ranges expanded."""
     states = {}
     for line in output.splitlines():
         job_id, state = line.split("|")[:2]
@@ -91,3 +126,27 @@ def expand_array_ids(job_id: str) -> list[str]:
         first, _, last = part.partition("-")
         elements += [f"{match.group(1)}_{i}" for i in range(int(first), int(last or first) + 1)]
     return elements
+
+
+# What sbatch says when it refuses a job for a setting (lowercase fragment -> the launcher key to change); any
+# other refusal is for room (the controller's or the user's job limits) and passes once jobs end.
+REFUSED_SETTINGS = (("partition", "launcher.partition"), ("account", "launcher.account"),
+                    ("invalid qos", "launcher.qos"), ("array specification", "launcher.max_array_size"),
+                    ("time limit", "launcher.max_time_minutes"), ("memory", "launcher.mem"),
+                    ("node configuration", "launcher.extra_sbatch"), ("feature specification", "launcher.extra_sbatch"),
+                    ("gres", "launcher.extra_sbatch"), ("unrecognized option", "launcher.extra_sbatch"),
+                    ("invalid option", "launcher.extra_sbatch"))
+ROOM_REFUSALS = ("temporarily", "job submit limit", "maxsubmit", "maxjobcount", "job count")
+
+
+def refused_setting(message: str, user_queued: int) -> str | None:
+    """The launcher setting an sbatch refusal names, None for a refusal for room. A QOS or association policy
+    refusal counts as room only while the user has jobs queued (with none, the size or time of the job broke it:
+    its time limit, launcher.max_time_minutes)."""
+    text = message.lower()
+    if "policy" in text:
+        return None if user_queued else "launcher.max_time_minutes"
+    if any(fragment in text for fragment in ROOM_REFUSALS):
+        return None
+    return next((key for fragment, key in REFUSED_SETTINGS if fragment in text), "launcher.extra_sbatch")
+

@@ -1,5 +1,5 @@
-"""Where every task of a sweep stands, from the manifest, the rows and failure records on disk, and
-one ``sacct`` call for all of the sweep's arrays."""
+"""Where every task of a sweep stands, from the manifest, the rows and failure records on disk, and one
+``squeue`` and one ``sacct`` call for all of the sweep's arrays."""
 
 import time
 from collections import Counter
@@ -24,21 +24,31 @@ STATES = ("done", "running", "pending", "failed", "frozen", "timeout", "missing"
 
 @dataclass(frozen=True)
 class SweepState:
-    """Each task's state (one of STATES), the failure records behind the failed ones and the sacct
-    state of every array element of the sweep."""
+    """Each task's state (one of STATES), the failure records behind the failed ones, the state of every array
+    element of the sweep (slurm.job_states) and, when the accounting database did not answer, why."""
 
     states: dict[str, str]
     failures: dict[str, dict[str, Any]]
     manifest: list[dict[str, Any]]
     element_states: dict[str, str]
+    unaccounted: str | None = None
 
     def counts(self) -> Counter[str]:
         return Counter(self.states.values())
 
+    def accounting_note(self) -> str | None:
+        """One line on what the states cannot tell apart without accounting; None with it."""
+        if self.unaccounted is None:
+            return None
+        return (f"accounting did not answer ({self.unaccounted[:160]}): states come from the queue, the rows, the "
+                "failure records and the group locks; a job that ended without a row or a failure record counts "
+                "as missing (cancelled, out of memory, a lost node or a job never started cannot be told apart)")
+
 
 def read_sweep_state(sweep_dir: Path) -> SweepState:
     """Classify every task: a valid row means done; else running while a live job holds its group's lock (local
-    workers included); else its latest array element's state while that is active; else its failure record
+    workers included); else its latest array element's state while that is active (the controller's while it
+    holds the element, so a job accounting has not recorded yet is never missing); else its failure record
     written since that submission (failed, frozen, timeout); else pending while a launch or resubmit holds the
     sweep (a local one runs it later); else missing. A file where its row belongs that is no valid row makes it
     corrupt. In a budgeted sweep a missing task is skipped where its round decided not to run it, and waiting
@@ -53,7 +63,7 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
         for element, task_ids in zip(record["element_ids"], record["elements"], strict=True):
             for task_id in task_ids:
                 latest[task_id] = (element, record["submitted"])
-    element_states = job_states(record["array_id"] for record in submissions) if submissions else {}
+    elements = job_states(record["array_id"] for record in submissions)
     now, states = time.time(), {}
     running, launching = running_task_ids(sweep_dir), launch_running(sweep_dir)
     budgeted = budget_states(sweep_dir)
@@ -63,18 +73,18 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
         if row == "missing" and task_id in running:
             states[task_id] = "running"
             continue
-        states[task_id] = task_state(row, failures.get(task_id), element, submitted, element_states.get(element or ""),
-                                     now)
+        states[task_id] = task_state(row, failures.get(task_id), element, submitted,
+                                     elements.states.get(element or ""), now)
         if states[task_id] == "missing":
             states[task_id] = without_row_state(budgeted, task_id, launching)
-    return SweepState(states, failures, manifest.to_pylist(), element_states)
+    return SweepState(states, failures, manifest.to_pylist(), elements.states, elements.unaccounted)
 
 
 def task_state(row: str, failure: Mapping[str, Any] | None, element: str | None, submitted: float,
                element_state: str | None, now: float) -> str:
     """One task's state (of STATES) from its row's state (done, corrupt, missing), its failure record, the
     array element it was last submitted to (None: never) at time ``submitted`` (s since the epoch) and that
-    element's sacct state (None: not in the accounting database)."""
+    element's state (slurm.job_states; None: neither queued nor in the accounting database)."""
     if row != "missing":
         return row  # done, or corrupt: the task ran to the end and its row was damaged since
     if failure is not None and failure["time"] >= submitted:

@@ -1,0 +1,63 @@
+"""A sweep when SLURM's accounting database is down or lags: launch needs no sacctmgr, status and resubmit work
+from the queue, and a task the controller still holds is never called missing (issue: pending tasks were
+submitted twice after slurmdbd came back)."""
+
+import subprocess
+import time
+
+import pytest
+
+from nsl_hpc.sweep.task_states import ACCOUNTING_LAG_S
+from tests.sweeps import TINY_GRID, nsl
+
+pytestmark = pytest.mark.slurm
+
+
+def accounting_answers() -> bool:
+    return subprocess.run(["sacctmgr", "-n", "show", "cluster"], capture_output=True, timeout=30).returncode == 0
+
+
+def stop_slurmdbd() -> None:
+    subprocess.run(["pkill", "-x", "slurmdbd"], check=False)
+    for _ in range(60):
+        if not accounting_answers():
+            return
+        time.sleep(0.5)
+    raise AssertionError("slurmdbd did not stop")
+
+
+def start_slurmdbd() -> None:
+    if subprocess.run(["pgrep", "-x", "slurmdbd"], capture_output=True).returncode != 0:
+        subprocess.run(["/usr/sbin/slurmdbd"], check=True)
+    for _ in range(120):
+        if accounting_answers():
+            return
+        time.sleep(0.5)
+    raise AssertionError("slurmdbd did not come back")
+
+
+def test_tasks_queued_while_accounting_was_down_are_never_submitted_again(slurm_cluster, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    held = [*TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "+launcher.extra_sbatch.hold=true",
+            "packing.enabled=false", "lockstep.enabled=false", "sweep.name=unaccounted"]
+    stop_slurmdbd()
+    try:
+        launched = nsl("launch", *held)
+        assert launched.returncode == 0, launched.stderr
+        assert "submitted 4 jobs in 1 arrays" in launched.stdout
+        assert "the accounting database did not answer (sacctmgr failed: " in launched.stdout
+        status = nsl("status", f"sweep_dir={sweep_dir}")
+        assert status.returncode == 0, status.stderr
+        assert "pending 4" in status.stdout and "missing 0" in status.stdout
+        assert "accounting did not answer (sacct failed: " in status.stdout and "cannot be told apart" in status.stdout
+        assert "nothing to resubmit" in nsl("resubmit", f"sweep_dir={sweep_dir}").stdout
+        time.sleep(ACCOUNTING_LAG_S + 1)  # no longer "just submitted": only the queue says they are pending
+        start_slurmdbd()
+        resubmitted = nsl("resubmit", f"sweep_dir={sweep_dir}")
+        assert resubmitted.returncode == 0 and "nothing to resubmit" in resubmitted.stdout, resubmitted.stdout
+        queued = subprocess.run(["squeue", "-h", "-r", "-n", "nsl-unaccounted", "-o", "%i"], capture_output=True,
+                                text=True, check=True).stdout.split()
+        assert len(queued) == 4 and len({element.split("_")[0] for element in queued}) == 1
+    finally:
+        start_slurmdbd()
+        subprocess.run(["scancel", "-n", "nsl-unaccounted"], check=False)

@@ -1,0 +1,45 @@
+"""Submissions SLURM refuses for a setting: one line with sbatch's reason and the setting to change, a non-zero
+exit, and a resubmit with the setting corrected runs the tasks (issue: a refused partition exited 0 and blamed
+the cluster's job limits)."""
+
+import subprocess
+
+import pytest
+
+from tests.sweeps import TINY_GRID, nsl
+
+pytestmark = pytest.mark.slurm
+
+
+def test_a_refused_partition_is_one_line_and_resubmit_corrects_it(slurm_cluster, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    args = [*TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "+launcher.extra_sbatch.hold=true",
+            "sweep.name=refused"]
+    refused = nsl("launch", *args, "launcher.partition=nope")
+    assert refused.returncode == 2, refused.stdout + refused.stderr
+    line = refused.stderr.strip()
+    assert "\n" not in line and line.startswith("error: sbatch refused the jobs (")
+    assert "Invalid partition name specified" in line and "change launcher.partition; nothing was submitted" in line
+    assert f"python -m nsl_hpc.resubmit sweep_dir={sweep_dir} launcher.partition=<value>" in line
+    assert "job limits" not in refused.stdout
+    try:
+        corrected = nsl("resubmit", f"sweep_dir={sweep_dir}", "launcher.partition=debug")
+        assert corrected.returncode == 0, corrected.stderr
+        assert "resubmitting 4 tasks" in corrected.stdout and "submitted 1 jobs in 1 arrays" in corrected.stdout
+        reasons = subprocess.run(["squeue", "-h", "-n", "nsl-refused", "-o", "%r"], capture_output=True, text=True,
+                                 check=True).stdout.split()
+        assert reasons == ["JobHeldUser"]  # the sweep's other launcher settings stay (extra_sbatch.hold)
+    finally:
+        subprocess.run(["scancel", "-n", "nsl-refused"], check=False)
+
+
+def test_an_array_size_above_the_clusters_is_refused_before_anything_is_submitted(slurm_cluster, tmp_path):
+    maximum = subprocess.run(["scontrol", "show", "config"], capture_output=True, text=True, check=True).stdout
+    cluster = int(next(line.split("=")[1] for line in maximum.splitlines() if line.startswith("MaxArraySize")))
+    sweep_dir = tmp_path / "sweep"
+    refused = nsl("launch", *TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}",
+                  f"launcher.max_array_size={cluster + 1}", "sweep.name=too-large")
+    assert refused.returncode == 2
+    assert refused.stderr.strip() == (f"error: launcher.max_array_size={cluster + 1} is above the cluster's "
+                                      f"MaxArraySize={cluster}: leave it unset (null) or lower it")
+    assert not (sweep_dir / "submissions").exists() or not any((sweep_dir / "submissions").iterdir())
