@@ -70,7 +70,7 @@ start_database() {
 
 render() {  # render TEMPLATE DESTINATION MODE: returns 0 when the destination changed
   local rendered
-  rendered=$(sed -e "s|@CLUSTER@|$CLUSTER_NAME|g" -e "s|@HOST@|$HOST|g" -e "s|@CPUS@|$(nproc)|g" \
+  rendered=$(sed -e "s|@CLUSTER@|$CLUSTER_NAME|g" -e "s|@HOST@|$HOST|g" -e "s|@CPUS@|$CPUS|g" \
     -e "s|@MEMORY_MB@|$MEMORY_MB|g" -e "s|@STATE@|$STATE|g" -e "s|@MAX_ARRAY_SIZE@|$MAX_ARRAY_SIZE|g" \
     -e "s|@MAX_JOB_COUNT@|$MAX_JOB_COUNT|g" -e "s|@DB_PASSWORD@|$DB_PASSWORD|g" "$1")
   if [[ -f $2 && "$(cat "$2")" == "$rendered" ]]; then return 1; fi
@@ -89,6 +89,8 @@ restart() {  # restart DAEMON: stop it if running (a busy controller saves its s
 
 install_packages
 HOST=$(hostname -s)
+# GNU nproc honours OMP_NUM_THREADS (exported for single-threaded training): the node's CPUs are those without it
+CPUS=$(env -u OMP_NUM_THREADS -u OMP_THREAD_LIMIT nproc)
 # Leave 512 MB to the system; slurmd refuses a node that claims more memory than it has.
 MEMORY_MB=$(( $(awk '/MemTotal/ {print int($2 / 1024)}' /proc/meminfo) - 512 ))
 mkdir -p "$STATE"/{slurmctld,slurmd,log} /etc/slurm
@@ -112,4 +114,4 @@ if [[ $ctl_changed == 1 ]] || ! running slurmd; then restart slurmd; fi
 wait_for 60 "the node $HOST" bash -c "sinfo -h -N -o %T | grep -Eq '^(idle|mixed|allocated)'"
 wait_for 60 "MaxArraySize=$MAX_ARRAY_SIZE in the controller" bash -c \
   "scontrol show config | grep -Eq '^MaxArraySize +=  *$MAX_ARRAY_SIZE\$'"
-say "up: cluster $CLUSTER_NAME, node $HOST, $(nproc) CPUs, MaxArraySize=$MAX_ARRAY_SIZE, logs in $STATE/log"
+say "up: cluster $CLUSTER_NAME, node $HOST, $CPUS CPUs, MaxArraySize=$MAX_ARRAY_SIZE, logs in $STATE/log"

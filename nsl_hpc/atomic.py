@@ -4,14 +4,19 @@ Readers see either no file or a whole one: content goes to a private temporary f
 directory, which ``os.replace`` renames into place (atomic on POSIX file systems, NFS and Lustre included).
 """
 
+import contextlib
 import os
+import re
 import tempfile
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 import pyarrow as pa
 import pyarrow.parquet as pq
+
+TEMPORARY = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")  # replacing()'s temporaries: .<name>.<mkstemp's 8>.tmp
 
 
 @contextmanager
@@ -55,3 +60,13 @@ def create_parquet(table: pa.Table, path: Path) -> None:
 def write_text(text: str, path: Path) -> None:
     with replacing(path) as temporary:
         temporary.write_text(text)
+
+
+def leftover_temporaries(folder: Path, idle_s: float) -> Iterator[Path]:
+    """The temporaries of ``replacing`` under ``folder`` not written to for ``idle_s`` seconds: their writer was
+    killed (SIGKILL, a lost node) before it could rename or remove them."""
+    now = time.time()
+    for path in folder.rglob(".*.tmp"):
+        with contextlib.suppress(FileNotFoundError):
+            if TEMPORARY.fullmatch(path.name) and now - path.stat().st_mtime > idle_s:
+                yield path

@@ -1,7 +1,8 @@
 """Remove from a sweep directory what finished tasks no longer need: submitit's pickles and logs of jobs
-whose tasks all have a row, stale failure records and logs of tasks that succeeded since, and stale training
+whose tasks all have a row, stale failure records and logs of tasks that succeeded since, stale training
 checkpoints (of groups whose tasks all have a row, or that are not in the manifest) and group locks no job
-renews. Rows, the manifest, the sweep's configs, the checkpoints of groups still to finish and the failure
+renews, and the temporaries of atomic writes whose writer was killed (``.<name>.<random>.tmp`` not written to
+for 2 minutes). Rows, the manifest, the sweep's configs, the checkpoints of groups still to finish and the failure
 records and logs of tasks without a row are kept, as are the files of jobs still pending or running, whatever
 the paths are set to. The simulated-data cache's entries go once every task has a row (or, in a budgeted sweep,
 was skipped), and so does the compiled-step cache when it lies inside the sweep directory (one shared with other
@@ -23,6 +24,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
+from nsl_hpc.atomic import TEMPORARY, leftover_temporaries
 from nsl_hpc.checkpoint import info_path
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.checkpoints import STALE_S, lock_path, saved_groups
@@ -98,6 +100,8 @@ def protected(sweep_dir: Path, done: set[str]) -> Callable[[Path], bool]:
     kept = [sweep_dir / name for name in layout.RECORDS]
 
     def check(path: Path) -> bool:
+        if TEMPORARY.fullmatch(path.name):  # a killed writer's half-written file, wherever it is, is no record
+            return False
         if any(path == keep or keep.is_relative_to(path) or path.is_relative_to(keep) for keep in kept):
             return True
         if path.parent.parent.name in (layout.FAILURES, layout.LOGS) and path.parents[2] == sweep_dir:
@@ -126,7 +130,7 @@ def doomed_paths(sweep_dir: Path) -> tuple[list[Path], int, int]:
     done = {task_id for task_id, status in state.states.items() if status == "done"}
     doomed = [*finished_slurm_job_files(sweep_dir, done, state.element_states),
               *finished_local_job_files(sweep_dir), *stale_failure_files(sweep_dir, done, set(state.failures)),
-              *stale_checkpoint_files(sweep_dir, done, set(state.states))]
+              *stale_checkpoint_files(sweep_dir, done, set(state.states)), *leftover_temporaries(sweep_dir, STALE_S)]
     settled = done | {task_id for task_id, status in state.states.items() if status == "skipped"}
     if len(settled) == len(state.states):  # every task has a row, or a budget decided not to run it
         launch = read_launch_config(sweep_dir)

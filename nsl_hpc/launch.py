@@ -94,7 +94,7 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
     with private_umask():
         sweep_dir = usable_sweep_dir(cfg.sweep_dir)
         with sweep_lock(sweep_dir, "launch"):
-            check_control_files(sweep_dir, cfg.allow_shared_sweep_dir)
+            check_control_files(sweep_dir, cfg)
             return launch(cfg, built, sweep_dir, budgeted, overrides)
 
 

@@ -75,8 +75,8 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
     if not cfg.time_factor >= 1:
         raise ConfigError(f"time_factor={cfg.time_factor} must be at least 1")
     with private_umask(), sweep_lock(sweep_dir, "resubmit"):
-        check_control_files(sweep_dir, cfg.allow_shared_sweep_dir)
         launch = with_named_settings(read_launch_config(sweep_dir), cfg, overrides)
+        check_control_files(sweep_dir, {**plain(launch), "allow_shared_sweep_dir": cfg.allow_shared_sweep_dir})
         check_run_settings(launch)
         state = read_sweep_state(sweep_dir)
         if note := state.accounting_note():

@@ -1,6 +1,9 @@
 """clean: what finished tasks no longer need goes; rows and the records of failures stay."""
 
 import os
+import signal
+import subprocess
+import sys
 import time
 
 import pytest
@@ -79,3 +82,34 @@ def test_a_compiled_sweep_shares_its_kernel_cache_and_clean_removes_it_once_done
     assert f"{sweep_dir.resolve() / 'compile_cache'}/" in dry.stdout.splitlines()
     assert nsl("clean", f"sweep_dir={sweep_dir}").returncode == 0
     assert not (sweep_dir / "compile_cache").exists() and len(row_files(sweep_dir)) == 1
+
+
+KILLED_WRITER = """
+import os, signal, sys
+from pathlib import Path
+from nsl_hpc.atomic import replacing
+with replacing(Path(sys.argv[1])) as temporary:
+    temporary.write_bytes(b"half a checkpoint")
+    os.kill(os.getpid(), signal.SIGKILL)  # as scancel's SIGKILL or a lost node: no clean-up runs
+"""
+
+
+def test_clean_removes_what_a_writer_killed_mid_write_left_and_keeps_a_write_in_progress(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    assert nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "fault.kind=raise",
+               "fault.seed=2", ALONE).returncode == 1  # one task fails: it keeps a checkpoint folder
+    (failed,) = set(manifest_ids(sweep_dir)) - {path.stem for path in row_files(sweep_dir)}
+    targets = [checkpoint_path(sweep_dir, [failed]), row_files(sweep_dir)[0]]
+    for target in targets:
+        killed = subprocess.run([sys.executable, "-c", KILLED_WRITER, str(target)], capture_output=True)
+        assert killed.returncode == -signal.SIGKILL
+    left = sorted(path for path in sweep_dir.rglob(".*.tmp"))
+    assert len(left) == 2 and {path.parent for path in left} == {target.parent for target in targets}
+    listed = nsl("clean", f"sweep_dir={sweep_dir}", "dry_run=true").stdout
+    assert not any(str(path) in listed for path in left)  # just written: maybe a write in progress
+    for path in left:
+        os.utime(path, (time.time() - 3600, time.time() - 3600))
+    listed = nsl("clean", f"sweep_dir={sweep_dir}", "dry_run=true").stdout
+    assert all(str(path) in listed for path in left)
+    assert nsl("clean", f"sweep_dir={sweep_dir}").returncode == 0
+    assert not any(path.exists() for path in left) and len(row_files(sweep_dir)) == 3

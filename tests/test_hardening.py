@@ -208,6 +208,14 @@ def test_control_files_others_can_write_are_refused_and_written_private(tmp_path
         assert "chmod -R go-w" in refused.stderr and len(refused.stderr.splitlines()) == 1
     accepted = nsl("launch", *LOCAL, f"sweep_dir={sweep_dir}", "allow_shared_sweep_dir=true")
     assert accepted.returncode == 0 and "nothing to run" in accepted.stdout
+    (sweep_dir / "launch.yaml").chmod(0o644)
+    planted = sweep_dir / "compile_cache" / "planted"  # Inductor unpickles what it finds in the compile cache
+    planted.parent.mkdir(exist_ok=True)
+    planted.touch(mode=0o666)
+    planted.chmod(0o666)
+    for verb, args in (("launch", LOCAL), ("resubmit", [])):
+        refused = nsl(verb, *args, f"sweep_dir={sweep_dir}")
+        assert refused.returncode == 2 and f"{planted} is not safe: group and others can write it" in refused.stderr
 
 
 # 9. Bad input: one line, a non-zero exit, before any work, nothing computed touched.
@@ -225,6 +233,27 @@ def test_bad_launch_settings_are_one_line_before_anything_is_written(override, m
     sweep_dir = tmp_path / "sweep"
     result = nsl("launch", *LOCAL, f"sweep_dir={sweep_dir}", override)
     assert result.returncode == 2 and result.stderr.splitlines() == [f"error: {result.stderr[7:].strip()}"]
+    assert message in result.stderr
+    assert not sweep_dir.exists()
+
+
+@pytest.mark.parametrize(("override", "message"), [
+    ("launcher.partition='cpu\nexit'", "launcher.partition='cpu\\nexit' holds '\\n' at position 3: it would break the "
+                                        "job's batch script (no whitespace or control characters)"),
+    ("+launcher.extra_sbatch.constraint='a\rb'", "launcher.extra_sbatch.constraint='a\\rb' holds '\\r' at position 1"),
+    ("+launcher.extra_sbatch.comment='two words'", "launcher.extra_sbatch.comment='two words' holds ' ' at position 3"),
+    ("+launcher.extra_sbatch.x=[1,2]", "launcher.extra_sbatch.x=[1, 2] must be one value (a string or a number)"),
+    ("launcher.extra_sbatch={x: 1}", "launcher.extra_sbatch takes its flags one at a time: +launcher.extra_sbatch."
+                                     "<flag>=<value> (e.g. +launcher.extra_sbatch.constraint=cpu)"),
+    ("launcher.setup=['module load python\nrm -rf x']", "launcher.setup line='module load python\\nrm -rf x' holds "
+                                                        "'\\n' at position 18: it would break the job's batch script "
+                                                        "(no control characters)"),
+    ("sweep.name='a\tb'", "sweep.name='a\\tb' holds '\\t' at position 1"),
+])
+def test_text_that_would_break_a_batch_script_is_one_line_before_anything_is_written(override, message, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    result = nsl("launch", *LOCAL, "launcher=slurm", f"sweep_dir={sweep_dir}", "dry_run=true", override)
+    assert result.returncode == 2 and len(result.stderr.splitlines()) == 1, result.stderr
     assert message in result.stderr
     assert not sweep_dir.exists()
 

@@ -49,6 +49,9 @@ def compose_config(overrides: Sequence[str], config_name: str = "config") -> Dic
         if unknown is None:
             raise
         key = unknown.group(1)
+        if key in OPEN_MAPPINGS:
+            raise ConfigError(f"{key} takes its flags one at a time: +{key}.<flag>=<value> (e.g. "
+                              f"+{key}.constraint=cpu)") from None
         raise ConfigError(unknown_key(key, [o for o in overrides if o.split("=", 1)[0] != key], config_name)) \
             from None
 

@@ -4,9 +4,10 @@
   lock on ``<sweep_dir>/.lock``, which names its holder, for as long as the command runs (a local sweep: until
   its tasks end). The lock is the kernel's (flock): it goes with the process, however it ends.
 - Nobody but the owner can change what a sweep's jobs run: its control files (the submitit folder with the
-  pickled job runners, ``launch.yaml``, ``run.yaml``, ``configs/``, the manifest) must not be writable by group
-  or others, nor owned by another user (``check_control_files``, as ssh's StrictModes checks ~/.ssh). Commands
-  create them so (``private_umask``).
+  pickled job runners, ``launch.yaml``, ``run.yaml``, ``configs/``, the manifest) and its compile cache must not
+  be writable by group or others, nor owned by another user (``check_control_files``, as ssh's StrictModes checks
+  ~/.ssh; a job checks the compile cache again before it compiles). Commands create them so
+  (``private_umask``).
 - Paths inside the sweep directory are stored relative to it (``portable_paths``): a sweep can be moved or
   copied, and a command run from any directory, and its jobs still write into it.
 """
@@ -19,7 +20,7 @@ import re
 import socket
 import stat
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -104,37 +105,64 @@ def process_alive(pid: int) -> bool:
     return True
 
 
-def check_control_files(sweep_dir: Path, allow_shared: bool) -> None:
+def check_control_files(sweep_dir: Path, launch: Mapping[str, Any]) -> None:
     """Refuse (one line) a sweep directory whose control files another user could change: anyone who can
-    write a job runner pickle, ``launch.yaml`` (its ``launcher.setup`` lines run in every job) or a task config
-    can run code as you when a job starts. ``allow_shared`` (``allow_shared_sweep_dir=true``) skips the check."""
-    if allow_shared:
+    write a job runner pickle, ``launch.yaml`` (its ``launcher.setup`` lines run in every job), a task config or
+    the compile cache (Inductor unpickles what it finds there) can run code as you when a job starts. ``launch``:
+    the launch config (its ``compile_cache_dir``; ``allow_shared_sweep_dir=true`` skips the check)."""
+    if (refusal := unsafe_refusal([*control_paths(Path(sweep_dir)), *tree(compile_cache(launch))], launch)):
+        raise ConfigError(refusal)
+
+
+def unsafe_refusal(paths: Sequence[Path], launch: Mapping[str, Any]) -> str | None:
+    """The one line that refuses the first of ``paths`` another user could change, None when none is (or the
+    launch config says ``allow_shared_sweep_dir=true``)."""
+    if launch.get("allow_shared_sweep_dir"):
+        return None
+    for path in paths:
+        if (reason := unsafe(path)) is not None:
+            return (f"{path} is not safe: {reason}, and whoever can change a sweep's control files or compile cache "
+                    f"can run code as you in its jobs; run `chmod -R go-w {path}` (as its owner), or pass "
+                    "allow_shared_sweep_dir=true if you trust everyone who can write there")
+    return None
+
+
+def unsafe(path: Path) -> str | None:
+    """Why another user could change ``path`` (owned by another user, writable by group or others), None when
+    no one but its owner, this user, can (or it does not exist)."""
+    try:
+        info = path.lstat()
+    except FileNotFoundError:
+        return None
+    writable = not stat.S_ISLNK(info.st_mode) and info.st_mode & (stat.S_IWGRP | stat.S_IWOTH)  # links: owner
+    if info.st_uid == os.getuid() and not writable:
+        return None
+    who = "another user owns" if info.st_uid != os.getuid() else (
+        "group and others can write" if info.st_mode & stat.S_IWOTH and info.st_mode & stat.S_IWGRP
+        else "others can write" if info.st_mode & stat.S_IWOTH else "the group can write")
+    return f"{who} it (mode {stat.filemode(info.st_mode)})"
+
+
+def compile_cache(launch: Mapping[str, Any]) -> Path | None:
+    """The compile cache a launch config's jobs compile into (``compile_cache_dir``), None for torch's default."""
+    folder = launch.get("compile_cache_dir")
+    return None if folder is None else Path(folder).resolve()
+
+
+def tree(path: Path | None) -> Iterator[Path]:
+    """``path`` and, a folder, everything in it (nothing when None)."""
+    if path is None:
         return
-    me = os.getuid()
-    for path in control_paths(Path(sweep_dir)):
-        try:
-            info = path.lstat()
-        except FileNotFoundError:
-            continue
-        writable = not stat.S_ISLNK(info.st_mode) and info.st_mode & (stat.S_IWGRP | stat.S_IWOTH)  # links: owner
-        if info.st_uid != me or writable:
-            who = "another user owns" if info.st_uid != me else (
-                "group and others can write" if info.st_mode & stat.S_IWOTH and info.st_mode & stat.S_IWGRP
-                else "others can write" if info.st_mode & stat.S_IWOTH else "the group can write")
-            raise ConfigError(
-                f"{path} is not safe: {who} it (mode {stat.filemode(info.st_mode)}), and whoever can change a "
-                f"sweep's control files can run code as you in its jobs; run `chmod -R go-w {sweep_dir}` (as its "
-                "owner), or pass allow_shared_sweep_dir=true if you trust everyone who can write there")
+    yield path
+    if path.is_dir() and not path.is_symlink():
+        yield from path.rglob("*")
 
 
 def control_paths(sweep_dir: Path) -> Iterator[Path]:
     """The sweep directory, its control files and folders, and everything in those folders."""
     yield sweep_dir
     for name in layout.CONTROL:
-        path = sweep_dir / name
-        yield path
-        if path.is_dir() and not path.is_symlink():
-            yield from path.rglob("*")
+        yield from tree(sweep_dir / name)
 
 
 @contextlib.contextmanager

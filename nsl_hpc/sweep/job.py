@@ -45,7 +45,7 @@ from omegaconf import DictConfig, OmegaConf
 from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info, remove_checkpoint
 from nsl_hpc.studies import import_training_code, study_named
 from nsl_hpc.sweep.checkpoints import GroupLock, checkpoint_path
-from nsl_hpc.sweep.directory import process_alive
+from nsl_hpc.sweep.directory import compile_cache, process_alive, tree, unsafe_refusal
 from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.layout import failure_path, row_path, task_log_path
 from nsl_hpc.sweep.manifest import read_base_config, read_launch_config, read_manifest
@@ -165,6 +165,8 @@ class JobRunner:
         # SLURM sends SIGCONT with its warning; submitit's handler for it logs, and logging swallows the exception
         # a warning handler nested in it raises (the job would go on as if not warned)
         signal.signal(signal.SIGCONT, signal.SIG_DFL)
+        if refusal := unsafe_refusal(list(tree(compile_cache(launch))), launch):  # Inductor unpickles from it
+            return self.refuse(sweep, groups, refusal)
         import_training_code()  # once, not in each group's forked process
         self.checkpointing = checkpoint_seconds(launch) > 0
         self.stop_wait_s = launch.launcher.get("signal_delay_s", 60) / 2
@@ -206,6 +208,16 @@ class JobRunner:
                 break
         self.current = None
         return dict(counts)
+
+    @staticmethod
+    def refuse(sweep: Path, groups: Sequence[Group], reason: str) -> dict[str, int]:
+        """Record every task of ``groups`` without a row failed for ``reason``, train none; counts by outcome."""
+        ids = [task_id for group in groups for task_id in group.task_ids
+               if row_state(row_path(sweep, task_id)) != "done"]
+        for task_id in ids:
+            record_failure(sweep, task_id, "failed", f"not run: {reason}")
+        print(f"not run: {reason}", file=sys.stderr, flush=True)
+        return {"failed": len(ids)} if ids else {}
 
     def run_watched(self, sweep: Path, group: Sequence[Mapping[str, Any]], planned: Group, launch: DictConfig,
                     lock: GroupLock) -> str:

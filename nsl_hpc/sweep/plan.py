@@ -19,6 +19,8 @@ from nsl_hpc.studies.settings import COMPILE_MODES
 from nsl_hpc.sweep.checkpoints import RENEW_S, STALE_S
 
 SBATCH_MEMORY = re.compile(r"[1-9][0-9]*[KMGT]?")  # sbatch --mem: megabytes, or with a unit
+SBATCH_FLAG = re.compile(r"[A-Za-z][A-Za-z0-9_-]*")  # a long option's name (submitit writes _ as -)
+BATCH_BREAKERS = re.compile(r"[\x00-\x1f\x7f]")  # control characters: a newline ends a line of the batch script
 
 
 def predicted_seconds(arch: str, steps: int, params: int, cost: Mapping[str, Any]) -> float:
@@ -254,6 +256,7 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
             raise ConfigError(f"{error} (or 0: no checkpoints)") from None
     if isinstance(launcher, SlurmLauncher):
         check_slurm_settings(launcher, every)
+        check_batch_text("sweep.name", launch["sweep"]["name"], flag=True)  # the jobs' --job-name
         check_signal_delay(launcher.signal_delay_s, packing_for(launch["packing"], launch["launcher"])
                            ["time_classes_minutes"])
 
@@ -267,10 +270,35 @@ def check_slurm_settings(launcher: SlurmLauncher, checkpoint_minutes: float) -> 
     if not SBATCH_MEMORY.fullmatch(launcher.mem):
         raise ConfigError(f"launcher.mem={launcher.mem!r} is no sbatch --mem: a positive integer with an optional "
                           "unit K, M, G or T (2G, 1500M)")
+    for key in ("partition", "account", "qos", "mem"):
+        check_batch_text(f"launcher.{key}", getattr(launcher, key), flag=True)
+    for flag, value in launcher.extra_sbatch.items():
+        if not SBATCH_FLAG.fullmatch(str(flag)):
+            raise ConfigError(f"launcher.extra_sbatch.{flag} is no sbatch option name (letters, digits and -, as in "
+                              "+launcher.extra_sbatch.constraint=cpu)")
+        if not isinstance(value, str | int | float | bool):
+            raise ConfigError(f"launcher.extra_sbatch.{flag}={value!r} must be one value (a string or a number), as "
+                              f"written after --{flag}=")
+        check_batch_text(f"launcher.extra_sbatch.{flag}", value, flag=True)
+    for line in launcher.setup:
+        check_batch_text("launcher.setup line", line, flag=False)
     if launcher.max_time_minutes is not None and not checkpoint_minutes:
         raise ConfigError(f"launcher.max_time_minutes={launcher.max_time_minutes} needs checkpoints "
                           "(checkpoint.every_minutes > 0): a group longer than the cap continues in its next job "
                           "from its checkpoint")
+
+
+def check_batch_text(key: str, value: object, flag: bool) -> None:
+    """Raise ConfigError for a value that would break the batch script it is written to: a control character
+    (a newline starts a line of its own) anywhere, whitespace in an ``#SBATCH`` option (``flag``: sbatch splits
+    the line there)."""
+    if value is None or isinstance(value, bool | int | float):
+        return
+    text = str(value)
+    bad = BATCH_BREAKERS.search(text) or (flag and re.search(r"\s", text))
+    if bad:
+        raise ConfigError(f"{key}={text!r} holds {bad.group()!r} at position {bad.start()}: it would break the job's "
+                          f"batch script (no {'whitespace or ' if flag else ''}control characters)")
 
 
 def check_signal_delay(signal_delay_s: int, time_classes_minutes: Sequence[float]) -> None:
