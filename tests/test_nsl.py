@@ -201,15 +201,15 @@ def test_no_fitted_law_rises_more_than_the_published_laws_do():
 def test_a_segment_on_too_few_outcomes_is_not_chosen_and_is_reported_undetermined():
     """36 outcomes in three tiers of resources whose best outcome at the largest resource drops 10x below the
     rest: the best 1-break law follows that drop on two outcomes of the envelope. b is chosen among laws whose
-    every segment stands on min_segment_points (3) of them; a fit held at one break says that its last slope is
+    every segment stands on min_segment_points of them; a fit held at one break says that its last slope is
     undetermined."""
     rng = np.random.default_rng(4)
     r = np.concatenate([rng.uniform(tier / 2, tier, 12) for tier in (200, 800, 3200)])
     e = 3 * r**-0.4 * (1 + rng.exponential(0.5, r.size))
     e[np.argmax(r)] /= 10
-    chosen, held = fit_nsl(r, e), fit_nsl(r, e, breaks=1)
-    assert chosen.b == 0 and all(n >= 3 for n in chosen.segment_points) and not chosen.undetermined
-    assert held.segment_points[-1] < 3 and list(held.undetermined) == [1]
+    chosen, held, least = fit_nsl(r, e), fit_nsl(r, e, breaks=1), default_settings().min_segment_points
+    assert chosen.b == 0 and all(n >= least for n in chosen.segment_points) and not chosen.undetermined
+    assert held.segment_points[-1] == 2 and list(held.undetermined) == [1]
     assert held.undetermined_text() == (f"slope {held.slopes[-1]:.2f} beyond {held.breaks[0][0]:.2g}: "
                                         f"on {held.segment_points[-1]} envelope outcomes")
 

@@ -126,7 +126,7 @@ def test_report_figures_and_mlflow_runs_are_updated_not_duplicated(sweep_copy):
     assert comparison[4].endswith("Fits: least squares of the log residuals on Definition 1's step envelope "
                                   "(nsl.envelope=step), every segment's slope in [-10, 0.19] (a law never rises "
                                   "more than the published ones do; nsl.max_slope, nsl.max_rise); b chosen in 0..1 "
-                                  "among the laws whose every segment stands on at least 3 outcomes of the "
+                                  "among the laws whose every segment stands on at least 5 outcomes of the "
                                   "envelope: each break must cut the margin by 30%, not counting the 5% of envelope "
                                   "points the law fits worst (nsl.min_segment_points, nsl.min_gain, "
                                   "nsl.choice_trim). A slope at -10 or on fewer outcomes of the envelope is "

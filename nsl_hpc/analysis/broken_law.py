@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.optimize import least_squares
+from scipy.optimize import least_squares, lsq_linear
 from scipy.special import expit
 
 OBJECTIVES = ("margin", "study")
@@ -274,19 +274,31 @@ def best_segmentation(x: np.ndarray, y: np.ndarray, b: int) -> list[int]:
     return sorted(boundaries[1:])
 
 
-def hinge_fit(x: np.ndarray, y: np.ndarray, corners: Sequence[float]) -> np.ndarray:
-    """Least-squares continuous piecewise-linear fit of y(x) with these corners: [intercept, first slope,
-    slope change at each corner]."""
-    design = np.column_stack([np.ones_like(x), x, *(np.maximum(x - c, 0) for c in corners)])
-    return np.linalg.lstsq(design, y, rcond=None)[0]
+def hinge_fit(x: np.ndarray, y: np.ndarray, corners: Sequence[float], slope_range: tuple[float, float]
+              ) -> np.ndarray:
+    """Least-squares continuous piecewise-linear fit of y(x) with these corners (increasing), every segment's
+    slope in ``slope_range``: [intercept, first slope, slope change at each corner]."""
+    hinges = [np.maximum(x - c, 0) for c in corners]
+    design = np.column_stack([np.ones_like(x), x, *hinges])
+    coef = np.linalg.lstsq(design, y, rcond=None)[0]
+    segment_slopes = np.cumsum(coef[1:])
+    if slope_range[0] <= segment_slopes.min() and segment_slopes.max() <= slope_range[1]:
+        return coef
+    # in the segments' slopes s_k: y = a + s_0 x + sum_k (s_k - s_{k-1}) max(x - c_k, 0), the range a box
+    by_slope = np.column_stack([np.ones_like(x), x - (hinges[0] if hinges else 0),
+                                *(hinge - (hinges[k + 1] if k + 1 < len(hinges) else 0)
+                                  for k, hinge in enumerate(hinges))])
+    lower, upper = [-np.inf] + [slope_range[0]] * (len(corners) + 1), [np.inf] + [slope_range[1]] * (len(corners) + 1)
+    solution = lsq_linear(by_slope, y, bounds=(lower, upper), method="bvls").x
+    return np.concatenate([solution[:2], np.diff(solution[1:])])
 
 
-def piecewise_linear_starts(x: np.ndarray, log_e: np.ndarray, b: int, positions: int,
-                            alpha_shares: Sequence[float], phi_min: float) -> list[np.ndarray]:
-    """Initial thetas from continuous piecewise-linear least-squares fits of ln(e~ - alpha), alpha = 0 and
-    alpha = each of ``alpha_shares`` * min e~, with corners (a) at every combination of b of ``positions`` evenly
-    spaced inner points of the log grid and (b) at the boundaries of the best segmentation of the grid
-    (which finds breaks closer together than the even positions are)."""
+def piecewise_linear_starts(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings") -> list[np.ndarray]:
+    """Initial thetas from continuous piecewise-linear least-squares fits of ln(e~ - alpha) with slopes in
+    [-max_slope, max_rise], alpha = 0 and alpha = each of ``alpha_shares`` * min e~, with corners (a) at every
+    combination of b of ``positions`` evenly spaced inner points of the log grid and (b) at the boundaries of the
+    best segmentation of the grid (which finds breaks closer together than the even positions are)."""
+    positions, alpha_shares, phi_min = settings.positions, settings.alpha_shares, settings.phi_min
     span = x[-1] - x[0]
     phi = max(phi_min, 0.03 * span)
     even = x[0] + span * np.arange(1, positions + 1) / (positions + 1)
@@ -297,7 +309,7 @@ def piecewise_linear_starts(x: np.ndarray, log_e: np.ndarray, b: int, positions:
         log_alpha = np.log(alpha) if alpha > 0 else log_e.min() - 30
         segmented = [tuple((x[i - 1] + x[i]) / 2 for i in best_segmentation(x, y, b))] if b else []
         for corners in [*itertools.combinations(even, b), *segmented]:
-            coef = hinge_fit(x, y, corners)
+            coef = hinge_fit(x, y, corners, (-settings.max_slope, settings.max_rise))
             breaks = [v for c, d in zip(corners, coef[2:], strict=True) for v in (c, phi, d)]
             starts.append(np.array([log_alpha, coef[0], coef[1], *breaks]))
     return starts
@@ -387,15 +399,16 @@ def with_flat_break(theta: np.ndarray, x: np.ndarray, positions: int, phi_min: f
     return [np.concatenate([theta, [position, phi, 0.0]]) for position in even]
 
 
-def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings", x_on: np.ndarray,
+def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings", x_on: np.ndarray | None,
                fewer: Sequence[np.ndarray] = ()) -> tuple[np.ndarray, np.ndarray | None]:
-    """The best theta with b breaks, and the best whose every segment stands on ``settings.min_segment_points``
-    of the outcomes on the envelope (log resources ``x_on``; None when no finalist does), from the top
-    ``settings.starts`` piecewise-linear starts, ``settings.random_starts`` random ones (seeded: a fit depends only
-    on its outcomes and settings) and each law of ``fewer`` (laws with b - 1 breaks) with a flat break added, by
-    the settings' objective: each refined briefly (the study's Adam: ranked as they start), the best
-    ``settings.finalists`` and the best as many standing on enough outcomes to the end. Every start is put in the
-    bounds of the slope form first (a rising segment of a start is flattened)."""
+    """The best theta with b breaks, and (given ``x_on``, the log resources of the outcomes on the envelope) the
+    best whose every segment stands on ``settings.min_segment_points`` of them (None when none is found), from the
+    top ``settings.starts`` piecewise-linear starts, ``settings.random_starts`` random ones (seeded: a fit depends
+    only on its outcomes and settings) and each law of ``fewer`` (laws with b - 1 breaks) with a flat break added,
+    by the settings' objective: each refined briefly (the study's Adam: ranked as they start), the best
+    ``settings.finalists`` to the end; where none of those stands on enough outcomes, the best as many that do
+    are refined to the end with each break boxed where its segments keep them. Every start is put in the bounds
+    of the slope form first (its slopes within them)."""
     bounds = Bounds.for_grid(x, log_e, b, settings)
 
     def objective(u: np.ndarray) -> float:
@@ -404,10 +417,10 @@ def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings"
         return margin_of(theta_of(u), x, log_e)
 
     def supported(u: np.ndarray) -> bool:
-        return bool(segment_points(u, x_on).min() >= settings.min_segment_points)
+        return x_on is not None and bool(segment_points(u, x_on).min() >= settings.min_segment_points)
 
     starts = [bounds.clip(slope_form(theta)) for theta in
-              piecewise_linear_starts(x, log_e, b, settings.positions, settings.alpha_shares, settings.phi_min)]
+              piecewise_linear_starts(x, log_e, b, settings)]
     chosen = sorted(starts, key=lambda u: margin_of(theta_of(u), x, log_e))[:settings.starts]
     chosen += random_starts(x, log_e, b, settings.random_starts, bounds, seed=b)
     for law in fewer:
@@ -416,12 +429,13 @@ def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings"
         chosen = [refine(u, x, log_e, b, settings, evaluations=30) for u in chosen]
     ranked = sorted(chosen, key=objective)
     refined = sorted((refine(u, x, log_e, b, settings) for u in ranked[:settings.finalists]), key=objective)
-    standing = [u for u in refined if supported(u)]  # ... the best to the end, and the best standing ones kept
-    for u in [u for u in ranked if supported(u)][:settings.finalists]:  # standing while refined
-        u = slope_form(theta_of(u))
-        standing.append(refine_margin(u, x, log_e, bounds.keeping_support(u, x_on, settings.min_segment_points),
-                                      200) if settings.objective == "margin" else u)
-    standing.sort(key=objective)
+    standing = [u for u in refined if supported(u)]  # ... the best to the end
+    if x_on is not None and not standing:  # the best standing ones, kept standing while refined
+        for u in [u for u in ranked if supported(u)][:settings.finalists]:
+            u = slope_form(theta_of(u))
+            standing.append(refine_margin(u, x, log_e, bounds.keeping_support(u, x_on, settings.min_segment_points),
+                                          200) if settings.objective == "margin" else u)
+        standing.sort(key=objective)
     return theta_of(refined[0]), theta_of(standing[0]) if standing else None
 
 
@@ -574,7 +588,7 @@ def fit_broken_law(resources: ArrayLike, errors: ArrayLike, breaks: int | None, 
     grid_r, grid_e = lower_envelope(r, e, K, settings.fitted_envelope)
     x, log_e = np.log(grid_r), np.log(grid_e)
     middle = (x[0] + x[-1]) / 2
-    x_on = np.log(pareto_points(r, e)[0]) - middle
+    x_on = None if breaks is not None else np.log(pareto_points(r, e)[0]) - middle
     best: dict[int, np.ndarray] = {}  # b -> the best centred law ...
     standing: dict[int, np.ndarray] = {}  # ... and the best standing on enough outcomes of the envelope
     for b in range((breaks if breaks is not None else max_breaks) + 1):
