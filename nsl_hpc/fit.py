@@ -21,20 +21,22 @@ from nsl_hpc.analysis.fitting import (
     fit_sweep,
     fits_path,
     read_results,
+    rehearsal_of,
     require_some_fit,
     write_fits,
 )
 from nsl_hpc.analysis.settings import check_nsl
 from nsl_hpc.config import plain
 from nsl_hpc.sweep import layout
-from nsl_hpc.sweep.manifest import require_sweep
+from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 
 
 def main(cfg: DictConfig) -> int:
     check_nsl(plain(cfg.nsl))
     sweep_dir = require_sweep(cfg.sweep_dir)
     results = read_results(sweep_dir)
-    rows = fit_sweep(results, choose_metrics(cfg.nsl, cfg.metrics, results), cfg.workers)
+    rows = fit_sweep(results, choose_metrics(cfg.nsl, cfg.metrics, results), cfg.workers,
+                     rehearsal_of(read_launch_config(sweep_dir)))
     require_some_fit(rows, fits_path(sweep_dir))
     write_fits(sweep_dir, rows)
     failed = sum(row["error"] is not None for row in rows)

@@ -41,6 +41,7 @@ from nsl_hpc.sweep.decisions import cancel_round_job, decision_files, read_decis
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 from nsl_hpc.sweep.executors import run_jobs, submit_next_round
 from nsl_hpc.sweep.failures import read_failures
+from nsl_hpc.sweep.limits import ClusterLimits, describe_fit, read_cluster_limits, within_limits
 from nsl_hpc.sweep.plan import Pack, lockstep_settings, plan_jobs
 from nsl_hpc.sweep.prepare import (
     PAIR_KEYS,
@@ -51,6 +52,8 @@ from nsl_hpc.sweep.prepare import (
     prepare_sweep,
     queued_tasks,
 )
+from nsl_hpc.sweep.slurm import SlurmMissing
+from nsl_hpc.sweep.storage import read_storage
 from nsl_hpc.sweep.submissions import read_submissions
 
 
@@ -73,7 +76,7 @@ def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str)
     classes = ", ".join(f"{n:,} x {limit} min" for limit, n in sorted(by_limit.items()))
     chains = sorted(pack.chain for pack in packs if pack.chain > 1)
     if chains:
-        classes += (f"; {len(chains):,} longer than launcher.max_time_minutes run as chains of "
+        classes += (f"; {len(chains):,} longer than the longest time limit run as chains of "
                     f"{chains[0]}{f'-{chains[-1]}' if chains[-1] > chains[0] else ''} jobs")
     core_hours = sum(pack.seconds for pack in packs) / 3600
     predicted = f"{core_hours:,.1f} core-hours" if core_hours >= 1 else f"{core_hours * 60:.1f} core-minutes"
@@ -130,10 +133,16 @@ def budgeted_rounds(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Budg
 
 
 def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> int:
-    """Print the plan of ``prepared.todo`` and (unless a dry run) run or submit it."""
+    """Print the plan of ``prepared.todo`` within the cluster's limits and the sweep directory's file system, and
+    (unless a dry run) run or submit it."""
     lockstep, tasks = lockstep_settings(cfg), prepared.todo.to_pylist()
-    packs = plan_jobs(tasks, cfg, saved=[saved.task_ids for saved in saved_groups(prepared.sweep_dir)])
+    limits = cluster_limits(cfg)
+    packs = plan_jobs(tasks, within_limits(cfg, limits) if limits else cfg,
+                      saved=[saved.task_ids for saved in saved_groups(prepared.sweep_dir)])
     print(describe_plan(prepared, packs, cfg.launcher.name))
+    for line in describe_fit(limits, read_storage(prepared.sweep_dir), packs, len(tasks),
+                             cfg.checkpoint.every_minutes > 0):
+        print(f"  {line}")
     if built.above_max_flops:
         print(f"  sweep.max_flops={cfg.sweep.max_flops:g}: {built.above_max_flops:,} tasks of the grid above it "
               "are not part of the sweep")
@@ -145,7 +154,22 @@ def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> in
         print("dry run: nothing submitted" if cfg.dry_run else "nothing to run: every task has a row"
               + (" or is queued" if prepared.queued else ""))
         return 0
-    return run_jobs(prepared.sweep_dir, cfg, packs, tasks, prepared.configs)
+    return run_jobs(prepared.sweep_dir, cfg, packs, tasks, prepared.configs, limits)
+
+
+def cluster_limits(cfg: DictConfig) -> ClusterLimits | None:
+    """The cluster's limits a SLURM launch fits; None for the local launchers, and for a dry run on a machine
+    without SLURM's commands (said in a line)."""
+    launcher = launcher_from(cfg.launcher)
+    if not isinstance(launcher, SlurmLauncher):
+        return None
+    try:
+        return read_cluster_limits(launcher)
+    except SlurmMissing as error:
+        if not cfg.dry_run:
+            raise
+        print(f"  {error}: the cluster's limits were not read")
+        return None
 
 
 def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, overrides: Sequence[str],

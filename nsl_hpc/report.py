@@ -21,6 +21,7 @@ from nsl_hpc.analysis.fitting import (
     fits_path,
     nsl_key,
     read_results,
+    rehearsal_of,
     require_some_fit,
     write_fits,
 )
@@ -51,7 +52,7 @@ def main(cfg: DictConfig) -> int:
     print(f"merged {summary.merged:,} tasks into {results_path(sweep_dir)}\n{summary.describe()}")
     results = read_results(sweep_dir)
     chosen = choose_metrics(cfg.nsl, cfg.metrics, results)
-    rows = fit_sweep(results, chosen, cfg.workers)
+    rows = fit_sweep(results, chosen, cfg.workers, rehearsal_of(launch))
     require_some_fit(rows, fits_path(sweep_dir))
     write_fits(sweep_dir, rows)
     print(f"{sum(row['error'] is None for row in rows)} of {len(rows)} NSLs fitted -> {fits_path(sweep_dir)}")

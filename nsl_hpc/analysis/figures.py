@@ -20,13 +20,14 @@ from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 from tqdm import tqdm
 
 from nsl_hpc.analysis.bootstrap import band, thetas_of
-from nsl_hpc.analysis.broken_law import NSLFit, lower_envelope
+from nsl_hpc.analysis.broken_law import NSLFit, log_law, lower_envelope
 from nsl_hpc.analysis.fitting import fit_from_row, fittable, pair_outcomes
 from nsl_hpc.analysis.published import KEY as PUBLISHED_KEY
 from nsl_hpc.analysis.published import published_laws
 from nsl_hpc.atomic import replacing
 from nsl_hpc.sweep import layout
 
+REHEARSAL_TITLE = "REHEARSAL, synthetic outcomes: "  # on every figure of a rehearsal
 MAX_DECADES_BELOW = 1e3  # a published law further below the outcomes than this factor is named, not drawn in view
 
 
@@ -108,6 +109,9 @@ def draw_nsl(ax: Axes, data: Mapping[str, np.ndarray], row: Mapping[str, Any], n
                 label=f"published (b={published.b}, M={published.margin:.2g}"
                       + ("" if on_ours is None else f"; M on ours {on_ours:.2g}")
                       + (f"; below the plotted range, at {law.min():.2g}-{law.max():.2g}" if below else "") + ")")
+    if row.get("planted_theta") is not None:  # a rehearsal: the law its outcomes were drawn from
+        ax.plot(dense, np.exp(log_law(np.asarray(row["planted_theta"]), np.log(dense))), color="purple", ls="--",
+                lw=1.8, label=f"planted law (rehearsal; M on ours {row['planted_margin_on_ours']:.2g})")
     ax.set_ylim(float(low), float(high))
     ax.set_xscale("log")
     ax.set_yscale("log")
@@ -163,8 +167,8 @@ def figure_for_nsl(sweep_dir: Path, results: pa.Table, row: Mapping[str, Any], n
     fig.colorbar(points, ax=ax, label=nsl["resources"][colour]["label"], format=FuncFormatter(power_label))
     ax.set_xlabel(nsl["resources"][row["resource"]]["label"])
     ax.set_ylabel(f"{nsl['metrics'][row['metric']]} (test)")
-    ax.set_title(f"{row['system']} / {row['arch']}: {nsl['metrics'][row['metric']]} vs {row['resource']} "
-                 f"(marker size: {size})", fontsize=10)
+    ax.set_title(f"{REHEARSAL_TITLE if row.get('rehearsal') else ''}{row['system']} / {row['arch']}: "
+                 f"{nsl['metrics'][row['metric']]} vs {row['resource']} (marker size: {size})", fontsize=10)
     return save(fig, figure_stem(sweep_dir, row), figures)
 
 
@@ -192,6 +196,8 @@ def overview_figure(sweep_dir: Path, results: pa.Table, rows: Sequence[Mapping[s
         fig.colorbar(points, ax=axes, label=nsl["resources"][figures["colour"][resource]]["label"], shrink=0.8,
                      format=FuncFormatter(power_label))
     fig.legend(*overview_legend(axes), loc="outside lower center", fontsize=8, ncols=4)
+    if any(row.get("rehearsal") for row in rows):
+        fig.suptitle(REHEARSAL_TITLE.rstrip(": "), color="purple")
     return save(fig, overview_stem(sweep_dir, resource, metric), figures)
 
 
@@ -200,7 +206,7 @@ def overview_legend(axes: np.ndarray) -> tuple[list, list[str]]:
     panel's of each; the formulas differ per panel and are in each panel's own figure."""
     kinds = {"interpolated": "interpolated envelope (fitted)", "envelope": "lower envelope", "band": None,
              "breaks": "breaks", "published": "published law", "M = ": "fitted law",
-             "undetermined": "undetermined segment"}
+             "undetermined": "undetermined segment", "planted": "planted law (rehearsal)"}
     handles: dict[str, Any] = {}
     for ax in axes.flat:
         for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):

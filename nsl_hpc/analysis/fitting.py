@@ -16,7 +16,14 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from nsl_hpc.analysis.bootstrap import bootstrap_thetas, intervals
-from nsl_hpc.analysis.broken_law import FitSettings, NSLFit, NSLFitError, backtest_broken_law, fit_broken_law
+from nsl_hpc.analysis.broken_law import (
+    FitSettings,
+    NSLFit,
+    NSLFitError,
+    backtest_broken_law,
+    fit_broken_law,
+    lower_envelope,
+)
 from nsl_hpc.analysis.merge import results_path
 from nsl_hpc.analysis.published import comparison
 from nsl_hpc.atomic import write_parquet, write_text
@@ -25,6 +32,7 @@ from nsl_hpc.errors import ConfigError, RunError
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.studies.metrics import NORMALIZATIONS
 from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.rehearsal import planted_law
 
 KEY_COLUMNS = ("system", "arch", "resource", "metric")
 
@@ -80,6 +88,11 @@ def require_some_fit(rows: Sequence[Mapping[str, Any]], path: Path) -> None:
                        f"{path.name} is left as it was")
 
 
+def rehearsal_of(launch: Mapping[str, Any]) -> dict[str, Any] | None:
+    """A launch config's rehearsal settings (``rehearse``: its planted laws) when it is a rehearsal, else None."""
+    return plain(launch["rehearse"]) if launch.get("rehearsal") else None
+
+
 def read_results(sweep_dir: Path) -> pa.Table:
     """The merged outcomes, refused with a one-line error when there are none."""
     path = results_path(sweep_dir)
@@ -104,14 +117,16 @@ def pair_outcomes(results: pa.Table, system: str, arch: str) -> pa.Table:
     return results.filter(pc.and_(pc.equal(results["system"], system), pc.equal(results["arch"], arch)))
 
 
-def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, nsl: dict[str, Any], symbol: str
-            ) -> dict[str, Any]:
+def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, nsl: dict[str, Any], symbol: str,
+            rehearse: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """One NSL's row (KEY_COLUMNS, outcomes, excluded, b, parameters, margin, formula, backtest, bootstrap
-    intervals and thetas, the published law's paper_* columns; error on failure). ``excluded``: merged tasks
-    left out (not ok, or non-finite / non-positive values)."""
+    intervals and thetas, the published law's paper_* columns, a rehearsal's planted_* ones; error on failure).
+    ``excluded``: merged tasks left out (not ok, or non-finite / non-positive values); ``rehearse``: a
+    rehearsal's settings (its planted laws), None for a real sweep."""
     settings = FitSettings.from_mapping(nsl)
     options = {"breaks": nsl["breaks"], "max_breaks": nsl["max_breaks"], "K": nsl["K"], "settings": settings}
-    row: dict[str, Any] = {**key, "outcomes": len(r), "excluded": excluded, "error": None}
+    row: dict[str, Any] = {**key, "outcomes": len(r), "excluded": excluded, "error": None,
+                           **({"rehearsal": True} if rehearse is not None else {})}
     try:
         fit = fit_broken_law(r, e, **options)
     except NSLFitError as error:
@@ -132,6 +147,8 @@ def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, ns
         bounds = intervals(fit, thetas, float(r.max()), nsl["bootstrap_level"])
         row.update({name: bounds.get(name) for name in interval_columns(slots)})
     row.update(comparison(tuple(key.values()), r, e, nsl["K"]))
+    if rehearse is not None:
+        row.update(planted_comparison(rehearse, key, row, r, e, nsl["K"]))
     log_r = np.log(r)
     cut = float(np.exp(log_r.min() + nsl["backtest_cut"] * (log_r.max() - log_r.min())))
     try:
@@ -140,6 +157,35 @@ def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, ns
     except NSLFitError:
         row.update(backtest_cut=cut, backtest_margin=None, backtest_final_ratio=None)
     return row
+
+
+def planted_comparison(rehearse: Mapping[str, Any], key: Mapping[str, str], row: Mapping[str, Any], r: np.ndarray,
+                       e: np.ndarray, K: int) -> dict[str, Any]:
+    """A rehearsal's planted law beside the fitted one (a compute law of a planted metric): its formula, parameters,
+    slope and value at the largest resource (``planted_last_slope``, ``planted_L_at_max``: what the fitted last
+    slope and L_at_max estimate) and margin on our envelope, and whether the fit recovered it (both inside the
+    fit's bootstrap intervals)."""
+    if key["resource"] != "compute" or key["metric"] not in rehearse["laws"]:
+        return {}
+    law = planted_law(rehearse, key["metric"])
+    grid_r, grid_e = lower_envelope(r, e, K)
+    with np.errstate(divide="ignore"):  # alpha 0: ln alpha = -inf
+        theta = law.parameters().tolist()
+    values = {"planted_formula": law.formula("c"), "planted_theta": theta,
+              "planted_last_slope": local_slope(law, float(r.max())),
+              "planted_L_at_max": float(law.predict(r.max())),
+              "planted_margin_on_ours": float(np.mean((np.log(law.predict(grid_r)) - np.log(grid_e)) ** 2))}
+    if row.get("last_slope_lo") is not None:
+        values["planted_recovered"] = bool(
+            row["last_slope_lo"] <= values["planted_last_slope"] <= row["last_slope_hi"]
+            and row["L_at_max_lo"] <= values["planted_L_at_max"] <= row["L_at_max_hi"])
+    return values
+
+
+def local_slope(law: NSLFit, r: float) -> float:
+    """d ln L / d ln r of ``law`` at the resource ``r``."""
+    step = 1e-4
+    return float(np.diff(np.log(law.predict(r * np.exp([-step, step]))))[0] / (2 * step))
 
 
 def interval_columns(slots: int) -> list[str]:
@@ -155,8 +201,10 @@ def fit_from_row(row: Mapping[str, Any]) -> NSLFit:
                   {int(b): m for b, m in json.loads(row["margins_by_b"]).items()}, row["objective"])
 
 
-def fit_sweep(results: pa.Table, nsl: DictConfig, workers: int | None) -> list[dict[str, Any]]:
-    """Every NSL of the sweep, fitted in parallel processes, in (system, arch, resource, metric) order."""
+def fit_sweep(results: pa.Table, nsl: DictConfig, workers: int | None, rehearse: Mapping[str, Any] | None = None
+              ) -> list[dict[str, Any]]:
+    """Every NSL of the sweep, fitted in parallel processes, in (system, arch, resource, metric) order
+    (``rehearse``: a rehearsal's settings, whose planted laws are set beside the fitted ones)."""
     settings = plain(nsl)
     jobs = []
     present = set(zip(results["system"].to_pylist(), results["arch"].to_pylist(), strict=True))
@@ -171,7 +219,7 @@ def fit_sweep(results: pa.Table, nsl: DictConfig, workers: int | None) -> list[d
                     r = subset[spec["column"]].to_numpy().astype(float)[keep]
                     e = subset[metric].to_numpy().astype(float)[keep]
                     key = {"system": system, "arch": arch, "resource": resource, "metric": metric}
-                    jobs.append((key, r, e, int((~keep).sum()), settings, spec["symbol"]))
+                    jobs.append((key, r, e, int((~keep).sum()), settings, spec["symbol"], rehearse))
     with ProcessPoolExecutor(workers or os.cpu_count()) as pool:
         futures = [pool.submit(fit_one, *job) for job in jobs]
         return [future.result() for future in tqdm(futures, desc="NSL fits", unit="fit", disable=None)]
@@ -205,6 +253,11 @@ def describe_fit(row: dict[str, Any]) -> str:
                      f"[{row['last_slope_lo']:.2f}, {row['last_slope_hi']:.2f}]{breaks}, "
                      f"L(r_max) {row['L_at_max']:.2g} [{row['L_at_max_lo']:.2g}, {row['L_at_max_hi']:.2g}], "
                      f"L(10 r_max) {row['L_at_10x']:.2g} [{row['L_at_10x_lo']:.2g}, {row['L_at_10x_hi']:.2g}]")
+    if row.get("planted_formula") is not None:
+        recovered = {True: "recovered", False: "NOT recovered", None: "no intervals"}[row.get("planted_recovered")]
+        lines.append(f"    planted (rehearsal): {row['planted_formula']}: last slope {row['planted_last_slope']:.2f}, "
+                     f"L(r_max) {row['planted_L_at_max']:.2g}, M on our envelope {row['planted_margin_on_ours']:.2g}: "
+                     f"{recovered}")
     if row.get("paper_b") is not None:
         lines.append(f"    paper ({row['paper_where']}): b={row['paper_b']} M={row['paper_margin']:.2g} "
                      f"last slope {row['paper_last_slope']:.2f}; on our envelope M={row['paper_margin_on_ours']:.2g}")

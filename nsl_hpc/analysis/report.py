@@ -8,7 +8,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from nsl_hpc.analysis.fitting import last_slope_undetermined
+from nsl_hpc.analysis.fitting import last_slope_undetermined, nsl_key
 from nsl_hpc.analysis.merge import MergeSummary
 from nsl_hpc.analysis.mlflow_runs import flatten
 from nsl_hpc.analysis.prediction import format_need
@@ -148,6 +148,27 @@ def fit_note(nsl: Mapping[str, Any]) -> str:
             "the envelope is undetermined (marked ?, drawn grey).")
 
 
+def rehearsal_html(rows: Sequence[Mapping[str, Any]]) -> str:
+    """A rehearsal's banner and its planted laws beside the fitted ones ('' for a real sweep)."""
+    planted = [row for row in rows if row.get("planted_formula") is not None]
+    if not any(row.get("rehearsal") for row in rows):
+        return ""
+    recovered = sum(bool(row.get("planted_recovered")) for row in planted)
+    body = "".join("<tr>" + cells((
+        nsl_key(row).replace("/", " / "), row["planted_formula"], f"{row['planted_last_slope']:.2f}",
+        last_slope_cell(row) if row["error"] is None else "not fitted", f"{row['planted_L_at_max']:.3g}",
+        interval(row, "L_at_max", ".3g") if row["error"] is None else "", f"{row['planted_margin_on_ours']:.2g}",
+        {True: "yes", False: "no", None: "no intervals"}[row.get("planted_recovered")])) + "</tr>"
+        for row in planted)
+    return ('<p style="color:purple"><b>REHEARSAL: no model was trained.</b> Every outcome was drawn from a planted '
+            "law (nsl_hpc/sweep/rehearsal.py, rehearse.* of launch.yaml) and faults were planted at the study's rates; "
+            f"the laws below are fitted to those draws. {recovered} of {len(planted)} planted laws recovered (their "
+            "last slope and value at the largest resource inside the fit's 90% intervals).</p>"
+            "<table><tr><th>NSL</th><th>planted law</th><th>planted last slope</th><th>fitted [90%]</th>"
+            "<th>planted L(r_max)</th><th>fitted [90%]</th><th>planted law's M on the envelope</th>"
+            f"<th>recovered</th></tr>{body}</table>")
+
+
 def comparison_table(rows: Sequence[Mapping[str, Any]]) -> str:
     """Paper vs ours (``comparison_rows``) as an HTML table."""
     body = "".join(f"<tr>{cells(row)}</tr>" for row in comparison_rows(rows))
@@ -232,7 +253,8 @@ def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummar
     name = html.escape(launch["sweep"]["name"])
     return f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>NSL report: {name}</title>
 <style>{STYLE}</style></head><body>
-<h1>Neural scaling laws: sweep {name}</h1>
+<h1>Neural scaling laws: {"rehearsal" if launch.get("rehearsal") else "sweep"} {name}</h1>
+{rehearsal_html(rows)}
 <p>Sweep directory <code>{html.escape(str(Path(sweep_dir).resolve()))}</code>, sweep seed {launch['sweep_seed']},
 {summary.tasks:,} tasks.</p>
 <h2>Grid</h2><table>{axes}</table>

@@ -71,8 +71,10 @@ class Study:
     def shared_identity(self, values: Mapping[str, Any]) -> str:
         """Hash of the shared outcome-changing groups of a plain config dict (paths left out, and the settings of
         ``neutral`` at their neutral value: a sweep made before such a setting existed keeps its task ids; the
-        ``rounding_only`` ones at any value)."""
+        ``rounding_only`` ones at any value), with a rehearsal's settings in a rehearsal."""
         shared = {key: without_paths(values[key]) for key in self.shared_keys}
+        if values.get("rehearsal"):  # a rehearsal's synthetic outcomes: never a real sweep's tasks
+            shared["rehearsal"] = values["rehearse"]
         for group, key, value in self.neutral:
             if shared[group].get(key, value) == value:
                 shared[group].pop(key, None)

@@ -2,7 +2,8 @@
 
 - One command that changes a sweep (launch, resubmit, clean) at a time: ``sweep_lock`` holds an exclusive
   lock on ``<sweep_dir>/.lock``, which names its holder, for as long as the command runs (a local sweep: until
-  its tasks end). The lock is the kernel's (flock): it goes with the process, however it ends.
+  its tasks end). The lock is the kernel's (flock): it goes with the process, however it ends; on a file system
+  without flock it is a file created exclusively (``exclusive_lock``).
 - Nobody but the owner can change what a sweep's jobs run: its control files (the submitit folder with the
   pickled job runners, ``launch.yaml``, ``run.yaml``, ``configs/``, the manifest) and its compile cache must not
   be writable by group or others, nor owned by another user (``check_control_files``, as ssh's StrictModes checks
@@ -14,6 +15,7 @@
 
 import contextlib
 import copy
+import errno
 import fcntl
 import os
 import re
@@ -48,28 +50,70 @@ def usable_sweep_dir(sweep_dir: str | os.PathLike) -> Path:
     return path
 
 
+NO_FLOCK = (errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOLCK, errno.EINVAL)  # a file system without flock (Lustre, NFS)
+
+
 @contextlib.contextmanager
 def sweep_lock(sweep_dir: Path, command: str) -> Iterator[None]:
     """Hold the sweep's lock while ``command`` changes it; refuse with one line naming the holder when another
-    command holds it."""
+    command holds it. Where the file system takes no flock, the lock is a file created exclusively
+    (``exclusive_lock``)."""
     path = Path(sweep_dir) / layout.LOCK
     descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    holder = (f"{command} (pid {os.getpid()} on {socket.gethostname()}, since "
+              f"{time.strftime('%Y-%m-%d %H:%M:%S')})\n").encode()
     try:
         try:
             fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            exclusive: contextlib.AbstractContextManager[None] = contextlib.nullcontext()
         except BlockingIOError:
-            holder = os.pread(descriptor, 1000, 0).decode(errors="replace").strip() or "another command"
-            raise ConfigError(f"sweep_dir={str(sweep_dir)!r} is in use by {holder}; wait for it to end (or stop "
-                              "it) and run again") from None
-        os.ftruncate(descriptor, 0)
-        os.pwrite(descriptor, (f"{command} (pid {os.getpid()} on {socket.gethostname()}, since "
-                               f"{time.strftime('%Y-%m-%d %H:%M:%S')})\n").encode(), 0)
-        try:
-            yield
-        finally:
+            raise refusal(sweep_dir, os.pread(descriptor, 1000, 0).decode(errors="replace")) from None
+        except OSError as error:
+            if error.errno not in NO_FLOCK:
+                raise
+            exclusive = exclusive_lock(Path(sweep_dir), holder)
+        with exclusive:
             os.ftruncate(descriptor, 0)
+            os.pwrite(descriptor, holder, 0)
+            try:
+                yield
+            finally:
+                os.ftruncate(descriptor, 0)
     finally:
-        os.close(descriptor)  # releases the lock
+        os.close(descriptor)  # releases the flock
+
+
+@contextlib.contextmanager
+def exclusive_lock(sweep_dir: Path, holder: bytes) -> Iterator[None]:
+    """The sweep's lock without flock: ``<sweep_dir>/.lock.held``, created exclusively (atomic on NFS and Lustre)
+    and removed at the end. A file left by a command of this host whose process is gone is taken over; one of
+    another host's command is refused: only its user can tell it is gone (a lost node) and remove it."""
+    path = Path(sweep_dir) / layout.LOCK_HELD
+    for _ in range(2):
+        try:
+            descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            break
+        except FileExistsError:
+            text = path.read_text(errors="replace") if path.exists() else ""
+            match = HOLDER.match(text)
+            if match is None or match["host"] != socket.gethostname() or process_alive(int(match["pid"])):
+                raise refusal(sweep_dir, text, f"; if it ended without removing {path} (a lost node), remove it") \
+                    from None
+            path.unlink(missing_ok=True)  # its holder, of this host, is gone
+    else:
+        raise refusal(sweep_dir, path.read_text(errors="replace"))
+    try:
+        os.write(descriptor, holder)
+        os.close(descriptor)
+        yield
+    finally:
+        path.unlink(missing_ok=True)
+
+
+def refusal(sweep_dir: Path, holder: str, advice: str = "") -> ConfigError:
+    """The one line that refuses a command while ``holder`` (its lock line) holds the sweep."""
+    return ConfigError(f"sweep_dir={str(sweep_dir)!r} is in use by {holder.strip() or 'another command'}; wait for "
+                       f"it to end (or stop it) and run again{advice}")
 
 
 HOLDER = re.compile(r"^(?P<command>\S+) \(pid (?P<pid>\d+) on (?P<host>\S+), since")

@@ -30,11 +30,12 @@ from nsl_hpc.sweep.directory import process_alive
 from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.job import JobRunner, record_group_failure
 from nsl_hpc.sweep.layout import row_path
+from nsl_hpc.sweep.limits import ClusterLimits, read_cluster_limits
 from nsl_hpc.sweep.manifest import write_run_settings
 from nsl_hpc.sweep.plan import Group, Pack
 from nsl_hpc.sweep.prepare import prepare_shared_data
 from nsl_hpc.sweep.rows import row_state
-from nsl_hpc.sweep.slurm import queued_jobs, read_limits, refused_setting
+from nsl_hpc.sweep.slurm import queued_jobs, refused_setting
 from nsl_hpc.sweep.submissions import record_submission
 
 FULL_DISK_BYTES = 64 * 2**20  # a local job that ended without its result with less free than this: the disk is full
@@ -47,18 +48,18 @@ class Submission:
     arrays: dict[str, int]
     left: list[Pack]
     refusal: str | None = None  # sbatch's message when it refused an array
-    unaccounted: str | None = None  # why the user's job limits could not be read (slurm.Limits)
+    unaccounted: str | None = None  # why the user's job limits could not be read (limits.ClusterLimits)
 
 
-def submit_to_slurm(sweep_dir: Path, packs: Sequence[Pack], launcher: SlurmLauncher, name: str) -> Submission:
-    """Submit ``packs`` as job arrays, one time limit per array, indices from 0, within the limits."""
-    limits = read_limits(launcher)
-    room = limits.max_job_count - queued_jobs(user_only=False)
-    if limits.max_submit_jobs is not None:
-        room = min(room, limits.max_submit_jobs - queued_jobs(user_only=True))
+def submit_to_slurm(sweep_dir: Path, packs: Sequence[Pack], launcher: SlurmLauncher, name: str,
+                    limits: ClusterLimits) -> Submission:
+    """Submit ``packs`` as job arrays, one time limit per array, indices from 0, within the cluster's ``limits``."""
+    room = limits.max_job_count.value - queued_jobs(user_only=False)
+    if limits.submit_jobs is not None:
+        room = min(room, limits.submit_jobs.value - queued_jobs(user_only=True))
     ordered = sorted(packs, key=lambda pack: pack.time_limit_min)
     now, left = ordered[:max(room, 0)], ordered[max(room, 0):]
-    chunks = array_chunks(now, limits.max_array_size)
+    chunks = array_chunks(now, limits.max_array_size.value)
     arrays = {}
     for index, chunk in enumerate(chunks):
         try:
@@ -256,16 +257,17 @@ def unfinished_share(sweep_dir: Path, share: Sequence[Group], reason: str) -> di
     return dict(counts)
 
 
-def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Launcher, name: str, silence_s: float) -> int:
-    """Submit ``packs`` (launcher slurm) or run them here, print what happened; returns the exit status:
-    1 when a task ran here and did not finish."""
+def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Launcher, name: str, silence_s: float,
+             limits: ClusterLimits | None = None) -> int:
+    """Submit ``packs`` (launcher slurm; within ``limits``, read here when None) or run them here, print what
+    happened; returns the exit status: 1 when a task ran here and did not finish."""
     sweep_dir = Path(sweep_dir).resolve()  # jobs find it from anywhere
     if isinstance(launcher, SlurmLauncher):
-        submission = submit_to_slurm(sweep_dir, packs, launcher, name)
+        submission = submit_to_slurm(sweep_dir, packs, launcher, name, limits or read_cluster_limits(launcher))
         elements = sum(submission.arrays.values())
         if submission.unaccounted:
-            print(f"the accounting database did not answer ({submission.unaccounted[:160]}): submitted without the "
-                  "user's MaxSubmitJobs (set launcher.max_submit_jobs to stay within it)")
+            print(f"the user's job limits are unknown ({submission.unaccounted[:160]}): submitted without them (set "
+                  "launcher.max_submit_jobs to stay within a submit limit)")
         if submission.refusal:
             refuse_for_setting(sweep_dir, submission)
         print(f"submitted {elements:,} jobs in {len(submission.arrays)} arrays: {', '.join(submission.arrays)}")
@@ -305,11 +307,13 @@ def limit_threads(threads: int) -> None:
 
 
 def run_jobs(sweep_dir: Path, launch: DictConfig, packs: Sequence[Pack], tasks: Sequence[Mapping[str, Any]],
-             configs: Mapping[tuple[str, str], Mapping[str, Any]]) -> int:
-    """Run the planned ``packs`` of ``tasks`` (manifest rows) with the run settings ``launch``: the data they
-    share first, the settings recorded in run.yaml, then ``dispatch``; returns its exit status."""
-    prepare_shared_data(tasks, configs, study_named(launch.study.name))
+             configs: Mapping[tuple[str, str], Mapping[str, Any]], limits: ClusterLimits | None = None) -> int:
+    """Run the planned ``packs`` of ``tasks`` (manifest rows) with the run settings ``launch`` (within the cluster's
+    ``limits``): the data they share first (none in a rehearsal), the settings recorded in run.yaml, then
+    ``dispatch``; returns its exit status."""
+    if not launch.get("rehearsal"):  # a rehearsal's tasks read no data
+        prepare_shared_data(tasks, configs, study_named(launch.study.name))
     write_run_settings(sweep_dir, launch)
     limit_threads(OmegaConf.select(launch, "threads", default=1))
     silence_s = OmegaConf.select(launch, "watchdog.worker_silence_s", default=STALE_S)  # run.yaml of before it
-    return dispatch(sweep_dir, packs, launcher_from(launch.launcher), launch.sweep.name, silence_s)
+    return dispatch(sweep_dir, packs, launcher_from(launch.launcher), launch.sweep.name, silence_s, limits)

@@ -50,6 +50,7 @@ from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.layout import failure_path, row_path, task_log_path
 from nsl_hpc.sweep.manifest import read_base_config, read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import Group
+from nsl_hpc.sweep.rehearsal import kill_job_once
 from nsl_hpc.sweep.rows import row_state, set_aside
 from nsl_hpc.sweep.task import describe, run_tasks
 
@@ -167,7 +168,8 @@ class JobRunner:
         signal.signal(signal.SIGCONT, signal.SIG_DFL)
         if refusal := unsafe_refusal(list(tree(compile_cache(launch))), launch):  # Inductor unpickles from it
             return self.refuse(sweep, groups, refusal)
-        import_training_code()  # once, not in each group's forked process
+        if not launch.get("rehearsal"):  # a rehearsal trains nothing
+            import_training_code()  # once, not in each group's forked process
         self.checkpointing = checkpoint_seconds(launch) > 0
         self.stop_wait_s = launch.launcher.get("signal_delay_s", 60) / 2
         rows = manifest_rows(sweep, [task_id for group in groups for task_id in group.task_ids])
@@ -204,6 +206,8 @@ class JobRunner:
             finally:
                 lock.release()
             counts[outcome] += len(todo)
+            if launch.get("rehearsal"):  # the rehearsal's lost node, after the job's first group
+                kill_job_once(sweep, launch.rehearse, groups[0].task_ids[0])
             if outcome == "stopped":
                 break
         self.current = None
@@ -233,6 +237,8 @@ class JobRunner:
         watchdog = launch.watchdog
         silence_s = watchdog.heartbeat_timeout_s + (compile_allowance(launch, group[0]["arch"]) if planned.compiled
                                                     else 0.0)  # no heartbeat while the first block compiles
+        if launch.get("rehearsal"):  # nothing trains or compiles: a silent group is frozen
+            silence_s = launch.rehearse.heartbeat_timeout_s
         ids = [task["task_id"] for task in group]
         context = multiprocessing.get_context("fork")
         heartbeat = context.Value("d", time.time(), lock=False)

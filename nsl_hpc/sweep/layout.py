@@ -16,7 +16,9 @@
       compile_cache/                      Inductor's compiled training steps (compile_cache_dir)
       budget/round-<r>.parquet            a budgeted sweep's decisions: which tasks of round r run (sweep/decisions.py)
       budget/round_job.json               the SLURM job that launches its next round
+      rehearsal/killed-<task id>          a rehearsal's job killed once (sweep/rehearsal.py)
       .lock                               the command that changes the sweep now (launch, resubmit, clean)
+      .lock.held                          ... its lock where the file system takes no flock
       results.parquet, merge_summary.json, .merge_cache.parquet   merge
       nsl_fits.parquet, nsl_fits.txt                            fit
       report.html, comparison.md, figures/, mlflow.db, mlartifacts/   report
@@ -40,6 +42,7 @@ SUBMITIT = "submitit"
 SUBMITIT_LOCAL = "local"  # submitit/local/: the local launcher's jobs
 SUBMISSIONS = "submissions"
 LOCK = ".lock"
+LOCK_HELD = ".lock.held"  # the lock where the file system takes no flock
 RESULTS = "results.parquet"
 MERGE_SUMMARY = "merge_summary.json"
 FITS = "nsl_fits.parquet"
@@ -50,11 +53,12 @@ FIGURES = "figures"
 MLFLOW_DB = "mlflow.db"
 MLFLOW_ARTIFACTS = "mlartifacts"
 BUDGET = "budget"
+REHEARSAL = "rehearsal"  # a rehearsal's own records (the jobs it killed once)
 MERGE_CACHE = ".merge_cache.parquet"  # merge's read rows, so a second merge reads only new ones
 
 CONTROL = (SUBMITIT, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, MANIFEST)  # what decides the code a sweep's jobs run
-RECORDS = (MANIFEST, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, ROWS, CORRUPT, SUBMISSIONS, LOCK, BUDGET, RESULTS, FITS,
-           FITS_TEXT, REPORT, COMPARISON, FIGURES, MLFLOW_DB, MLFLOW_ARTIFACTS, MERGE_CACHE)  # clean keeps these
+RECORDS = (MANIFEST, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, ROWS, CORRUPT, SUBMISSIONS, LOCK, BUDGET, REHEARSAL, RESULTS,
+           FITS, FITS_TEXT, REPORT, COMPARISON, FIGURES, MLFLOW_DB, MLFLOW_ARTIFACTS, MERGE_CACHE)  # clean keeps these
 
 
 def bucketed(folder: Path, name: str, suffix: str) -> Path:

@@ -7,8 +7,11 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from nsl_hpc.config.launchers import SlurmLauncher
 from nsl_hpc.errors import ConfigError, SlurmError
+
+
+class SlurmMissing(ConfigError):
+    """This machine has no SLURM client commands."""
 
 
 def slurm_command(*args: str, retries: int = 3, backoff_s: float = 2.0) -> str:
@@ -17,51 +20,13 @@ def slurm_command(*args: str, retries: int = 3, backoff_s: float = 2.0) -> str:
         try:
             result = subprocess.run(args, capture_output=True, text=True, timeout=120)
         except FileNotFoundError:
-            raise ConfigError(f"{args[0]} not found: launcher=slurm needs the SLURM client commands") from None
+            raise SlurmMissing(f"{args[0]} not found: launcher=slurm needs the SLURM client commands") from None
         if result.returncode == 0:
             return result.stdout
         if attempt + 1 < retries:
             time.sleep(backoff_s * 2**attempt)
     lines = [line.strip() for line in result.stderr.splitlines() if line.strip()] or ["no message"]
     raise SlurmError(f"{args[0]} failed: {lines[-1].removeprefix(f'{args[0]}: ').removeprefix('error: ')}")
-
-
-@dataclass(frozen=True)
-class Limits:
-    """What the cluster accepts: array indices < max_array_size; at most max_job_count jobs in the
-    system and max_submit_jobs of this user (array elements count one each). ``unaccounted``: why the user's
-    limits could not be read from the accounting database (then max_submit_jobs is None), None when they were."""
-
-    max_array_size: int
-    max_job_count: int
-    max_submit_jobs: int | None
-    unaccounted: str | None = None
-
-
-def read_limits(launcher: SlurmLauncher) -> Limits:
-    """Limits from ``scontrol show config`` and ``sacctmgr``, unless set in the launcher config; a launcher
-    array size above the cluster's is refused."""
-    config = slurm_command("scontrol", "show", "config")
-
-    def setting(name: str) -> int:
-        match = re.search(rf"^{name}\s*=\s*(\d+)", config, flags=re.MULTILINE)
-        if not match:
-            raise ConfigError(f"scontrol show config has no {name}; set it in the launcher config")
-        return int(match.group(1))
-
-    if launcher.max_array_size is not None and launcher.max_array_size > setting("MaxArraySize"):
-        raise ConfigError(f"launcher.max_array_size={launcher.max_array_size} is above the cluster's MaxArraySize="
-                          f"{setting('MaxArraySize')}: leave it unset (null) or lower it")
-    max_submit, unaccounted = launcher.max_submit_jobs, None
-    if max_submit is None:
-        try:
-            values = slurm_command("sacctmgr", "-n", "-P", "show", "assoc", f"user={getpass.getuser()}",
-                                   "format=MaxSubmitJobs", retries=2).split()
-            max_submit = min((int(v) for v in values if v.isdigit()), default=None)
-        except SlurmError as error:
-            unaccounted = str(error)
-    return Limits(launcher.max_array_size or setting("MaxArraySize"),
-                  launcher.max_job_count or setting("MaxJobCount"), max_submit, unaccounted)
 
 
 def queued_jobs(user_only: bool) -> int:

@@ -25,6 +25,7 @@ from nsl_hpc.studies import study_of
 from nsl_hpc.studies.base import Study
 from nsl_hpc.studies.settings import COMPILE_MODES
 from nsl_hpc.sweep.layout import row_path
+from nsl_hpc.sweep.rehearsal import rehearsed_group
 from nsl_hpc.sweep.rows import write_row_atomically
 
 
@@ -163,17 +164,14 @@ def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lamb
         return results
     for i in todo:
         ensure_writable_dir(Path(cfgs[i].out_dir))
-    import torch  # here, not with the module: launch and resubmit plan with this module's checks without torch
-
-    torch.set_num_threads(cfgs[todo[0]].threads)
-    if cfgs[todo[0]].get("compile_cache_dir"):  # Inductor reads it when it first compiles
-        os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(Path(cfgs[todo[0]].compile_cache_dir).resolve())
-    delay = max(inject_fault(cfgs[i].fault, cfgs[i].seed) for i in todo)
-    if delay > 0:
-        on_progress = slowed(on_progress, delay)
-    outcomes = tasks[todo[0]].study.train_and_score_group(
-        [(cfgs[i], {**tasks[i].coordinates, "task_id": paths[i].stem}, tasks[i].sizes) for i in todo], on_progress,
-        checkpoint if len(todo) == len(cfgs) else None)
+    if cfgs[todo[0]].get("rehearsal"):  # nothing trains: outcomes drawn from the planted laws
+        outcomes = rehearsed_group(plain(cfgs[todo[0]].rehearse), [(paths[i].stem, tasks[i].sizes) for i in todo],
+                                   on_progress)
+        torch_version = "none (rehearsal)"
+    else:
+        outcomes, torch_version = trained_group([cfgs[i] for i in todo], [tasks[i] for i in todo],
+                                                [paths[i].stem for i in todo], on_progress,
+                                                checkpoint if len(todo) == len(cfgs) else None)
     for i, outcome in zip(todo, outcomes, strict=True):
         finite = outcome.pop("finite") and all(math.isfinite(outcome[key]) for key in ("nmae", "nmse"))
         row = {
@@ -186,13 +184,32 @@ def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lamb
             "status": "ok" if finite else "diverged",
             "wall_seconds": (time.perf_counter() - started) / len(todo),
             "package_version": nsl_hpc.__version__,
-            "torch_version": torch.__version__,
+            "torch_version": torch_version,
             "python_version": platform.python_version(),
             "host": socket.gethostname(),
         }
         write_row_atomically(row, paths[i])
         results[i] = TaskResult(paths[i], row, skipped=False)
     return results
+
+
+def trained_group(cfgs: Sequence[DictConfig], tasks: Sequence[ResolvedTask], ids: Sequence[str],
+                  on_progress: Callable[[], None], checkpoint: Checkpointer | None) -> tuple[list[dict[str, Any]], str]:
+    """The outcomes of training tasks of one study and shape together (``train_and_score_group``, from
+    ``checkpoint``), and the torch version that trained them."""
+    import torch  # here, not with the module: launch and resubmit plan with this module's checks without torch
+
+    torch.set_num_threads(cfgs[0].threads)
+    if cfgs[0].get("compile_cache_dir"):  # Inductor reads it when it first compiles
+        os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(Path(cfgs[0].compile_cache_dir).resolve())
+    delay = max(inject_fault(cfg.fault, cfg.seed) for cfg in cfgs)
+    if delay > 0:
+        on_progress = slowed(on_progress, delay)
+    outcomes = tasks[0].study.train_and_score_group(
+        [(cfg, {**task.coordinates, "task_id": task_id}, task.sizes) for cfg, task, task_id in zip(cfgs, tasks, ids,
+                                                                                                 strict=True)],
+        on_progress, checkpoint)
+    return outcomes, torch.__version__
 
 
 def describe(row: Mapping[str, Any]) -> str:

@@ -45,7 +45,7 @@ def test_tasks_queued_while_accounting_was_down_are_never_submitted_again(slurm_
         launched = nsl("launch", *held)
         assert launched.returncode == 0, launched.stderr
         assert "submitted 4 jobs in 1 arrays" in launched.stdout
-        assert "the accounting database did not answer (sacctmgr failed: " in launched.stdout
+        assert "the user's job limits are unknown (sacctmgr failed: " in launched.stdout
         status = nsl("status", f"sweep_dir={sweep_dir}")
         assert status.returncode == 0, status.stderr
         assert "pending 4" in status.stdout and "missing 0" in status.stdout
