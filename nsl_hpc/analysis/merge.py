@@ -54,7 +54,8 @@ class MergeSummary:
         share = 100 * self.dropped / self.tasks if self.tasks else 0.0
         lines = [f"{self.dropped:,} of {self.tasks:,} tasks ({share:.1f}%) dropped: {self.frozen:,} frozen, "
                  f"{self.failed:,} failed, {self.missing:,} missing"
-                 + (f", {self.timeout:,} timed out" if self.timeout else "")]
+                 + (f", {self.timeout:,} timed out" if self.timeout else "")
+                 + (f" (each with its reason in {layout.DROPPED})" if self.dropped else "")]
         if self.skipped or self.waiting:
             reasons = ", ".join(f"{n:,} {why}" for why, n in sorted((self.skipped_reasons or {}).items()))
             lines.append(f"{self.skipped:,} tasks skipped by the budget" + (f" ({reasons})" if reasons else "")
@@ -167,16 +168,33 @@ def one_row_per_manifest_task(rows: pa.Table, task_ids: pa.ChunkedArray) -> tupl
     return rows.take(pa.array(np.sort(first), pa.int64())), unknown, rows.num_rows - len(first)
 
 
-def dropped_counts(sweep_dir: Path, task_ids: pa.ChunkedArray, merged_ids: pa.ChunkedArray) -> dict[str, int]:
-    """Tasks without a merged row: running (a live job holds their group's lock), by their failure record's
-    state (failed, frozen, timeout), running (queued in a launch or resubmit that runs now), skipped or waiting
-    (a budgeted sweep's rounds decided not to run them, or have not decided yet) or missing."""
+UNRECORDED = "no row and no failure record: cancelled, killed, lost with its node, or never run"
+
+
+def unmerged_tasks(sweep_dir: Path, manifest: pa.Table, merged_ids: pa.ChunkedArray) -> pa.Table:
+    """The tasks without a merged row (task_id, system, arch, seed, state, reason): running (a live job holds
+    their group's lock, or a launch or resubmit that runs now will), by their failure record's state (failed,
+    frozen, timeout), skipped or waiting (a budgeted sweep's rounds decided not to run them, or have not decided
+    yet) or missing."""
     failures, running = read_failures(sweep_dir), running_task_ids(sweep_dir)
     launching, budgeted = launch_running(sweep_dir), budget_states(sweep_dir)
-    merged = set(merged_ids.to_pylist())
-    states = ["running" if t in running else failures[t]["status"] if t in failures else
-              without_row_state(budgeted, t, launching).replace("pending", "running")
-              for t in task_ids.to_pylist() if t not in merged]
+    unmerged = manifest.select(["task_id", "system", "arch", "seed"]).filter(
+        pc.invert(pc.is_in(manifest["task_id"], value_set=merged_ids.combine_chunks() if merged_ids.num_chunks else
+                           pa.array([], pa.string()))))
+    states, reasons = [], []
+    for task_id in unmerged["task_id"].to_pylist():
+        state = ("running" if task_id in running else failures[task_id]["status"] if task_id in failures else
+                 without_row_state(budgeted, task_id, launching).replace("pending", "running"))
+        states.append(state)
+        reasons.append(failures[task_id]["reason"] if task_id in failures else UNRECORDED if state == "missing"
+                       else "")
+    return unmerged.append_column("state", pa.array(states, pa.string())).append_column(
+        "reason", pa.array(reasons, pa.string()))
+
+
+def dropped_counts(unmerged: pa.Table) -> dict[str, int]:
+    """How many of the ``unmerged_tasks`` are in each state."""
+    states = unmerged["state"].to_pylist()
     return {state: states.count(state) for state in (*FAILURE_STATES, "missing", "running", "skipped", "waiting")}
 
 
@@ -194,8 +212,10 @@ def merge_sweep(sweep_dir: Path) -> MergeSummary:
     results = results.sort_by("manifest_index").drop_columns(["manifest_index"])
     write_parquet(results, results_path(sweep_dir))
     diverged = int(pc.sum(pc.not_equal(results["status"], "ok")).as_py() or 0) if results.num_rows else 0
-    summary = MergeSummary(tasks=manifest.num_rows, merged=results.num_rows,
-                           **dropped_counts(sweep_dir, manifest["task_id"], results["task_id"]),
+    unmerged = unmerged_tasks(sweep_dir, manifest, results["task_id"])
+    write_parquet(unmerged.filter(pc.is_in(unmerged["state"], value_set=pa.array([*FAILURE_STATES, "missing"]))),
+                  Path(sweep_dir) / layout.DROPPED)
+    summary = MergeSummary(tasks=manifest.num_rows, merged=results.num_rows, **dropped_counts(unmerged),
                            diverged=diverged, skipped_reasons=skip_reasons(read_decisions(sweep_dir),
                                                                      set(results["task_id"].to_pylist())),
                            corrupt_shards=corrupt,

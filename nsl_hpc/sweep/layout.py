@@ -19,7 +19,7 @@
       rehearsal/killed-<task id>          a rehearsal's job killed once (sweep/rehearsal.py)
       .lock                               the command that changes the sweep now (launch, resubmit, clean)
       .lock.held                          ... its lock where the file system takes no flock
-      results.parquet, merge_summary.json, .merge_cache.parquet   merge
+      results.parquet, merge_summary.json, dropped.parquet, .merge_cache.parquet   merge
       nsl_fits.parquet, nsl_fits.txt                            fit
       report.html, comparison.md, figures/, mlflow.db, mlartifacts/   report
 
@@ -45,6 +45,7 @@ LOCK = ".lock"
 LOCK_HELD = ".lock.held"  # the lock where the file system takes no flock
 RESULTS = "results.parquet"
 MERGE_SUMMARY = "merge_summary.json"
+DROPPED = "dropped.parquet"  # the tasks merge dropped, each with its state and reason
 FITS = "nsl_fits.parquet"
 FITS_TEXT = "nsl_fits.txt"
 REPORT = "report.html"
@@ -57,8 +58,9 @@ REHEARSAL = "rehearsal"  # a rehearsal's own records (the jobs it killed once)
 MERGE_CACHE = ".merge_cache.parquet"  # merge's read rows, so a second merge reads only new ones
 
 CONTROL = (SUBMITIT, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, MANIFEST)  # what decides the code a sweep's jobs run
+# what clean keeps
 RECORDS = (MANIFEST, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, ROWS, CORRUPT, SUBMISSIONS, LOCK, BUDGET, REHEARSAL, RESULTS,
-           FITS, FITS_TEXT, REPORT, COMPARISON, FIGURES, MLFLOW_DB, MLFLOW_ARTIFACTS, MERGE_CACHE)  # clean keeps these
+           DROPPED, FITS, FITS_TEXT, REPORT, COMPARISON, FIGURES, MLFLOW_DB, MLFLOW_ARTIFACTS, MERGE_CACHE)
 
 
 def bucketed(folder: Path, name: str, suffix: str) -> Path:
