@@ -163,22 +163,24 @@ def planted_comparison(rehearse: Mapping[str, Any], key: Mapping[str, str], row:
                        e: np.ndarray, K: int) -> dict[str, Any]:
     """A rehearsal's planted law beside the fitted one (a compute law of a planted metric): its formula, parameters,
     slope and value at the largest resource (``planted_last_slope``, ``planted_L_at_max``: what the fitted last
-    slope and L_at_max estimate) and margin on our envelope, and whether the fit recovered it (both inside the
-    fit's bootstrap intervals)."""
+    slope and L_at_max estimate), the envelope there over it (``planted_envelope_excess``: an envelope of finite
+    draws lies above the law it bounds) and its margin on our envelope; recovered when both planted values lie
+    inside the fit's 90% intervals (last_slope, L_at_max)."""
     if key["resource"] != "compute" or key["metric"] not in rehearse["laws"]:
         return {}
     law = planted_law(rehearse, key["metric"])
     grid_r, grid_e = lower_envelope(r, e, K)
     with np.errstate(divide="ignore"):  # alpha 0: ln alpha = -inf
         theta = law.parameters().tolist()
+    at_max = float(law.predict(r.max()))
     values = {"planted_formula": law.formula("c"), "planted_theta": theta,
-              "planted_last_slope": local_slope(law, float(r.max())),
-              "planted_L_at_max": float(law.predict(r.max())),
+              "planted_last_slope": local_slope(law, float(r.max())), "planted_L_at_max": at_max,
+              "planted_envelope_excess": float(grid_e[-1]) / at_max,
               "planted_margin_on_ours": float(np.mean((np.log(law.predict(grid_r)) - np.log(grid_e)) ** 2))}
     if row.get("last_slope_lo") is not None:
         values["planted_recovered"] = bool(
             row["last_slope_lo"] <= values["planted_last_slope"] <= row["last_slope_hi"]
-            and row["L_at_max_lo"] <= values["planted_L_at_max"] <= row["L_at_max_hi"])
+            and row["L_at_max_lo"] <= at_max <= row["L_at_max_hi"])
     return values
 
 
@@ -255,9 +257,10 @@ def describe_fit(row: dict[str, Any]) -> str:
                      f"L(10 r_max) {row['L_at_10x']:.2g} [{row['L_at_10x_lo']:.2g}, {row['L_at_10x_hi']:.2g}]")
     if row.get("planted_formula") is not None:
         recovered = {True: "recovered", False: "NOT recovered", None: "no intervals"}[row.get("planted_recovered")]
-        lines.append(f"    planted (rehearsal): {row['planted_formula']}: last slope {row['planted_last_slope']:.2f}, "
-                     f"L(r_max) {row['planted_L_at_max']:.2g}, M on our envelope {row['planted_margin_on_ours']:.2g}: "
-                     f"{recovered}")
+        lines.append(f"    planted (rehearsal): {row['planted_formula']}: slope at r_max "
+                     f"{row['planted_last_slope']:.2f}, L(r_max) {row['planted_L_at_max']:.2g} (the envelope "
+                     f"{row['planted_envelope_excess']:.3f}x above it), M on our envelope "
+                     f"{row['planted_margin_on_ours']:.2g}: {recovered}")
     if row.get("paper_b") is not None:
         lines.append(f"    paper ({row['paper_where']}): b={row['paper_b']} M={row['paper_margin']:.2g} "
                      f"last slope {row['paper_last_slope']:.2f}; on our envelope M={row['paper_margin_on_ours']:.2g}")

@@ -157,15 +157,18 @@ def rehearsal_html(rows: Sequence[Mapping[str, Any]]) -> str:
     body = "".join("<tr>" + cells((
         nsl_key(row).replace("/", " / "), row["planted_formula"], f"{row['planted_last_slope']:.2f}",
         last_slope_cell(row) if row["error"] is None else "not fitted", f"{row['planted_L_at_max']:.3g}",
-        interval(row, "L_at_max", ".3g") if row["error"] is None else "", f"{row['planted_margin_on_ours']:.2g}",
+        interval(row, "L_at_max", ".3g") if row["error"] is None else "", f"{row['planted_envelope_excess']:.3f}",
+        f"{row['planted_margin_on_ours']:.2g}",
         {True: "yes", False: "no", None: "no intervals"}[row.get("planted_recovered")])) + "</tr>"
         for row in planted)
     return ('<p style="color:purple"><b>REHEARSAL: no model was trained.</b> Every outcome was drawn from a planted '
             "law (nsl_hpc/sweep/rehearsal.py, rehearse.* of launch.yaml) and faults were planted at the study's rates; "
-            f"the laws below are fitted to those draws. {recovered} of {len(planted)} planted laws recovered (their "
-            "last slope and value at the largest resource inside the fit's 90% intervals).</p>"
+            f"the laws below are fitted to those draws. {recovered} of {len(planted)} planted laws recovered (the "
+            "planted slope and value at the largest resource inside the fit's 90% intervals of its last slope and "
+            "value there; an envelope of finite draws lies above the law it bounds: its excess is listed).</p>"
             "<table><tr><th>NSL</th><th>planted law</th><th>planted last slope</th><th>fitted [90%]</th>"
-            "<th>planted L(r_max)</th><th>fitted [90%]</th><th>planted law's M on the envelope</th>"
+            "<th>planted L(r_max)</th><th>fitted [90%]</th><th>envelope / planted at r_max</th>"
+            "<th>planted law's M on the envelope</th>"
             f"<th>recovered</th></tr>{body}</table>")
 
 

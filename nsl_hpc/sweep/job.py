@@ -23,6 +23,7 @@ one) leaves a group that a live job trains to it.
 """
 
 import contextlib
+import copy
 import ctypes
 import multiprocessing
 import os
@@ -43,6 +44,7 @@ import submitit
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info, remove_checkpoint
+from nsl_hpc.config import plain
 from nsl_hpc.studies import import_training_code, study_named
 from nsl_hpc.sweep.checkpoints import GroupLock, checkpoint_path
 from nsl_hpc.sweep.directory import compile_cache, process_alive, tree, unsafe_refusal
@@ -68,17 +70,28 @@ def manifest_rows(sweep_dir: Path, task_ids: Sequence[str]) -> list[dict[str, An
     return [by_id[task_id] for task_id in task_ids]
 
 
-def task_config(sweep_dir: Path, task: Mapping[str, Any]) -> DictConfig:
-    """The full config of one manifest row ``task`` (a dict with the manifest's columns)."""
-    cfg = read_base_config(sweep_dir, task["system"], task["arch"])
-    for key in (*study_named(cfg.study.name).task_keys, "task_id"):  # system and arch: the base config's groups
-        cfg[key] = task[key]
-    return cfg
+class TaskConfigs:
+    """The full configs of a sweep's manifest rows as plain dicts, each (system, arch)'s shared config read from
+    ``configs/`` once (a config read and resolved takes 40-80 ms: a rehearsal's whole job)."""
+
+    def __init__(self, sweep_dir: Path) -> None:
+        self.sweep_dir = sweep_dir
+        self.shared: dict[tuple[str, str], dict[str, Any]] = {}
+
+    def of(self, task: Mapping[str, Any]) -> dict[str, Any]:
+        """The config of the manifest row ``task`` (a dict with the manifest's columns)."""
+        pair = (task["system"], task["arch"])
+        if pair not in self.shared:
+            self.shared[pair] = plain(read_base_config(self.sweep_dir, *pair))
+        cfg = copy.deepcopy(self.shared[pair])
+        for key in (*study_named(cfg["study"]["name"]).task_keys, "task_id"):  # system, arch: the shared groups
+            cfg[key] = task[key]
+        return cfg
 
 
-def task_sizes(cfg: DictConfig, task: Mapping[str, Any]) -> dict[str, Any]:
+def task_sizes(cfg: Mapping[str, Any], task: Mapping[str, Any]) -> dict[str, Any]:
     """The sizes drawn for a manifest row ``task`` (the manifest is the truth: they are not drawn again)."""
-    return study_named(cfg.study.name).sizes_in(task)
+    return study_named(cfg["study"]["name"]).sizes_in(task)
 
 
 def checkpoint_seconds(launch: DictConfig) -> float:
@@ -109,7 +122,7 @@ def leave_warnings_to_the_runner(checkpoint: Checkpointer | None) -> None:
     signal.signal(signal.SIGUSR1, signal.SIG_IGN if checkpoint is None else stop)
 
 
-def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], cfgs: Sequence[DictConfig], heartbeat,
+def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], cfgs: Sequence[Mapping[str, Any]], heartbeat,
               every_s: float) -> None:
     """Child process body: output to the first task's log, train the group (manifest rows ``group`` with their
     configs ``cfgs``) from its checkpoint, writing one every ``every_s`` seconds (0: none); exit status 1 on an
@@ -118,7 +131,7 @@ def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], cfgs: Sequenc
     checkpoint = Checkpointer(checkpoint_path(sweep_dir, ids), every_s, ids) if every_s > 0 else None
     leave_warnings_to_the_runner(checkpoint)
     die_with_parent()
-    log = task_log_path(sweep_dir, cfgs[0].task_id)
+    log = task_log_path(sweep_dir, cfgs[0]["task_id"])
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "w") as handle:
         os.dup2(handle.fileno(), 1)
@@ -153,6 +166,7 @@ class JobRunner:
         self.started: set[Group] = set()
         self.checkpointing, self.stop_wait_s = False, 30.0
         self.warned = False  # SLURM's warning came: checkpoint() has dealt with the running group
+        self.configs: TaskConfigs | None = None  # the sweep's task configs, once called
 
     def launcher_gone(self) -> bool:
         return self.launcher_pid is not None and not process_alive(self.launcher_pid)
@@ -163,6 +177,7 @@ class JobRunner:
         trains the group), stopped (asked to stop; the job ends)."""
         sweep = Path(sweep_dir)
         launch = read_launch_config(sweep)
+        self.configs = TaskConfigs(sweep)
         # SLURM sends SIGCONT with its warning; submitit's handler for it logs, and logging swallows the exception
         # a warning handler nested in it raises (the job would go on as if not warned)
         signal.signal(signal.SIGCONT, signal.SIG_DFL)
@@ -228,12 +243,13 @@ class JobRunner:
         """Run the tasks (manifest rows) ``group`` of the lockstep group ``planned`` (its predicted seconds, compiled
         or not) in a child process under the watchdog (``launch.watchdog``), renewing ``lock``; returns ok,
         failed, frozen (the outcome of each of its tasks) or stopped."""
-        cfgs = [task_config(sweep, task) for task in group]
+        assert self.configs is not None
+        cfgs = [self.configs.of(task) for task in group]
         predicted = launch.cost.startup_s + planned.seconds  # the job's start-up: a floor for short groups
         for cfg in cfgs:
-            cfg.compile = "always" if planned.compiled else "never"  # as planned (auto resolved)
-            if cfg.fault.once and failure_path(sweep, cfg.task_id).exists():
-                cfg.fault.kind = None  # test-only faults strike a task's first attempt only
+            cfg["compile"] = "always" if planned.compiled else "never"  # as planned (auto resolved)
+            if cfg["fault"]["once"] and failure_path(sweep, cfg["task_id"]).exists():
+                cfg["fault"]["kind"] = None  # test-only faults strike a task's first attempt only
         watchdog = launch.watchdog
         silence_s = watchdog.heartbeat_timeout_s + (compile_allowance(launch, group[0]["arch"]) if planned.compiled
                                                     else 0.0)  # no heartbeat while the first block compiles

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 import nsl_hpc
 from nsl_hpc.checkpoint import Checkpointer
@@ -38,7 +38,7 @@ class ResolvedTask:
     sizes: dict[str, Any]
 
 
-def resolve_task(cfg: DictConfig, sizes: Mapping[str, Any] | None = None) -> ResolvedTask:
+def resolve_task(cfg: Mapping[str, Any], sizes: Mapping[str, Any] | None = None) -> ResolvedTask:
     """Validate the task's keys (raising ConfigError before any work) and draw its sizes, or take ``sizes``
     as drawn (a sweep's job takes them from the manifest, which is the truth; they are not drawn again)."""
     values = plain(cfg)
@@ -88,7 +88,7 @@ def task_id_from(study: Study, shared: str, values: Mapping[str, Any]) -> str:
     return stable_hash([shared, *(values[key] for key in study.task_keys)])
 
 
-def task_id(cfg: DictConfig) -> str:
+def task_id(cfg: Mapping[str, Any]) -> str:
     """Hash of every config value that changes the task's outcome."""
     values = plain(cfg)
     study = study_of(values)
@@ -148,7 +148,7 @@ def run_task(cfg: DictConfig, on_progress: Callable[[], None] = lambda: None) ->
     return run_tasks([cfg], on_progress)[0]
 
 
-def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lambda: None,
+def run_tasks(cfgs: Sequence[Mapping[str, Any]], on_progress: Callable[[], None] = lambda: None,
               sizes: Sequence[Mapping[str, Any]] | None = None, checkpoint: Checkpointer | None = None
               ) -> list[TaskResult]:
     """Train and score tasks of one study and shape together (in lockstep where the study can) and write
@@ -157,15 +157,15 @@ def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lamb
     ``cfgs``'s tasks, used when none is skipped): training continues from it and writes it as it goes."""
     started = time.perf_counter()
     tasks = [resolve_task(cfg, None if sizes is None else sizes[i]) for i, cfg in enumerate(cfgs)]
-    paths = [row_path(Path(cfg.out_dir), cfg.task_id or task_id(cfg)) for cfg in cfgs]
-    todo = [i for i, (cfg, path) in enumerate(zip(cfgs, paths, strict=True)) if cfg.force or not path.exists()]
+    paths = [row_path(Path(cfg["out_dir"]), cfg["task_id"] or task_id(cfg)) for cfg in cfgs]
+    todo = [i for i, (cfg, path) in enumerate(zip(cfgs, paths, strict=True)) if cfg["force"] or not path.exists()]
     results = [TaskResult(path, None, skipped=True) for path in paths]
     if not todo:
         return results
     for i in todo:
-        ensure_writable_dir(Path(cfgs[i].out_dir))
+        ensure_writable_dir(Path(cfgs[i]["out_dir"]))
     if cfgs[todo[0]].get("rehearsal"):  # nothing trains: outcomes drawn from the planted laws
-        outcomes = rehearsed_group(plain(cfgs[todo[0]].rehearse), [(paths[i].stem, tasks[i].sizes) for i in todo],
+        outcomes = rehearsed_group(plain(cfgs[todo[0]]["rehearse"]), [(paths[i].stem, tasks[i].sizes) for i in todo],
                                    on_progress)
         torch_version = "none (rehearsal)"
     else:
@@ -178,8 +178,8 @@ def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lamb
             "task_id": paths[i].stem,
             **tasks[i].coordinates,
             **tasks[i].sizes,
-            "batch_size": cfgs[i].train.batch_size,
-            "lr": cfgs[i].train.lr,
+            "batch_size": cfgs[i]["train"]["batch_size"],
+            "lr": cfgs[i]["train"]["lr"],
             **outcome,
             "status": "ok" if finite else "diverged",
             "wall_seconds": (time.perf_counter() - started) / len(todo),
@@ -193,12 +193,13 @@ def run_tasks(cfgs: Sequence[DictConfig], on_progress: Callable[[], None] = lamb
     return results
 
 
-def trained_group(cfgs: Sequence[DictConfig], tasks: Sequence[ResolvedTask], ids: Sequence[str],
+def trained_group(configs: Sequence[Mapping[str, Any]], tasks: Sequence[ResolvedTask], ids: Sequence[str],
                   on_progress: Callable[[], None], checkpoint: Checkpointer | None) -> tuple[list[dict[str, Any]], str]:
     """The outcomes of training tasks of one study and shape together (``train_and_score_group``, from
     ``checkpoint``), and the torch version that trained them."""
     import torch  # here, not with the module: launch and resubmit plan with this module's checks without torch
 
+    cfgs = [cfg if isinstance(cfg, DictConfig) else OmegaConf.create(dict(cfg)) for cfg in configs]
     torch.set_num_threads(cfgs[0].threads)
     if cfgs[0].get("compile_cache_dir"):  # Inductor reads it when it first compiles
         os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(Path(cfgs[0].compile_cache_dir).resolve())
