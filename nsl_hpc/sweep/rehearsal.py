@@ -13,7 +13,7 @@ only on its config):
   the jobs, at its first attempt only: resubmit runs what it left.
 
 Every row says ``rehearsal: true``; fit and report set the planted law beside the fitted one and say so on
-every figure. The law's formula is the fits' (``analysis.broken_law``): the rehearsal plants what they fit.
+every figure. The law is the fits' (``analysis.law``): the rehearsal plants what they fit.
 """
 
 import math
@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from nsl_hpc.analysis.broken_law import NSLFit
+from nsl_hpc.analysis.law import NSLFit
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.sweep import layout
 
