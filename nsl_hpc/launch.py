@@ -52,6 +52,7 @@ from nsl_hpc.sweep.prepare import (
     prepare_sweep,
     queued_tasks,
 )
+from nsl_hpc.sweep.rehearsal import plant_job_deaths
 from nsl_hpc.sweep.slurm import SlurmMissing
 from nsl_hpc.sweep.storage import read_storage
 from nsl_hpc.sweep.submissions import read_submissions
@@ -154,6 +155,8 @@ def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> in
         print("dry run: nothing submitted" if cfg.dry_run else "nothing to run: every task has a row"
               + (" or is queued" if prepared.queued else ""))
         return 0
+    if cfg.rehearsal:  # the jobs this launch's lost nodes kill
+        plant_job_deaths(prepared.sweep_dir, cfg.rehearse, packs)
     return run_jobs(prepared.sweep_dir, cfg, packs, tasks, prepared.configs, limits)
 
 

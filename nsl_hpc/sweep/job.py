@@ -52,7 +52,7 @@ from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.layout import failure_path, row_path, task_log_path
 from nsl_hpc.sweep.manifest import read_base_config, read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import Group
-from nsl_hpc.sweep.rehearsal import kill_job_once
+from nsl_hpc.sweep.rehearsal import die_if_planted
 from nsl_hpc.sweep.rows import row_state, set_aside
 from nsl_hpc.sweep.task import describe, run_tasks
 
@@ -221,8 +221,8 @@ class JobRunner:
             finally:
                 lock.release()
             counts[outcome] += len(todo)
-            if launch.get("rehearsal"):  # the rehearsal's lost node, after the job's first group
-                kill_job_once(sweep, launch.rehearse, groups[0].task_ids[0])
+            if launch.get("rehearsal"):  # the rehearsal's lost node, after the group it was planted behind
+                die_if_planted(sweep, group.task_ids[0])
             if outcome == "stopped":
                 break
         self.current = None

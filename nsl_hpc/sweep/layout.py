@@ -16,7 +16,7 @@
       compile_cache/                      Inductor's compiled training steps (compile_cache_dir)
       budget/round-<r>.parquet            a budgeted sweep's decisions: which tasks of round r run (sweep/decisions.py)
       budget/round_job.json               the SLURM job that launches its next round
-      rehearsal/killed-<task id>          a rehearsal's job killed once (sweep/rehearsal.py)
+      rehearsal/kill-<task id>            a rehearsal's job to kill (then killed-<task id>; sweep/rehearsal.py)
       .lock                               the command that changes the sweep now (launch, resubmit, clean)
       .lock.held                          ... its lock where the file system takes no flock
       results.parquet, merge_summary.json, dropped.parquet, .merge_cache.parquet   merge

@@ -9,8 +9,8 @@ only on its config):
   has its own law and 2 s;
 - a lockstep group freezes (no heartbeat: the watchdog stops it after ``rehearse.heartbeat_timeout_s``) or fails
   (raises) at every attempt, ``frozen_share`` and ``failed_share`` of the groups;
-- a job is killed (SIGKILL, as by a lost node or the OOM killer) after its first group, ``killed_job_share`` of
-  the jobs, at its first attempt only: resubmit runs what it left.
+- ``killed_jobs`` jobs of a launch are killed (SIGKILL, as by a lost node or the OOM killer) after their first
+  group, once: resubmit runs what they left.
 
 Every row says ``rehearsal: true``; fit and report set the planted law beside the fitted one and say so on
 every figure. The law is the fits' (``analysis.law``): the rehearsal plants what they fit.
@@ -29,6 +29,7 @@ import numpy as np
 from nsl_hpc.analysis.law import NSLFit
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.plan import Pack
 
 METRICS = ("nmae", "nmse")
 
@@ -80,14 +81,26 @@ def rehearsed_group(rehearse: Mapping[str, Any], items: Sequence[tuple[str, Mapp
     return [rehearsed_outcome(rehearse, task_id, sizes) for task_id, sizes in items]
 
 
-def kill_job_once(sweep_dir: Path, rehearse: Mapping[str, Any], first_task_id: str) -> None:
-    """Kill this job (SIGKILL) if the rehearsal plants its death and it has not died yet (a marker file under
-    ``<sweep_dir>/rehearsal/`` remembers it): what a lost node or the OOM killer does."""
-    if share_drawn("job", first_task_id) >= rehearse["killed_job_share"]:
+def plant_job_deaths(sweep_dir: Path, rehearse: Mapping[str, Any], packs: Sequence[Pack]) -> None:
+    """Choose the ``rehearse.killed_jobs`` jobs of a launch that will be killed after their first group (of those
+    with more groups, if any: their others are left unrun; in the order of a hash of their first task id): a file
+    ``<sweep_dir>/rehearsal/kill-<first task id>`` each (a local worker dies after that group)."""
+    candidates = [pack for pack in packs if len(pack.groups) > 1] or list(packs)
+    chosen = sorted((pack.task_ids[0] for pack in candidates),
+                    key=lambda task_id: share_drawn("job", task_id))[:rehearse["killed_jobs"]]
+    for task_id in chosen:
+        marker = Path(sweep_dir) / layout.REHEARSAL / f"kill-{task_id}"
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        marker.touch()
+
+
+def die_if_planted(sweep_dir: Path, first_task_id: str) -> None:
+    """Kill this job (SIGKILL: what a lost node or the OOM killer does) if its death was planted behind the group
+    of ``first_task_id`` (``plant_job_deaths``), once: the file that planted it is renamed ``killed-<task id>``
+    first."""
+    marker = Path(sweep_dir) / layout.REHEARSAL / f"kill-{first_task_id}"
+    try:
+        marker.rename(marker.with_name(f"killed-{first_task_id}"))
+    except FileNotFoundError:
         return
-    marker = Path(sweep_dir) / layout.REHEARSAL / f"killed-{first_task_id}"
-    if marker.exists():
-        return
-    marker.parent.mkdir(parents=True, exist_ok=True)
-    marker.touch()
     os.kill(os.getpid(), signal.SIGKILL)

@@ -1,6 +1,7 @@
 """Submissions SLURM refuses for a setting: one line with sbatch's reason and the setting to change, a non-zero
 exit, and a resubmit with the setting corrected runs the tasks (issue: a refused partition exited 0 and blamed
-the cluster's job limits)."""
+the cluster's job limits). Settings launch can check against the cluster's configuration (a partition, an array
+size) are refused before anything is submitted."""
 
 import subprocess
 
@@ -11,19 +12,19 @@ from tests.sweeps import TINY_GRID, nsl
 pytestmark = pytest.mark.slurm
 
 
-def test_a_refused_partition_is_one_line_and_resubmit_corrects_it(slurm_cluster, tmp_path):
+def test_a_qos_sbatch_refuses_is_one_line_and_resubmit_corrects_it(slurm_cluster, tmp_path):
     sweep_dir = tmp_path / "sweep"
     args = [*TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "+launcher.extra_sbatch.hold=true",
             "sweep.name=refused"]
-    refused = nsl("launch", *args, "launcher.partition=nope")
+    refused = nsl("launch", *args, "launcher.qos=nope")
     assert refused.returncode == 2, refused.stdout + refused.stderr
     line = refused.stderr.strip()
     assert "\n" not in line and line.startswith("error: sbatch refused the jobs (")
-    assert "Invalid partition name specified" in line and "change launcher.partition; nothing was submitted" in line
-    assert f"python -m nsl_hpc.resubmit sweep_dir={sweep_dir} launcher.partition=<value>" in line
+    assert "Invalid qos specification" in line and "change launcher.qos; nothing was submitted" in line
+    assert f"python -m nsl_hpc.resubmit sweep_dir={sweep_dir} launcher.qos=<value>" in line
     assert "job limits" not in refused.stdout
     try:
-        corrected = nsl("resubmit", f"sweep_dir={sweep_dir}", "launcher.partition=debug")
+        corrected = nsl("resubmit", f"sweep_dir={sweep_dir}", "launcher.qos=normal")
         assert corrected.returncode == 0, corrected.stderr
         assert "resubmitting 4 tasks" in corrected.stdout and "submitted 1 jobs in 1 arrays" in corrected.stdout
         reasons = subprocess.run(["squeue", "-h", "-n", "nsl-refused", "-o", "%r"], capture_output=True, text=True,
@@ -31,6 +32,17 @@ def test_a_refused_partition_is_one_line_and_resubmit_corrects_it(slurm_cluster,
         assert reasons == ["JobHeldUser"]  # the sweep's other launcher settings stay (extra_sbatch.hold)
     finally:
         subprocess.run(["scancel", "-n", "nsl-refused"], check=False)
+
+
+def test_a_partition_the_cluster_lacks_is_refused_before_anything_is_submitted(slurm_cluster, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    refused = nsl("launch", *TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "launcher.partition=nope",
+                  "sweep.name=no-partition")
+    assert refused.returncode == 2
+    line = refused.stderr.strip()
+    assert line.startswith("error: launcher.partition='nope' is no partition of this cluster; choose one of: ")
+    assert "debug" in line.split(": ")[-1] and "\n" not in line
+    assert not (sweep_dir / "submissions").exists() or not any((sweep_dir / "submissions").iterdir())
 
 
 def test_an_array_size_above_the_clusters_is_refused_before_anything_is_submitted(slurm_cluster, tmp_path):
