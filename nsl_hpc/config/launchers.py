@@ -40,12 +40,16 @@ class SlurmLauncher:
     qos: str | None = None  # --qos
     mem: str = "2G"  # --mem of one array element (the largest task needs < 1 GB)
     array_parallelism: int = 512  # --array=0-N%K: at most K elements of one array run at once
+    max_running: int | None = None  # at most this many of the sweep's jobs run at once, over all its arrays: each
+    #   array's K is at most this and it starts once the sweep's arrays before it have ended (afterany); None = no cap
     signal_delay_s: int = 120  # --signal: warn a job this long before its time limit (checkpoint and requeue)
     max_time_minutes: int | None = None  # the site's cap on a job's time limit (e.g. 1440): a group predicted
     #   longer runs as a chain of jobs (the job is requeued, each run continuing from the checkpoint)
     max_array_size: int | None = None  # None = MaxArraySize from `scontrol show config`
     max_job_count: int | None = None  # None = MaxJobCount from `scontrol show config`
     max_submit_jobs: int | None = None  # None = the user's MaxSubmitJobs from sacctmgr (no limit when none is set)
+    feed_minutes: int | None = 10  # jobs the submit limits hold back are submitted by a job of this time limit
+    #   behind the first array (resubmit states=[missing]), and so on; None = by launching again by hand
     extra_sbatch: dict[str, Any] = field(default_factory=dict)  # any other sbatch flag, e.g. {constraint: cpu}
     setup: list[str] = field(default_factory=list)  # shell lines run before each job (e.g. module load python)
 

@@ -35,8 +35,8 @@ from nsl_hpc.sweep.manifest import write_run_settings
 from nsl_hpc.sweep.plan import Group, Pack
 from nsl_hpc.sweep.prepare import prepare_shared_data
 from nsl_hpc.sweep.rows import row_state
-from nsl_hpc.sweep.slurm import queued_jobs, refused_setting
-from nsl_hpc.sweep.submissions import record_submission
+from nsl_hpc.sweep.slurm import held_arrays, queued_jobs, refused_setting
+from nsl_hpc.sweep.submissions import read_submissions, record_submission
 
 FULL_DISK_BYTES = 64 * 2**20  # a local job that ended without its result with less free than this: the disk is full
 
@@ -57,16 +57,23 @@ def submit_to_slurm(sweep_dir: Path, packs: Sequence[Pack], launcher: SlurmLaunc
     room = limits.max_job_count.value - queued_jobs(user_only=False)
     if limits.submit_jobs is not None:
         room = min(room, limits.submit_jobs.value - queued_jobs(user_only=True))
+    if launcher.feed_minutes is not None and room < len(packs):
+        room -= 1  # the feeder's (submit_feeder)
     ordered = sorted(packs, key=lambda pack: pack.time_limit_min)
     now, left = ordered[:max(room, 0)], ordered[max(room, 0):]
     chunks = array_chunks(now, limits.max_array_size.value)
-    arrays = {}
+    arrays: dict[str, int] = {}
+    after = (held_arrays(record["array_id"] for record in read_submissions(sweep_dir))
+             if launcher.max_running is not None else [])
     for index, chunk in enumerate(chunks):
         try:
-            arrays[submit_array(sweep_dir, chunk, chunk[0].time_limit_min, launcher, name)] = len(chunk)
+            array_id = submit_array(sweep_dir, chunk, chunk[0].time_limit_min, launcher, name, after)
+            arrays[array_id] = len(chunk)
         except submitit.core.utils.FailedJobError as error:  # e.g. the controller is full: keep what went in
             refused = [pack for later in chunks[index:] for pack in later]
             return Submission(arrays, refused + left, " ".join(str(error).split())[-300:], limits.unaccounted)
+        if launcher.max_running is not None:  # one array at a time: the sweep never runs more than max_running
+            after = [array_id]
     return Submission(arrays, left, unaccounted=limits.unaccounted)
 
 
@@ -89,25 +96,27 @@ def slurm_executor(sweep_dir: Path, time_limit_min: int, launcher: SlurmLauncher
     executor.update_parameters(
         job_name=f"nsl-{name}", time=time_limit_min, cpus_per_task=1, ntasks_per_node=1, mem=launcher.mem,
         partition=launcher.partition, account=launcher.account, qos=launcher.qos,
-        array_parallelism=launcher.array_parallelism, signal_delay_s=launcher.signal_delay_s,
+        array_parallelism=min(launcher.array_parallelism, launcher.max_running or launcher.array_parallelism),
+        signal_delay_s=launcher.signal_delay_s,
         additional_parameters={**launcher.extra_sbatch, **dependency}, setup=list(launcher.setup),
         stderr_to_stdout=True)
     return executor
 
 
 @dataclass(frozen=True)
-class NextRound:
-    """What a budgeted sweep's round job runs: ``python -m nsl_hpc.launch <arguments>`` in ``cwd`` (it decides
-    the next round, submits it and the job after it); while another command holds the sweep (a resubmit, a
-    clean, a launch by hand) it tries again every ``wait_s`` seconds, ``attempts`` times in all."""
+class SweepCommand:
+    """What a sweep's own SLURM job runs: ``python -m <module> <arguments>`` in ``cwd`` (a budgeted sweep's next
+    round: nsl_hpc.launch; the jobs the cluster's limits held back: nsl_hpc.resubmit); while another command holds
+    the sweep (a resubmit, a clean, a launch by hand) it tries again every ``wait_s`` seconds, ``attempts`` times."""
 
     arguments: tuple[str, ...]
     cwd: str
+    module: str = "nsl_hpc.launch"
     attempts: int = 10
     wait_s: float = 60.0
 
     def __call__(self) -> None:
-        command = [sys.executable, "-m", "nsl_hpc.launch", *self.arguments]
+        command = [sys.executable, "-m", self.module, *self.arguments]
         for _ in range(self.attempts):
             result = subprocess.run(command, cwd=self.cwd, check=False, stderr=subprocess.PIPE, text=True)
             print(result.stderr, end="", file=sys.stderr, flush=True)
@@ -125,13 +134,23 @@ def submit_next_round(sweep_dir: Path, arguments: Sequence[str], launcher: Slurm
     have ended; returns its id."""
     executor = slurm_executor(Path(sweep_dir), minutes, launcher, f"{name}-rounds", after=after)
     own = [argument for argument in arguments if argument.split("=", 1)[0].lstrip("+~") != "sweep_dir"]
-    return str(executor.submit(NextRound((*own, f"sweep_dir={sweep_dir}"), os.getcwd())).job_id)
+    return str(executor.submit(SweepCommand((*own, f"sweep_dir={sweep_dir}"), os.getcwd())).job_id)
+
+
+def submit_feeder(sweep_dir: Path, launcher: SlurmLauncher, name: str, after: str, minutes: int) -> str:
+    """Submit the job that submits the sweep's tasks the cluster's limits held back (``resubmit
+    states=[missing]``: those never submitted, or cancelled) once the array ``after`` has ended; returns its id.
+    It submits another behind its own arrays while tasks are still held back."""
+    executor = slurm_executor(Path(sweep_dir), minutes, launcher, f"{name}-feed", after=[after])
+    command = SweepCommand((f"sweep_dir={sweep_dir}", "states=[missing]"), os.getcwd(), module="nsl_hpc.resubmit")
+    return str(executor.submit(command).job_id)
 
 
 def submit_array(sweep_dir: Path, packs: Sequence[Pack], time_limit_min: int, launcher: SlurmLauncher,
-                 name: str) -> str:
-    """One array of single-CPU elements, element i running ``packs[i]``; returns the array job id."""
-    executor = slurm_executor(sweep_dir, time_limit_min, launcher, name, max(pack.chain for pack in packs))
+                 name: str, after: Sequence[str] = ()) -> str:
+    """One array of single-CPU elements, element i running ``packs[i]``, starting once the jobs ``after`` have
+    ended; returns the array job id."""
+    executor = slurm_executor(sweep_dir, time_limit_min, launcher, name, max(pack.chain for pack in packs), after)
     with contextlib.redirect_stderr(io.StringIO()):  # submitit prints a refusal's sbatch lines: the error has them
         jobs = executor.map_array(JobRunner(), [str(sweep_dir)] * len(packs), [list(pack.groups) for pack in packs])
     array_id = jobs[0].job_id.split("_")[0]  # a single element is a plain job: its id has no _<index>
@@ -263,7 +282,8 @@ def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Launcher, name: s
     happened; returns the exit status: 1 when a task ran here and did not finish."""
     sweep_dir = Path(sweep_dir).resolve()  # jobs find it from anywhere
     if isinstance(launcher, SlurmLauncher):
-        submission = submit_to_slurm(sweep_dir, packs, launcher, name, limits or read_cluster_limits(launcher))
+        limits = limits or read_cluster_limits(launcher)
+        submission = submit_to_slurm(sweep_dir, packs, launcher, name, limits)
         elements = sum(submission.arrays.values())
         if submission.unaccounted:
             print(f"the user's job limits are unknown ({submission.unaccounted[:160]}): submitted without them (set "
@@ -274,13 +294,25 @@ def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Launcher, name: s
         if submission.refusal:
             print(f"sbatch refused the next array: {submission.refusal}")
         if submission.left:
-            print(f"the cluster's job limits hold no more now: {len(submission.left):,} jobs "
-                  f"({sum(len(p.task_ids) for p in submission.left):,} tasks) were not submitted; launch "
-                  "again (or resubmit) once the queue has room")
+            print(held_back_line(sweep_dir, submission, launcher, name, limits))
         return 0
     counts = run_locally(sweep_dir, packs, launcher, silence_s)
     print("finished: " + ", ".join(f"{n:,} {outcome}" for outcome, n in sorted(counts.items())))
     return 0 if set(counts) <= {"ok", "skipped"} else 1
+
+
+def held_back_line(sweep_dir: Path, submission: Submission, launcher: SlurmLauncher, name: str,
+                   limits: ClusterLimits) -> str:
+    """Submit the feeder of what the cluster's job limits held back (behind the first array submitted, if
+    any and unless launcher.feed_minutes is null); the line that says so."""
+    held = (f"the cluster's job limits hold no more now: {len(submission.left):,} jobs "
+            f"({sum(len(pack.task_ids) for pack in submission.left):,} tasks) were not submitted")
+    if launcher.feed_minutes is None or not submission.arrays:
+        return f"{held}; launch again (or resubmit) once the queue has room"
+    minutes = min(launcher.feed_minutes, limits.wall_minutes.value if limits.wall_minutes else launcher.feed_minutes)
+    first = next(iter(submission.arrays))
+    feeder = submit_feeder(sweep_dir, launcher, name, first, minutes)
+    return f"{held}: job {feeder} submits them once array {first} has ended, and so on until all are in"
 
 
 def refuse_for_setting(sweep_dir: Path, submission: Submission) -> None:

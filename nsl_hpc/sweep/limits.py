@@ -53,6 +53,7 @@ class ClusterLimits:
     running_jobs: Limit | None
     qos: str | None
     unaccounted: str | None = None
+    max_running: int | None = None  # the sweep's own cap on its running jobs (launcher.max_running)
 
     def describe(self) -> list[str]:
         """The lines a dry run prints."""
@@ -159,7 +160,7 @@ def read_cluster_limits(launcher: SlurmLauncher) -> ClusterLimits:
     partition, settings = partition_settings(launcher.partition)
     wall = [minutes_limit(settings.get("MaxTime", ""), f"partition {partition} MaxTime")]
     submit = [own(launcher.max_submit_jobs, "launcher.max_submit_jobs")]
-    running: list[Limit | None] = []
+    running = [own(launcher.max_running, "launcher.max_running")]
     qos, unaccounted = launcher.qos, None
     if "none" in config.get("AccountingStorageType", "").lower():
         unaccounted = "accounting is disabled (AccountingStorageType=none)"
@@ -184,7 +185,7 @@ def read_cluster_limits(launcher: SlurmLauncher) -> ClusterLimits:
                 running += [own(cpus_of(row[key]), f"QOS {name} {key} cpu") for key in ("GrpTRES", "MaxTRESPerUser")]
     assert array is not None and jobs is not None
     return ClusterLimits(array, jobs, partition, smallest(*wall), smallest(*submit), smallest(*running), qos,
-                         unaccounted)
+                         unaccounted, launcher.max_running)
 
 
 def own(value: int | None, source: str) -> Limit | None:
@@ -228,6 +229,9 @@ def describe_fit(limits: ClusterLimits | None, storage: Storage, packs: Sequence
     if limits.submit_jobs is not None and len(packs) > limits.submit_jobs.value:
         lines.append(f"submissions: {len(packs):,} jobs, at most {limits.submit_jobs.value:,} queued at once: the rest "
                      "are submitted by launching (or resubmitting) again as jobs end")
+    if limits.max_running is not None:
+        lines.append(f"running: at most {limits.max_running:,} of the sweep's jobs at once (launcher.max_running): "
+                     "its arrays run one after another")
     if limits.wall_minutes is not None and chains:
         lines.append(f"time limits: at most {limits.wall_minutes}: {chains:,} jobs run as chains through their "
                      "checkpoints")

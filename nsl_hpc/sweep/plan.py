@@ -264,7 +264,8 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
 def check_slurm_settings(launcher: SlurmLauncher, checkpoint_minutes: float) -> None:
     """Raise ConfigError for SLURM settings sbatch would refuse or that would submit nothing."""
     require_positive_int("launcher.array_parallelism", launcher.array_parallelism)
-    for key in ("max_array_size", "max_job_count", "max_submit_jobs", "max_time_minutes"):
+    for key in ("max_array_size", "max_job_count", "max_submit_jobs", "max_time_minutes", "max_running",
+                "feed_minutes"):
         if getattr(launcher, key) is not None:
             require_positive_int(f"launcher.{key}", getattr(launcher, key))
     if not SBATCH_MEMORY.fullmatch(launcher.mem):

@@ -37,6 +37,12 @@ def queued_jobs(user_only: bool) -> int:
     return len(slurm_command(*args).split())
 
 
+def held_arrays(array_ids: Iterable[str]) -> list[str]:
+    """Those of ``array_ids`` (array job ids) the controller holds now: one of their elements is pending or running."""
+    held = {line.strip() for line in slurm_command("squeue", "-h", "-u", getpass.getuser(), "-o", "%F").split()}
+    return [array_id for array_id in array_ids if array_id in held]
+
+
 # sacct states of a job that has not ended -> the state of the tasks it holds
 ACTIVE_JOB_STATES = {"RUNNING": "running", "COMPLETING": "running", "PENDING": "pending", "REQUEUED": "pending",
                      "CONFIGURING": "running", "RESIZING": "running", "SUSPENDED": "pending"}

@@ -1,7 +1,9 @@
 """The cluster's own limits, read before launch and fitted: a QOS's MaxSubmitJobsPerUser and MaxWall, a
 partition's MaxTime (the cluster enforces associations, limits and QOS: cluster/slurm.conf.template)."""
 
+import itertools
 import subprocess
+import time
 
 import pytest
 
@@ -10,6 +12,7 @@ from tests.sweeps import TINY_GRID, nsl
 pytestmark = pytest.mark.slurm
 
 QOS = "nsl-test"
+QUICK_REHEARSAL = ["rehearsal=true", "rehearse.killed_jobs=0", "rehearse.frozen_share=0", "rehearse.failed_share=0"]
 
 
 def sacctmgr(*args: str) -> None:
@@ -36,8 +39,7 @@ def time_limits(name: str) -> list[str]:
 def test_a_qos_submit_limit_and_max_wall_are_read_and_the_plan_fits_them(limited_qos, tmp_path):
     sweep_dir = tmp_path / "sweep"
     args = [*TINY_GRID, "launcher=slurm", f"launcher.qos={limited_qos}", f"sweep_dir={sweep_dir}",
-            "+launcher.extra_sbatch.hold=true", "packing.enabled=false", "lockstep.enabled=false",
-            "sweep.name=qos-limited"]
+            "packing.enabled=false", "lockstep.enabled=false", "sweep.name=qos-limited", *QUICK_REHEARSAL]
     planned = nsl("launch", *args, "dry_run=true")
     assert planned.returncode == 0, planned.stderr
     assert f"a job runs at most 10 (QOS {limited_qos} MaxWall) minutes" in planned.stdout
@@ -47,11 +49,17 @@ def test_a_qos_submit_limit_and_max_wall_are_read_and_the_plan_fits_them(limited
     try:
         launched = nsl("launch", *args)
         assert launched.returncode == 0, launched.stderr
-        assert "submitted 3 jobs in 1 arrays" in launched.stdout and "1 jobs (1 tasks) were not submitted" in \
-            launched.stdout
-        assert time_limits("nsl-qos-limited") == ["10:00"] * 3
+        assert "submitted 2 jobs in 1 arrays" in launched.stdout, launched.stdout
+        assert "2 jobs (2 tasks) were not submitted: job " in launched.stdout  # the feeder took the third place
+        wait_until_gone("nsl-qos-limited,nsl-qos-limited-feed")  # the feeder's array is in before it ends
     finally:
-        subprocess.run(["scancel", "-n", "nsl-qos-limited"], check=False)
+        subprocess.run(["scancel", "-n", "nsl-qos-limited,nsl-qos-limited-feed"], check=False)
+    status = nsl("status", f"sweep_dir={sweep_dir}")
+    assert "4 tasks: done 4 |" in status.stdout, status.stdout  # no launch by hand
+    limits = subprocess.run(["sacct", "-n", "-X", "-P", "--name", "nsl-qos-limited,nsl-qos-limited-feed", "-S",
+                             "now-1hour", "-o", "Timelimit", "-q", limited_qos], capture_output=True, text=True,
+                            check=True).stdout.split()
+    assert len(limits) == 5 and set(limits) == {"00:10:00"}  # 4 task jobs, 1 feeder, within MaxWall
 
 
 def test_a_partitions_max_time_caps_the_time_limits_and_longer_groups_chain(slurm_cluster, tmp_path):
@@ -75,3 +83,52 @@ def test_a_partitions_max_time_caps_the_time_limits_and_longer_groups_chain(slur
         assert time_limits("nsl-short-partition") == ["15:00"]
     finally:
         subprocess.run(["scancel", "-n", "nsl-short-partition"], check=False)
+
+
+def test_max_running_caps_the_sweeps_running_jobs_over_all_its_arrays(slurm_cluster, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    args = [*TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "launcher.max_running=1",
+            "launcher.max_array_size=2", "packing.enabled=false", "lockstep.enabled=false", "sweep.name=capped",
+            *QUICK_REHEARSAL]
+    planned = nsl("launch", *args, "dry_run=true")
+    assert "running: at most 1 of the sweep's jobs at once (launcher.max_running)" in planned.stdout, planned.stdout
+    try:
+        launched = nsl("launch", *args)
+        assert launched.returncode == 0, launched.stderr
+        assert "submitted 4 jobs in 2 arrays" in launched.stdout, launched.stdout
+        first, second = (array.strip() for array in launched.stdout.split("arrays: ")[1].splitlines()[0].split(","))
+        dependency = subprocess.run(["squeue", "-h", "-j", second, "-o", "%E"], capture_output=True, text=True,
+                                    check=True).stdout
+        assert f"afterany:{first}" in dependency
+        throttles = subprocess.run(["scontrol", "show", "job", first], capture_output=True, text=True,
+                                   check=True).stdout
+        assert "ArrayTaskThrottle=1" in throttles
+        wait_until_gone("nsl-capped")
+    finally:
+        subprocess.run(["scancel", "-n", "nsl-capped"], check=False)
+    spans = accounted_spans(f"{first},{second}", 4)
+    assert all(end <= next_start for (_, end), (next_start, _) in itertools.pairwise(spans))
+    status = nsl("status", f"sweep_dir={sweep_dir}")
+    assert "4 tasks: done 4 |" in status.stdout, status.stdout
+
+
+def wait_until_gone(name: str, timeout_s: float = 240) -> None:
+    """Wait until the controller holds no job named ``name`` (names: comma-separated)."""
+    deadline = time.time() + timeout_s
+    while subprocess.run(["squeue", "-h", "-n", name, "-o", "%i"], capture_output=True, text=True,
+                         check=True).stdout.strip():
+        assert time.time() < deadline, f"{name} still queued after {timeout_s} s"
+        time.sleep(2)
+
+
+def accounted_spans(job_ids: str, elements: int, timeout_s: float = 60) -> list[tuple[str, ...]]:
+    """(start, end) of each element of ``job_ids``, sorted, once accounting holds all ``elements`` (it lags)."""
+    deadline = time.time() + timeout_s
+    while True:
+        spans = sorted(tuple(line.split("|")) for line in subprocess.run(
+            ["sacct", "-n", "-X", "-P", "-j", job_ids, "-o", "Start,End"], capture_output=True, text=True,
+            check=True).stdout.split())
+        if len(spans) == elements and all(end != "Unknown" for _, end in spans):
+            return spans
+        assert time.time() < deadline, f"accounting holds {spans} of {elements} elements of {job_ids}"
+        time.sleep(2)

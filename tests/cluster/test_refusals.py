@@ -1,7 +1,7 @@
 """Submissions SLURM refuses for a setting: one line with sbatch's reason and the setting to change, a non-zero
 exit, and a resubmit with the setting corrected runs the tasks (issue: a refused partition exited 0 and blamed
-the cluster's job limits). Settings launch can check against the cluster's configuration (a partition, an array
-size) are refused before anything is submitted."""
+the cluster's job limits). An array size above the cluster's is refused before anything is submitted (a
+partition it lacks: tests/cluster/test_limits.py)."""
 
 import subprocess
 
@@ -32,17 +32,6 @@ def test_a_qos_sbatch_refuses_is_one_line_and_resubmit_corrects_it(slurm_cluster
         assert reasons == ["JobHeldUser"]  # the sweep's other launcher settings stay (extra_sbatch.hold)
     finally:
         subprocess.run(["scancel", "-n", "nsl-refused"], check=False)
-
-
-def test_a_partition_the_cluster_lacks_is_refused_before_anything_is_submitted(slurm_cluster, tmp_path):
-    sweep_dir = tmp_path / "sweep"
-    refused = nsl("launch", *TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "launcher.partition=nope",
-                  "sweep.name=no-partition")
-    assert refused.returncode == 2
-    line = refused.stderr.strip()
-    assert line.startswith("error: launcher.partition='nope' is no partition of this cluster; choose one of: ")
-    assert "debug" in line.split(": ")[-1] and "\n" not in line
-    assert not (sweep_dir / "submissions").exists() or not any((sweep_dir / "submissions").iterdir())
 
 
 def test_an_array_size_above_the_clusters_is_refused_before_anything_is_submitted(slurm_cluster, tmp_path):
