@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 import pytest
 
-from nsl_hpc.analysis.bootstrap import bootstrap_thetas, intervals
+from nsl_hpc.analysis.bootstrap import bootstrap_thetas, intervals, law_values
 from nsl_hpc.analysis.broken_law import (
     NSLFit,
     NSLFitError,
@@ -256,9 +256,16 @@ def test_bootstrap_intervals_on_a_tiny_cloud_are_reproducible_and_hold_the_fit()
     thetas = bootstrap_thetas(fit, r, e, 40, seed=7, K=100, settings=settings)
     assert thetas.shape == (40, 6)
     np.testing.assert_array_equal(thetas, bootstrap_thetas(fit, r, e, 40, seed=7, K=100, settings=settings))
-    bounds = intervals(fit, thetas, float(r.max()), 0.9)
+    bounds = intervals(fit, thetas, float(r.max()), 0.9, "basic")
+    quantiles = intervals(fit, thetas, float(r.max()), 0.9, "percentile")
     for name in ("last_slope", "L_at_max", "L_at_10x"):
         assert bounds[f"{name}_lo"] <= bounds[f"{name}_hi"]
+    # basic intervals: the quantiles reflected about the fit's value (L and breaks on a log scale)
+    assert bounds["last_slope_lo"] == pytest.approx(2 * bounds["last_slope"] - quantiles["last_slope_hi"])
+    assert bounds["L_at_max_lo"] == pytest.approx(bounds["L_at_max"] ** 2 / quantiles["L_at_max_hi"])
+    assert bounds["sigma_1_hi"] == pytest.approx(fit.breaks[0][0] ** 2 / quantiles["sigma_1_lo"])
+    # the bias they take away: a resample's envelope, and its law, lies higher than the fit's
+    assert np.median(law_values(thetas, np.array([r.max()]))) > fit.predict(r.max())
     assert bounds["last_slope_lo"] - 0.05 <= bounds["last_slope"] <= bounds["last_slope_hi"] + 0.05
     assert bounds["last_slope_lo"] < -0.35 + 0.3 and bounds["last_slope_hi"] > -0.35 - 0.3
     assert bounds["sigma_1_lo"] < 1e6 * 10 and bounds["sigma_1_hi"] > 1e6 / 10

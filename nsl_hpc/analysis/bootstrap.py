@@ -3,7 +3,10 @@
 A replicate draws the outcomes (tasks) with replacement, rebuilds the lower envelope from the draw and refines
 the fitted law on it (same b, started from the fit: the intervals are conditional on b). Quantiles of the
 replicates give the intervals of the last slope, the break positions, alpha and L at the largest observed
-resource and ten times beyond it.
+resource and ten times beyond it: ``basic`` intervals by default (``nsl.bootstrap_interval``), the quantiles
+reflected about the fit's value, since the replicates are biased: a resample holds about two thirds of the
+distinct tasks, so its envelope, and the law on it, lies higher than the fit's; ``percentile`` ones are the
+quantiles themselves.
 """
 
 from collections.abc import Mapping
@@ -38,28 +41,43 @@ def law_values(thetas: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.exp(np.stack([log_law(theta, x) for theta in thetas]))
 
 
-def intervals(fit: NSLFit, thetas: np.ndarray, largest: float, level: float) -> dict[str, Any]:
-    """The fit's point values and ``level`` intervals (``<name>_lo``, ``<name>_hi``) of last_slope, sigma_i,
-    alpha, L_at_max (L at the ``largest`` observed resource) and L_at_10x (at 10 x largest)."""
+def interval(point: np.ndarray | float, sample: np.ndarray, level: float, kind: str, log: bool = False
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """The ``level`` interval (low, high) of a quantity of value ``point`` from its replicates ``sample``
+    (replicates on axis 0): ``percentile``: the sample's quantiles q; ``basic``: 2 point - q (each bound the
+    other quantile reflected about the point), on a log scale for a positive quantity (``log``)."""
     tail = (1 - level) / 2
+    if log:
+        point, sample = np.log(point), np.log(sample)
+    low, high = np.quantile(sample, [tail, 1 - tail], axis=0)
+    if kind == "basic":
+        low, high = 2 * np.asarray(point) - high, 2 * np.asarray(point) - low
+    return (np.exp(low), np.exp(high)) if log else (low, high)
+
+
+def intervals(fit: NSLFit, thetas: np.ndarray, largest: float, level: float, kind: str) -> dict[str, Any]:
+    """The fit's point values and ``level`` intervals of ``kind`` (``<name>_lo``, ``<name>_hi``) of last_slope,
+    sigma_i, alpha (percentile: alpha is often 0), L_at_max (L at the ``largest`` observed resource) and L_at_10x
+    (at 10 x largest)."""
     point = fit.parameters()
     values: dict[str, Any] = {"last_slope": float(last_slope(point)), "L_at_max": float(fit.predict(largest)),
                               "L_at_10x": float(fit.predict(10 * largest))}
-    samples = {"last_slope": last_slope(thetas), "alpha": np.exp(thetas[:, 0])}
-    samples |= dict(zip(("L_at_max", "L_at_10x"), law_values(thetas, np.array([largest, 10 * largest])).T,
-                        strict=True))
-    samples |= {f"sigma_{i}": np.exp(thetas[:, 3 * i]) for i in range(1, fit.b + 1)}
-    for name, sample in samples.items():
-        low, high = np.quantile(sample, [tail, 1 - tail])
+    at = law_values(thetas, np.array([largest, 10 * largest])).T
+    quantities = {"last_slope": (values["last_slope"], last_slope(thetas), kind, False),
+                  "alpha": (fit.alpha, np.exp(thetas[:, 0]), "percentile", False),
+                  "L_at_max": (values["L_at_max"], at[0], kind, True),
+                  "L_at_10x": (values["L_at_10x"], at[1], kind, True)}
+    quantities |= {f"sigma_{i}": (sigma, np.exp(thetas[:, 3 * i]), kind, True)
+                   for i, (sigma, _, _) in enumerate(fit.breaks, start=1)}
+    for name, (value, sample, form, log) in quantities.items():
+        low, high = interval(value, sample, level, form, log)
         values |= {f"{name}_lo": float(low), f"{name}_hi": float(high)}
     return values
 
 
-def band(thetas: np.ndarray, r: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pointwise ``level`` band (low, high) of L over the resources ``r``."""
-    tail = (1 - level) / 2
-    low, high = np.quantile(law_values(thetas, r), [tail, 1 - tail], axis=0)
-    return low, high
+def band(fit: NSLFit, thetas: np.ndarray, r: np.ndarray, level: float, kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """Pointwise ``level`` band (low, high) of ``kind`` of the law ``fit`` over the resources ``r``."""
+    return interval(fit.predict(r), law_values(thetas, r), level, kind, log=True)
 
 
 def thetas_of(row: Mapping[str, Any]) -> np.ndarray:

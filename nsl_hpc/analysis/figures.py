@@ -93,7 +93,7 @@ def draw_nsl(ax: Axes, data: Mapping[str, np.ndarray], row: Mapping[str, Any], n
                                                                  figures["formula_width"])))
         thetas = thetas_of(row)
         if len(thetas):
-            low, high = band(thetas, dense, nsl["bootstrap_level"])
+            low, high = band(fit, thetas, dense, nsl["bootstrap_level"], nsl["bootstrap_interval"])
             ax.fill_between(dense, low, high, where=determined, color="crimson", alpha=0.15, lw=0,
                             label=f"{nsl['bootstrap_level']:.0%} band ({len(thetas)} resamples)")
         for i, (sigma, _, _) in enumerate(fit.breaks):

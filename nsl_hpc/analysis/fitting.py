@@ -144,7 +144,7 @@ def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, ns
                               settings)
     row.update(bootstrap=nsl["bootstrap"], bootstrap_thetas=thetas.tolist())
     if nsl["bootstrap"]:
-        bounds = intervals(fit, thetas, float(r.max()), nsl["bootstrap_level"])
+        bounds = intervals(fit, thetas, float(r.max()), nsl["bootstrap_level"], nsl["bootstrap_interval"])
         row.update({name: bounds.get(name) for name in interval_columns(slots)})
     row.update(comparison(tuple(key.values()), r, e, nsl["K"]))
     if rehearse is not None:

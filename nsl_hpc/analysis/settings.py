@@ -44,6 +44,7 @@ def check_nsl(nsl: Mapping[str, Any]) -> None:
     require_number("nsl.study_lr", nsl["study_lr"], 0, low_open=True)
     require_int("nsl.bootstrap", nsl["bootstrap"], 0)
     require_number("nsl.bootstrap_level", nsl["bootstrap_level"], 0, 1, low_open=True, high_open=True)
+    require_choice("nsl.bootstrap_interval", nsl["bootstrap_interval"], ["basic", "percentile"])
     require_number("nsl.backtest_cut", nsl["backtest_cut"], 0, 1, low_open=True, high_open=True)
     predict = nsl["predict"]
     require_number("nsl.predict.decades", predict["decades"], 0, low_open=True)
