@@ -10,13 +10,13 @@ the envelope near that compute (the mix that got there). Reads ``nsl_fits.parque
 nsl_hpc.fit``) and ``results.parquet``.
 """
 
-import pyarrow.parquet as pq
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.fitting import fits_path, read_results
 from nsl_hpc.analysis.prediction import describe_need, what_it_takes
 from nsl_hpc.analysis.settings import check_nsl, check_target
+from nsl_hpc.atomic import read_parquet
 from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.sweep.manifest import require_sweep
@@ -29,7 +29,7 @@ def main(cfg: DictConfig) -> int:
     sweep_dir = require_sweep(cfg.sweep_dir)
     if not fits_path(sweep_dir).exists():
         raise ConfigError(f"{fits_path(sweep_dir)} does not exist; run python -m nsl_hpc.fit sweep_dir={sweep_dir}")
-    fits = pq.read_table(fits_path(sweep_dir)).to_pylist()
+    fits = read_parquet(fits_path(sweep_dir)).to_pylist()
     entries = what_it_takes(read_results(sweep_dir), fits, cfg.resource, cfg.metric, lambda best: [cfg.target],
                             nsl)
     if not entries:

@@ -11,7 +11,6 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.parquet as pq
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
@@ -26,7 +25,7 @@ from nsl_hpc.analysis.broken_law import (
 )
 from nsl_hpc.analysis.merge import results_path
 from nsl_hpc.analysis.published import comparison
-from nsl_hpc.atomic import write_parquet, write_text
+from nsl_hpc.atomic import read_parquet, write_parquet, write_text
 from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, RunError
 from nsl_hpc.seeding import stable_seed
@@ -98,7 +97,7 @@ def read_results(sweep_dir: Path) -> pa.Table:
     path = results_path(sweep_dir)
     if not path.exists():
         raise ConfigError(f"{path} does not exist; run python -m nsl_hpc.merge sweep_dir={sweep_dir} first")
-    results = pq.read_table(path)
+    results = read_parquet(path)
     if results.num_rows == 0:
         raise ConfigError(f"{path} holds no outcomes: no task of the sweep has finished")
     return results

@@ -5,16 +5,17 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from hydra import compose, initialize_config_dir
-from hydra.errors import HydraException, MissingConfigException
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from nsl_hpc.config.launchers import LAUNCHERS, register_launchers
 from nsl_hpc.config.mapping import plain
 from nsl_hpc.errors import ConfigError
+
+if TYPE_CHECKING:
+    from hydra.errors import MissingConfigException
 
 PACKAGE_DIR = Path(__file__).resolve().parent.parent  # nsl_hpc/
 
@@ -77,6 +78,10 @@ def dotted_keys(node: Any, prefix: str = "") -> list[str]:
 
 def composed(overrides: Sequence[str], config_name: str) -> DictConfig:
     """``compose_config`` without the check of unknown keys."""
+    # Hydra is imported where it composes: jobs and commands that only read a sweep's configs skip its 0.2 s
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException, MissingConfigException
+
     register_launchers()
     try:
         with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
@@ -94,7 +99,7 @@ def composed(overrides: Sequence[str], config_name: str) -> DictConfig:
     return cfg
 
 
-def describe_missing_config(error: MissingConfigException) -> str:
+def describe_missing_config(error: "MissingConfigException") -> str:
     """'unknown system 'foo'; choose one of: ...' from Hydra's multi-line message."""
     missing = error.missing_cfg_file or ""
     if "/" in missing and error.options:

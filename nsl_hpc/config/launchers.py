@@ -6,7 +6,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, cast
 
-from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
 from nsl_hpc.config.mapping import plain
@@ -60,6 +59,8 @@ LAUNCHERS: dict[str, type] = {"local": LocalLauncher, "debug": DebugLauncher, "s
 
 def register_launchers() -> None:
     """Make ``launcher=<name>`` select these schemas (Hydra's config store; idempotent)."""
+    from hydra.core.config_store import ConfigStore  # imported where configs are composed (see config.composed)
+
     store = ConfigStore.instance()
     for name, schema in LAUNCHERS.items():
         store.store(group="launcher", name=name, node=schema)

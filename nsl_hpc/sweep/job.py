@@ -38,8 +38,6 @@ from multiprocessing.process import BaseProcess
 from pathlib import Path
 from typing import Any
 
-import pyarrow as pa
-import pyarrow.compute as pc
 import submitit
 from omegaconf import DictConfig, OmegaConf
 
@@ -53,7 +51,7 @@ from nsl_hpc.sweep.layout import failure_path, row_path, task_log_path
 from nsl_hpc.sweep.manifest import read_base_config, read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import Group
 from nsl_hpc.sweep.rehearsal import die_if_planted
-from nsl_hpc.sweep.rows import row_state, set_aside
+from nsl_hpc.sweep.rows import prepare_row_writes, row_state, set_aside
 from nsl_hpc.sweep.task import describe, run_tasks
 
 POLL_SECONDS = 0.2
@@ -64,10 +62,8 @@ EXIT_STOPPED = 75  # a child's exit status after it wrote its checkpoint and sto
 def manifest_rows(sweep_dir: Path, task_ids: Sequence[str]) -> list[dict[str, Any]]:
     """The manifest rows of ``task_ids``, in that order."""
     table = read_manifest(sweep_dir)
-    wanted = pa.array(list(task_ids), type=pa.string())
-    rows = table.filter(pc.is_in(table["task_id"], value_set=wanted)).to_pylist()
-    by_id = {row["task_id"]: row for row in rows}
-    return [by_id[task_id] for task_id in task_ids]
+    position = {task_id: index for index, task_id in enumerate(table["task_id"].to_pylist())}
+    return [table.slice(position[task_id], 1).to_pylist()[0] for task_id in task_ids]
 
 
 class TaskConfigs:
@@ -185,6 +181,7 @@ class JobRunner:
             return self.refuse(sweep, groups, refusal)
         if not launch.get("rehearsal"):  # a rehearsal trains nothing
             import_training_code()  # once, not in each group's forked process
+        prepare_row_writes()
         self.checkpointing = checkpoint_seconds(launch) > 0
         self.stop_wait_s = launch.launcher.get("signal_delay_s", 60) / 2
         rows = manifest_rows(sweep, [task_id for group in groups for task_id in group.task_ids])

@@ -63,21 +63,21 @@ RECORDS = (MANIFEST, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, ROWS, CORRUPT, SUBMIS
            DROPPED, FITS, FITS_TEXT, REPORT, COMPARISON, FIGURES, MLFLOW_DB, MLFLOW_ARTIFACTS, MERGE_CACHE)
 
 
-def bucketed(folder: Path, name: str, suffix: str) -> Path:
-    """``<folder>/<name[:2]>/<name><suffix>``."""
-    return folder / name[:2] / f"{name}{suffix}"
+def bucketed(folder: str | os.PathLike, name: str, suffix: str) -> Path:
+    """``<folder>/<name[:2]>/<name><suffix>``, one Path built (status builds one per task)."""
+    return Path(os.path.join(folder, name[:2], name + suffix))
 
 
 def row_path(out_dir: str | os.PathLike, task_id: str) -> Path:
-    return bucketed(Path(out_dir) / ROWS, task_id, ".parquet")
+    return bucketed(os.path.join(out_dir, ROWS), task_id, ".parquet")
 
 
 def failure_path(sweep_dir: str | os.PathLike, task_id: str) -> Path:
-    return bucketed(Path(sweep_dir) / FAILURES, task_id, ".json")
+    return bucketed(os.path.join(sweep_dir, FAILURES), task_id, ".json")
 
 
 def task_log_path(sweep_dir: str | os.PathLike, task_id: str) -> Path:
-    return bucketed(Path(sweep_dir) / LOGS, task_id, ".log")
+    return bucketed(os.path.join(sweep_dir, LOGS), task_id, ".log")
 
 
 def checkpoint_file(sweep_dir: str | os.PathLike, key: str) -> Path:

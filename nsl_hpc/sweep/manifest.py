@@ -17,12 +17,11 @@ from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
-import pyarrow.parquet as pq
 import yaml
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from nsl_hpc.atomic import create_parquet, write_text
+from nsl_hpc.atomic import create_parquet, read_parquet, write_text
 from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, damaged_file
 from nsl_hpc.studies import study_named
@@ -81,7 +80,7 @@ def write_sweep(sweep_dir: Path, manifest: pa.Table, base_configs: Mapping[tuple
 
 def read_manifest(sweep_dir: Path, columns: list[str] | None = None) -> pa.Table:
     try:
-        return pq.read_table(manifest_path(sweep_dir), columns=columns)
+        return read_parquet(manifest_path(sweep_dir), columns=columns)
     except (OSError, pa.ArrowException) as error:
         raise damaged_file(manifest_path(sweep_dir), error) from None
 

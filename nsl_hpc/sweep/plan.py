@@ -60,11 +60,12 @@ def lockstep_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, A
         members = sorted(by_key[key], key=lambda run: (max(task["steps"] for task in run), run[0]["task_id"]),
                          reverse=True)
         key_groups: list[list[list[Mapping[str, Any]]]] = [[]]
+        largest = 0.0  # the largest train_memory_mb of the group being filled
         for run in members:
-            group = key_groups[-1]
-            if group and (len(group) == lockstep["size"] or (len(group) + 1) * max(
-                    memory_mb(member) for member in [*group, run]) > lockstep["memory_mb"]):
+            group, largest = key_groups[-1], max(largest, memory_mb(run))
+            if group and (len(group) == lockstep["size"] or (len(group) + 1) * largest > lockstep["memory_mb"]):
                 key_groups.append(group := [])
+                largest = memory_mb(run)
             group.append(run)
         groups += [[task for member in reversed(group) for task in member] for group in reversed(key_groups)]
     return groups
