@@ -311,7 +311,11 @@ def held_back_line(sweep_dir: Path, submission: Submission, launcher: SlurmLaunc
         return f"{held}; launch again (or resubmit) once the queue has room"
     minutes = min(launcher.feed_minutes, limits.wall_minutes.value if limits.wall_minutes else launcher.feed_minutes)
     first = next(iter(submission.arrays))
-    feeder = submit_feeder(sweep_dir, launcher, name, first, minutes)
+    try:
+        feeder = submit_feeder(sweep_dir, launcher, name, first, minutes)
+    except submitit.core.utils.FailedJobError as error:
+        return (f"{held}, nor the job that would submit them ({' '.join(str(error).split())[-160:]}); launch "
+                "again (or resubmit) once the queue has room")
     return f"{held}: job {feeder} submits them once array {first} has ended, and so on until all are in"
 
 
