@@ -46,6 +46,7 @@ def test_a_qos_submit_limit_and_max_wall_are_read_and_the_plan_fits_them(limited
     assert f"at most 3 (QOS {limited_qos} MaxSubmitJobsPerUser) jobs queued" in planned.stdout
     assert "jobs: 4 (slurm; time limits: 4 x 10 min)" in planned.stdout
     assert "submissions: 4 jobs, at most 3 queued at once" in planned.stdout
+    since = time.strftime("%Y-%m-%dT%H:%M:%S")
     try:
         launched = nsl("launch", *args)
         assert launched.returncode == 0, launched.stderr
@@ -56,10 +57,9 @@ def test_a_qos_submit_limit_and_max_wall_are_read_and_the_plan_fits_them(limited
         subprocess.run(["scancel", "-n", "nsl-qos-limited,nsl-qos-limited-feed"], check=False)
     status = nsl("status", f"sweep_dir={sweep_dir}")
     assert "4 tasks: done 4 |" in status.stdout, status.stdout  # no launch by hand
-    limits = subprocess.run(["sacct", "-n", "-X", "-P", "--name", "nsl-qos-limited,nsl-qos-limited-feed", "-S",
-                             "now-1hour", "-o", "Timelimit", "-q", limited_qos], capture_output=True, text=True,
-                            check=True).stdout.split()
-    assert len(limits) == 5 and set(limits) == {"00:10:00"}  # 4 task jobs, 1 feeder, within MaxWall
+    limits = accounted(["--name", "nsl-qos-limited,nsl-qos-limited-feed", "-S", since, "-q", limited_qos, "-o",
+                        "Timelimit"], 5)
+    assert set(limits) == {"00:10:00"}  # 4 task jobs, 1 feeder, within MaxWall
 
 
 def test_a_partitions_max_time_caps_the_time_limits_and_longer_groups_chain(slurm_cluster, tmp_path):
@@ -121,14 +121,18 @@ def wait_until_gone(name: str, timeout_s: float = 240) -> None:
         time.sleep(2)
 
 
-def accounted_spans(job_ids: str, elements: int, timeout_s: float = 60) -> list[tuple[str, ...]]:
-    """(start, end) of each element of ``job_ids``, sorted, once accounting holds all ``elements`` (it lags)."""
+def accounted_spans(job_ids: str, elements: int) -> list[tuple[str, ...]]:
+    """(start, end) of each element of ``job_ids``, sorted, once accounting holds all ``elements`` ended."""
+    return sorted(tuple(line.split("|")) for line in accounted(["-j", job_ids, "-o", "Start,End"], elements))
+
+
+def accounted(args: list[str], jobs: int, timeout_s: float = 60) -> list[str]:
+    """sacct's lines (-n -X -P ``args``) once it holds ``jobs`` jobs, none of them unfinished (accounting lags)."""
     deadline = time.time() + timeout_s
     while True:
-        spans = sorted(tuple(line.split("|")) for line in subprocess.run(
-            ["sacct", "-n", "-X", "-P", "-j", job_ids, "-o", "Start,End"], capture_output=True, text=True,
-            check=True).stdout.split())
-        if len(spans) == elements and all(end != "Unknown" for _, end in spans):
-            return spans
-        assert time.time() < deadline, f"accounting holds {spans} of {elements} elements of {job_ids}"
+        lines = subprocess.run(["sacct", "-n", "-X", "-P", *args], capture_output=True, text=True,
+                               check=True).stdout.split()
+        if len(lines) == jobs and not any("Unknown" in line for line in lines):
+            return lines
+        assert time.time() < deadline, f"accounting holds {lines}, not {jobs} ended jobs"
         time.sleep(2)
