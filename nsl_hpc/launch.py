@@ -41,7 +41,7 @@ from nsl_hpc.sweep.decisions import cancel_round_job, decision_files, read_decis
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 from nsl_hpc.sweep.executors import run_jobs, submit_next_round
 from nsl_hpc.sweep.failures import read_failures
-from nsl_hpc.sweep.limits import ClusterLimits, describe_fit, read_cluster_limits, within_limits
+from nsl_hpc.sweep.limits import cluster_limits, describe_fit, within_limits
 from nsl_hpc.sweep.plan import Pack, lockstep_settings, plan_jobs
 from nsl_hpc.sweep.prepare import (
     PAIR_KEYS,
@@ -53,7 +53,6 @@ from nsl_hpc.sweep.prepare import (
     queued_tasks,
 )
 from nsl_hpc.sweep.rehearsal import plant_job_deaths
-from nsl_hpc.sweep.slurm import SlurmMissing
 from nsl_hpc.sweep.storage import read_storage
 from nsl_hpc.sweep.submissions import read_submissions
 
@@ -137,7 +136,7 @@ def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> in
     """Print the plan of ``prepared.todo`` within the cluster's limits and the sweep directory's file system, and
     (unless a dry run) run or submit it."""
     lockstep, tasks = lockstep_settings(cfg), prepared.todo.to_pylist()
-    limits = cluster_limits(cfg)
+    limits = cluster_limits(cfg, cfg.dry_run)
     packs = plan_jobs(tasks, within_limits(cfg, limits) if limits else cfg,
                       saved=[saved.task_ids for saved in saved_groups(prepared.sweep_dir)])
     print(describe_plan(prepared, packs, cfg.launcher.name))
@@ -158,21 +157,6 @@ def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> in
     if cfg.rehearsal:  # the jobs this launch's lost nodes kill
         plant_job_deaths(prepared.sweep_dir, cfg.rehearse, packs)
     return run_jobs(prepared.sweep_dir, cfg, packs, tasks, prepared.configs, limits)
-
-
-def cluster_limits(cfg: DictConfig) -> ClusterLimits | None:
-    """The cluster's limits a SLURM launch fits; None for the local launchers, and for a dry run on a machine
-    without SLURM's commands (said in a line)."""
-    launcher = launcher_from(cfg.launcher)
-    if not isinstance(launcher, SlurmLauncher):
-        return None
-    try:
-        return read_cluster_limits(launcher)
-    except SlurmMissing as error:
-        if not cfg.dry_run:
-            raise
-        print(f"  {error}: the cluster's limits were not read")
-        return None
 
 
 def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, overrides: Sequence[str],

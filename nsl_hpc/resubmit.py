@@ -24,14 +24,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.config import plain
-from nsl_hpc.config.launchers import SlurmLauncher, launcher_from
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.checkpoints import saved_groups
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock
 from nsl_hpc.sweep.executors import run_jobs
 from nsl_hpc.sweep.layout import row_path
-from nsl_hpc.sweep.limits import describe_fit, read_cluster_limits, within_limits
+from nsl_hpc.sweep.limits import cluster_limits, describe_fit, within_limits
 from nsl_hpc.sweep.manifest import RUN_SETTINGS, read_base_config, read_launch_config, read_manifest, require_sweep
 from nsl_hpc.sweep.plan import check_run_settings, plan_jobs
 from nsl_hpc.sweep.prepare import describe_infeasible, override_key, split_runnable
@@ -99,8 +98,7 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
         for task in tasks:
             if state.states[task["task_id"]] == "corrupt":
                 set_aside(row_path(sweep_dir, task["task_id"]))
-        launcher = launcher_from(launch.launcher)
-        limits = read_cluster_limits(launcher) if isinstance(launcher, SlurmLauncher) else None
+        limits = cluster_limits(launch)
         packs = plan_jobs(tasks, within_limits(launch, limits) if limits else launch, cfg.time_factor,
                           [saved.task_ids for saved in saved_groups(sweep_dir)])
         print(f"resubmitting {len(tasks):,} tasks ({', '.join(cfg.states)}) in {len(packs):,} jobs "

@@ -14,10 +14,10 @@ from dataclasses import dataclass
 
 from omegaconf import DictConfig
 
-from nsl_hpc.config.launchers import SlurmLauncher
+from nsl_hpc.config.launchers import SlurmLauncher, launcher_from
 from nsl_hpc.errors import ConfigError, SlurmError
 from nsl_hpc.sweep.plan import Pack
-from nsl_hpc.sweep.slurm import slurm_command
+from nsl_hpc.sweep.slurm import SlurmMissing, slurm_command
 from nsl_hpc.sweep.storage import Storage, predicted_files
 
 UNLIMITED = ("", "UNLIMITED", "INFINITE", "NONE", "N/A", "(null)")
@@ -186,6 +186,21 @@ def read_cluster_limits(launcher: SlurmLauncher) -> ClusterLimits:
     assert array is not None and jobs is not None
     return ClusterLimits(array, jobs, partition, smallest(*wall), smallest(*submit), smallest(*running), qos,
                          unaccounted, launcher.max_running)
+
+
+def cluster_limits(launch: DictConfig, dry_run: bool = False) -> ClusterLimits | None:
+    """The cluster's limits a launch config's SLURM jobs fit; None for the local launchers, and for a dry run on a
+    machine without SLURM's commands (said in a line)."""
+    launcher = launcher_from(launch.launcher)
+    if not isinstance(launcher, SlurmLauncher):
+        return None
+    try:
+        return read_cluster_limits(launcher)
+    except SlurmMissing as error:
+        if not dry_run:
+            raise
+        print(f"  {error}: the cluster's limits were not read")
+        return None
 
 
 def own(value: int | None, source: str) -> Limit | None:

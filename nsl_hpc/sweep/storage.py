@@ -33,8 +33,7 @@ class Storage:
 
 
 def predicted_files(tasks: int, groups: int, jobs: int) -> int:
-    """The files a sweep of ``tasks`` in ``groups`` lockstep groups and ``jobs`` SLURM jobs writes at most at once
-    (before merge compacts its rows)."""
+    """The files a sweep of ``tasks`` in ``groups`` lockstep groups and ``jobs`` SLURM jobs writes at most at once."""
     return tasks + FILES_PER_GROUP * groups + FILES_PER_JOB * jobs + FIXED_FILES
 
 
