@@ -1,9 +1,13 @@
 """Tests on the real single-node SLURM cluster of cluster/up.sh. Without a cluster they are skipped,
 except under CI=true, where a missing cluster fails them."""
 
+import getpass
 import os
 import shutil
 import subprocess
+import tempfile
+from datetime import datetime
+from pathlib import Path
 
 import pytest
 
@@ -15,10 +19,26 @@ def cluster_answers() -> bool:
     return result.returncode == 0 and bool(result.stdout.strip())
 
 
+def cancel_earlier_test_jobs(before: datetime) -> list[str]:
+    """Cancel the jobs earlier test sessions left in the queue (output under pytest's temp root, submitted
+    ``before``): a run stopped before its cleanup, or a controller state restored from a disk snapshot. They
+    would share this session's job names and hold its CPUs. Returns their ids."""
+    root = str(Path(tempfile.gettempdir()) / f"pytest-of-{getpass.getuser()}") + os.sep
+    queue = subprocess.run(["squeue", "-h", "-u", getpass.getuser(), "-O", "ArrayJobID:20,SubmitTime:25,STDOUT:1000"],
+                           capture_output=True, text=True, check=True).stdout.splitlines()
+    fields = [line.split(maxsplit=2) for line in queue]  # an interactive job has no STDOUT
+    earlier = sorted({job for job, submitted, stdout in (three for three in fields if len(three) == 3)
+                      if stdout.startswith(root) and datetime.fromisoformat(submitted) < before})
+    if earlier:
+        subprocess.run(["scancel", *earlier], check=True)
+    return earlier
+
+
 @pytest.fixture(scope="session")
 def slurm_cluster() -> None:
-    """Require the cluster started by `cluster/up.sh`."""
+    """Require the cluster started by `cluster/up.sh`, without the jobs of earlier test sessions."""
     if cluster_answers():
+        cancel_earlier_test_jobs(datetime.now())
         return
     message = "no SLURM cluster answers `sinfo`: start one with `sudo cluster/up.sh`"
     if os.environ.get("CI") == "true":
