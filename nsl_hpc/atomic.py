@@ -58,6 +58,20 @@ def create_parquet(table: pa.Table, path: Path) -> None:
         pq.write_table(table, temporary)
 
 
+def make_durable(path: Path) -> None:
+    """Flush ``path`` and its directory entry to disk (before what it replaces is removed)."""
+    descriptor = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+    directory = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(directory)
+    finally:
+        os.close(directory)
+
+
 def read_parquet(path: Path, columns: list[str] | None = None) -> pa.Table:
     """The table of one Parquet file (``columns``: only those). Read as one file, not through pyarrow's dataset
     layer (``pq.read_table``), whose import pulls in pandas: 0.4-1 s of every job's and command's start."""

@@ -48,7 +48,7 @@ def main(cfg: DictConfig) -> int:
     sweep_dir = require_sweep(cfg.sweep_dir)
     require_server(cfg.mlflow)
     launch = plain(read_launch_config(sweep_dir))
-    summary = merge_sweep(sweep_dir)
+    summary = merge_sweep(sweep_dir, cfg.compact)
     print(f"merged {summary.merged:,} tasks into {results_path(sweep_dir)}\n{summary.describe()}")
     results = read_results(sweep_dir)
     chosen = choose_metrics(cfg.nsl, cfg.metrics, results)

@@ -16,6 +16,7 @@ from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.mlflow_runs import sweep_run, tracking_uri
 from nsl_hpc.sweep.job import leave_warnings_to_the_runner
+from nsl_hpc.sweep.rows import read_row, read_task_rows
 from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
 
 pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
@@ -310,7 +311,7 @@ def test_a_damaged_sweep_directory_is_one_line_for_every_command(damage, finishe
     else:
         (sweep_dir / "submissions").mkdir()
         (sweep_dir / "submissions" / "123.json").write_text('{"array_id": "123", "subm')
-    rows = {path: path.read_bytes() for path in row_files(sweep_dir)}
+    rows = {path.stem: read_row(path) for path in row_files(sweep_dir)}
     refusing = {"truncated manifest": {"status", "resubmit", "clean", "merge", "launch"},
                 "truncated launch.yaml": {"status", "resubmit", "clean", "launch"},
                 "deleted configs": {"resubmit"},  # a launch restores them: they follow from its own config
@@ -324,7 +325,7 @@ def test_a_damaged_sweep_directory_is_one_line_for_every_command(damage, finishe
         assert result.returncode == 2, (damage, verb, result.stdout, result.stderr)
         assert len(result.stderr.splitlines()) == 1 and "Traceback" not in result.stderr, result.stderr
         assert "damaged" in result.stderr or "missing" in result.stderr
-    assert {path: path.read_bytes() for path in row_files(sweep_dir) if path in rows} == rows
+    assert read_task_rows(sweep_dir, rows) == rows  # where they are now: merge compacts them
 
 
 def test_a_quote_in_the_sweep_path_does_not_break_the_mlflow_search(tmp_path):

@@ -11,9 +11,10 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.figures import power_label
+from nsl_hpc.sweep.directory import sweep_lock
 from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.layout import row_path
-from nsl_hpc.sweep.rows import read_row, write_row_atomically
+from nsl_hpc.sweep.rows import read_row, read_task_rows, row_states, write_row_atomically
 from tests.sweeps import manifest_ids, nsl, row_files
 
 pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
@@ -114,7 +115,7 @@ def test_predict_answers_from_the_fitted_laws_and_refuses_bad_targets(sweep_copy
 
 
 def test_report_figures_and_mlflow_runs_are_updated_not_duplicated(sweep_copy):
-    result = nsl("report", f"sweep_dir={sweep_copy}", "nsl.max_breaks=1")
+    result = nsl("report", f"sweep_dir={sweep_copy}", "nsl.max_breaks=1", "compact=false")  # a row to remove below
     assert result.returncode == 0, result.stderr
     report = (sweep_copy / "report.html").read_text()
     assert report.count("data:image/png;base64,") == NSLS + NSLS  # every NSL and the 6 overview grids
@@ -177,21 +178,56 @@ def test_post_processing_bad_input_is_a_one_line_error(tmp_path, finished_sweep)
 
 def test_merge_again_reads_only_new_or_rewritten_shards_and_matches_a_fresh_merge(sweep_copy):
     ids = manifest_ids(sweep_copy)
-    assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
+    assert nsl("merge", f"sweep_dir={sweep_copy}", "compact=false").returncode == 0
     assert (sweep_copy / ".merge_cache.parquet").exists()
     rewritten = read_row(row_path(sweep_copy, ids[0]))
     write_row_atomically({**rewritten, "nmae": 123.0}, row_path(sweep_copy, ids[0]))
     row_path(sweep_copy, ids[1]).unlink()
-    assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
+    assert nsl("merge", f"sweep_dir={sweep_copy}", "compact=false").returncode == 0
     results = pq.read_table(sweep_copy / "results.parquet")
     by_id = dict(zip(results["task_id"].to_pylist(), results["nmae"].to_pylist(), strict=True))
     assert by_id[ids[0]] == 123.0 and ids[1] not in by_id and len(by_id) == 23
     (sweep_copy / ".merge_cache.parquet").write_bytes(b"not parquet")  # a broken cache is rebuilt
-    assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
+    assert nsl("merge", f"sweep_dir={sweep_copy}", "compact=false").returncode == 0
     assert pq.read_table(sweep_copy / "results.parquet").equals(results)
     (sweep_copy / ".merge_cache.parquet").unlink()
-    assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
+    assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0  # and compacted: the same results
     assert pq.read_table(sweep_copy / "results.parquet").equals(results)
+
+
+def test_merge_compacts_the_rows_and_status_launch_resubmit_and_budgets_still_find_them(finished_sweep, sweep_copy):
+    ids = manifest_ids(sweep_copy)
+    plain = shutil.copytree(finished_sweep, sweep_copy.parent / "plain")
+    assert nsl("merge", f"sweep_dir={plain}", "compact=false").returncode == 0
+    merged = nsl("merge", f"sweep_dir={sweep_copy}")
+    assert "24 row files compacted into rows/compacted/" in merged.stdout, merged.stdout
+    (part,) = row_files(sweep_copy)
+    assert part.parent.name == "compacted" and not any(row_path(sweep_copy, task_id).exists() for task_id in ids)
+    whole = pa.concat_tables([pq.read_table(row_path(finished_sweep, task_id)) for task_id in ids])
+    assert pq.read_table(part).sort_by("task_id").equals(whole.sort_by("task_id"))  # every column of every row
+    results = pq.read_table(sweep_copy / "results.parquet")
+    assert results.equals(pq.read_table(plain / "results.parquet"))
+    assert "done 24 |" in nsl("status", f"sweep_dir={sweep_copy}").stdout
+    assert "nothing to run: every task has a row" in nsl("launch", *SMALL_GRID, "launcher=local",
+                                                         f"sweep_dir={sweep_copy}").stdout
+    assert "nothing to resubmit" in nsl("resubmit", f"sweep_dir={sweep_copy}", "states=[missing,corrupt]").stdout
+    assert set(row_states(sweep_copy, [*ids, "0" * 16]).values()) == {"done", "missing"}
+    assert read_task_rows(sweep_copy, ids[:2]) == {row["task_id"]: row for row in whole.to_pylist()[:2]}
+
+    # a compaction interrupted before it removed the own files leaves copies: the next merge removes them
+    shutil.copy(row_path(finished_sweep, ids[5]), row_path(sweep_copy, ids[5]))
+    again = nsl("merge", f"sweep_dir={sweep_copy}")
+    assert "1 row files compacted" in again.stdout and "duplicate" not in again.stdout, again.stdout
+    assert row_files(sweep_copy) == [part] and pq.read_table(sweep_copy / "results.parquet").equals(results)
+
+    # a finished task's row in its own file joins a second compacted file; none while another command holds the sweep
+    row_path(sweep_copy, "0" * 16).parent.mkdir(parents=True, exist_ok=True)
+    write_row_atomically({**whole.to_pylist()[0], "task_id": "0" * 16}, row_path(sweep_copy, "0" * 16))
+    with sweep_lock(sweep_copy, "clean"):
+        held = nsl("merge", f"sweep_dir={sweep_copy}")
+    assert "rows not compacted: " in held.stdout and "is in use by clean" in held.stdout, held.stdout
+    assert "1 rows of tasks outside the manifest ignored" in held.stdout  # not the manifest's: never compacted
+    assert len(row_files(sweep_copy)) == 2
 
 
 @pytest.mark.parametrize(("verb", "override", "message"), [

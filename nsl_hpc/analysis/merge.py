@@ -4,6 +4,7 @@
 import contextlib
 import json
 import os
+import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
@@ -12,19 +13,20 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
-from nsl_hpc.atomic import write_parquet, write_text
+from nsl_hpc.atomic import create_parquet, make_durable, read_parquet, write_parquet, write_text
+from nsl_hpc.errors import ConfigError
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.checkpoints import running_task_ids
 from nsl_hpc.sweep.decisions import budget_states, read_decisions, skip_reasons, without_row_state
-from nsl_hpc.sweep.directory import launch_running
+from nsl_hpc.sweep.directory import launch_running, sweep_lock
 from nsl_hpc.sweep.failures import FAILURE_STATES, read_failures
 from nsl_hpc.sweep.manifest import read_manifest
 from nsl_hpc.sweep.rows import set_aside
 
 SHARD_KEY = ("shard", "size", "mtime_ns")  # a cached row stands while its shard keeps this key
+CACHE_FORMAT = (b"nsl_hpc.rows", b"whole")  # the cache's schema metadata: it holds every column of a row
 
 
 @dataclass(frozen=True)
@@ -45,6 +47,8 @@ class MergeSummary:
     skipped: int = 0  # a budgeted sweep's tasks decided not to run (not dropped: never meant to run)
     waiting: int = 0  # a budgeted sweep's tasks whose round is not decided yet (not dropped)
     skipped_reasons: dict[str, int] | None = None  # why the skipped ones were
+    compacted_files: int = 0  # row files whose rows moved into rows/compacted/ (or that held copies of them)
+    not_compacted: str = ""  # why rows were not compacted: the command that held the sweep
 
     @property
     def dropped(self) -> int:
@@ -73,6 +77,10 @@ class MergeSummary:
             lines.append(f"{self.duplicate_rows:,} duplicate rows of already merged tasks ignored")
         if self.unknown_rows:
             lines.append(f"{self.unknown_rows:,} rows of tasks outside the manifest ignored")
+        if self.compacted_files:
+            lines.append(f"{self.compacted_files:,} row files compacted into {layout.ROWS}/{layout.COMPACTED}/")
+        if self.not_compacted:
+            lines.append(f"rows not compacted: {self.not_compacted.removeprefix('sweep_dir=')}; merge again later")
         return "\n".join(lines)
 
 
@@ -80,35 +88,26 @@ def results_path(sweep_dir: Path) -> Path:
     return Path(sweep_dir) / layout.RESULTS
 
 
-def read_shards(paths: list[str], skip: Sequence[str]) -> tuple[pa.Table, list[str]]:
-    """The shards at ``paths`` as one table of the columns not in ``skip`` (but task_id) and ``shard``, the
-    path each row came from: one pyarrow dataset scan (the fewer columns, the faster); when that fails,
-    each shard on its own to find the unreadable ones, which are returned apart."""
-    if not paths:
-        return pa.table({"task_id": pa.array([], pa.string()), "shard": pa.array([], pa.string())}), []
-    try:
-        dataset = ds.dataset(paths, format="parquet")
-        table = dataset.to_table(columns=outcome_columns(dataset.schema.names, skip))
-        if table.num_rows == len(paths) and all(  # one row per shard, in order, named after its task
-                os.path.basename(path).startswith(task_id)
-                for path, task_id in zip(paths, table["task_id"].to_pylist(), strict=True)):
-            return table.append_column("shard", pa.array(paths, pa.string())), []
-        return table.append_column("shard", dataset.to_table(columns=["__filename"])["__filename"]), []
-    except (pa.ArrowException, OSError):
-        pass
+def read_shards(paths: list[str]) -> tuple[pa.Table, list[str]]:
+    """The rows of the shards at ``paths`` (every column: what compaction keeps must be whole), with ``shard``,
+    the path each row came from; returns them and the unreadable shards. Each file is read on its own, in
+    threads (faster than a pyarrow dataset scan of small files, which also takes the first file's columns)."""
 
     def read_one(path: str) -> pa.Table | None:
         try:
-            table = pq.read_table(path)
+            return read_parquet(Path(path))
         except (pa.ArrowException, OSError):
             return None
-        table = table.select(outcome_columns(table.column_names, skip))
-        return table.append_column("shard", pa.array([path] * table.num_rows, pa.string()))
 
     with ThreadPoolExecutor() as pool:
         tables = list(pool.map(read_one, paths))
-    good = [table for table in tables if table is not None]
-    return (pa.concat_tables(good, promote_options="permissive") if good else read_shards([], skip)[0],
+    good = [(path, table) for path, table in zip(paths, tables, strict=True) if table is not None]
+    if not good:
+        return pa.table({"task_id": pa.array([], pa.string()), "shard": pa.array([], pa.string())}), \
+            [path for path, table in zip(paths, tables, strict=True) if table is None]
+    rows = pa.concat_tables([table for _, table in good], promote_options="permissive")
+    shards = np.repeat(np.array([path for path, _ in good], dtype=object), [table.num_rows for _, table in good])
+    return (rows.append_column("shard", pa.array(shards, pa.string())),
             [path for path, table in zip(paths, tables, strict=True) if table is None])
 
 
@@ -126,31 +125,68 @@ def list_shards(sweep_dir: Path) -> pa.Table:
 
 
 def read_cache(sweep_dir: Path, shards: pa.Table) -> pa.Table | None:
-    """Cached rows whose shard still has the same size and modification time (None without a cache)."""
+    """Cached rows whose shard still has the same size and modification time (None without a cache, or with
+    one of rows that are not whole: compaction writes the cached rows)."""
     try:
         cached = pq.read_table(Path(sweep_dir) / layout.MERGE_CACHE)
     except (pa.ArrowException, OSError):
         return None
+    if (cached.schema.metadata or {}).get(CACHE_FORMAT[0]) != CACHE_FORMAT[1]:
+        return None
     return cached.join(shards, list(SHARD_KEY), join_type="left semi")
 
 
-def read_rows(sweep_dir: Path, skip: Sequence[str]) -> tuple[pa.Table, list[str]]:
-    """Every readable row of the sweep (with its SHARD_KEY), in shard order, reading only the shards the
-    cache does not hold as they are; returns the rows and the unreadable shards. Updates the cache."""
+def write_cache(sweep_dir: Path, rows: pa.Table) -> None:
+    write_parquet(rows.replace_schema_metadata(dict([CACHE_FORMAT])), Path(sweep_dir) / layout.MERGE_CACHE)
+
+
+def read_rows(sweep_dir: Path) -> tuple[pa.Table, list[str]]:
+    """Every readable row of the sweep, whole (with its SHARD_KEY), in shard order, reading only the shards the
+    cache does not hold as they are; returns the rows and the unreadable shards."""
     shards = list_shards(sweep_dir)
     cached = read_cache(sweep_dir, shards)
     unread = shards if cached is None else shards.join(cached.select(list(SHARD_KEY)), list(SHARD_KEY),
                                                        join_type="left anti")
     unread_paths = [os.path.join(sweep_dir, shard) for shard in unread["shard"].to_pylist()]
-    new, corrupt = read_shards(unread_paths, skip)
+    new, corrupt = read_shards(unread_paths)
     relative = {path: shard for path, shard in zip(unread_paths, unread["shard"].to_pylist(), strict=True)}
     new = new.set_column(new.schema.get_field_index("shard"), "shard",
                          pa.array([relative[path] for path in new["shard"].to_pylist()], pa.string()))
     new = new.join(shards, "shard", join_type="inner")  # add size and mtime_ns
     rows = new if cached is None else pa.concat_tables([cached, new], promote_options="permissive")
     rows = rows.combine_chunks().sort_by("shard")  # one chunk per shard would make every later step slow
-    write_parquet(rows, Path(sweep_dir) / layout.MERGE_CACHE)
     return rows, [relative[path] for path in corrupt]
+
+
+def compact_rows(sweep_dir: Path, rows: pa.Table, task_ids: pa.ChunkedArray) -> tuple[pa.Table, int]:
+    """Move the rows of ``task_ids`` that are in their own files into one new file of rows/compacted/ (written
+    and synced to disk before their files are removed: sweep/rows.py), and remove the own files of tasks a
+    compacted file holds already (copies an interrupted compaction left). ``rows``: read_rows's. Returns
+    ``rows`` with their new SHARD_KEY, and how many files were removed."""
+    prefix = f"{layout.ROWS}/{layout.COMPACTED}/"
+    ids, shards = rows["task_id"].to_pylist(), rows["shard"].to_pylist()
+    in_parts = {task_id for task_id, shard in zip(ids, shards, strict=True) if shard.startswith(prefix)}
+    known = set(task_ids.to_pylist())
+    own = [not shard.startswith(prefix) and os.path.basename(shard) == f"{task_id}.parquet"
+           for task_id, shard in zip(ids, shards, strict=True)]
+    moving = [mine and task_id in known and task_id not in in_parts for mine, task_id in zip(own, ids, strict=True)]
+    removing = [mine and task_id in in_parts for mine, task_id in zip(own, ids, strict=True)]
+    moved = rows.filter(pa.array(moving, pa.bool_())).drop_columns(list(SHARD_KEY))
+    kept = rows.filter(pa.array([not (m or r) for m, r in zip(moving, removing, strict=True)], pa.bool_()))
+    if moved.num_rows:
+        part = layout.compacted_dir(sweep_dir) / f"{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}.parquet"
+        create_parquet(moved, part)
+        make_durable(part)
+        stat, n = part.stat(), moved.num_rows
+        moved = (moved.append_column("shard", pa.array([os.path.relpath(part, sweep_dir)] * n, pa.string()))
+                 .append_column("size", pa.array([stat.st_size] * n, pa.int64()))
+                 .append_column("mtime_ns", pa.array([stat.st_mtime_ns] * n, pa.int64())))
+        kept = pa.concat_tables([kept, moved], promote_options="permissive").combine_chunks().sort_by("shard")
+    write_cache(sweep_dir, kept)  # first: the cache never names a removed file
+    gone = [shard for shard, m, r in zip(shards, moving, removing, strict=True) if m or r]
+    for shard in gone:
+        Path(sweep_dir, shard).unlink(missing_ok=True)
+    return kept, len(gone)
 
 
 def outcome_columns(names: Sequence[str], manifest_names: Sequence[str]) -> list[str]:
@@ -198,15 +234,35 @@ def dropped_counts(unmerged: pa.Table) -> dict[str, int]:
     return {state: states.count(state) for state in (*FAILURE_STATES, "missing", "running", "skipped", "waiting")}
 
 
-def merge_sweep(sweep_dir: Path) -> MergeSummary:
-    """Write results.parquet and merge_summary.json for the sweep; returns the summary."""
+def compact_unless_busy(sweep_dir: Path, rows: pa.Table, task_ids: pa.ChunkedArray) -> tuple[pa.Table, int, str]:
+    """compact_rows while holding the sweep's lock; where another command holds it (a launch or resubmit, whose
+    prepare reads the rows), the rows stay where they are. Returns the rows, the files removed and why none were
+    ('' when compacted)."""
+    with contextlib.ExitStack() as stack:
+        try:
+            stack.enter_context(sweep_lock(sweep_dir, "merge"))
+        except ConfigError as refusal:
+            write_cache(sweep_dir, rows)
+            return rows, 0, str(refusal).split(";")[0]
+        return (*compact_rows(sweep_dir, rows, task_ids), "")
+
+
+def merge_sweep(sweep_dir: Path, compact: bool = True) -> MergeSummary:
+    """Write results.parquet and merge_summary.json for the sweep (``compact``: and move finished rows into
+    rows/compacted/); returns the summary."""
     sweep_dir = Path(sweep_dir)
     manifest = read_manifest(sweep_dir)
-    rows, corrupt = read_rows(sweep_dir, manifest.column_names)
+    rows, corrupt = read_rows(sweep_dir)
     for shard in corrupt:  # no row: moved aside, so status, launch and resubmit see the task as to run
         with contextlib.suppress(FileNotFoundError):
             set_aside(sweep_dir / shard)
-    rows, unknown, duplicates = one_row_per_manifest_task(rows.drop_columns(list(SHARD_KEY)), manifest["task_id"])
+    removed, busy = 0, ""
+    if compact:
+        rows, removed, busy = compact_unless_busy(sweep_dir, rows, manifest["task_id"])
+    else:
+        write_cache(sweep_dir, rows)
+    rows = rows.select(outcome_columns(rows.column_names, [*manifest.column_names, *SHARD_KEY]))
+    rows, unknown, duplicates = one_row_per_manifest_task(rows, manifest["task_id"])
     ordered = manifest.append_column("manifest_index", pa.array(np.arange(manifest.num_rows)))
     results = ordered.join(rows, "task_id", join_type="inner")
     results = results.sort_by("manifest_index").drop_columns(["manifest_index"])
@@ -218,7 +274,7 @@ def merge_sweep(sweep_dir: Path) -> MergeSummary:
     summary = MergeSummary(tasks=manifest.num_rows, merged=results.num_rows, **dropped_counts(unmerged),
                            diverged=diverged, skipped_reasons=skip_reasons(read_decisions(sweep_dir),
                                                                      set(results["task_id"].to_pylist())),
-                           corrupt_shards=corrupt,
-                           duplicate_rows=duplicates, unknown_rows=unknown)
+                           corrupt_shards=corrupt, duplicate_rows=duplicates, unknown_rows=unknown,
+                           compacted_files=removed, not_compacted=busy)
     write_text(json.dumps(asdict(summary), indent=1), sweep_dir / layout.MERGE_SUMMARY)
     return summary

@@ -36,9 +36,8 @@ from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, RunError, require_number, require_positive_int
 from nsl_hpc.studies.base import Study
 from nsl_hpc.sweep.decisions import decided_structure, describe_rounds, read_decisions, write_decisions
-from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.plan import packing_for, sweep_groups
-from nsl_hpc.sweep.rows import read_row, row_state
+from nsl_hpc.sweep.rows import read_task_rows
 
 
 @dataclass(frozen=True)
@@ -314,12 +313,8 @@ def sweep_rounds(sweep_dir: Path, tasks: Sequence[Mapping[str, Any]], study: Stu
 
 def done_rows(sweep_dir: Path, task_ids: Sequence[str]) -> dict[str, dict[str, Any]]:
     """The rows (status ok) of those of ``task_ids`` that have one."""
-    rows = {}
-    for task_id in task_ids:
-        path = row_path(sweep_dir, task_id)
-        if row_state(path) == "done" and (row := read_row(path)).get("status", "ok") == "ok":
-            rows[task_id] = row
-    return rows
+    return {task_id: row for task_id, row in read_task_rows(sweep_dir, task_ids).items()
+            if row.get("status", "ok") == "ok"}
 
 
 def next_round(number: int, rounds: Rounds, manifest: Mapping[str, Mapping[str, Any]],

@@ -29,12 +29,11 @@ from nsl_hpc.sweep.checkpoints import STALE_S, HeldLock, held_locks
 from nsl_hpc.sweep.directory import process_alive
 from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.job import JobRunner, record_group_failure
-from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.limits import ClusterLimits, read_cluster_limits
 from nsl_hpc.sweep.manifest import write_run_settings
 from nsl_hpc.sweep.plan import Group, Pack
 from nsl_hpc.sweep.prepare import prepare_shared_data
-from nsl_hpc.sweep.rows import row_state
+from nsl_hpc.sweep.rows import row_states
 from nsl_hpc.sweep.slurm import held_arrays, queued_jobs, refused_setting
 from nsl_hpc.sweep.submissions import read_submissions, record_submission
 
@@ -203,7 +202,7 @@ def run_locally(sweep_dir: Path, packs: Sequence[Pack], launcher: LocalLauncher 
                         counts.update(unfinished_share(sweep_dir, pending.pop(job), "it stopped answering"))
                     elif debug or job.done():
                         counts.update(job_result(job, sweep_dir, pending.pop(job)))
-                bar.n = sum(row_state(row_path(sweep_dir, task_id)) == "done" for task_id in task_ids)
+                bar.n = sum(state == "done" for state in row_states(sweep_dir, task_ids).values())
                 bar.refresh()
     except KeyboardInterrupt:
         for job in jobs:
@@ -267,9 +266,8 @@ def unfinished_share(sweep_dir: Path, share: Sequence[Group], reason: str) -> di
                                  "continues from it")
             lock.path.unlink(missing_ok=True)
     failures, counts = read_failures(sweep_dir), Counter[str]()
-    for task_id in (task_id for group in share for task_id in group.task_ids):
-        done = row_state(row_path(sweep_dir, task_id)) == "done"
-        counts["ok" if done else failures[task_id]["status"] if task_id in failures else "not run"] += 1
+    for task_id, state in row_states(sweep_dir, [task_id for group in share for task_id in group.task_ids]).items():
+        counts["ok" if state == "done" else failures[task_id]["status"] if task_id in failures else "not run"] += 1
     tqdm.write(f"a local worker did not finish its share ({reason}): {counts['ok']:,} tasks done, "
                f"{counts['failed'] + counts['frozen']:,} recorded failed or frozen, {counts['not run']:,} not run "
                "(resubmit runs them); the other workers go on")

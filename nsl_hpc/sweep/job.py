@@ -51,7 +51,7 @@ from nsl_hpc.sweep.layout import failure_path, row_path, task_log_path
 from nsl_hpc.sweep.manifest import read_base_config, read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import Group
 from nsl_hpc.sweep.rehearsal import die_if_planted
-from nsl_hpc.sweep.rows import prepare_row_writes, row_state, set_aside
+from nsl_hpc.sweep.rows import all_done, prepare_row_writes, row_states, set_aside
 from nsl_hpc.sweep.task import describe, run_tasks
 
 POLL_SECONDS = 0.2
@@ -195,14 +195,12 @@ class JobRunner:
             self.started.add(group)
             self.current = group
             todo = []
-            for task_id in group.task_ids:
-                path = row_path(sweep, task_id)
-                state = row_state(path)
+            for task_id, state in row_states(sweep, group.task_ids).items():
                 if state == "done":
                     counts["skipped"] += 1
                     continue
                 if state == "corrupt":
-                    set_aside(path)
+                    set_aside(row_path(sweep, task_id))
                 todo.append(by_id[task_id])
             if not todo:  # a job stopped between its rows and removing its checkpoint leaves one behind
                 remove_checkpoint(checkpoint_path(sweep, list(group.task_ids)))
@@ -228,8 +226,9 @@ class JobRunner:
     @staticmethod
     def refuse(sweep: Path, groups: Sequence[Group], reason: str) -> dict[str, int]:
         """Record every task of ``groups`` without a row failed for ``reason``, train none; counts by outcome."""
-        ids = [task_id for group in groups for task_id in group.task_ids
-               if row_state(row_path(sweep, task_id)) != "done"]
+        ids = [task_id for task_id, state in row_states(sweep, [task_id for group in groups
+                                                                 for task_id in group.task_ids]).items()
+               if state != "done"]
         for task_id in ids:
             record_failure(sweep, task_id, "failed", f"not run: {reason}")
         print(f"not run: {reason}", file=sys.stderr, flush=True)
@@ -274,7 +273,7 @@ class JobRunner:
                                             f"{watchdog.overrun_factor}x its predicted {predicted:.0f} s")
         finally:
             self.running = None
-        if child.exitcode == 0 and all(row_state(row_path(sweep, task_id)) == "done" for task_id in ids):
+        if child.exitcode == 0 and all_done(sweep, ids):
             log = task_log_path(sweep, ids[0])
             log.unlink(missing_ok=True)
             with contextlib.suppress(OSError):  # the bucket directory, once empty
@@ -314,7 +313,7 @@ class JobRunner:
             child.join()
             if child.exitcode != EXIT_STOPPED:
                 resumed = []
-                if all(row_state(row_path(sweep, task_id)) == "done" for task_id in ids):
+                if all_done(sweep, ids):
                     remove_checkpoint(checkpoint_path(sweep, ids))  # it finished as the warning came
                 record_group_failure(sweep, ids, "timeout", "the job reached its time limit while this task ran"
                                      + ("; its checkpoint, if any, is kept: resubmit continues from it"
@@ -344,8 +343,8 @@ def lost_work(path: Path, started: float) -> str:
 def record_group_failure(sweep: Path, ids: Sequence[str], status: str, reason: str) -> None:
     """A failure record for each task of a lockstep group without a row; they share the first one's log."""
     first_log = task_log_path(sweep, ids[0])
-    for task_id in ids:
-        if row_state(row_path(sweep, task_id)) == "done":
+    for task_id, state in row_states(sweep, ids).items():
+        if state == "done":
             continue
         log = task_log_path(sweep, task_id)
         if task_id != ids[0] and first_log.exists():

@@ -5,6 +5,7 @@
       launch.yaml, run.yaml               the launch config; the run settings a resubmit may change
       configs/<system>__<arch>.yaml       the config every task of a (system, arch) pair shares
       rows/<id[:2]>/<id>.parquet          one row per finished task (under out_dir, the sweep dir by default)
+      rows/compacted/<part>.parquet       rows merge has moved out of their own files, many per file
       corrupt/                            rows that were not whole Parquet files of their task, set aside
       failures/<id[:2]>/<id>.json         why a task has no row (failed, frozen, timeout)
       logs/<id[:2]>/<id>.log              the output of a task's latest attempt
@@ -34,6 +35,7 @@ LAUNCH_CONFIG = "launch.yaml"
 RUN_SETTINGS = "run.yaml"
 CONFIGS = "configs"
 ROWS = "rows"
+COMPACTED = "compacted"  # rows/compacted/: merge's files of many rows (sweep/rows.py)
 CORRUPT = "corrupt"
 FAILURES = "failures"
 LOGS = "logs"
@@ -70,6 +72,10 @@ def bucketed(folder: str | os.PathLike, name: str, suffix: str) -> Path:
 
 def row_path(out_dir: str | os.PathLike, task_id: str) -> Path:
     return bucketed(os.path.join(out_dir, ROWS), task_id, ".parquet")
+
+
+def compacted_dir(out_dir: str | os.PathLike) -> Path:
+    return Path(out_dir) / ROWS / COMPACTED
 
 
 def failure_path(sweep_dir: str | os.PathLike, task_id: str) -> Path:

@@ -29,7 +29,7 @@ from nsl_hpc.sweep.manifest import (
     write_yaml,
 )
 from nsl_hpc.sweep.plan import check_run_settings
-from nsl_hpc.sweep.rows import row_state, set_aside
+from nsl_hpc.sweep.rows import row_states, set_aside
 from nsl_hpc.sweep.task import check_settings
 from nsl_hpc.sweep.task_states import read_sweep_state
 
@@ -268,11 +268,9 @@ def describe_infeasible(sweep_dir: Path, infeasible: Mapping[str, str], record: 
 def tasks_without_row(sweep_dir: Path, manifest: pa.Table) -> tuple[pa.Table, int]:
     """Manifest rows of the tasks without a valid row on disk; corrupt rows are moved aside first (counted)."""
     aside, keep = 0, []
-    for task_id in manifest["task_id"].to_pylist():
-        path = row_path(sweep_dir, task_id)
-        state = row_state(path)
+    for task_id, state in row_states(sweep_dir, manifest["task_id"].to_pylist()).items():
         if state == "corrupt":
-            set_aside(path)
+            set_aside(row_path(sweep_dir, task_id))
             aside += 1
         keep.append(state != "done")
     return manifest.filter(pa.array(keep, type=pa.bool_())), aside

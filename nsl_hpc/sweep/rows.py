@@ -1,12 +1,18 @@
-"""Task outcome rows: one single-row Parquet file per task, written atomically.
+"""Task outcome rows: one single-row Parquet file per task, written atomically by its job.
 
 A file that does not look like a whole Parquet file (a truncated or overwritten row) is not a row: the task
 counts as ``corrupt`` (``row_state``), runs again, and the bad file is moved aside (``set_aside``), never deleted.
+
+merge moves finished rows into a few files of many rows (``rows/compacted/``: a sweep of 63k tasks would
+otherwise keep 63k files, a parallel file system's inode quota). It writes such a file before it removes the
+rows' own files, and ``row_states`` reads the compacted files after the own files: a row being moved is found
+either way, never lost.
 """
 
+import contextlib
 import os
 import time
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +63,55 @@ def row_state(path: Path) -> str:
     finally:
         os.close(fd)
     return "done" if path.stem.encode() in footer else "corrupt"
+
+
+def compacted_parts(out_dir: str | os.PathLike) -> list[Path]:
+    """The compacted row files of ``out_dir``, by name."""
+    folder = layout.compacted_dir(out_dir)
+    return sorted(folder.glob("*.parquet")) if folder.is_dir() else []
+
+
+def compacted_ids(out_dir: str | os.PathLike) -> set[str]:
+    """The task ids whose rows the compacted files hold (an unreadable one holds none: merge sets it aside)."""
+    ids: set[str] = set()
+    for part in compacted_parts(out_dir):
+        with contextlib.suppress(pa.ArrowException, OSError):
+            ids.update(read_parquet(part, columns=["task_id"])["task_id"].to_pylist())
+    return ids
+
+
+def row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str, str]:
+    """Each task's row state (``done``, ``missing``, ``corrupt``): its own file's (``row_state``), ``done``
+    where a compacted file holds its row. The compacted files are read after the own files, and only where one
+    is not done."""
+    states = {task_id: row_state(layout.row_path(out_dir, task_id)) for task_id in task_ids}
+    if all(state == "done" for state in states.values()):
+        return states
+    compacted = compacted_ids(out_dir)
+    return {task_id: "done" if task_id in compacted else state for task_id, state in states.items()}
+
+
+def all_done(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> bool:
+    return all(state == "done" for state in row_states(out_dir, task_ids).values())
+
+
+def read_task_rows(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str, dict[str, Any]]:
+    """The rows of those of ``task_ids`` that have one (in their own file or a compacted one), by task id."""
+    rows, wanted = {}, []
+    for task_id in task_ids:
+        path = layout.row_path(out_dir, task_id)
+        if row_state(path) == "done":
+            rows[task_id] = read_row(path)
+        else:
+            wanted.append(task_id)
+    wanted_set = set(wanted)
+    for part in compacted_parts(out_dir) if wanted else []:
+        with contextlib.suppress(pa.ArrowException, OSError):
+            table = read_parquet(part)
+            found = [index for index, task_id in enumerate(table["task_id"].to_pylist()) if task_id in wanted_set]
+            for row in table.take(found).to_pylist():
+                rows.setdefault(row["task_id"], row)
+    return rows
 
 
 def set_aside(path: Path) -> Path:

@@ -33,7 +33,8 @@ class Storage:
 
 
 def predicted_files(tasks: int, groups: int, jobs: int) -> int:
-    """The files a sweep of ``tasks`` in ``groups`` lockstep groups and ``jobs`` SLURM jobs writes at most at once."""
+    """The files a sweep of ``tasks`` in ``groups`` lockstep groups and ``jobs`` SLURM jobs writes at most at once
+    (a row file per task: merge compacts them, but a sweep may run to its end unmerged)."""
     return tasks + FILES_PER_GROUP * groups + FILES_PER_JOB * jobs + FIXED_FILES
 
 

@@ -12,9 +12,8 @@ from nsl_hpc.sweep.checkpoints import running_task_ids
 from nsl_hpc.sweep.decisions import budget_states, without_row_state
 from nsl_hpc.sweep.directory import launch_running
 from nsl_hpc.sweep.failures import read_failures
-from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.manifest import read_manifest
-from nsl_hpc.sweep.rows import row_state
+from nsl_hpc.sweep.rows import row_states
 from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES, job_states
 from nsl_hpc.sweep.submissions import read_submissions
 
@@ -67,9 +66,8 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
     now, states = time.time(), {}
     running, launching = running_task_ids(sweep_dir), launch_running(sweep_dir)
     budgeted = budget_states(sweep_dir)
-    for task_id in manifest["task_id"].to_pylist():
+    for task_id, row in row_states(sweep_dir, manifest["task_id"].to_pylist()).items():
         element, submitted = latest.get(task_id, (None, 0.0))
-        row = row_state(row_path(sweep_dir, task_id))
         if row == "missing" and task_id in running:
             states[task_id] = "running"
             continue
