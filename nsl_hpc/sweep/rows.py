@@ -36,7 +36,7 @@ def prepare_row_writes() -> None:
 
 def read_row(path: Path) -> dict[str, Any]:
     """The row stored at ``path``."""
-    return read_parquet(path).to_pylist()[0]
+    return read_parquet(path, small=True).to_pylist()[0]
 
 
 def row_state(path: Path) -> str:
