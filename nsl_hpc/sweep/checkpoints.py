@@ -3,10 +3,10 @@ train a group.
 
 ``<sweep_dir>/checkpoints/<key[:2]>/<key>.pt`` (with ``<key>.json``, ``nsl_hpc.checkpoint``) holds the state of
 the group of the task ids whose hash is ``key``, in training order; ``<key>.lock`` says which job trains it now
-(job, host, pid and the task ids: ``status`` and ``merge`` call them running).
+(job, node, pid and the task ids: ``status`` and ``merge`` call them running).
 A job takes the lock before it trains a group and renews it as long as the group trains; a second job that finds
 a live lock leaves the group to its holder. A lock is stale (taken over) when its job runs no more: its process
-is gone (same host), it is an earlier run of the same SLURM job (requeued), or it was not renewed for
+is gone (same node), it is an earlier run of the same SLURM job (requeued), or it was not renewed for
 ``STALE_S`` seconds (a lost node).
 """
 
@@ -42,6 +42,11 @@ def checkpoint_path(sweep_dir: Path, task_ids: Sequence[str]) -> Path:
 def lock_path(checkpoint: Path) -> Path:
     """The lock of the group whose checkpoint is ``checkpoint``."""
     return checkpoint.with_suffix(".lock")
+
+
+def this_node() -> str:
+    """The SLURM node this process runs on (several may share a host), or the host's name outside SLURM."""
+    return os.environ.get("SLURMD_NODENAME") or socket.gethostname()
 
 
 def this_job() -> str:
@@ -84,7 +89,7 @@ class HeldLock:
     @property
     def live(self) -> bool:
         """Renewed within STALE_S, by a process that still runs (as far as this host can tell)."""
-        return self.silent_s <= STALE_S and (self.host != socket.gethostname() or process_alive(self.pid))
+        return self.silent_s <= STALE_S and (self.host != this_node() or process_alive(self.pid))
 
 
 def held_locks(sweep_dir: Path) -> list[HeldLock]:
@@ -110,7 +115,7 @@ class GroupLock:
 
     def __init__(self, sweep_dir: Path, task_ids: Sequence[str]):
         self.path = lock_path(checkpoint_path(sweep_dir, task_ids))
-        self.record = {"job": this_job(), "host": socket.gethostname(), "pid": os.getpid(),
+        self.record = {"job": this_job(), "host": this_node(), "pid": os.getpid(),
                        "task_ids": list(task_ids)}
         self.renewed = 0.0
 

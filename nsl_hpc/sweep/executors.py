@@ -7,7 +7,6 @@ import itertools
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -25,7 +24,7 @@ from nsl_hpc.config.launchers import DebugLauncher, Launcher, LocalLauncher, Slu
 from nsl_hpc.errors import ConfigError, RunError
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import layout
-from nsl_hpc.sweep.checkpoints import STALE_S, HeldLock, held_locks
+from nsl_hpc.sweep.checkpoints import STALE_S, HeldLock, held_locks, this_node
 from nsl_hpc.sweep.directory import process_alive
 from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.job import JobRunner, record_group_failure
@@ -217,7 +216,7 @@ def worker_locks(sweep_dir: Path, share: Sequence[Group]) -> list[HeldLock]:
     """The locks of the groups of a local worker's ``share`` (the one it trains now; none between groups)."""
     ids = {task_id for group in share for task_id in group.task_ids}
     return [lock for lock in held_locks(sweep_dir)
-            if lock.host == socket.gethostname() and lock.task_ids and set(lock.task_ids) <= ids]
+            if lock.host == this_node() and lock.task_ids and set(lock.task_ids) <= ids]
 
 
 def stop_stalled_worker(sweep_dir: Path, share: Sequence[Group], silence_s: float) -> bool:

@@ -1,6 +1,7 @@
 """Long jobs on the real cluster: a group longer than the site's time cap runs as a chain of requeued jobs, a
-preempted job, a killed training process and a `scontrol requeue` all continue from the group's training
-checkpoint, and every time the rows are those of the same group trained uninterrupted (bit for bit).
+preempted job, a killed training process, a `scontrol requeue` and a job whose node is lost (requeued onto
+another node of cluster/nodes.sh's 3-node cluster) all continue from the group's training checkpoint, and every
+time the rows are those of the same group trained uninterrupted (bit for bit).
 
 SLURM holds a requeued job for about two minutes before it may start again; the tests release it after a few
 seconds (``tests.cluster.requeues``).
@@ -178,3 +179,59 @@ def test_scontrol_requeue_continues_from_the_checkpoint_without_duplicate_rows(s
     assert seen["resumes"] >= 1, f"the group was not requeued while training: {seen}"
     assert len(row_files(sweep_dir)) == 2
     assert outcome_rows(sweep_dir) == uninterrupted()
+
+
+@pytest.fixture
+def three_nodes(monkeypatch):
+    """The 3-node cluster of cluster/nodes.sh, stopped after the test; the test's SLURM clients, nsl_hpc's
+    commands and their jobs reach it through SLURM_CONF."""
+    up = subprocess.run(["bash", "cluster/nodes.sh", "up"], capture_output=True, text=True, timeout=180)
+    if up.returncode != 0:
+        (pytest.fail if os.environ.get("CI") == "true" else pytest.skip)(f"no 3-node cluster: {up.stderr.strip()}")
+    monkeypatch.setenv("SLURM_CONF", up.stdout.rsplit("SLURM_CONF=", 1)[1].strip())
+    yield
+    subprocess.run(["bash", "cluster/nodes.sh", "down"], capture_output=True, timeout=180)
+
+
+def lose_node(node: str) -> None:
+    """Lose ``node`` as to a power cut: its slurmd and every process of its jobs killed (SIGKILL), then the
+    controller told it is down (as SlurmdTimeout would, later), which requeues its batch jobs elsewhere."""
+    def tree(pid: str) -> list[str]:
+        children = subprocess.run(["pgrep", "-P", pid], capture_output=True, text=True).stdout.split()
+        return [pid, *(grandchild for child in children for grandchild in tree(child))]
+
+    config = Path(os.environ["SLURM_CONF"])
+    victims = [(config.parent / f"slurmd-{node}.pid").read_text().strip()]
+    for job in subprocess.run(["squeue", "-h", "-w", node, "-o", "%A"], capture_output=True, text=True,
+                              check=True).stdout.split():
+        steps = subprocess.run(["pgrep", "-f", rf"slurmstepd: \[{job}\."], capture_output=True, text=True).stdout
+        victims += [pid for step in steps.split() for pid in tree(step)]
+    subprocess.run(["kill", "-9", *victims], check=False)
+    subprocess.run(["scontrol", "update", f"NodeName={node}", "State=DOWN", "Reason=lost"], check=True)
+
+
+def test_a_lost_nodes_job_moves_to_another_node_and_continues_from_the_checkpoint(
+        slurm_cluster, three_nodes, uninterrupted, tmp_path):
+    sweep_dir = tmp_path / "lost" / "sweep"
+    launch(sweep_dir, "lost-node", "checkpoint.every_minutes=0.1", *slow(40))  # every 6 s
+    wait_until(running_with_checkpoint(sweep_dir, "lost-node", min_step=2000), "lost-node")
+    ((job_id, _, _),) = jobs("nsl-lost-node")
+    first = subprocess.run(["squeue", "-h", "-j", job_id, "-o", "%N"], capture_output=True, text=True,
+                           check=True).stdout.strip()
+    (lock,) = (sweep_dir / "checkpoints").glob("*/*.lock")
+    assert json.loads(lock.read_text())["host"] == first  # a group's lock names its node, not the shared host
+    lose_node(first)
+    nodes = set()
+
+    def finished_elsewhere(seen: dict) -> bool:
+        nodes.update(node for node in subprocess.run(["squeue", "-h", "-j", job_id, "-o", "%N"], capture_output=True,
+                                                     text=True).stdout.split())
+        return group_finished(sweep_dir, "lost-node")(seen)
+
+    seen = wait_until(finished_elsewhere, "lost-node")
+    print(f"\nnode {first} lost: job {job_id} requeued onto {sorted(nodes)}, resumed {seen['resumes']}+ times")
+    assert nodes and first not in nodes, nodes
+    assert seen["resumes"] >= 1, f"the group was trained again from scratch on {nodes}: {seen}"
+    assert outcome_rows(sweep_dir) == uninterrupted()
+    status = nsl("status", f"sweep_dir={sweep_dir}").stdout  # from the queue alone: this cluster keeps no accounting
+    assert "done 2 |" in status and "accounting did not answer" in status, status
