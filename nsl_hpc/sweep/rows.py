@@ -39,7 +39,7 @@ def read_row(path: Path) -> dict[str, Any]:
     return read_parquet(path, small=True).to_pylist()[0]
 
 
-def row_state(path: Path) -> str:
+def row_state(path: str | Path) -> str:
     """``done`` (a whole Parquet file, its magic bytes at both ends, whose footer names the task of its path: the
     statistics of its task_id column), ``missing`` or ``corrupt`` (truncated, overwritten, or another task's row
     copied there). One read of the file's end (a row is a few KB: the whole of it), so a sweep's 63k rows are
@@ -62,7 +62,7 @@ def row_state(path: Path) -> str:
                   else os.pread(fd, footer_size, size - 8 - footer_size))
     finally:
         os.close(fd)
-    return "done" if path.stem.encode() in footer else "corrupt"
+    return "done" if os.path.basename(path).removesuffix(".parquet").encode() in footer else "corrupt"
 
 
 def compacted_parts(out_dir: str | os.PathLike) -> list[Path]:
@@ -84,7 +84,7 @@ def row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str,
     """Each task's row state (``done``, ``missing``, ``corrupt``): its own file's (``row_state``), ``done``
     where a compacted file holds its row. The compacted files are read after the own files, and only where one
     is not done."""
-    states = {task_id: row_state(layout.row_path(out_dir, task_id)) for task_id in task_ids}
+    states = {task_id: row_state(layout.row_file(out_dir, task_id)) for task_id in task_ids}
     if all(state == "done" for state in states.values()):
         return states
     compacted = compacted_ids(out_dir)
