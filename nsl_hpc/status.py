@@ -22,20 +22,28 @@ from nsl_hpc.sweep.checkpoints import held_locks, saved_groups
 from nsl_hpc.sweep.decisions import describe_rounds, read_decisions, round_job_queued
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest, require_sweep
 from nsl_hpc.sweep.plan import packing_for, sweep_groups
+from nsl_hpc.sweep.submissions import predicted_shares, read_submissions
 from nsl_hpc.sweep.task_states import STATES, SweepState, read_sweep_state
 
 LOG_LINES = 5  # log lines shown per failed task
 
 
 def remaining_seconds(sweep_dir, state: SweepState, launch: DictConfig) -> float:
-    """Predicted core-seconds of the tasks without a row, in the lockstep groups the planner makes of them (a
-    group with a checkpoint: the share of its steps still to train)."""
-    todo = [task for task in read_manifest(sweep_dir).to_pylist()
-            if state.states[task["task_id"]] not in ("done", "skipped", "waiting")]
+    """Predicted core-seconds of the tasks without a row: a submitted task's share of what its array element was
+    predicted to take, the others in the lockstep groups the planner makes of them; a group with a checkpoint:
+    the share of its steps still to train."""
+    todo = {task_id for task_id, task_state in state.states.items() if task_state not in ("done", "skipped", "waiting")}
+    shares = predicted_shares(read_submissions(sweep_dir))
     saved = {group.task_ids: group for group in saved_groups(sweep_dir)}
-    groups = sweep_groups(todo, launch, packing_for(launch.packing, launch.launcher), list(saved))
-    return sum(group.seconds * (1 - saved[group.task_ids].step / max(saved[group.task_ids].total_steps, 1)
-                                if group.task_ids in saved else 1) for group in groups)
+    left = {task_id: 1 - group.step / max(group.total_steps, 1)
+            for group in saved.values() for task_id in group.task_ids}
+    never_submitted = todo - shares.keys()
+    unplanned = [task for task in read_manifest(sweep_dir).to_pylist()
+                 if task["task_id"] in never_submitted] if never_submitted else []
+    groups = sweep_groups(unplanned, launch, packing_for(launch.packing, launch.launcher), list(saved)) \
+        if unplanned else []
+    return (sum(shares[task_id] * left.get(task_id, 1.0) for task_id in todo if task_id in shares)
+            + sum(group.seconds * left.get(group.task_ids[0], 1.0) for group in groups))
 
 
 def running_cores(sweep_dir, state: SweepState) -> int:

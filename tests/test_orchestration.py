@@ -31,6 +31,7 @@ from nsl_hpc.sweep.plan import (
     predicted_seconds,
 )
 from nsl_hpc.sweep.slurm import expand_array_ids
+from nsl_hpc.sweep.submissions import record_submission
 from nsl_hpc.sweep.task_states import ACCOUNTING_LAG_S, read_sweep_state, task_state
 from tests.sweeps import TINY_GRID, nsl
 
@@ -319,3 +320,6 @@ def test_status_time_left_is_the_planned_groups_work_over_the_cores_training(tmp
     assert running_cores(sweep_dir, state) == 1
     assert f"ETA {by_hand / 3600 / 2:.1f} h on 2 cores running" in summary(state, by_hand, 2)
     assert f"{by_hand / 3600:.1f} core-hours left" in summary(state, by_hand, 0)
+    # submitted, the tasks are what their array element was predicted to take at submission: no planning again
+    record_submission(sweep_dir, "7", 60, ["7_0"], [manifest["task_id"].to_pylist()], [2 * by_hand])
+    assert remaining_seconds(sweep_dir, state, read_launch_config(sweep_dir)) == pytest.approx(2 * by_hand)

@@ -4,7 +4,7 @@ task ids each element runs. ``status``, ``resubmit`` and ``clean`` read them."""
 
 import json
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -14,10 +14,12 @@ from nsl_hpc.sweep import layout
 
 
 def record_submission(sweep_dir: Path, array_id: str, time_limit_min: int, element_ids: Sequence[str],
-                      elements: Sequence[Sequence[str]]) -> None:
-    """Record an array whose element ``element_ids[i]`` runs the tasks ``elements[i]``."""
+                      elements: Sequence[Sequence[str]], seconds: Sequence[float]) -> None:
+    """Record an array whose element ``element_ids[i]`` runs the tasks ``elements[i]``, predicted to take
+    ``seconds[i]``."""
     record = {"array_id": array_id, "time_limit_min": time_limit_min, "submitted": time.time(),
-              "element_ids": list(element_ids), "elements": [list(task_ids) for task_ids in elements]}
+              "element_ids": list(element_ids), "elements": [list(task_ids) for task_ids in elements],
+              "seconds": list(seconds)}
     write_text(json.dumps(record), layout.submission_path(sweep_dir, array_id))
 
 
@@ -31,3 +33,18 @@ def read_submissions(sweep_dir: Path) -> list[dict[str, Any]]:
         except (OSError, ValueError, KeyError, TypeError) as error:
             raise damaged_file(path, error) from None
     return [record for _, record in sorted(records, key=lambda pair: pair[0])]
+
+
+def predicted_shares(records: Sequence[Mapping[str, Any]]) -> dict[str, float]:
+    """Each submitted task's share (s) of the predicted seconds of the array element it was submitted to last
+    (``records``: read_submissions's; those that predate the predictions give none)."""
+    shares: dict[str, float] = {}
+    for record in records:
+        for task_ids, seconds in zip(record["elements"], record.get("seconds") or [None] * len(record["elements"]),
+                                     strict=True):
+            for task_id in task_ids:
+                if seconds is None:
+                    shares.pop(task_id, None)
+                else:
+                    shares[task_id] = seconds / len(task_ids)
+    return shares
