@@ -5,7 +5,10 @@
 
 Reads ``<sweep_dir>/results.parquet`` (``python -m nsl_hpc.merge``) and writes ``<sweep_dir>/nsl_fits.parquet``
 (one row per NSL: system, arch, resource, metric, b, alpha, beta, delta0, sigma_i, phi_i, delta_i, margin,
-formula, extrapolation backtest) and ``<sweep_dir>/nsl_fits.txt``. Only tasks with status ok and finite,
+formula, extrapolation backtest), ``<sweep_dir>/nsl_fits.txt`` and a card per law,
+``<sweep_dir>/law_cards/<system>__<arch>__<resource>__<metric>.json`` (the grid and its hash, the envelope and
+its points, b and why, M, intervals, backtest, the published law, code version, predicted and measured
+core-hours: what it takes to reproduce or reject the law). Only tasks with status ok and finite,
 positive errors are fitted; an NSL that cannot be fitted gets its reason in the ``error`` column. ``metrics``
 picks the results columns fitted (default: ``nsl.metrics``, nmae and nmse), e.g. an input-output sweep's extra
 scores (``<metric>_<mode>_<record>``).
@@ -16,6 +19,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
+from nsl_hpc.analysis.cards import write_law_cards
 from nsl_hpc.analysis.fitting import (
     choose_metrics,
     fit_sweep,
@@ -34,14 +38,15 @@ from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 def main(cfg: DictConfig) -> int:
     check_nsl(plain(cfg.nsl))
     sweep_dir = require_sweep(cfg.sweep_dir)
-    results = read_results(sweep_dir)
-    rows = fit_sweep(results, choose_metrics(cfg.nsl, cfg.metrics, results), cfg.workers,
-                     rehearsal_of(read_launch_config(sweep_dir)))
+    results, launch = read_results(sweep_dir), read_launch_config(sweep_dir)
+    chosen = choose_metrics(cfg.nsl, cfg.metrics, results)
+    rows = fit_sweep(results, chosen, cfg.workers, rehearsal_of(launch))
     require_some_fit(rows, fits_path(sweep_dir))
     write_fits(sweep_dir, rows)
+    write_law_cards(sweep_dir, launch, plain(chosen), results, rows)
     failed = sum(row["error"] is not None for row in rows)
     print(f"{len(rows) - failed} NSLs fitted ({failed} not fittable) -> {fits_path(sweep_dir)}, "
-          f"{Path(sweep_dir) / layout.FITS_TEXT}")
+          f"{Path(sweep_dir) / layout.FITS_TEXT}, a card per law in {Path(sweep_dir) / layout.LAW_CARDS}")
     return 0
 
 

@@ -14,9 +14,11 @@ is written. The steps also run alone: ``python -m nsl_hpc.merge``, ``python -m n
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
+from nsl_hpc.analysis.cards import write_law_cards
 from nsl_hpc.analysis.figures import draw_figures, figure_stem
 from nsl_hpc.analysis.fitting import (
     choose_metrics,
+    fit_note,
     fit_sweep,
     fits_path,
     nsl_key,
@@ -28,13 +30,7 @@ from nsl_hpc.analysis.fitting import (
 from nsl_hpc.analysis.merge import merge_sweep, results_path
 from nsl_hpc.analysis.mlflow_runs import log_to_mlflow, require_server, tracking_uri
 from nsl_hpc.analysis.prediction import what_it_takes
-from nsl_hpc.analysis.report import (
-    comparison_markdown,
-    fit_note,
-    report_html,
-    scores_note,
-    what_it_takes_html,
-)
+from nsl_hpc.analysis.report import comparison_markdown, report_html, scores_note, what_it_takes_html
 from nsl_hpc.analysis.settings import check_figures, check_nsl
 from nsl_hpc.atomic import write_text
 from nsl_hpc.config import plain
@@ -47,7 +43,8 @@ def main(cfg: DictConfig) -> int:
     check_figures(plain(cfg.figures), cfg.nsl.resources)
     sweep_dir = require_sweep(cfg.sweep_dir)
     require_server(cfg.mlflow)
-    launch = plain(read_launch_config(sweep_dir))
+    launch_config = read_launch_config(sweep_dir)
+    launch = plain(launch_config)
     summary = merge_sweep(sweep_dir, cfg.compact)
     print(f"merged {summary.merged:,} tasks into {results_path(sweep_dir)}\n{summary.describe()}")
     results = read_results(sweep_dir)
@@ -55,6 +52,7 @@ def main(cfg: DictConfig) -> int:
     rows = fit_sweep(results, chosen, cfg.workers, rehearsal_of(launch))
     require_some_fit(rows, fits_path(sweep_dir))
     write_fits(sweep_dir, rows)
+    cards = write_law_cards(sweep_dir, launch_config, plain(chosen), results, rows)
     print(f"{sum(row['error'] is None for row in rows)} of {len(rows)} NSLs fitted -> {fits_path(sweep_dir)}")
     nsl, figure_settings = plain(chosen), plain(cfg.figures, resolve=False)
     figures = draw_figures(sweep_dir, results, rows, nsl, figure_settings)
@@ -63,7 +61,7 @@ def main(cfg: DictConfig) -> int:
                             lambda best: [factor * best for factor in wanted["factors"]], nsl)
     section = what_it_takes_html(entries, wanted, nsl["resources"][wanted["resource"]]["symbol"])
     report = sweep_dir / layout.REPORT
-    write_text(report_html(sweep_dir, launch, summary, rows, figures, section, nsl), report)
+    write_text(report_html(sweep_dir, launch, summary, rows, figures, section, nsl, cards["core_hours"]), report)
     notes = " ".join(note for note in (scores_note(launch), fit_note(nsl)) if note)
     write_text(comparison_markdown(rows, notes), sweep_dir / layout.COMPARISON)
     if cfg.mlflow.enabled:

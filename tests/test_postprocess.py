@@ -8,9 +8,11 @@ import matplotlib.image
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+import yaml
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.figures import power_label
+from nsl_hpc.seeding import stable_hash
 from nsl_hpc.sweep.directory import sweep_lock
 from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.layout import row_path
@@ -96,6 +98,24 @@ def test_fit_writes_one_row_per_nsl_and_reports_excluded_outcomes(sweep_copy):
     assert json.loads(published["paper_range"]) == [100, 51165] and published["r_min"] < published["r_max"]
     assert all(f["paper_b"] is None for f in fits if f is not published)
 
+    # a card per law: what it takes to reproduce or reject it
+    cards = {path.name: json.loads(path.read_text()) for path in (sweep_copy / "law_cards").glob("*.json")}
+    assert len(cards) == NSLS
+    card = cards["spring__input_affine__data__nmae.json"]
+    launch = yaml.safe_load((sweep_copy / "launch.yaml").read_text())
+    assert card["provenance"]["grid_hash"] == stable_hash(launch["sweep"]["grid"])
+    assert card["law"]["b"] == published["b"] and card["margin"]["M"] == published["margin"]
+    assert len(card["envelope"]["r"]) == len(card["envelope"]["e"]) == 100  # nsl.K
+    assert card["b_why"].startswith(f"b={published['b']} of 0..2: ") and card["published"]["b"] == 2
+    assert card["intervals"]["resamples"] == 200 and card["intervals"]["last_slope"]["lo"] <= card["law"]["slopes"][-1]
+    assert card["backtest"]["M_above"] == published["backtest_margin"]
+    hours = card["core_hours"]
+    assert hours["tasks"] == 24 and hours["predicted"] > 0 and hours["measured"] > 0
+    assert all(other["core_hours"] == hours and other["provenance"] == card["provenance"] for other in cards.values())
+    assert nsl("fit", f"sweep_dir={sweep_copy}", "metrics=[nmae]", "nsl.bootstrap=0").returncode == 0
+    assert sorted(path.name for path in (sweep_copy / "law_cards").glob("*.json")) == sorted(
+        name for name in cards if "__nmae" in name)  # the cards of laws no longer fitted are gone
+
 
 def test_predict_answers_from_the_fitted_laws_and_refuses_bad_targets(sweep_copy):
     assert nsl("predict", f"sweep_dir={sweep_copy}", "target=0.1").stderr.startswith("error: ")  # not fitted yet
@@ -120,6 +140,8 @@ def test_report_figures_and_mlflow_runs_are_updated_not_duplicated(sweep_copy):
     report = (sweep_copy / "report.html").read_text()
     assert report.count("data:image/png;base64,") == NSLS + NSLS  # every NSL and the 6 overview grids
     assert "0 of 24 tasks (0.0%) dropped" in report and report.count("<td><code>L(") == NSLS
+    assert "predicted by the planner, " in report and "law_cards/" in report
+    assert len(list((sweep_copy / "law_cards").glob("*.json"))) == NSLS
     assert "Against the published laws" in report and "Section 5.2, Figure fig:data-nmae-aff-spring" in report
     comparison = (sweep_copy / "comparison.md").read_text().splitlines()
     assert len(comparison) == 5 and comparison[2].startswith("| spring / input_affine / data / nmae | 2 / ")

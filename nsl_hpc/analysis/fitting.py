@@ -136,7 +136,8 @@ def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, ns
                fit_margin=fit.fit_margin, envelope=fit.envelope, formula=fit.formula(symbol),
                margins_by_b=json.dumps(fit.margins), objective=fit.objective, r_min=float(r.min()),
                r_max=float(r.max()), slopes=fit.slopes.tolist(), segment_points=list(fit.segment_points),
-               undetermined_segments=sorted(fit.undetermined), undetermined=fit.undetermined_text())
+               undetermined_segments=sorted(fit.undetermined), undetermined=fit.undetermined_text(),
+               envelope_r=fit.envelope_r.tolist(), envelope_e=fit.envelope_e.tolist())
     for i, (sigma, phi, delta) in enumerate(padded, start=1):
         row.update({f"sigma_{i}": sigma, f"phi_{i}": phi, f"delta_{i}": delta})
     thetas = bootstrap_thetas(fit, r, e, nsl["bootstrap"], stable_seed("bootstrap", *key.values()), nsl["K"],
@@ -264,6 +265,27 @@ def describe_fit(row: dict[str, Any]) -> str:
         lines.append(f"    paper ({row['paper_where']}): b={row['paper_b']} M={row['paper_margin']:.2g} "
                      f"last slope {row['paper_last_slope']:.2f}; on our envelope M={row['paper_margin_on_ours']:.2g}")
     return "\n".join(lines)
+
+
+def fit_note(nsl: Mapping[str, Any]) -> str:
+    """How the sweep's laws were fitted: the envelope, the objective and what chose b."""
+    if nsl["objective"] == "study":
+        how = "Section 4.3's loss by Adam on Definition 1's step envelope (nsl.objective=study)"
+    else:
+        envelope = ("Definition 1's step envelope" if nsl["envelope"] == "step"
+                    else "the envelope interpolated between its outcomes (M still on Definition 1's)")
+        how = f"least squares of the log residuals on {envelope} (nsl.envelope={nsl['envelope']})"
+    if nsl["breaks"] is not None:
+        chosen = f"b fixed at {nsl['breaks']} (nsl.breaks)"
+    else:
+        chosen = (f"b chosen in 0..{nsl['max_breaks']} among the laws whose every segment stands on at least "
+                  f"{nsl['min_segment_points']} outcomes of the envelope: each break must cut the margin by "
+                  f"{nsl['min_gain']:.0%}, not counting the {nsl['choice_trim']:.0%} of envelope points the law fits "
+                  "worst (nsl.min_segment_points, nsl.min_gain, nsl.choice_trim)")
+    bound = f"-{nsl['max_slope']:g}"
+    return (f"Fits: {how}, every segment's slope in [{bound}, {nsl['max_rise']:g}] (a law never rises more than the "
+            f"published ones do; nsl.max_slope, nsl.max_rise); {chosen}. A slope at {bound} or on fewer outcomes of "
+            "the envelope is undetermined (marked ?, drawn grey).")
 
 
 def write_fits(sweep_dir: Path, rows: list[dict[str, Any]]) -> None:

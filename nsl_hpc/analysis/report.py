@@ -8,7 +8,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from nsl_hpc.analysis.fitting import last_slope_undetermined, nsl_key
+from nsl_hpc.analysis.fitting import fit_note, last_slope_undetermined, nsl_key
 from nsl_hpc.analysis.merge import MergeSummary
 from nsl_hpc.analysis.mlflow_runs import flatten
 from nsl_hpc.analysis.prediction import format_need
@@ -51,6 +51,15 @@ def slopes_cell(row: Mapping[str, Any]) -> str:
     undetermined = set(row.get("undetermined_segments") or [])
     return ", ".join(f"{slope:.2f}{'?' if k in undetermined else ''} ({n})"
                      for k, (slope, n) in enumerate(zip(row["slopes"], row["segment_points"], strict=True)))
+
+
+def core_hours_line(core_hours: Mapping[str, Any]) -> str:
+    """The merged tasks' predicted and measured core-hours, in one sentence."""
+    measured = core_hours["measured"]
+    return (f"Their core-hours: {core_hours['predicted']:.3g} predicted by the planner, "
+            + ("not measured (rows without wall_seconds)." if measured is None else
+               f"{measured:.3g} measured ({measured / core_hours['predicted']:.2f}x)."
+               if core_hours["predicted"] else f"{measured:.3g} measured."))
 
 
 def nsl_table(rows: Sequence[Mapping[str, Any]]) -> str:
@@ -125,27 +134,6 @@ def scores_note(launch: Mapping[str, Any]) -> str:
         return "Scores: nMAE and nMSE per dx/dt column (a sweep from before metric.normalization)."
     return (f"Scores: {NORMALIZATION_NOTES[normalization]} (metric.normalization={normalization}); every row also "
             "holds the other pair (nmae_per_column, nmae_scalar, ...: fit metrics=[...] fits them).")
-
-
-def fit_note(nsl: Mapping[str, Any]) -> str:
-    """How the sweep's laws were fitted: the envelope, the objective and what chose b."""
-    if nsl["objective"] == "study":
-        how = "Section 4.3's loss by Adam on Definition 1's step envelope (nsl.objective=study)"
-    else:
-        envelope = ("Definition 1's step envelope" if nsl["envelope"] == "step"
-                    else "the envelope interpolated between its outcomes (M still on Definition 1's)")
-        how = f"least squares of the log residuals on {envelope} (nsl.envelope={nsl['envelope']})"
-    if nsl["breaks"] is not None:
-        chosen = f"b fixed at {nsl['breaks']} (nsl.breaks)"
-    else:
-        chosen = (f"b chosen in 0..{nsl['max_breaks']} among the laws whose every segment stands on at least "
-                  f"{nsl['min_segment_points']} outcomes of the envelope: each break must cut the margin by "
-                  f"{nsl['min_gain']:.0%}, not counting the {nsl['choice_trim']:.0%} of envelope points the law fits "
-                  "worst (nsl.min_segment_points, nsl.min_gain, nsl.choice_trim)")
-    bound = f"-{nsl['max_slope']:g}"
-    return (f"Fits: {how}, every segment's slope in [{bound}, {nsl['max_rise']:g}] (a law never rises more than the "
-            f"published ones do; nsl.max_slope, nsl.max_rise); {chosen}. A slope at {bound} or on fewer outcomes of "
-            "the envelope is undetermined (marked ?, drawn grey).")
 
 
 def rehearsal_html(rows: Sequence[Mapping[str, Any]]) -> str:
@@ -242,7 +230,8 @@ def configuration_html(settings: Mapping[tuple[str, str], Mapping[str, tuple[str
 
 
 def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummary, rows: Sequence[Mapping[str, Any]],
-                figures: Mapping[str, list[Path]], what_it_takes: str, nsl: Mapping[str, Any]) -> str:
+                figures: Mapping[str, list[Path]], what_it_takes: str, nsl: Mapping[str, Any],
+                core_hours: Mapping[str, Any]) -> str:
     grid = launch["sweep"]["grid"]
     parts = sub_grids(grid)
     axes = "".join((f"<tr><th colspan='2'>sub-grid {index + 1} of {len(parts)}</th></tr>" if len(parts) > 1 else "")
@@ -262,14 +251,18 @@ def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummar
 {summary.tasks:,} tasks.</p>
 <h2>Grid</h2><table>{axes}</table>
 <h2>Configuration</h2>{configuration_html(science_settings(sweep_dir, launch))}
-<h2>Tasks</h2><p>{summary.merged:,} tasks merged.</p><pre>{html.escape(summary.describe())}</pre>
+<h2>Tasks</h2><p>{summary.merged:,} tasks merged. {html.escape(core_hours_line(core_hours))}</p>
+<pre>{html.escape(summary.describe())}</pre>
 <h2>Neural scaling laws ({sum(r['error'] is None for r in rows)} of {len(rows)} fitted)</h2>
 <p>L(r) = &alpha; + &beta; r<sup>&delta;0</sup> &prod;<sub>i</sub>
 [1 + (r/&sigma;<sub>i</sub>)<sup>1/&phi;<sub>i</sub></sup>]<sup>&delta;<sub>i</sub>&phi;<sub>i</sub></sup>
 fitted to the lower envelope of the outcomes; M = mean<sub>k</sub>
 (ln L(r~<sub>k</sub>) &minus; ln E(r~<sub>k</sub>))<sup>2</sup> on Definition 1's envelope; last slope =
 &delta;0 + &Sigma; &delta;<sub>i</sub> with its 90% interval from refits on resampled tasks (given b); backtest M:
-the law fitted below the middle of the log resource range, scored above it. {html.escape(fit_note(nsl))}</p>
+the law fitted below the middle of the log resource range, scored above it. {html.escape(fit_note(nsl))}
+Each law's card, <code>law_cards/&lt;system&gt;__&lt;arch&gt;__&lt;resource&gt;__&lt;metric&gt;.json</code>, holds
+what it takes to reproduce or reject it (grid and hash, envelope points, b and why, intervals, backtest, the
+published law, code version).</p>
 {nsl_table(rows)}
 <h2>Against the published laws</h2>
 <p>The study's laws (<code>conf/published_laws.yaml</code>) beside ours where it publishes one: a published M and

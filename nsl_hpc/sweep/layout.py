@@ -22,6 +22,7 @@
       .lock.held                          ... its lock where the file system takes no flock
       results.parquet, merge_summary.json, dropped.parquet, .merge_cache.parquet   merge
       nsl_fits.parquet, nsl_fits.txt                            fit
+      law_cards/<system>__<arch>__<resource>__<metric>.json    fit: a card per law (analysis/cards.py)
       report.html, comparison.md, figures/, mlflow.db, mlartifacts/   report
 
 Ids and keys are bucketed by their first two characters, so 63k files do not share one directory.
@@ -50,6 +51,7 @@ MERGE_SUMMARY = "merge_summary.json"
 DROPPED = "dropped.parquet"  # the tasks merge dropped, each with its state and reason
 FITS = "nsl_fits.parquet"
 FITS_TEXT = "nsl_fits.txt"
+LAW_CARDS = "law_cards"
 REPORT = "report.html"
 COMPARISON = "comparison.md"
 FIGURES = "figures"
@@ -62,7 +64,7 @@ MERGE_CACHE = ".merge_cache.parquet"  # merge's read rows, so a second merge rea
 CONTROL = (SUBMITIT, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, MANIFEST)  # what decides the code a sweep's jobs run
 # what clean keeps
 RECORDS = (MANIFEST, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, ROWS, CORRUPT, SUBMISSIONS, LOCK, BUDGET, REHEARSAL, RESULTS,
-           DROPPED, FITS, FITS_TEXT, REPORT, COMPARISON, FIGURES, MLFLOW_DB, MLFLOW_ARTIFACTS, MERGE_CACHE)
+           DROPPED, FITS, FITS_TEXT, LAW_CARDS, REPORT, COMPARISON, FIGURES, MLFLOW_DB, MLFLOW_ARTIFACTS, MERGE_CACHE)
 
 
 def bucketed(folder: str | os.PathLike, name: str, suffix: str) -> Path:
