@@ -7,10 +7,19 @@ import errno
 import os
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from nsl_hpc.config import ConfigDoc, compose_config, config_dir, config_groups, documented_config
+from nsl_hpc.config import (
+    USER_CONFIG_DIR,
+    ConfigDoc,
+    compose_config,
+    config_dir,
+    config_groups,
+    documented_config,
+    user_config_dir,
+)
 from nsl_hpc.errors import ConfigError, RunError
 
 
@@ -34,8 +43,27 @@ def usage(doc: str, config_name: str) -> str:
             describe(included)
 
     describe(documented_config(config_name))
-    lines += ["", "--cfg prints the composed config with every value and exits."]
+    lines += ["", "--cfg prints the composed config with every value and exits. --config-dir DIR (or "
+              f"${USER_CONFIG_DIR}) adds your own config directory, searched after the package's: your "
+              "sweep/<name>.yaml, local/default.yaml (site settings: partition, account), nsl/, system/ ..."]
     return "\n".join(lines) + "\n"
+
+
+def take_config_dir(args: Sequence[str]) -> list[str]:
+    """``args`` without ``--config-dir DIR`` (or ``--config-dir=DIR``), which names the user's config directory
+    for this command and the processes it starts (``$NSL_HPC_CONFIG_DIR``; config.user_config_dir)."""
+    rest, args = [], list(args)
+    while args:
+        arg = args.pop(0)
+        if arg == "--config-dir" or arg.startswith("--config-dir="):
+            value = arg.split("=", 1)[1] if "=" in arg else (args.pop(0) if args else "")
+            if not value:
+                raise ConfigError("--config-dir needs a directory: --config-dir ~/my_conf")
+            os.environ[USER_CONFIG_DIR] = str(Path(value).expanduser().resolve())
+            user_config_dir()  # refuse what is no directory before any work
+        else:
+            rest.append(arg)
+    return rest
 
 
 def run(main: Callable[..., int | None], doc: str, argv: Sequence[str] | None = None,
@@ -46,13 +74,14 @@ def run(main: Callable[..., int | None], doc: str, argv: Sequence[str] | None = 
     sweep's (system, arch) pairs each compose their own) are left out of this config and reach only ``main``;
     ``composed_with``: overrides applied before the user's in the config only (``main`` sees the user's)."""
     args = list(sys.argv[1:] if argv is None else argv)
-    flags = {a for a in args if a.startswith("-")}
-    overrides = [a for a in args if not a.startswith("-")]
-    unknown = flags - {"-h", "--help", "--cfg"}
     try:
+        args = take_config_dir(args)
+        flags = {a for a in args if a.startswith("-")}
+        overrides = [a for a in args if not a.startswith("-")]
+        unknown = flags - {"-h", "--help", "--cfg"}
         if unknown:
-            raise ConfigError(f"unknown option {sorted(unknown)[0]}; options are --help and --cfg, "
-                              "everything else is key=value")
+            raise ConfigError(f"unknown option {sorted(unknown)[0]}; options are --help, --cfg and --config-dir "
+                              "DIR, everything else is key=value")
         if flags & {"-h", "--help"}:
             print(usage(doc, config_name), end="")
             sys.exit(0)

@@ -1,6 +1,7 @@
 """The configs in ``conf/``: where they are, and composing one with ``key=value`` overrides (Hydra)."""
 
 import difflib
+import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -26,6 +27,28 @@ def config_dir() -> Path:
         if (candidate / "config.yaml").is_file():
             return candidate
     raise ConfigError(f"no conf/config.yaml next to {PACKAGE_DIR}; reinstall nsl_hpc")
+
+
+USER_CONFIG_DIR = "NSL_HPC_CONFIG_DIR"  # the environment variable that names the user's config directory
+
+
+def user_config_dir() -> Path | None:
+    """The user's own config directory (``--config-dir`` of any command, or $NSL_HPC_CONFIG_DIR): searched after
+    the package's ``conf/`` for config groups (``sweep/<name>.yaml``, ``local/default.yaml`` for site settings,
+    ``system/``, ``nsl/`` ...); None without one. Refused in one line when it is no directory."""
+    value = os.environ.get(USER_CONFIG_DIR)
+    if not value:
+        return None
+    path = Path(value).expanduser().resolve()
+    if not path.is_dir():
+        raise ConfigError(f"--config-dir (${USER_CONFIG_DIR}) {value!r} is no directory; name the folder that "
+                          "holds your sweep/<name>.yaml and local/default.yaml")
+    return path
+
+
+def config_dirs() -> list[Path]:
+    """The package's ``conf/`` and, after it, the user's config directory."""
+    return [config_dir(), *filter(None, [user_config_dir()])]
 
 
 # Mappings whose keys are the user's to add with +key=value (any sbatch flag); elsewhere + only selects a config
@@ -84,8 +107,11 @@ def composed(overrides: Sequence[str], config_name: str) -> DictConfig:
 
     register_launchers()
     try:
+        user = user_config_dir()
+        quoted = str(user).replace("\\", "\\\\").replace("'", "\\'") if user else ""  # Hydra's quoted string
+        search = [f"hydra.searchpath=['file://{quoted}']"] if user else []
         with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-            cfg = compose(config_name, overrides=list(overrides))
+            cfg = compose(config_name, overrides=[*search, *overrides])
         OmegaConf.resolve(cfg)
         missing = sorted(OmegaConf.missing_keys(cfg))
     except MissingConfigException as error:
@@ -114,8 +140,11 @@ def one_line(message: str) -> str:
 
 def config_groups() -> dict[str, list[str]]:
     """Selectable options of each config group, e.g. {'system': ['ball', 'motor', 'spring']}."""
-    groups = {group.name: sorted(f.stem for f in group.glob("*.yaml"))
-              for group in config_dir().iterdir() if group.is_dir() and group.name != "local"}
+    groups: dict[str, list[str]] = {}
+    for folder in config_dirs():
+        for group in folder.iterdir():
+            if group.is_dir() and group.name != "local":
+                groups[group.name] = sorted({*groups.get(group.name, []), *(f.stem for f in group.glob("*.yaml"))})
     groups["launcher"] = sorted(LAUNCHERS)
     return dict(sorted(groups.items()))
 
