@@ -119,7 +119,7 @@ def test_a_users_own_sweep_and_site_settings_run_from_outside_an_installed_packa
     by_variable = run("-m", "nsl_hpc.launch", "+sweep=my_grid", "launcher=debug", "dry_run=true", "sweep_dir=env",
                       NSL_HPC_CONFIG_DIR=str(mine))
     assert by_variable.returncode == 0, by_variable.stderr
-    assert "my_grid" in run("-m", "nsl_hpc.launch", "--help", "--config-dir", str(mine)).stdout  # the sweep group
+    assert "name: my_grid" in run("-m", "nsl_hpc.launch", f"--config-dir={mine}", "+sweep=my_grid", "--cfg").stdout
     without = run("-m", "nsl_hpc.launch", "+sweep=my_grid", "launcher=debug", "dry_run=true")
     assert without.returncode == 2 and "unknown sweep 'my_grid'" in without.stderr
     missing = run("-m", "nsl_hpc.status", "--config-dir", str(tmp_path / "nowhere"), "sweep_dir=mine")
