@@ -321,5 +321,13 @@ def test_status_time_left_is_the_planned_groups_work_over_the_cores_training(tmp
     assert f"ETA {by_hand / 3600 / 2:.1f} h on 2 cores running" in summary(state, by_hand, 2)
     assert f"{by_hand / 3600:.1f} core-hours left" in summary(state, by_hand, 0)
     # submitted, the tasks are what their array element was predicted to take at submission: no planning again
-    record_submission(sweep_dir, "7", 60, ["7_0"], [manifest["task_id"].to_pylist()], [2 * by_hand])
+    record_submission(sweep_dir, "7", 60, ["7_0"], [manifest["task_id"].to_pylist()], [[2 * by_hand / 3] * 3])
     assert remaining_seconds(sweep_dir, state, read_launch_config(sweep_dir)) == pytest.approx(2 * by_hand)
+
+
+def test_a_packs_tasks_share_their_own_groups_prediction_and_the_jobs_start():
+    """A group of 8 tasks and a lone task, 100 s each, and 9 s of job start: a task of the 8 is predicted 100/8 + 1 s,
+    the lone one 100 + 1 s (an equal share of the pack, 23.3 s each, would call the lone one nearly done)."""
+    pack = Pack((Group(tuple(f"t{i}" for i in range(8)), 100.0), Group(("lone",), 100.0)), 209.0, 10)
+    assert pack.task_seconds() == pytest.approx([100 / 8 + 1] * 8 + [101.0])
+    assert sum(pack.task_seconds()) == pytest.approx(pack.seconds)

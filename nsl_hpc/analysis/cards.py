@@ -5,6 +5,7 @@ the fit settings' hash, and the sweep's predicted against measured core-hours.""
 
 import contextlib
 import json
+import math
 import subprocess
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -116,12 +117,26 @@ def core_hours(sweep_dir: Path, launch: DictConfig, results: pa.Table) -> dict[s
     return {"tasks": len(tasks), "predicted": sum(group.seconds for group in groups) / 3600, "measured": measured}
 
 
+def strict_json(value: Any) -> Any:
+    """``value`` with what strict JSON has no number for spelt out: a non-finite float as "inf", "-inf" or
+    "nan" (a planted law's ln alpha of an alpha of 0), numpy scalars as Python ones."""
+    if isinstance(value, Mapping):
+        return {str(key): strict_json(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [strict_json(item) for item in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    return value
+
+
 def write_cards(sweep_dir: Path, rows: Sequence[Mapping[str, Any]], context: Mapping[str, Any]) -> list[Path]:
     """Write each row's card (atomically), remove cards of laws the fit no longer has; returns the paths."""
     paths = []
     for row in rows:
         path = card_path(sweep_dir, row)
-        write_text(json.dumps(law_card(row, context), indent=1, default=str) + "\n", path)
+        write_text(json.dumps(strict_json(law_card(row, context)), indent=1, allow_nan=False) + "\n", path)
         paths.append(path)
     for stale in set((Path(sweep_dir) / layout.LAW_CARDS).glob("*.json")) - set(paths):
         stale.unlink(missing_ok=True)

@@ -26,6 +26,7 @@ from nsl_hpc.sweep.manifest import read_manifest
 from nsl_hpc.sweep.rows import set_aside
 
 SHARD_KEY = ("shard", "size", "mtime_ns")  # a cached row stands while its shard keeps this key
+READ_ATTEMPTS = 3  # listings of the row files a merge reads, where files vanish under it (read_rows)
 READ_CHUNK = 512  # row files a thread reads at a time (a future per file costs as much as reading it)
 CACHE_FORMAT = (b"nsl_hpc.rows", b"whole")  # the cache's schema metadata: it holds every column of a row
 
@@ -89,18 +90,29 @@ def results_path(sweep_dir: Path) -> Path:
     return Path(sweep_dir) / layout.RESULTS
 
 
+class Vanished(Exception):
+    """A row file listed by merge was gone when read: moved by a compaction that ran meanwhile."""
+
+
 def read_shards(paths: list[str]) -> tuple[pa.Table, list[str]]:
     """The rows of the shards at ``paths`` (every column: what compaction keeps must be whole), with ``shard``,
-    the path each row came from; returns them and the unreadable shards. Each file is read on its own, a chunk
-    of them per thread and core (a pyarrow dataset scan of small files is slower, and takes the first file's
-    columns for all)."""
+    the path each row came from; returns them and the unreadable shards (not Parquet). Each file is read on its
+    own, a chunk of them per thread and core (a pyarrow dataset scan of small files is slower, and takes the
+    first file's columns for all). Raises Vanished for a file gone meanwhile; an I/O error on a compacted file
+    is raised, never taken for a damaged file (its rows would all be set aside)."""
 
     def read_chunk(chunk: Sequence[str]) -> list[pa.Table | None]:
         tables: list[pa.Table | None] = []
         for path in chunk:
             try:
                 tables.append(read_parquet(Path(path), small=True))
-            except (pa.ArrowException, OSError):
+            except FileNotFoundError:
+                raise Vanished(path) from None
+            except pa.ArrowInvalid:
+                tables.append(None)
+            except OSError:
+                if f"{os.sep}{layout.COMPACTED}{os.sep}" in path:
+                    raise
                 tables.append(None)
         return tables
 
@@ -148,7 +160,15 @@ def write_cache(sweep_dir: Path, rows: pa.Table) -> None:
 
 def read_rows(sweep_dir: Path) -> tuple[pa.Table, list[str]]:
     """Every readable row of the sweep, whole (with its SHARD_KEY), in shard order, reading only the shards the
-    cache does not hold as they are; returns the rows and the unreadable shards."""
+    cache does not hold as they are; returns the rows and the unreadable shards. Where a file vanished while
+    it was read (a compaction by another merge moved it), the files are listed and read again."""
+    for _ in range(READ_ATTEMPTS - 1):
+        with contextlib.suppress(Vanished):
+            return read_rows_once(sweep_dir)
+    return read_rows_once(sweep_dir)
+
+
+def read_rows_once(sweep_dir: Path) -> tuple[pa.Table, list[str]]:
     shards = list_shards(sweep_dir)
     cached = read_cache(sweep_dir, shards)
     unread = shards if cached is None else shards.join(cached.select(list(SHARD_KEY)), list(SHARD_KEY),
@@ -180,7 +200,7 @@ def compact_rows(sweep_dir: Path, rows: pa.Table, task_ids: pa.ChunkedArray) -> 
     moved = rows.filter(pa.array(moving, pa.bool_())).drop_columns(list(SHARD_KEY))
     kept = rows.filter(pa.array([not (m or r) for m, r in zip(moving, removing, strict=True)], pa.bool_()))
     if moved.num_rows:
-        part = layout.compacted_dir(sweep_dir) / f"{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}.parquet"
+        part = layout.compacted_dir(sweep_dir) / f"{time.strftime('%Y%m%dT%H%M%S')}-{time.time_ns()}.parquet"
         create_parquet(moved, part)
         make_durable(part)
         stat, n = part.stat(), moved.num_rows
@@ -240,17 +260,28 @@ def dropped_counts(unmerged: pa.Table) -> dict[str, int]:
     return {state: states.count(state) for state in (*FAILURE_STATES, "missing", "running", "skipped", "waiting")}
 
 
-def compact_unless_busy(sweep_dir: Path, rows: pa.Table, task_ids: pa.ChunkedArray) -> tuple[pa.Table, int, str]:
-    """compact_rows while holding the sweep's lock; where another command holds it (a launch or resubmit, whose
-    prepare reads the rows), the rows stay where they are. Returns the rows, the files removed and why none were
-    ('' when compacted)."""
+def read_and_compact(sweep_dir: Path, task_ids: pa.ChunkedArray, compact: bool
+                     ) -> tuple[pa.Table, list[str], int, str]:
+    """read_rows, and with ``compact`` compact_rows, both under the sweep's lock (a second merge reads and
+    compacts after the first, never rows the first has moved meanwhile). Where another command holds the lock
+    (a launch or resubmit, whose prepare reads the rows), the rows are read and stay where they are. Returns the
+    rows, the unreadable shards, the files removed and why none were ('' when compacted or not asked to)."""
     with contextlib.ExitStack() as stack:
-        try:
-            stack.enter_context(sweep_lock(sweep_dir, "merge"))
-        except ConfigError as refusal:
+        busy = ""
+        if compact:
+            try:
+                stack.enter_context(sweep_lock(sweep_dir, "merge"))
+            except ConfigError as refusal:
+                busy = str(refusal).split(";")[0]
+        rows, corrupt = read_rows(sweep_dir)
+        for shard in corrupt:  # no row: moved aside, so status, launch and resubmit see the task as to run
+            with contextlib.suppress(FileNotFoundError):
+                set_aside(sweep_dir / shard)
+        if not compact or busy:
             write_cache(sweep_dir, rows)
-            return rows, 0, str(refusal).split(";")[0]
-        return (*compact_rows(sweep_dir, rows, task_ids), "")
+            return rows, corrupt, 0, busy
+        compacted, removed = compact_rows(sweep_dir, rows, task_ids)
+        return compacted, corrupt, removed, ""
 
 
 def merge_sweep(sweep_dir: Path, compact: bool = True) -> MergeSummary:
@@ -258,15 +289,7 @@ def merge_sweep(sweep_dir: Path, compact: bool = True) -> MergeSummary:
     rows/compacted/); returns the summary."""
     sweep_dir = Path(sweep_dir)
     manifest = read_manifest(sweep_dir)
-    rows, corrupt = read_rows(sweep_dir)
-    for shard in corrupt:  # no row: moved aside, so status, launch and resubmit see the task as to run
-        with contextlib.suppress(FileNotFoundError):
-            set_aside(sweep_dir / shard)
-    removed, busy = 0, ""
-    if compact:
-        rows, removed, busy = compact_unless_busy(sweep_dir, rows, manifest["task_id"])
-    else:
-        write_cache(sweep_dir, rows)
+    rows, corrupt, removed, busy = read_and_compact(sweep_dir, manifest["task_id"], compact)
     rows = rows.select(outcome_columns(rows.column_names, [*manifest.column_names, *SHARD_KEY]))
     rows, unknown, duplicates = one_row_per_manifest_task(rows, manifest["task_id"])
     ordered = manifest.append_column("manifest_index", pa.array(np.arange(manifest.num_rows)))

@@ -46,6 +46,12 @@ def user_config_dir() -> Path | None:
     return path
 
 
+def hydra_quoted(text: str) -> str:
+    """``text`` escaped for a single-quoted string of Hydra's override grammar: a quote, and the backslashes
+    just before a quote or at the end, take a backslash each."""
+    return re.sub(r"(\\*)('|$)", lambda match: match[1] * 2 + ("\\'" if match[2] else ""), text)
+
+
 def config_dirs() -> list[Path]:
     """The package's ``conf/`` and, after it, the user's config directory."""
     return [config_dir(), *filter(None, [user_config_dir()])]
@@ -108,8 +114,7 @@ def composed(overrides: Sequence[str], config_name: str) -> DictConfig:
     register_launchers()
     try:
         user = user_config_dir()
-        quoted = str(user).replace("\\", "\\\\").replace("'", "\\'") if user else ""  # Hydra's quoted string
-        search = [f"hydra.searchpath=['file://{quoted}']"] if user else []
+        search = [f"hydra.searchpath=['file://{hydra_quoted(str(user))}']"] if user else []
         with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
             cfg = compose(config_name, overrides=[*search, *overrides])
         OmegaConf.resolve(cfg)

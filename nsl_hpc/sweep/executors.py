@@ -153,7 +153,7 @@ def submit_array(sweep_dir: Path, packs: Sequence[Pack], time_limit_min: int, la
         jobs = executor.map_array(JobRunner(), [str(sweep_dir)] * len(packs), [list(pack.groups) for pack in packs])
     array_id = jobs[0].job_id.split("_")[0]  # a single element is a plain job: its id has no _<index>
     record_submission(sweep_dir, array_id, time_limit_min, [job.job_id for job in jobs],
-                      [pack.task_ids for pack in packs], [pack.seconds for pack in packs])
+                      [pack.task_ids for pack in packs], [pack.task_seconds() for pack in packs])
     return array_id
 
 

@@ -162,6 +162,12 @@ class Pack:
     def task_ids(self) -> tuple[str, ...]:
         return tuple(task_id for group in self.groups for task_id in group.task_ids)
 
+    def task_seconds(self) -> list[float]:
+        """Each task's predicted seconds (``task_ids`` order): its share of its group's, and of what the pack's
+        prediction holds beyond its groups' (the job's start)."""
+        start = (self.seconds - sum(group.seconds for group in self.groups)) / len(self.task_ids)
+        return [group.seconds / len(group.task_ids) + start for group in self.groups for _ in group.task_ids]
+
 
 def planned_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any], cost: Mapping[str, Any],
                    longest_s: float = math.inf) -> list[Group]:

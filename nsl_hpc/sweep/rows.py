@@ -72,10 +72,11 @@ def compacted_parts(out_dir: str | os.PathLike) -> list[Path]:
 
 
 def compacted_ids(out_dir: str | os.PathLike) -> set[str]:
-    """The task ids whose rows the compacted files hold (an unreadable one holds none: merge sets it aside)."""
+    """The task ids whose rows the compacted files hold (one that is no Parquet file holds none: merge sets it
+    aside; an I/O error is raised, not taken for missing rows, which would run again)."""
     ids: set[str] = set()
     for part in compacted_parts(out_dir):
-        with contextlib.suppress(pa.ArrowException, OSError):
+        with contextlib.suppress(pa.ArrowInvalid, FileNotFoundError):
             ids.update(read_parquet(part, columns=["task_id"])["task_id"].to_pylist())
     return ids
 
@@ -106,7 +107,7 @@ def read_task_rows(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[
             wanted.append(task_id)
     wanted_set = set(wanted)
     for part in compacted_parts(out_dir) if wanted else []:
-        with contextlib.suppress(pa.ArrowException, OSError):
+        with contextlib.suppress(pa.ArrowInvalid, FileNotFoundError):
             table = read_parquet(part)
             found = [index for index, task_id in enumerate(table["task_id"].to_pylist()) if task_id in wanted_set]
             for row in table.take(found).to_pylist():

@@ -14,12 +14,12 @@ from nsl_hpc.sweep import layout
 
 
 def record_submission(sweep_dir: Path, array_id: str, time_limit_min: int, element_ids: Sequence[str],
-                      elements: Sequence[Sequence[str]], seconds: Sequence[float]) -> None:
+                      elements: Sequence[Sequence[str]], seconds: Sequence[Sequence[float]]) -> None:
     """Record an array whose element ``element_ids[i]`` runs the tasks ``elements[i]``, predicted to take
-    ``seconds[i]``."""
+    ``seconds[i][j]`` for task j (its share of its lockstep group's prediction and of the job's start)."""
     record = {"array_id": array_id, "time_limit_min": time_limit_min, "submitted": time.time(),
               "element_ids": list(element_ids), "elements": [list(task_ids) for task_ids in elements],
-              "seconds": list(seconds)}
+              "task_seconds": [list(shares) for shares in seconds]}
     write_text(json.dumps(record), layout.submission_path(sweep_dir, array_id))
 
 
@@ -36,15 +36,15 @@ def read_submissions(sweep_dir: Path) -> list[dict[str, Any]]:
 
 
 def predicted_shares(records: Sequence[Mapping[str, Any]]) -> dict[str, float]:
-    """Each submitted task's share (s) of the predicted seconds of the array element it was submitted to last
-    (``records``: read_submissions's; those that predate the predictions give none)."""
+    """Each submitted task's predicted seconds as recorded when it was submitted last (``records``:
+    read_submissions's; those that predate the predictions give none)."""
     shares: dict[str, float] = {}
     for record in records:
-        for task_ids, seconds in zip(record["elements"], record.get("seconds") or [None] * len(record["elements"]),
+        for task_ids, seconds in zip(record["elements"], record.get("task_seconds") or [None] * len(record["elements"]),
                                      strict=True):
-            for task_id in task_ids:
+            for index, task_id in enumerate(task_ids):
                 if seconds is None:
                     shares.pop(task_id, None)
                 else:
-                    shares[task_id] = seconds / len(task_ids)
+                    shares[task_id] = seconds[index]
     return shares

@@ -28,7 +28,8 @@ def cancel_earlier_test_jobs(before: datetime) -> list[str]:
                            capture_output=True, text=True, check=True).stdout.splitlines()
     fields = [line.split(maxsplit=2) for line in queue]  # an interactive job has no STDOUT
     earlier = sorted({job for job, submitted, stdout in (three for three in fields if len(three) == 3)
-                      if stdout.startswith(root) and datetime.fromisoformat(submitted) < before})
+                      if stdout.startswith(root) and submitted[:1].isdigit()  # not N/A
+                      and datetime.fromisoformat(submitted) < before})
     if earlier:
         subprocess.run(["scancel", *earlier], check=True)
     return earlier
