@@ -12,6 +12,7 @@ import yaml
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.figures import power_label
+from nsl_hpc.analysis.merge import Vanished, read_shards
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.sweep.directory import sweep_lock
 from nsl_hpc.sweep.failures import record_failure
@@ -288,3 +289,14 @@ def test_a_fit_where_no_law_can_be_fitted_keeps_the_fits_it_would_replace(fitted
                                               (7e12, "7\u00d710\u00b9\u00b2"), (0.5, "5\u00d710\u207b\u00b9")])
 def test_log_tick_labels_are_powers_of_ten_in_unicode(value, label):
     assert power_label(value) == label
+
+
+def test_a_row_file_gone_while_merge_reads_is_no_corrupt_row(finished_sweep, tmp_path):
+    """A compaction by another merge moves row files while this one reads: a file gone under it makes merge list
+    the files again (read_rows), never counts as a corrupt row whose task is then dropped as missing."""
+    sweep_dir = shutil.copytree(finished_sweep, tmp_path / "sweep")
+    paths = [str(path) for path in row_files(sweep_dir)]
+    with pytest.raises(Vanished):
+        read_shards([*paths, str(sweep_dir / "rows" / "00" / "gone.parquet")])
+    rows, corrupt = read_shards(paths)
+    assert rows.num_rows == 24 and corrupt == []
