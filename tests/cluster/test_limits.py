@@ -93,8 +93,8 @@ def test_max_running_caps_the_sweeps_running_jobs_over_all_its_arrays(slurm_clus
     planned = nsl("launch", *args, "dry_run=true")
     assert "running: at most 1 of the sweep's jobs at once (launcher.max_running)" in planned.stdout, planned.stdout
     try:
-        launched = nsl("launch", *args)
-        assert launched.returncode == 0, launched.stderr
+        launched = nsl("launch", *args, "+launcher.extra_sbatch.hold=true")  # held: the first array's second-long
+        assert launched.returncode == 0, launched.stderr  # jobs cannot end (and clear the dependency) before it is read
         assert "submitted 4 jobs in 2 arrays" in launched.stdout, launched.stdout
         first, second = (array.strip() for array in launched.stdout.split("arrays: ")[1].splitlines()[0].split(","))
         dependency = subprocess.run(["squeue", "-h", "-j", second, "-o", "%E"], capture_output=True, text=True,
@@ -103,6 +103,7 @@ def test_max_running_caps_the_sweeps_running_jobs_over_all_its_arrays(slurm_clus
         throttles = subprocess.run(["scontrol", "show", "job", first], capture_output=True, text=True,
                                    check=True).stdout
         assert "ArrayTaskThrottle=1" in throttles
+        subprocess.run(["scontrol", "release", first, second], check=True)
         wait_until_gone("nsl-capped")
     finally:
         subprocess.run(["scancel", "-n", "nsl-capped"], check=False)
