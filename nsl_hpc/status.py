@@ -22,7 +22,6 @@ from nsl_hpc.sweep.checkpoints import held_locks, saved_groups
 from nsl_hpc.sweep.decisions import describe_rounds, read_decisions, round_job_queued
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest, require_sweep
 from nsl_hpc.sweep.plan import packing_for, sweep_groups
-from nsl_hpc.sweep.submissions import predicted_shares, read_submissions
 from nsl_hpc.sweep.task_states import STATES, SweepState, read_sweep_state
 
 LOG_LINES = 5  # log lines shown per failed task
@@ -33,7 +32,7 @@ def remaining_seconds(sweep_dir, state: SweepState, launch: DictConfig) -> float
     predicted to take, the others in the lockstep groups the planner makes of them; a group with a checkpoint:
     the share of its steps still to train."""
     todo = {task_id for task_id, task_state in state.states.items() if task_state not in ("done", "skipped", "waiting")}
-    shares = predicted_shares(read_submissions(sweep_dir))
+    shares = state.predicted_s
     saved = {group.task_ids: group for group in saved_groups(sweep_dir)}
     left = {task_id: 1 - group.step / max(group.total_steps, 1)
             for group in saved.values() for task_id in group.task_ids}

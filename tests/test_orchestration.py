@@ -322,6 +322,7 @@ def test_status_time_left_is_the_planned_groups_work_over_the_cores_training(tmp
     assert f"{by_hand / 3600:.1f} core-hours left" in summary(state, by_hand, 0)
     # submitted, the tasks are what their array element was predicted to take at submission: no planning again
     record_submission(sweep_dir, "7", 60, ["7_0"], [manifest["task_id"].to_pylist()], [[2 * by_hand / 3] * 3])
+    state = read_sweep_state(sweep_dir)  # it reads the submissions
     assert remaining_seconds(sweep_dir, state, read_launch_config(sweep_dir)) == pytest.approx(2 * by_hand)
 
 

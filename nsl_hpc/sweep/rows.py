@@ -98,18 +98,17 @@ def all_done(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> bool:
 
 def read_task_rows(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str, dict[str, Any]]:
     """The rows of those of ``task_ids`` that have one (in their own file or a compacted one), by task id."""
-    rows, wanted = {}, []
+    rows, wanted = {}, set()
     for task_id in task_ids:
         path = layout.row_path(out_dir, task_id)
         if row_state(path) == "done":
             rows[task_id] = read_row(path)
         else:
-            wanted.append(task_id)
-    wanted_set = set(wanted)
+            wanted.add(task_id)
     for part in compacted_parts(out_dir) if wanted else []:
         with contextlib.suppress(pa.ArrowInvalid, FileNotFoundError):
             table = read_parquet(part)
-            found = [index for index, task_id in enumerate(table["task_id"].to_pylist()) if task_id in wanted_set]
+            found = [index for index, task_id in enumerate(table["task_id"].to_pylist()) if task_id in wanted]
             for row in table.take(found).to_pylist():
                 rows.setdefault(row["task_id"], row)
     return rows

@@ -4,7 +4,7 @@
 import time
 from collections import Counter
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +15,7 @@ from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.manifest import read_manifest
 from nsl_hpc.sweep.rows import row_states
 from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES, job_states
-from nsl_hpc.sweep.submissions import read_submissions
+from nsl_hpc.sweep.submissions import predicted_shares, read_submissions
 
 ACCOUNTING_LAG_S = 30  # a just-submitted job may take a while to appear in sacct (slurmdbd restarts, load)
 STATES = ("done", "running", "pending", "failed", "frozen", "timeout", "missing", "corrupt", "skipped", "waiting")
@@ -31,6 +31,7 @@ class SweepState:
     manifest: list[dict[str, Any]]
     element_states: dict[str, str]
     unaccounted: str | None = None
+    predicted_s: dict[str, float] = field(default_factory=dict)  # submitted tasks' predicted seconds
 
     def counts(self) -> Counter[str]:
         return Counter(self.states.values())
@@ -75,7 +76,8 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
                                      elements.states.get(element or ""), now)
         if states[task_id] == "missing":
             states[task_id] = without_row_state(budgeted, task_id, launching)
-    return SweepState(states, failures, manifest.to_pylist(), elements.states, elements.unaccounted)
+    return SweepState(states, failures, manifest.to_pylist(), elements.states, elements.unaccounted,
+                      predicted_shares(submissions))
 
 
 def task_state(row: str, failure: Mapping[str, Any] | None, element: str | None, submitted: float,
