@@ -1,8 +1,9 @@
-"""Releasing the requeued jobs SLURM holds back. SLURM holds a requeued job for about two minutes (BeginTime)
-before it may start again; the cluster tests release it (``scontrol update StartTime=now``) to stay short: the
-wait is SLURM's, not nsl_hpc's. A job released at once can be allocated while SLURM still revokes its last run's
-credential, and then fails ("Killing non-startable batch job: Job credential revoked", seen here): it is
-released after a few seconds."""
+"""The queue as the cluster tests watch it: jobs leaving it, and the requeued jobs SLURM holds back.
+
+SLURM holds a requeued job for about two minutes (BeginTime) before it may start again; the cluster tests release
+it (``scontrol update StartTime=now``) to stay short: the wait is SLURM's, not nsl_hpc's. A job released at once
+can be allocated while SLURM still revokes its last run's credential, and then fails ("Killing non-startable
+batch job: Job credential revoked", seen here): it is released after a few seconds."""
 
 import contextlib
 import subprocess
@@ -53,3 +54,12 @@ def releasing(name: str) -> Iterator[Releaser]:
     finally:
         done.set()
         thread.join()
+
+
+def wait_until_gone(name: str, timeout_s: float = 240) -> None:
+    """Wait until the controller holds no job named ``name`` (names: comma-separated)."""
+    deadline = time.time() + timeout_s
+    while subprocess.run(["squeue", "-h", "-n", name, "-o", "%i"], capture_output=True, text=True,
+                         check=True).stdout.strip():
+        assert time.time() < deadline, f"{name} still queued after {timeout_s} s"
+        time.sleep(2)

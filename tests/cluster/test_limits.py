@@ -7,6 +7,7 @@ import time
 
 import pytest
 
+from tests.cluster.requeues import wait_until_gone
 from tests.sweeps import TINY_GRID, nsl
 
 pytestmark = pytest.mark.slurm
@@ -111,15 +112,6 @@ def test_max_running_caps_the_sweeps_running_jobs_over_all_its_arrays(slurm_clus
     assert all(end <= next_start for (_, end), (next_start, _) in itertools.pairwise(spans))
     status = nsl("status", f"sweep_dir={sweep_dir}")
     assert "4 tasks: done 4 |" in status.stdout, status.stdout
-
-
-def wait_until_gone(name: str, timeout_s: float = 240) -> None:
-    """Wait until the controller holds no job named ``name`` (names: comma-separated)."""
-    deadline = time.time() + timeout_s
-    while subprocess.run(["squeue", "-h", "-n", name, "-o", "%i"], capture_output=True, text=True,
-                         check=True).stdout.strip():
-        assert time.time() < deadline, f"{name} still queued after {timeout_s} s"
-        time.sleep(2)
 
 
 def accounted_spans(job_ids: str, elements: int) -> list[tuple[str, ...]]:

@@ -10,7 +10,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from nsl_hpc.sweep.decisions import read_decisions
-from tests.cluster.requeues import releasing
+from tests.cluster.requeues import releasing, wait_until_gone
 from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
 
 REPO = Path(__file__).resolve().parents[2]
@@ -31,11 +31,13 @@ def submitted_arrays(stdout: str) -> list[str]:
 
 def test_packed_sweep_completes_on_slurm(slurm_cluster, tmp_path):
     sweep_dir = tmp_path / "sweep"
-    launched = nsl("launch", *TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "packing.pack_minutes=0.05")
+    launched = nsl("launch", *TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "packing.pack_minutes=0.05",
+                   "sweep.name=packed")
     assert launched.returncode == 0, launched.stderr
     assert "submitted" in launched.stdout
     status = wait_for_sweep(sweep_dir)
     assert "done 4 |" in status
+    wait_until_gone("nsl-packed")  # an element writes its result after its rows: clean keeps a running one's files
     assert sorted(path.stem for path in row_files(sweep_dir)) == sorted(manifest_ids(sweep_dir))
     assert any((sweep_dir / "submitit").glob("*/*_submitted.pkl"))
     assert nsl("clean", f"sweep_dir={sweep_dir}").returncode == 0
