@@ -46,6 +46,7 @@ def check_nsl(nsl: Mapping[str, Any]) -> None:
     require_number("nsl.bootstrap_level", nsl["bootstrap_level"], 0, 1, low_open=True, high_open=True)
     require_choice("nsl.bootstrap_interval", nsl["bootstrap_interval"], ["basic", "percentile"])
     require_number("nsl.backtest_cut", nsl["backtest_cut"], 0, 1, low_open=True, high_open=True)
+    check_joint(nsl["joint"])
     predict = nsl["predict"]
     require_number("nsl.predict.decades", predict["decades"], 0, low_open=True)
     require_number("nsl.predict.window_decades", predict["window_decades"], 0, low_open=True)
@@ -55,6 +56,25 @@ def check_nsl(nsl: Mapping[str, Any]) -> None:
         raise ConfigError("nsl.predict.report.factors is empty; give at least one factor, e.g. [1.0]")
     for factor in predict["report"]["factors"]:
         require_number("nsl.predict.report.factors value", factor, 0, low_open=True)
+
+
+def check_joint(joint: Mapping[str, Any]) -> None:
+    """Raise ConfigError for an ``nsl.joint`` value no joint law can be fitted or searched with."""
+    require_number("nsl.joint.above_weight", joint["above_weight"], 1)
+    require_number("nsl.joint.huber_delta", joint["huber_delta"], 0, low_open=True)
+    require_number("nsl.joint.max_exponent", joint["max_exponent"], 0, low_open=True)
+    require_number("nsl.joint.floor_share", joint["floor_share"], 0, 1, low_open=True)
+    if not joint["start_exponents"]:
+        raise ConfigError("nsl.joint.start_exponents is empty; give at least one, e.g. [0.3, 1.0]")
+    for exponent in joint["start_exponents"]:
+        require_number("nsl.joint.start_exponents value", exponent, 0, joint["max_exponent"])
+    require_int("nsl.joint.max_evaluations", joint["max_evaluations"], 1)
+    require_number("nsl.joint.tolerance", joint["tolerance"], 0, 1, low_open=True)
+    require_int("nsl.joint.min_levels", joint["min_levels"], 2)
+    require_int("nsl.joint.min_configurations", joint["min_configurations"], 4)
+    require_int("nsl.joint.bootstrap", joint["bootstrap"], 0)
+    require_int("nsl.joint.beyond_doublings", joint["beyond_doublings"], 0, 10)
+    require_number("nsl.joint.backtest_share", joint["backtest_share"], 0, 1, low_open=True, high_open=True)
 
 
 def check_figures(figures: Mapping[str, Any], resources: Mapping[str, Any]) -> None:
