@@ -127,6 +127,14 @@ def test_predict_answers_from_the_fitted_laws_and_refuses_bad_targets(sweep_copy
     assert within.returncode == 0, within.stderr
     assert "nMAE" in within.stdout and "spring / input_affine: " in within.stdout and "needs c = " in within.stdout
     assert "parameters, data from" in within.stdout or "not reachable" in within.stdout
+    assert "spring / input_affine: no joint law (8 configurations" in within.stdout  # 2 epochs x 2 data x 2 widths
+    joint = nsl("predict", f"sweep_dir={sweep_copy}", f"target={2 * best}", "nsl.joint.min_configurations=4",
+                "nsl.joint.min_levels=2", "nsl.joint.bootstrap=10")
+    assert joint.returncode == 0, joint.stderr
+    lines = joint.stdout.split("at the least cost", 1)[1].splitlines()
+    assert lines[1].startswith("  spring / input_affine: L = ") and "the best of 3 seeds each" in lines[1]
+    assert "core-hours for 3 runs [" in lines[2]  # the law reaches twice the best outcome within the candidates
+    assert lines[3].startswith("      the cheapest the sweep ran that reached it: epochs ")
     data = nsl("predict", f"sweep_dir={sweep_copy}", f"target={best / 2}", "resource=data", "metric=nmse")
     assert data.returncode == 0 and "needs d = " in data.stdout
     for args, message in ((["target=0"], "target=0 must be a finite number in (0, inf)"),
@@ -261,6 +269,7 @@ def test_merge_compacts_the_rows_and_status_launch_resubmit_and_budgets_still_fi
     ("predict", "nsl.predict.decades=0", "nsl.predict.decades=0 must be a finite number in (0, inf)"),
     ("predict", "target=inf", "target=inf must be a finite number in (0, inf)"),
     ("predict", "nsl.bootstrap_level=2", "nsl.bootstrap_level=2 must be a finite number in (0, 1)"),
+    ("predict", "nsl.joint.above_weight=0.5", "nsl.joint.above_weight=0.5 must be a finite number in [1, inf)"),
     ("report", "nsl.predict.report.metric=foo", "nsl.predict.report.metric='foo'; choose one of: nmae, nmse"),
     ("report", "figures.dpi=0", "figures.dpi=0 must be an integer from 10 to 2400"),
     ("report", "figures.formats=[pngg]", "figures.formats value='pngg'; choose one of:"),

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
+from omegaconf import DictConfig
 from tqdm import tqdm
 
 from nsl_hpc.analysis.cards import core_hours
@@ -225,7 +226,7 @@ def cheapest_for(pair: pa.Table, metric: str, target: float, study: Study, base:
                     core_hours=float(hours[chosen]))
 
 
-def calibration_of(sweep_dir: Path, launch: Mapping[str, Any], results: pa.Table) -> float:
+def calibration_of(sweep_dir: Path, launch: DictConfig, results: pa.Table) -> float:
     """The sweep's measured over predicted core-hours (1 where no row measured its seconds)."""
     hours = core_hours(sweep_dir, launch, results)
     return hours["measured"] / hours["predicted"] if hours["measured"] and hours["predicted"] else 1.0
@@ -254,7 +255,7 @@ def describe_cheapest(found: Cheapest) -> list[str]:
     """The lines of one Cheapest: the law, the configuration and its cost, the backtest."""
     lines = [f"{found.system} / {found.arch}: {found.law.formula()} (on {found.fitted:,} configurations, the best "
              f"of {found.runs} seeds each)"]
-    if found.coordinates is None:
+    if found.coordinates is None or found.sizes is None:
         lines.append(f"    not reachable by any candidate: the law's best among them is {found.best_predicted:.3g}")
     else:
         where = ", ".join(f"{axis} {value:,}" for axis, value in found.coordinates.items())
