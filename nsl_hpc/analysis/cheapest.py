@@ -253,8 +253,9 @@ def cheapest_configurations(sweep_dir: Path, results: pa.Table, launch: Mapping[
 
 def describe_cheapest(found: Cheapest) -> list[str]:
     """The lines of one Cheapest: the law, the configuration and its cost, the backtest."""
-    lines = [f"{found.system} / {found.arch}: {found.law.formula()} (on {found.fitted:,} configurations, the best "
-             f"of {found.runs} seeds each)"]
+    runs = f"{found.runs} runs" if found.runs > 1 else "1 run"
+    best_of = f"the best of {found.runs} seeds each" if found.runs > 1 else "one seed each"
+    lines = [f"{found.system} / {found.arch}: {found.law.formula()} (on {found.fitted:,} configurations, {best_of})"]
     if found.coordinates is None or found.sizes is None:
         lines.append(f"    not reachable by any candidate: the law's best among them is {found.best_predicted:.3g}")
     else:
@@ -262,7 +263,7 @@ def describe_cheapest(found: Cheapest) -> list[str]:
         beyond = f"; beyond the sweep in {', '.join(found.beyond)}" if found.beyond else ""
         high = "not reachable" if math.isinf(found.high) else f"{found.high:.3g}"
         lines.append(f"    {where} (p {found.sizes['model']:,.0f} parameters, d {found.sizes['data']:,.0f} points): "
-                     f"L {found.predicted:.3g}, {found.core_hours:.3g} core-hours for {found.runs} runs "
+                     f"L {found.predicted:.3g}, {found.core_hours:.3g} core-hours for {runs} "
                      f"[{found.low:.3g}, {high}]{beyond}")
     if found.observed is not None:
         coordinates, hours = found.observed
