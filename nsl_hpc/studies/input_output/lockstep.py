@@ -54,10 +54,9 @@ from nsl_hpc.studies.training import (
 
 BLOCK_STEPS = 16  # iterations whose batch orders and learning rates are prepared at once (a heartbeat each)
 # SUBNET's h runs on the states of at most this many (K, B, n_h) values at once, per stack: an eager one's
-# temporaries of 1 MiB stay in the caches (against 2**21, whole gradient steps measured 8-18% faster: K = 32 at
-# 2 x 1 and 8 x 2, K = 1 at 32 x 3; K = 8 at 32 x 3 even to 10%); a compiled one runs h on all steps of a
-# segment, or of T in one graph with tensors still small enough to be reused (a (32, 256 x 150, 32) one was a fresh
-# mapping, 3x slower; at 2**18, K = 32, 8 x 2 in segments was even to 2% slower).
+# temporaries of 1 MiB stay in the caches (gradient steps 8-18% faster than at 2**21); a compiled one runs h on all
+# steps of a segment, or of T, in one graph whose tensors stay small enough to be reused (a (32, 256 x 150, 32)
+# tensor is a fresh mapping, 3x slower).
 H_CHUNK_VALUES = {"eager": 2**18, "compiled": 2**21}
 # A compiled batch-major stack computes a product with at most this many output columns (f's and h's last layers:
 # n_x, 1) as its transpose, (K, columns, B): MKL's batched GEMM writes few long rows several times faster than many
