@@ -19,9 +19,9 @@ from omegaconf import OmegaConf
 from synthetic import corrupt_rows, fill_sweep, synthetic_input_state_sweep
 
 from nsl_hpc.analysis.fitting import fit_sweep
-from nsl_hpc.analysis.merge import merge_sweep, results_path
 from nsl_hpc.bench.measure import timed
 from nsl_hpc.config import compose_config
+from nsl_hpc.sweep.merge import merge_sweep, results_path
 
 
 def main() -> None:

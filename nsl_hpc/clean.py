@@ -27,8 +27,8 @@ from nsl_hpc import cli
 from nsl_hpc.atomic import TEMPORARY, leftover_temporaries
 from nsl_hpc.checkpoint import info_path
 from nsl_hpc.sweep import layout
-from nsl_hpc.sweep.checkpoints import STALE_S, lock_path, saved_groups
 from nsl_hpc.sweep.directory import process_alive, sweep_lock
+from nsl_hpc.sweep.groups import STALE_S, lock_path, saved_groups
 from nsl_hpc.sweep.layout import failure_path, task_log_path
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES

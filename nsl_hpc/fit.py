@@ -20,6 +20,7 @@ from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.cards import write_law_cards
+from nsl_hpc.analysis.checks import check_nsl
 from nsl_hpc.analysis.fitting import (
     choose_metrics,
     fit_sweep,
@@ -29,7 +30,6 @@ from nsl_hpc.analysis.fitting import (
     require_some_fit,
     write_fits,
 )
-from nsl_hpc.analysis.settings import check_nsl
 from nsl_hpc.config import plain
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep

@@ -36,11 +36,11 @@ from nsl_hpc.sweep.budget import (
     planned_seconds,
     sweep_rounds,
 )
-from nsl_hpc.sweep.checkpoints import saved_groups
 from nsl_hpc.sweep.decisions import cancel_round_job, decision_files, read_decisions, record_round_job
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 from nsl_hpc.sweep.executors import run_jobs, submit_next_round
 from nsl_hpc.sweep.failures import read_failures
+from nsl_hpc.sweep.groups import saved_groups
 from nsl_hpc.sweep.limits import cluster_limits, describe_fit, within_limits
 from nsl_hpc.sweep.plan import Pack, lockstep_settings, plan_jobs
 from nsl_hpc.sweep.prepare import (

@@ -18,8 +18,8 @@ changes the sweep.
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.analysis.merge import merge_sweep, results_path
 from nsl_hpc.sweep.manifest import require_sweep
+from nsl_hpc.sweep.merge import merge_sweep, results_path
 
 
 def main(cfg: DictConfig) -> int:

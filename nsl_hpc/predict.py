@@ -24,9 +24,9 @@ from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.cheapest import calibration_of, cheapest_configurations, describe_cheapest
+from nsl_hpc.analysis.checks import check_nsl, check_target
 from nsl_hpc.analysis.fitting import fits_path, read_results
 from nsl_hpc.analysis.prediction import describe_need, what_it_takes
-from nsl_hpc.analysis.settings import check_nsl, check_target
 from nsl_hpc.atomic import read_parquet
 from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError

@@ -15,6 +15,7 @@ from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.cards import write_law_cards
+from nsl_hpc.analysis.checks import check_figures, check_nsl
 from nsl_hpc.analysis.figures import draw_figures, figure_stem
 from nsl_hpc.analysis.fitting import (
     choose_metrics,
@@ -27,15 +28,14 @@ from nsl_hpc.analysis.fitting import (
     require_some_fit,
     write_fits,
 )
-from nsl_hpc.analysis.merge import merge_sweep, results_path
 from nsl_hpc.analysis.mlflow_runs import log_to_mlflow, require_server, tracking_uri
 from nsl_hpc.analysis.prediction import what_it_takes
 from nsl_hpc.analysis.report import comparison_markdown, report_html, scores_note, what_it_takes_html
-from nsl_hpc.analysis.settings import check_figures, check_nsl
 from nsl_hpc.atomic import write_text
 from nsl_hpc.config import plain
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
+from nsl_hpc.sweep.merge import merge_sweep, results_path
 
 
 def main(cfg: DictConfig) -> int:

@@ -26,9 +26,9 @@ from nsl_hpc import cli
 from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies import study_named
-from nsl_hpc.sweep.checkpoints import saved_groups
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock
 from nsl_hpc.sweep.executors import run_jobs
+from nsl_hpc.sweep.groups import saved_groups
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.limits import cluster_limits, describe_fit, within_limits
 from nsl_hpc.sweep.manifest import RUN_SETTINGS, read_base_config, read_launch_config, read_manifest, require_sweep

@@ -18,8 +18,8 @@ from collections import Counter
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.sweep.checkpoints import held_locks, saved_groups
 from nsl_hpc.sweep.decisions import describe_rounds, read_decisions, round_job_queued
+from nsl_hpc.sweep.groups import held_locks, saved_groups
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest, require_sweep
 from nsl_hpc.sweep.plan import packing_for, sweep_groups
 from nsl_hpc.sweep.task_states import STATES, SweepState, read_sweep_state

@@ -26,8 +26,8 @@ from nsl_hpc.studies.input_state.data import build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.training import StepCompiler
-from nsl_hpc.sweep.checkpoints import GroupLock, checkpoint_path
 from nsl_hpc.sweep.failures import read_failures
+from nsl_hpc.sweep.groups import GroupLock, checkpoint_path
 from nsl_hpc.sweep.job import JobRunner
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import Group, check_run_settings, make_packs, packing_for, plan_jobs

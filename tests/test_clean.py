@@ -9,7 +9,7 @@ import time
 import pytest
 
 from nsl_hpc.checkpoint import Checkpointer, info_path
-from nsl_hpc.sweep.checkpoints import GroupLock, checkpoint_path
+from nsl_hpc.sweep.groups import GroupLock, checkpoint_path
 from nsl_hpc.sweep.rows import read_row
 from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
 

@@ -16,8 +16,8 @@ import pytest
 from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.resubmit import refuse_task_overrides
-from nsl_hpc.sweep.checkpoints import held_locks
 from nsl_hpc.sweep.failures import read_failures
+from nsl_hpc.sweep.groups import held_locks
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.plan import check_run_settings
 from nsl_hpc.sweep.rows import row_state, write_row_atomically

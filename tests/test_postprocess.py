@@ -12,11 +12,11 @@ import yaml
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.figures import power_label
-from nsl_hpc.analysis.merge import Vanished, read_shards
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.sweep.directory import sweep_lock
 from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.layout import row_path
+from nsl_hpc.sweep.merge import Vanished, read_shards
 from nsl_hpc.sweep.rows import read_row, read_task_rows, row_states, write_row_atomically
 from tests.sweeps import manifest_ids, nsl, row_files
 

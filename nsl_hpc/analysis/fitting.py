@@ -23,7 +23,6 @@ from nsl_hpc.analysis.broken_law import (
     fit_broken_law,
     lower_envelope,
 )
-from nsl_hpc.analysis.merge import results_path
 from nsl_hpc.analysis.published import comparison
 from nsl_hpc.atomic import read_parquet, write_parquet, write_text
 from nsl_hpc.config import plain
@@ -31,6 +30,7 @@ from nsl_hpc.errors import ConfigError, RunError
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.studies.metrics import NORMALIZATIONS
 from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.merge import results_path
 from nsl_hpc.sweep.rehearsal import planted_law
 
 KEY_COLUMNS = ("system", "arch", "resource", "metric")

@@ -22,11 +22,11 @@ from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.fitting import interval_columns, nsl_key
-from nsl_hpc.analysis.merge import MergeSummary
 from nsl_hpc.errors import RunError, require_number
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.merge import MergeSummary
 
 SWEEP_TAG = "nsl_hpc.sweep.directory"  # the sweep directory, for people
 SWEEP_ID_TAG = "nsl_hpc.sweep_id"  # a hash of it, for searches (a path may hold quotes; a hash holds none)

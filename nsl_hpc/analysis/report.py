@@ -9,7 +9,6 @@ from pathlib import Path
 from typing import Any
 
 from nsl_hpc.analysis.fitting import fit_note, last_slope_undetermined, nsl_key
-from nsl_hpc.analysis.merge import MergeSummary
 from nsl_hpc.analysis.mlflow_runs import flatten
 from nsl_hpc.analysis.prediction import format_need
 from nsl_hpc.config import compose_config, plain
@@ -17,6 +16,7 @@ from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import without_paths
 from nsl_hpc.sweep.grid import sub_grids
 from nsl_hpc.sweep.manifest import read_base_config
+from nsl_hpc.sweep.merge import MergeSummary
 
 STYLE = """body{font-family:system-ui,sans-serif;margin:2em auto;max-width:1200px;color:#222}
 table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 6px;text-align:left}

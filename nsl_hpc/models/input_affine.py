@@ -7,8 +7,8 @@ The study's form is the paper's: three MLPs of width n_h. The authors' code adds
 import torch
 
 from nsl_hpc.models.blocks import Head
-from nsl_hpc.models.layout import BATCH_MAJOR, Layout
 from nsl_hpc.models.state_space import Outputs, StateSpaceArchitecture
+from nsl_hpc.models.tensor_layout import BATCH_MAJOR, Layout
 
 
 class InputAffine(StateSpaceArchitecture):

@@ -14,8 +14,8 @@ import torch
 
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models.blocks import Head
-from nsl_hpc.models.layout import BATCH_MAJOR, Layout
 from nsl_hpc.models.state_space import Outputs, StateSpaceArchitecture
+from nsl_hpc.models.tensor_layout import BATCH_MAJOR, Layout
 
 HAMILTONIANS = ("abs", "plain", "half_square")
 DISSIPATIONS = ("square", "lower_triangular")

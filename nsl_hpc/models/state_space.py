@@ -15,7 +15,7 @@ from torch import nn
 
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models.blocks import Head, mlp
-from nsl_hpc.models.layout import BATCH_MAJOR, Layout
+from nsl_hpc.models.tensor_layout import BATCH_MAJOR, Layout
 
 Outputs = Mapping[str, torch.Tensor]  # head name -> its output (B, out_dim)
 

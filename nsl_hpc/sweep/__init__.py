@@ -11,13 +11,14 @@ submitted, run and accounted for.
     task         one task: validate, train, write its row
     rows         one Parquet row per task, written atomically; its state (done, corrupt, missing)
     failures     failure records and task logs
-    checkpoints  where lockstep groups keep their training checkpoints, and the lock of a group
+    groups       where lockstep groups keep their training checkpoints, and the lock of a group
     plan         predicted times, lockstep groups, packs, time classes
     executors    run packs: SLURM job arrays or local processes
     job          what one job runs: its pack's lockstep groups, each watched
     slurm        the one seam to SLURM's commands
     submissions  what was submitted: one record per job array
     task_states  where every task stands (done, running, pending, failed, frozen, timeout, missing, corrupt)
+    merge        the rows into results.parquet (compacted as it goes), and what was dropped and why
     budget       budgeted sweeps: which tasks run, in rounds along the cost axis
     decisions    a budgeted sweep's decisions on disk, and the job that launches its next round
     rehearsal    the whole sweep through the real path with outcomes drawn from planted laws

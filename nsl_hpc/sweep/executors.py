@@ -24,9 +24,9 @@ from nsl_hpc.config.launchers import DebugLauncher, Launcher, LocalLauncher, Slu
 from nsl_hpc.errors import ConfigError, RunError
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import layout
-from nsl_hpc.sweep.checkpoints import STALE_S, HeldLock, held_locks, this_node
 from nsl_hpc.sweep.directory import process_alive
 from nsl_hpc.sweep.failures import read_failures
+from nsl_hpc.sweep.groups import STALE_S, HeldLock, held_locks, this_node
 from nsl_hpc.sweep.job import JobRunner, record_group_failure
 from nsl_hpc.sweep.limits import ClusterLimits, read_cluster_limits
 from nsl_hpc.sweep.manifest import write_run_settings

@@ -7,7 +7,7 @@ A child that raises or crashes is recorded as failed (with how much training it 
 times longer than its group's predicted seconds, is killed and recorded as frozen. Either way the job goes on
 with its next group.
 
-Training checkpoints (``checkpoint.every_minutes`` > 0, ``nsl_hpc.sweep.checkpoints``): the child writes its
+Training checkpoints (``checkpoint.every_minutes`` > 0, ``nsl_hpc.sweep.groups``): the child writes its
 group's state every that many minutes and continues from it when the group runs again. On SLURM's warning
 signal (a time limit ahead or a preemption; submitit calls ``checkpoint``) the runner asks the child to write
 its state and stop (SIGUSR1), and the job is requeued with the running group and those it has not started: a
@@ -44,9 +44,9 @@ from omegaconf import DictConfig, OmegaConf
 from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info, remove_checkpoint
 from nsl_hpc.config import plain
 from nsl_hpc.studies import import_training_code, study_named
-from nsl_hpc.sweep.checkpoints import GroupLock, checkpoint_path
 from nsl_hpc.sweep.directory import compile_cache, process_alive, tree, unsafe_refusal
 from nsl_hpc.sweep.failures import record_failure
+from nsl_hpc.sweep.groups import GroupLock, checkpoint_path
 from nsl_hpc.sweep.layout import failure_path, row_path, task_log_path
 from nsl_hpc.sweep.manifest import read_base_config, read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import Group

@@ -18,12 +18,12 @@ import pyarrow.parquet as pq
 from nsl_hpc.atomic import create_parquet, make_durable, read_parquet, write_parquet, write_text
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.sweep import layout
-from nsl_hpc.sweep.checkpoints import running_task_ids
-from nsl_hpc.sweep.decisions import budget_states, read_decisions, skip_reasons, without_row_state
-from nsl_hpc.sweep.directory import launch_running, sweep_lock
-from nsl_hpc.sweep.failures import FAILURE_STATES, read_failures
+from nsl_hpc.sweep.decisions import read_decisions, skip_reasons
+from nsl_hpc.sweep.directory import sweep_lock
+from nsl_hpc.sweep.failures import FAILURE_STATES
 from nsl_hpc.sweep.manifest import read_manifest
 from nsl_hpc.sweep.rows import set_aside
+from nsl_hpc.sweep.task_states import read_sweep_state
 
 SHARD_KEY = ("shard", "size", "mtime_ns")  # a cached row stands while its shard keeps this key
 READ_ATTEMPTS = 3  # listings of the row files a merge reads, where files vanish under it (read_rows)
@@ -234,22 +234,22 @@ UNRECORDED = "no row and no failure record: cancelled, killed, lost with its nod
 
 
 def unmerged_tasks(sweep_dir: Path, manifest: pa.Table, merged_ids: pa.ChunkedArray) -> pa.Table:
-    """The tasks without a merged row (task_id, system, arch, seed, state, reason): running (a live job holds
-    their group's lock, or a launch or resubmit that runs now will), by their failure record's state (failed,
-    frozen, timeout), skipped or waiting (a budgeted sweep's rounds decided not to run them, or have not decided
-    yet) or missing."""
-    failures, running = read_failures(sweep_dir), running_task_ids(sweep_dir)
-    launching, budgeted = launch_running(sweep_dir), budget_states(sweep_dir)
+    """The tasks without a merged row (task_id, system, arch, seed, state, reason), in the states status gives
+    them (``task_states.read_sweep_state``): running (a job trains them or is queued to, a launch or resubmit that
+    runs now will, or their row landed after the rows were read), failed, frozen or timeout (their failure
+    record since their last submission), skipped or waiting (a budgeted sweep's rounds decided not to run them,
+    or have not decided yet) or missing."""
+    sweep = read_sweep_state(sweep_dir, queue_required=False)  # merging where no SLURM runs is fine
+    merged = set(merged_ids.to_pylist())
     unmerged = manifest.select(["task_id", "system", "arch", "seed"]).filter(
-        pc.invert(pc.is_in(manifest["task_id"], value_set=merged_ids.combine_chunks() if merged_ids.num_chunks else
-                           pa.array([], pa.string()))))
+        pa.array([task_id not in merged for task_id in manifest["task_id"].to_pylist()], pa.bool_()))
     states, reasons = [], []
     for task_id in unmerged["task_id"].to_pylist():
-        state = ("running" if task_id in running else failures[task_id]["status"] if task_id in failures else
-                 without_row_state(budgeted, task_id, launching).replace("pending", "running"))
+        state = {"pending": "running", "corrupt": "missing", "done": "running"}.get(sweep.states[task_id],
+                                                                                   sweep.states[task_id])
         states.append(state)
-        reasons.append(failures[task_id]["reason"] if task_id in failures else UNRECORDED if state == "missing"
-                       else "")
+        reasons.append(sweep.failures[task_id]["reason"] if state in FAILURE_STATES else
+                       UNRECORDED if state == "missing" else "")
     return unmerged.append_column("state", pa.array(states, pa.string())).append_column(
         "reason", pa.array(reasons, pa.string()))
 

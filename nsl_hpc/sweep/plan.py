@@ -16,7 +16,7 @@ from nsl_hpc.errors import ConfigError, require_choice, require_int, require_num
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import model_of
 from nsl_hpc.studies.settings import COMPILE_MODES
-from nsl_hpc.sweep.checkpoints import RENEW_S, STALE_S
+from nsl_hpc.sweep.groups import RENEW_S, STALE_S
 
 SBATCH_MEMORY = re.compile(r"[1-9][0-9]*[KMGT]?")  # sbatch --mem: megabytes, or with a unit
 SBATCH_FLAG = re.compile(r"[A-Za-z][A-Za-z0-9_-]*")  # a long option's name (submitit writes _ as -)

@@ -58,10 +58,11 @@ class JobStates:
     unaccounted: str | None = None
 
 
-def job_states(job_ids: Iterable[str]) -> JobStates:
+def job_states(job_ids: Iterable[str], queue_required: bool = True) -> JobStates:
     """State of every array element of ``job_ids`` (array job ids): one ``squeue`` call for this user's jobs (a
     job the controller holds is never ended, whatever the accounting database says or does not say yet) and one
-    ``sacct`` call, whose failure is reported, not raised."""
+    ``sacct`` call, whose failure is reported, not raised; so is squeue's unless ``queue_required`` (what would
+    submit a task again must know the queue)."""
     ids = sorted(set(job_ids))
     if not ids:
         return JobStates({})
@@ -69,9 +70,14 @@ def job_states(job_ids: Iterable[str]) -> JobStates:
         accounted = parse_states(slurm_command("sacct", "-n", "-P", "-X", "-j", ",".join(ids),
                                                "--format=JobID,State", retries=2))
         unaccounted = None
-    except SlurmError as error:
+    except (SlurmError, SlurmMissing) as error:
         accounted, unaccounted = {}, str(error)
-    queued = parse_states(slurm_command("squeue", "-h", "-r", "-u", getpass.getuser(), "-o", "%i|%T"))
+    try:
+        queued = parse_states(slurm_command("squeue", "-h", "-r", "-u", getpass.getuser(), "-o", "%i|%T"))
+    except (SlurmError, SlurmMissing) as error:
+        if queue_required:
+            raise
+        queued, unaccounted = {}, str(error)
     wanted = set(ids)
     return JobStates(accounted | {element: state for element, state in queued.items()
                                   if element.split("_")[0] in wanted}, unaccounted)

@@ -8,10 +8,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from nsl_hpc.sweep.checkpoints import running_task_ids
 from nsl_hpc.sweep.decisions import budget_states, without_row_state
 from nsl_hpc.sweep.directory import launch_running
 from nsl_hpc.sweep.failures import read_failures
+from nsl_hpc.sweep.groups import running_task_ids
 from nsl_hpc.sweep.manifest import read_manifest
 from nsl_hpc.sweep.rows import row_states
 from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES, job_states
@@ -45,14 +45,15 @@ class SweepState:
                 "as missing (cancelled, out of memory, a lost node or a job never started cannot be told apart)")
 
 
-def read_sweep_state(sweep_dir: Path) -> SweepState:
+def read_sweep_state(sweep_dir: Path, queue_required: bool = True) -> SweepState:
     """Classify every task: a valid row means done; else running while a live job holds its group's lock (local
     workers included); else its latest array element's state while that is active (the controller's while it
     holds the element, so a job accounting has not recorded yet is never missing); else its failure record
     written since that submission (failed, frozen, timeout); else pending while a launch or resubmit holds the
     sweep (a local one runs it later); else missing. A file where its row belongs that is no valid row makes it
     corrupt. In a budgeted sweep a missing task is skipped where its round decided not to run it, and waiting
-    while its round is not decided."""
+    while its round is not decided. Without ``queue_required`` a queue that does not answer (no SLURM on this
+    machine) is reported in ``unaccounted`` like the accounting database, not raised."""
     sweep_dir = Path(sweep_dir)
     manifest = read_manifest(sweep_dir, columns=["task_id", "system", "arch", "seed", "width", "depth", "steps",
                                                  "params"])
@@ -63,7 +64,7 @@ def read_sweep_state(sweep_dir: Path) -> SweepState:
         for element, task_ids in zip(record["element_ids"], record["elements"], strict=True):
             for task_id in task_ids:
                 latest[task_id] = (element, record["submitted"])
-    elements = job_states(record["array_id"] for record in submissions)
+    elements = job_states((record["array_id"] for record in submissions), queue_required)
     now, states = time.time(), {}
     running, launching = running_task_ids(sweep_dir), launch_running(sweep_dir)
     budgeted = budget_states(sweep_dir)

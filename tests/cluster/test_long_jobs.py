@@ -22,7 +22,7 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from nsl_hpc.sweep.checkpoints import saved_groups
+from nsl_hpc.sweep.groups import saved_groups
 from tests.cluster.requeues import Releaser, jobs
 from tests.sweeps import TINY_GRID, nsl, row_files
 

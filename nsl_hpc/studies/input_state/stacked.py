@@ -32,8 +32,8 @@ import torch
 from torch.nn import functional
 
 from nsl_hpc.models.blocks import Head, masked_layer_norm
-from nsl_hpc.models.layout import FEATURE_MAJOR
 from nsl_hpc.models.state_space import StateSpaceModel
+from nsl_hpc.models.tensor_layout import FEATURE_MAJOR
 
 # Heads of different widths get chains of their own when K n_h (n_h of the widest) reaches this: measured
 # (unstructured, split form, K = 16) a second chain costs 10 % at n_h 8 and saves 10-15 % at n_h 16.
