@@ -117,8 +117,8 @@ def running_for(name: str, seconds: float):
 
 def test_a_group_longer_than_the_time_cap_runs_as_a_chain_of_jobs(slurm_cluster, uninterrupted, tmp_path):
     sweep_dir = tmp_path / "cap" / "sweep"
-    plan = launch(sweep_dir, "cap", "launcher.max_time_minutes=1", "launcher.signal_delay_s=20",
-                  "checkpoint.every_minutes=5", *slow(75))  # 1.25 x the cap at the least
+    plan = launch(sweep_dir, "cap", "launcher.max_time_minutes=1", "launcher.signal_delay_s=25",
+                  "checkpoint.every_minutes=5", *slow(40))  # past the warning, 35 s into a job at the latest
     chain = re.search(r"run as chains of (\d+)", plan)
     assert chain and int(chain.group(1)) >= 2, plan
     started = time.time()
@@ -132,8 +132,8 @@ def test_a_group_longer_than_the_time_cap_runs_as_a_chain_of_jobs(slurm_cluster,
 
 def test_a_preempted_job_continues_from_its_checkpoint(slurm_cluster, uninterrupted, tmp_path):
     sweep_dir = tmp_path / "preempted" / "sweep"
-    launch(sweep_dir, "preempted", "checkpoint.every_minutes=30", *slow(40))  # only the preemption's warning writes one
-    wait_until(running_for("preempted", 12), "preempted")
+    launch(sweep_dir, "preempted", "checkpoint.every_minutes=30", *slow(24))  # only the preemption's warning writes one
+    wait_until(running_for("preempted", 8), "preempted")
     high = subprocess.run(["sbatch", "--parsable", "-p", "high", "-c", str(os.cpu_count()), "-o", "/dev/null",
                            "--wrap", "sleep 3"], capture_output=True, text=True, check=True).stdout.strip()
     seen = wait_until(group_finished(sweep_dir, "preempted"), "preempted")
@@ -146,7 +146,7 @@ def test_a_preempted_job_continues_from_its_checkpoint(slurm_cluster, uninterrup
 def test_a_killed_training_process_loses_at_most_the_checkpoint_interval_and_resubmit_finishes(
         slurm_cluster, uninterrupted, tmp_path):
     sweep_dir = tmp_path / "killed" / "sweep"
-    launch(sweep_dir, "killed", "checkpoint.every_minutes=0.1", *slow(40))  # every 6 s
+    launch(sweep_dir, "killed", "checkpoint.every_minutes=0.1", *slow(24))  # every 6 s
     wait_until(running_with_checkpoint(sweep_dir, "killed", min_step=2000), "killed")
     time.sleep(4)  # between two checkpoints
     (lock,) = (sweep_dir / "checkpoints").glob("*/*.lock")
@@ -171,8 +171,8 @@ def test_a_killed_training_process_loses_at_most_the_checkpoint_interval_and_res
 def test_scontrol_requeue_continues_from_the_checkpoint_without_duplicate_rows(slurm_cluster, uninterrupted,
                                                                               tmp_path):
     sweep_dir = tmp_path / "requeued" / "sweep"
-    launch(sweep_dir, "requeued", "checkpoint.every_minutes=30", *slow(40))  # only the requeue's SIGTERM writes one
-    wait_until(running_for("requeued", 12), "requeued")
+    launch(sweep_dir, "requeued", "checkpoint.every_minutes=30", *slow(24))  # only the requeue's SIGTERM writes one
+    wait_until(running_for("requeued", 8), "requeued")
     ((job_id, _, _),) = jobs("nsl-requeued")
     subprocess.run(["scontrol", "requeue", job_id], check=True)
     seen = wait_until(group_finished(sweep_dir, "requeued"), "requeued")
@@ -213,7 +213,7 @@ def lose_node(node: str) -> None:
 def test_a_lost_nodes_job_moves_to_another_node_and_continues_from_the_checkpoint(
         slurm_cluster, three_nodes, uninterrupted, tmp_path):
     sweep_dir = tmp_path / "lost" / "sweep"
-    launch(sweep_dir, "lost-node", "checkpoint.every_minutes=0.1", *slow(40))  # every 6 s
+    launch(sweep_dir, "lost-node", "checkpoint.every_minutes=0.1", *slow(24))  # every 6 s
     wait_until(running_with_checkpoint(sweep_dir, "lost-node", min_step=2000), "lost-node")
     ((job_id, _, _),) = jobs("nsl-lost-node")
     first = subprocess.run(["squeue", "-h", "-j", job_id, "-o", "%N"], capture_output=True, text=True,

@@ -2,7 +2,9 @@
 (a hanging task, a raising task, scancel of part of an array) and resubmit."""
 
 import json
+import os
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -43,6 +45,9 @@ def test_packed_sweep_completes_on_slurm(slurm_cluster, tmp_path):
     assert nsl("clean", f"sweep_dir={sweep_dir}").returncode == 0
     assert not any((sweep_dir / "submitit").glob("*/*"))  # every element finished
     assert len(row_files(sweep_dir)) == 4
+    elsewhere = subprocess.run([sys.executable, "-m", "nsl_hpc.merge", f"sweep_dir={sweep_dir}"], capture_output=True,
+                               text=True, env={**os.environ, "PATH": str(tmp_path)})  # no SLURM commands here
+    assert elsewhere.returncode == 0 and "0 of 4 tasks (0.0%) dropped" in elsewhere.stdout, elsewhere.stderr
 
 
 @pytest.fixture
