@@ -17,6 +17,7 @@ or ``<name>.mismatched``, never deleted), the task log says why, and the group t
 import hashlib
 import io
 import json
+import logging
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -24,6 +25,8 @@ from pathlib import Path
 from typing import Any
 
 from nsl_hpc.atomic import replacing, write_text
+
+LOG = logging.getLogger(__name__)
 
 FORMAT = 2  # 1: torch.save's bytes alone; 2: a header line with their SHA-256 first, and the run's layout inside
 HEADER = b"nsl_hpc checkpoint sha256="
@@ -139,8 +142,8 @@ class Checkpointer:
     def set_aside(self, why: str, detail: str) -> None:
         """Move the checkpoint to ``<name>.<why>`` (not deleted: it may be inspected) and say so in the log."""
         os.replace(self.path, self.path.with_suffix(f".{why}"))
-        print(f"checkpoint {self.path.name} {why} ({detail}): set aside as {self.path.with_suffix(f'.{why}').name}, "
-              "training from the start", flush=True)
+        LOG.warning("checkpoint %s %s (%s): set aside as %s, training from the start", self.path.name, why, detail,
+                    self.path.with_suffix(f".{why}").name)
 
     def block_done(self, state: Callable[[], dict[str, Any]], step: int, total_steps: int) -> None:
         """After a block of training (``step`` of ``total_steps`` of the longest member): write ``state()`` when

@@ -20,6 +20,7 @@ from nsl_hpc.config import (
     documented_config,
     user_config_dir,
 )
+from nsl_hpc.diagnostics import log_command
 from nsl_hpc.errors import ConfigError, RunError
 
 
@@ -74,6 +75,7 @@ def run(main: Callable[..., int | None], doc: str, argv: Sequence[str] | None = 
     sweep's (system, arch) pairs each compose their own) are left out of this config and reach only ``main``;
     ``composed_with``: overrides applied before the user's in the config only (``main`` sees the user's)."""
     args = list(sys.argv[1:] if argv is None else argv)
+    log_command(sys.stderr)
     try:
         args = take_config_dir(args)
         flags = {a for a in args if a.startswith("-")}

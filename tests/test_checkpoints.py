@@ -160,7 +160,7 @@ def stopped_once(train, path) -> None:
         train(stopping(checkpoint, 1), checkpoint)
 
 
-def test_a_checkpoint_with_flipped_bytes_is_set_aside_and_the_group_trains_afresh(compose, cache, tmp_path, capsys):
+def test_a_checkpoint_with_flipped_bytes_is_set_aside_and_the_group_trains_afresh(compose, cache, tmp_path, caplog):
     """64 bytes flipped at 55% of the file (torch.load alone would not notice): the resume gives the
     uninterrupted result, not one from damaged numbers, and the damaged file is kept aside."""
     train = lockstep_trainer(*ph_members(compose, cache, [(12, 6, ()), (7, 3, ()), (10, 6, ())]))
@@ -173,10 +173,10 @@ def test_a_checkpoint_with_flipped_bytes_is_set_aside_and_the_group_trains_afres
     checkpoint = Checkpointer(path, every_s=3600, task_ids=["a", "b", "c"])
     assert_same_snapshots(train(lambda: None), train(lambda: None, checkpoint))
     assert checkpoint.resumes == 0 and path.with_suffix(".unreadable").read_bytes() == raw
-    assert "group.pt unreadable (ValueError: checksum mismatch" in capsys.readouterr().out
+    assert "group.pt unreadable (ValueError: checksum mismatch" in caplog.text
 
 
-def test_a_checkpoint_of_another_layout_is_set_aside_and_the_group_trains_afresh(compose, cache, tmp_path, capsys):
+def test_a_checkpoint_of_another_layout_is_set_aside_and_the_group_trains_afresh(compose, cache, tmp_path, caplog):
     """The same task ids trained by models of another width (a code change between resubmits): the checkpoint
     loads but does not fit; it is set aside once, with a line, and the group trains to its own result."""
     path = tmp_path / "group.pt"
@@ -185,7 +185,7 @@ def test_a_checkpoint_of_another_layout_is_set_aside_and_the_group_trains_afresh
     checkpoint = Checkpointer(path, every_s=3600, task_ids=["a", "b", "c"])
     assert_same_snapshots(train(lambda: None), train(lambda: None, checkpoint))
     assert checkpoint.resumes == 0 and path.with_suffix(".mismatched").exists()
-    assert "group.pt mismatched (made for {'format': 2, 'theta': [3, " in capsys.readouterr().out
+    assert "group.pt mismatched (made for {'format': 2, 'theta': [3, " in caplog.text
 
 
 @pytest.mark.parametrize(("arch", "compiled"), [

@@ -315,7 +315,7 @@ def test_a_damaged_sweep_directory_is_one_line_for_every_command(damage, finishe
     refusing = {"truncated manifest": {"status", "resubmit", "clean", "merge", "launch"},
                 "truncated launch.yaml": {"status", "resubmit", "clean", "launch"},
                 "deleted configs": {"resubmit"},  # a launch restores them: they follow from its own config
-                "truncated submission": {"status", "resubmit", "clean", "launch"}}[damage]
+                "truncated submission": {"status", "resubmit", "clean", "merge", "launch"}}[damage]  # merge: the states
     for verb, args in (("status", []), ("resubmit", []), ("clean", ["dry_run=true"]), ("merge", []),
                        ("launch", LOCAL)):
         result = nsl(verb, *args, f"sweep_dir={sweep_dir}")

@@ -1,5 +1,8 @@
 """Launch with the debug and local launchers: manifest, plan, rows, idempotent re-launch, bad input."""
 
+import json
+import re
+
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
@@ -117,6 +120,11 @@ def test_raising_task_is_recorded_failed_with_its_log(tmp_path):
     assert result.returncode == 1 and "1 failed, 3 ok" in result.stdout
     status = nsl("status", f"sweep_dir={sweep_dir}")
     assert "failed 1" in status.stdout and "RuntimeError: injected fault" in status.stdout
+    # the job's diagnostics are log records naming their group; its first task's log holds the traceback
+    assert re.search(r"^[0-9-]+ [0-9:,]+ WARNING \[job \d+\] group [0-9a-f]{16} failed: exit status 1;",
+                     result.stdout, re.MULTILINE), result.stdout
+    (record,) = [json.loads(path.read_text()) for path in (sweep_dir / "failures").rglob("*.json")]
+    assert re.search(r"ERROR \[group [0-9a-f]{16}\] training failed\nTraceback", record["log_tail"]), record
 
 
 def rows_of_local_sweep(sweep_dir, grid, extra, tasks):

@@ -4,14 +4,16 @@ the compiled step (mini-batch bounds and the learning-rate schedules: ``studies.
 lockstep.
 """
 
+import logging
 import math
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar, cast
 
 import numpy as np
 import torch
+
+LOG = logging.getLogger(__name__)
 
 
 def nonzero(scale: np.ndarray | float) -> np.ndarray:
@@ -159,8 +161,7 @@ class StepCompiler:
                 except (TorchDynamoException, FailOnRecompileLimitHit) as error:
                     self.enabled = False
                     reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-                    print(f"warning: compiling the training step failed ({reason}); training eagerly",
-                          file=sys.stderr, flush=True)
+                    LOG.warning("compiling the training step failed (%s); training eagerly", reason)
             return step(*args)
 
         return cast(Step, call)

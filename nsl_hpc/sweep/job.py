@@ -25,13 +25,13 @@ one) leaves a group that a live job trains to it.
 import contextlib
 import copy
 import ctypes
+import logging
 import multiprocessing
 import os
 import shutil
 import signal
 import sys
 import time
-import traceback
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from multiprocessing.process import BaseProcess
@@ -43,10 +43,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info, remove_checkpoint
 from nsl_hpc.config import plain
+from nsl_hpc.diagnostics import job_records, log_job
 from nsl_hpc.studies import import_training_code, study_named
 from nsl_hpc.sweep.directory import compile_cache, process_alive, tree, unsafe_refusal
 from nsl_hpc.sweep.failures import record_failure
-from nsl_hpc.sweep.groups import GroupLock, checkpoint_path
+from nsl_hpc.sweep.groups import GroupLock, checkpoint_path, this_job
 from nsl_hpc.sweep.layout import failure_path, row_path, task_log_path
 from nsl_hpc.sweep.manifest import read_base_config, read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import Group
@@ -54,6 +55,7 @@ from nsl_hpc.sweep.rehearsal import die_if_planted
 from nsl_hpc.sweep.rows import all_done, prepare_row_writes, row_states, set_aside
 from nsl_hpc.sweep.task import describe, run_tasks
 
+LOG = logging.getLogger(__name__)
 POLL_SECONDS = 0.2
 PR_SET_PDEATHSIG = 1  # prctl(2)
 EXIT_STOPPED = 75  # a child's exit status after it wrote its checkpoint and stopped, as asked (EX_TEMPFAIL)
@@ -134,15 +136,16 @@ def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], cfgs: Sequenc
         os.dup2(handle.fileno(), 2)
     sys.stdout = open(1, "w", buffering=1, closefd=False)  # noqa: SIM115
     sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
+    log_job(sys.stderr, group_name(ids))
     try:
         sizes = [task_sizes(cfg, task) for cfg, task in zip(cfgs, group, strict=True)]
         for result in run_tasks(cfgs, lambda: setattr(heartbeat, "value", time.time()), sizes, checkpoint):
-            print(describe(result.row) if result.row else f"skipped: {result.path} exists")
+            LOG.info(describe(result.row) if result.row else f"skipped: {result.path} exists")
     except TrainingStopped:
-        print(f"stopped as asked; checkpoint written ({checkpoint.path.name if checkpoint else 'none'})", flush=True)
+        LOG.info("stopped as asked; checkpoint written (%s)", checkpoint.path.name if checkpoint else "none")
         os._exit(EXIT_STOPPED)
     except BaseException:
-        traceback.print_exc()
+        LOG.exception("training failed")
         sys.stderr.flush()
         os._exit(1)
     sys.stdout.flush()
@@ -171,7 +174,10 @@ class JobRunner:
         """Run the tasks of each group that have no valid row yet (a corrupt one is moved aside first) together;
         returns counts by outcome (per task): ok, skipped (a row exists), failed, frozen, busy (another job
         trains the group), stopped (asked to stop; the job ends)."""
-        sweep = Path(sweep_dir)
+        with job_records(sys.stdout, f"job {this_job() or os.getpid()}"):
+            return self.run_groups(Path(sweep_dir), groups)
+
+    def run_groups(self, sweep: Path, groups: Sequence[Group]) -> dict[str, int]:
         launch = read_launch_config(sweep)
         self.configs = TaskConfigs(sweep)
         # SLURM sends SIGCONT with its warning; submitit's handler for it logs, and logging swallows the exception
@@ -208,13 +214,14 @@ class JobRunner:
             lock = GroupLock(sweep, [task["task_id"] for task in todo])
             holder = lock.acquire()
             if holder is not None:
-                print(f"a group of {len(todo)} tasks is trained by {holder}: left to it", flush=True)
+                LOG.info("%s is trained by %s: left to it", group_name([task["task_id"] for task in todo]), holder)
                 counts["busy"] += len(todo)
                 continue
             try:
                 outcome = self.run_watched(sweep, todo, group, launch, lock)
             finally:
                 lock.release()
+            LOG.info("%s: %s", group_name([task["task_id"] for task in todo]), outcome)
             counts[outcome] += len(todo)
             if launch.get("rehearsal"):  # the rehearsal's lost node, after the group it was planted behind
                 die_if_planted(sweep, group.task_ids[0])
@@ -231,7 +238,7 @@ class JobRunner:
                if state != "done"]
         for task_id in ids:
             record_failure(sweep, task_id, "failed", f"not run: {reason}")
-        print(f"not run: {reason}", file=sys.stderr, flush=True)
+        LOG.error("not run: %s", reason)
         return {"failed": len(ids)} if ids else {}
 
     def run_watched(self, sweep: Path, group: Sequence[Mapping[str, Any]], planned: Group, launch: DictConfig,
@@ -340,8 +347,14 @@ def lost_work(path: Path, started: float) -> str:
             f"{info['total_steps']:,}); it continues from there when run again")
 
 
+def group_name(ids: Sequence[str]) -> str:
+    """A lockstep group as log records name it: its first task (whose log is the group's) and how many more."""
+    return f"group {ids[0]}" + (f" +{len(ids) - 1} tasks" if len(ids) > 1 else "")
+
+
 def record_group_failure(sweep: Path, ids: Sequence[str], status: str, reason: str) -> None:
     """A failure record for each task of a lockstep group without a row; they share the first one's log."""
+    LOG.warning("%s %s: %s", group_name(ids), status, reason)
     first_log = task_log_path(sweep, ids[0])
     for task_id, state in row_states(sweep, ids).items():
         if state == "done":
