@@ -266,7 +266,7 @@ def report(speeds: list[dict], breakdown: Mapping[str, float], peak: float, proj
               f"{ours:,.0f} ({reference / ours:.1f}x fewer than the plain loop, "
               f"{projection['core_hours_authors'] / ours:.1f}x fewer than the authors'; {projection['groups']:,} "
               f"lockstep groups of up to K = {cfg.pack_size}; compile={projection['compile']}: the groups the planner "
-              "compiles at `cost.compile_speedup` and `cost.compile_s`, python -m nsl_hpc.bench parts=[compiled]; eager "
+              "compiles at `cost.compile_speedup` and `cost.compile_s`, nsl_hpc.bench parts=[compiled]; eager "
               f"{projection['core_hours_ours_eager']:,.0f}). With epoch milestones (shared draws, "
               "train.schedule_epochs = the largest epoch count; rows of another meaning, see Epoch milestones) "
               f"{projection['core_hours_milestones']:,.0f} ({reference / projection['core_hours_milestones']:.1f}x "
