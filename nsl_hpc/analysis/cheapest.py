@@ -9,7 +9,7 @@ data tier beyond the training pool is no candidate). A configuration's cost is t
 trained alone (``plan.planned_group``), times the sweep's measured over predicted core-hours, times the seeds per
 configuration: the law is fitted on the best of each configuration's seeds, so that is the cost of the outcome it
 predicts. The interval of the cost comes from the law refitted on resampled configurations; the backtest fits on
-the cheaper half of the configurations and predicts the dearer half.
+the cheapest configurations up to ``nsl.joint.backtest_share`` of the core-hours and predicts the others.
 """
 
 import itertools
