@@ -18,8 +18,8 @@ class CommandFormatter(logging.Formatter):
         return f"{record.levelname.lower()}: {record.getMessage()}"
 
 
-def send_records(stream: TextIO, formatter: logging.Formatter, where: str | None = None) -> None:
-    """From now on, nsl_hpc's records of level INFO and above go to ``stream`` alone, each naming ``where``."""
+def send_records(stream: TextIO, formatter: logging.Formatter, level: int, where: str | None = None) -> None:
+    """From now on, nsl_hpc's records of ``level`` and above go to ``stream`` alone, each naming ``where``."""
     handler = logging.StreamHandler(stream)
     handler.setFormatter(formatter)
     if where is not None:
@@ -28,19 +28,18 @@ def send_records(stream: TextIO, formatter: logging.Formatter, where: str | None
             return True
         handler.addFilter(name_where)
     LOGGER.handlers[:] = [handler]
-    LOGGER.setLevel(logging.INFO)
+    LOGGER.setLevel(level)
     LOGGER.propagate = False
 
 
 def log_command(stream: TextIO) -> None:
     """A command's diagnostics: warnings and worse, as ``warning: ...`` lines."""
-    send_records(stream, CommandFormatter())
-    LOGGER.setLevel(logging.WARNING)
+    send_records(stream, CommandFormatter(), logging.WARNING)
 
 
 def log_job(stream: TextIO, where: str) -> None:
     """A job's diagnostics, from INFO: a timestamped line each, naming ``where``."""
-    send_records(stream, logging.Formatter(JOB_FORMAT), where)
+    send_records(stream, logging.Formatter(JOB_FORMAT), logging.INFO, where)
 
 
 @contextlib.contextmanager

@@ -67,12 +67,19 @@ def axis_values(rows: Sequence[Mapping[str, Any]], axes: Sequence[str], doubling
     return values
 
 
+def configurations_of(rows: Sequence[Mapping[str, Any]], study: Study, launch: Mapping[str, Any]) -> Configurations:
+    """Manifest or results rows as Configurations: their size-axis coordinates, sizes and the planner's seconds of
+    each trained alone."""
+    cost, lockstep = plain(launch["cost"], resolve=False), lockstep_settings(launch)
+    return Configurations([{axis: row[axis] for axis in study.size_axes} for row in rows], sizes_of(rows, study),
+                          np.array([planned_group([row], cost, lockstep).seconds for row in rows]))
+
+
 def candidate_configurations(study: Study, base: Mapping[str, Any], template: Mapping[str, Any],
                              values: Mapping[str, Sequence[Any]], launch: Mapping[str, Any]) -> Configurations:
     """Every combination of ``values`` (size axis -> values) as a task like ``template`` (a manifest row), drawn
     and checked as the study does, with the planner's seconds of it trained alone."""
-    cost, lockstep = plain(launch["cost"], resolve=False), lockstep_settings(launch)
-    coordinates, rows = [], []
+    rows = []
     for combination in itertools.product(*values.values()):
         task = {**template, **dict(zip(values, combination, strict=True))}
         drawn = study.draw(task, base)
@@ -81,28 +88,21 @@ def candidate_configurations(study: Study, base: Mapping[str, Any], template: Ma
             study.check_task(task, sizes, base)
         except ConfigError:
             continue
-        coordinates.append(dict(zip(values, combination, strict=True)))
         rows.append({**task, **sizes})
-    seconds = np.array([planned_group([row], cost, lockstep).seconds for row in rows])
-    return Configurations(coordinates, sizes_of(rows, study), seconds)
+    return configurations_of(rows, study, launch)
 
 
-def best_per_configuration(pair: pa.Table, metric: str, study: Study, launch: Mapping[str, Any]
-                           ) -> tuple[Configurations, np.ndarray]:
-    """The configurations a pair's fittable outcomes ran, each with its best outcome over the seeds (its sizes
-    are that outcome's draw), and those best errors (n,)."""
-    keep = fittable(pair, "flops", metric)
-    best: dict[tuple, dict[str, Any]] = {}
-    for row in (row for row, kept in zip(pair.to_pylist(), keep, strict=True) if kept):
+def best_per_configuration(pair: pa.Table, rows: Sequence[Mapping[str, Any]], metric: str, study: Study,
+                           launch: Mapping[str, Any]) -> tuple[Configurations, np.ndarray]:
+    """The configurations a pair's fittable outcomes ran (``rows``: ``pair``'s rows), each with its best outcome
+    over the seeds (its sizes are that outcome's draw), and those best errors (n,)."""
+    best: dict[tuple, Mapping[str, Any]] = {}
+    for row, kept in zip(rows, fittable(pair, SIZE_COLUMNS["model"], metric), strict=True):
         key = tuple(row[axis] for axis in study.size_axes)
-        if key not in best or row[metric] < best[key][metric]:
+        if kept and (key not in best or row[metric] < best[key][metric]):
             best[key] = row
-    rows = list(best.values())
-    cost, lockstep = plain(launch["cost"], resolve=False), lockstep_settings(launch)
-    seconds = np.array([planned_group([row], cost, lockstep).seconds for row in rows])
-    configurations = Configurations([{axis: row[axis] for axis in study.size_axes} for row in rows],
-                                    sizes_of(rows, study), seconds)
-    return configurations, np.array([row[metric] for row in rows], dtype=float)
+    chosen = list(best.values())
+    return configurations_of(chosen, study, launch), np.array([row[metric] for row in chosen], dtype=float)
 
 
 def cheapest_index(law: JointLaw, configurations: Configurations, target: float) -> int | None:
@@ -192,9 +192,9 @@ def cheapest_for(pair: pa.Table, metric: str, target: float, study: Study, base:
                  settings: Mapping[str, Any], level: float) -> Cheapest:
     """The Cheapest of one (system, arch)'s outcomes ``pair`` (raises JointLawError with too few configurations);
     ``calibration``: measured over predicted core-hours of the sweep; ``settings``: nsl.joint."""
-    configurations, errors = best_per_configuration(pair, metric, study, launch)
-    law = fit_joint_law(configurations.sizes, errors, settings)
     rows = pair.to_pylist()
+    configurations, errors = best_per_configuration(pair, rows, metric, study, launch)
+    law = fit_joint_law(configurations.sizes, errors, settings)
     axes = axis_values(rows, study.size_axes, settings["beyond_doublings"])
     candidates = candidate_configurations(study, base, template, axes, launch)
     runs = len({row["seed"] for row in rows})

@@ -211,17 +211,18 @@ class JobRunner:
             if not todo:  # a job stopped between its rows and removing its checkpoint leaves one behind
                 remove_checkpoint(checkpoint_path(sweep, list(group.task_ids)))
                 continue
-            lock = GroupLock(sweep, [task["task_id"] for task in todo])
+            ids = [task["task_id"] for task in todo]
+            lock, name = GroupLock(sweep, ids), group_name(ids)
             holder = lock.acquire()
             if holder is not None:
-                LOG.info("%s is trained by %s: left to it", group_name([task["task_id"] for task in todo]), holder)
+                LOG.info("%s is trained by %s: left to it", name, holder)
                 counts["busy"] += len(todo)
                 continue
             try:
                 outcome = self.run_watched(sweep, todo, group, launch, lock)
             finally:
                 lock.release()
-            LOG.info("%s: %s", group_name([task["task_id"] for task in todo]), outcome)
+            LOG.info("%s: %s", name, outcome)
             counts[outcome] += len(todo)
             if launch.get("rehearsal"):  # the rehearsal's lost node, after the group it was planted behind
                 die_if_planted(sweep, group.task_ids[0])

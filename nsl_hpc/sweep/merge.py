@@ -240,9 +240,9 @@ def unmerged_tasks(sweep_dir: Path, manifest: pa.Table, merged_ids: pa.ChunkedAr
     record since their last submission), skipped or waiting (a budgeted sweep's rounds decided not to run them,
     or have not decided yet) or missing."""
     sweep = read_sweep_state(sweep_dir, queue_required=False)  # merging where no SLURM runs is fine
-    merged = set(merged_ids.to_pylist())
     unmerged = manifest.select(["task_id", "system", "arch", "seed"]).filter(
-        pa.array([task_id not in merged for task_id in manifest["task_id"].to_pylist()], pa.bool_()))
+        pc.invert(pc.is_in(manifest["task_id"], value_set=merged_ids.combine_chunks() if merged_ids.num_chunks else
+                           pa.array([], pa.string()))))
     states, reasons = [], []
     for task_id in unmerged["task_id"].to_pylist():
         state = {"pending": "running", "corrupt": "missing", "done": "running"}.get(sweep.states[task_id],
