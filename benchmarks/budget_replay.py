@@ -21,6 +21,7 @@ can reach with a budget on this grid.
 """
 
 import argparse
+import math
 from collections import Counter
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -34,10 +35,20 @@ from scipy import sparse
 from scipy.optimize import Bounds, LinearConstraint, milp
 
 from nsl_hpc.analysis.broken_law import lower_envelope
-from nsl_hpc.analysis.fitting import fit_sweep, fittable, pair_outcomes
+from nsl_hpc.analysis.fitting import fit_sweep, fittable, nsl_key, pair_outcomes
+from nsl_hpc.analysis.widths import decided, law_state, widths_of
 from nsl_hpc.config import compose_config, plain
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.sweep.budget import Rounds, budget_of, first_round_levels, next_round, planned_seconds
+from nsl_hpc.sweep.budget import (
+    WIDTHS,
+    Budget,
+    Rounds,
+    budget_of,
+    first_round_levels,
+    next_round,
+    planned_seconds,
+    stopped_resources,
+)
 from nsl_hpc.sweep.prepare import build_sweep
 
 OracleLaw = tuple[list[str], np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # ids, resources, errors, grid, full
@@ -55,19 +66,65 @@ def sweep_of(full: pa.Table, overrides: list[str]) -> tuple[Any, Any, dict[str, 
     return cfg, built.study, manifest, planned_seconds(manifest, cfg)
 
 
-def replay(full: pa.Table, overrides: list[str]) -> list[dict]:
-    """The decisions of every round of the budget in ``overrides`` on the rows of ``full`` (a results table)."""
+def replay(full: pa.Table, overrides: list[str]) -> tuple[list[dict], list[dict], Budget]:
+    """The decisions of every round of the budget in ``overrides`` on the rows of ``full`` (a results table); where
+    the budget tracks its laws (``budget.track_laws``, ``budget.stop_when``), the laws as the launch fits them on
+    the rows of the rounds so far, after each round (``round``, ``committed_s``: predicted seconds committed,
+    ``fits``), which also stop spending on a resource as the launch would; and the budget."""
     cfg, study, manifest, planned_s = sweep_of(full, overrides)
-    rows = {row["task_id"]: row for row in full.filter(pc.equal(full["status"], "ok")).to_pylist()}
+    ok = full.filter(pc.equal(full["status"], "ok"))
+    rows = {row["task_id"]: row for row in ok.to_pylist()}
     budget = budget_of(cfg, planned_s(list(manifest)))
     if budget is None:
         raise ConfigError("give a budget below the whole sweep: budget.share=<0..1) or budget.core_hours=<B>")
+    columns = {name: spec["column"] for name, spec in cfg.nsl.resources.items()}
     tasks = list(manifest.values())
     rounds = Rounds(tasks, study, first_round_levels(tasks, study, budget, planned_s), budget.levels_per_round)
     decisions: list[dict] = []
-    for number in range(1, rounds.count + 1):
-        decisions += next_round(number, rounds, manifest, decisions, rows, planned_s, budget)
-    return decisions
+    states: list[dict] = []
+    for number in range(1, rounds.count + 2):  # and the laws after the last round
+        stopped: set[str] = set()
+        if number > 1 and budget.track_laws:
+            ran = pa.array(sorted(d["task_id"] for d in decisions if d["run"]), pa.string())
+            fits = fit_sweep(ok.filter(pc.is_in(ok["task_id"], value_set=ran)), cfg.nsl, None, backtest=False)
+            states.append({"round": number - 1, "committed_s": sum(d["cost_s"] for d in decisions), "fits": fits})
+            stopped = stopped_resources(law_state(fits), budget.stop_when, columns)
+        if number <= rounds.count:
+            decisions += next_round(number, rounds, manifest, decisions, rows, planned_s, budget, stopped)
+    return decisions, states, budget
+
+
+def decided_lines(states: Sequence[dict], full_fits: Sequence[dict], budget: Budget) -> list[str]:
+    """Per law of the full fits, the round after which the budgeted law is first decided against it
+    (analysis/widths.py ``decided``) and the share of the planner's prediction for the whole sweep committed by
+    then, whether it still is after the last round, and its widths then; a line per resource above."""
+    laws = []
+    for full in full_fits:
+        key = nsl_key(full)
+        after = [next((fit for fit in state["fits"] if nsl_key(fit) == key), None) for state in states]
+        first = next((i for i, fit in enumerate(after) if decided(fit, full)), None)
+        widths = widths_of(after[-1]) if after and after[-1] else dict.fromkeys(WIDTHS, math.inf)
+        laws.append({"key": key, "resource": full["resource"],
+                     "round": states[first]["round"] if first is not None else None,
+                     "share": states[first]["committed_s"] / budget.full_seconds if first is not None else None,
+                     "end": bool(after) and decided(after[-1], full), "widths": widths})
+    spent = states[-1]["committed_s"] / budget.full_seconds if states else 0.0
+    lines = [f"laws decided (last slope, breaks, L at 10x the full sweep's largest resource inside the full fit's "
+             f"90% intervals); the rule committed {spent:.1%} of the prediction in all\n",
+             "| resource | decided at some round | still after the last | share of the prediction when first decided: "
+             "median (range) |", "|---|---:|---:|---|"]
+    for resource in dict.fromkeys(law["resource"] for law in laws):
+        own = [law for law in laws if law["resource"] == resource]
+        shares = sorted(law["share"] for law in own if law["share"] is not None)
+        spread = (f"{shares[len(shares) // 2]:.1%} ({shares[0]:.1%}-{shares[-1]:.1%})" if shares else "-")
+        lines.append(f"| {resource} | {len(shares)} of {len(own)} | {sum(law['end'] for law in own)} | {spread} |")
+    lines += ["\n| law | first decided after round | share then | still after the last | widths after the last: "
+              "last slope, breaks, prediction |", "|---|---:|---:|---|---|"]
+    for law in laws:
+        w, share = law["widths"], "-" if law["share"] is None else format(law["share"], ".1%")
+        lines.append(f"| {law['key']} | {law['round'] or '-'} | {share} | {'yes' if law['end'] else 'no'} "
+                     f"| {w['last_slope']:.3g}, {w['breaks']:.3g}x, {w['prediction']:.3g}x |")
+    return lines
 
 
 def oracle_laws(full: pa.Table, full_fits: Sequence[dict], nsl: dict, manifest: dict[str, dict]) -> list[OracleLaw]:
@@ -146,7 +203,7 @@ def main() -> None:
     if args.oracle:
         print("\n".join(oracle_lines(full, full_fits, nsl, args.overrides)))
         return
-    decisions = replay(full, args.overrides)
+    decisions, states, budget = replay(full, args.overrides)
     ran = sorted(d["task_id"] for d in decisions if d["run"])
     budgeted = full.filter(pc.is_in(full["task_id"], value_set=pa.array(ran, pa.string())))
     seconds = task_seconds(full)
@@ -158,6 +215,8 @@ def main() -> None:
     budgeted_fits = [] if args.no_fits else fit_sweep(budgeted, fit_cfg.nsl, None)
     laws = law_ratios(full, full_fits, budgeted, budgeted_fits, nsl)
     print("\n".join(summary_rows(laws, args.goal, fits=not args.no_fits)))
+    if states:
+        print("\n" + "\n".join(decided_lines(states, full_fits, budget)))
     if args.laws:
         print("\n" + "\n".join(law_rows(laws, args.goal)))
 

@@ -22,9 +22,12 @@ import pyarrow.compute as pc
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
+from nsl_hpc.analysis.widths import track_laws
+from nsl_hpc.config import plain
 from nsl_hpc.config.launchers import SlurmLauncher, launcher_from
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies.base import model_of
+from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.budget import (
     Budget,
     Rounds,
@@ -189,8 +192,11 @@ def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, o
             continue
         if decided == rounds.count:
             print("budget: every round has run")
+            if not layout.law_state_path(sweep_dir, decided).exists():
+                track_laws(sweep_dir, decided, manifest, plain(cfg.nsl), budget)
             return worst
-        decide_next_round(sweep_dir, decided + 1, rounds, manifest, planned_s, budget)
+        stopped = track_laws(sweep_dir, decided, manifest, plain(cfg.nsl), budget)
+        decide_next_round(sweep_dir, decided + 1, rounds, manifest, planned_s, budget, stopped)
 
 
 def only(prepared: PreparedSweep, task_ids: set[str]) -> PreparedSweep:

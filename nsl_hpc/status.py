@@ -7,7 +7,9 @@ bar with an ETA, and the failed tasks with the last lines of their logs.
 `missing` tasks have no row, no failure record and no active job (cancelled, lost, never submitted);
 `corrupt` ones a file where their row belongs that is no valid row (truncated, overwritten):
 `python -m nsl_hpc.resubmit sweep_dir=<dir>` runs them again, with the failed ones. In a budgeted sweep,
-`skipped` tasks were decided not to run and `waiting` ones wait for their round (launch decides it). Groups
+`skipped` tasks were decided not to run and `waiting` ones wait for their round (launch decides it); with
+`budget.track_laws`, how wide the laws' 90% intervals were on the rows of the rounds so far, and which resource
+narrowed most per core-hour in the latest round. Groups
 with a training checkpoint are listed with their progress and how often they were resumed (a time cap's chain,
 a preemption, a requeue, a resubmit after a crash): `running (resumed 2 times)`.
 """
@@ -15,9 +17,11 @@ a preemption, a requeue, a resubmit after a crash): `running (resumed 2 times)`.
 import time
 from collections import Counter
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
+from nsl_hpc.analysis.widths import describe_law_records, law_records
+from nsl_hpc.sweep.budget import stop_when_of
 from nsl_hpc.sweep.decisions import describe_rounds, read_decisions, round_job_queued
 from nsl_hpc.sweep.groups import held_locks, saved_groups
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest, require_sweep
@@ -106,6 +110,9 @@ def main(cfg: DictConfig) -> int:
             print(note, flush=True)
         if decisions := read_decisions(cfg.sweep_dir):
             print(f"budget: {describe_rounds(decisions)}", flush=True)
+            stop_when = stop_when_of(OmegaConf.select(launch, "budget.stop_when", default=None))
+            for line in describe_law_records(law_records(cfg.sweep_dir), stop_when):
+                print(line, flush=True)
         active = state.counts()["running"] + state.counts()["pending"] + (
             state.counts()["waiting"] if round_job_queued(cfg.sweep_dir) else 0)  # the next round comes
         unsettled = state.counts()["missing"] + state.counts()["waiting"]

@@ -34,10 +34,12 @@ BY_ID = {task["task_id"]: task for task in TASKS}
 ERRORS = {"s0w2e2": 0.10, "s1w2e2": 0.50, "s0w4e2": 0.12, "s1w4e2": 0.90}  # round 1's outcomes
 
 
-def round_two(tasks: list[dict], seconds: float = 1e9, rows_order: list[str] | None = None) -> list[dict]:
+def round_two(tasks: list[dict], seconds: float = 1e9, rows_order: list[str] | None = None,
+              stopped: tuple[str, ...] = ()) -> list[dict]:
     rounds = Rounds(tasks, STUDY, 1, 1)
     rows = {task_id: {**BY_ID[task_id], "nmae": ERRORS[task_id]} for task_id in rows_order or list(ERRORS)}
-    return decide_round(2, rounds, BY_ID, set(ERRORS), rows, lambda ids: 10.0 * len(ids), seconds, budget(seconds))
+    return decide_round(2, rounds, BY_ID, set(ERRORS), rows, lambda ids: 10.0 * len(ids), seconds, budget(seconds),
+                        stopped)
 
 
 def test_rounds_follow_the_cost_axis_and_each_task_continues_its_line():
@@ -118,7 +120,8 @@ def test_a_rounds_decisions_depend_only_on_the_rows_not_on_the_order_of_tasks_or
 # 12 tasks: spring, unstructured, 2 seeds, epochs 4 / 16 / 64 (a round each), 2 width tiers; in-process (the
 # local launcher's rounds are the same loop; tests/cluster has them on SLURM).
 BUDGETED = ["+sweep=demo", "sweep.grid.system=[spring]", "sweep.grid.arch=[unstructured]", "sweep.grid.data_tier=[2]",
-            "launcher=debug", "budget.first_levels=1", "budget.levels_per_round=1"]
+            "launcher=debug", "budget.first_levels=1", "budget.levels_per_round=1",
+            "nsl.bootstrap=20", "nsl.max_breaks=1", "nsl.starts=6"]  # the laws tracked before each round: cheaper fits
 
 
 @pytest.mark.e2e
@@ -133,7 +136,12 @@ def test_a_budgeted_sweep_runs_in_rounds_skips_the_rest_and_continues_where_it_s
     ran = {d["task_id"] for d in decisions if d["run"]}
     assert 4 < len(ran) < 12  # round 1's 4 tasks and some of the later rounds'
     assert {path.stem for path in row_files(sweep_dir)} == ran
-    assert "budget: 3 rounds decided" in nsl("status", f"sweep_dir={sweep_dir}").stdout
+    status = nsl("status", f"sweep_dir={sweep_dir}").stdout
+    assert "budget: 3 rounds decided" in status
+    assert sorted(path.name for path in (sweep_dir / "budget").glob("laws-*.json")) == [
+        "laws-001.json", "laws-002.json", "laws-003.json"]  # the laws before rounds 2 and 3, and after the last
+    assert f"laws on the {len(ran)} rows of rounds 1-3" in status
+    assert all(f"  {resource}: " in status for resource in ("compute", "data", "model"))
     merged = nsl("merge", f"sweep_dir={sweep_dir}", "compact=false")  # the rows stay files: one is removed below
     assert f"{12 - len(ran)} tasks skipped by the budget" in merged.stdout and "0 of 12 tasks" in merged.stdout
 

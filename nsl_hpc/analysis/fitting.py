@@ -117,11 +117,12 @@ def pair_outcomes(results: pa.Table, system: str, arch: str) -> pa.Table:
 
 
 def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, nsl: dict[str, Any], symbol: str,
-            rehearse: Mapping[str, Any] | None = None) -> dict[str, Any]:
+            rehearse: Mapping[str, Any] | None = None, backtest: bool = True) -> dict[str, Any]:
     """One NSL's row (KEY_COLUMNS, outcomes, excluded, b, parameters, margin, formula, backtest, bootstrap
     intervals and thetas, the published law's paper_* columns, a rehearsal's planted_* ones; error on failure).
     ``excluded``: merged tasks left out (not ok, or non-finite / non-positive values); ``rehearse``: a
-    rehearsal's settings (its planted laws), None for a real sweep."""
+    rehearsal's settings (its planted laws), None for a real sweep; ``backtest``: false leaves the backtest out (a
+    second fit)."""
     settings = FitSettings.from_mapping(nsl)
     options = {"breaks": nsl["breaks"], "max_breaks": nsl["max_breaks"], "K": nsl["K"], "settings": settings}
     row: dict[str, Any] = {**key, "outcomes": len(r), "excluded": excluded, "error": None,
@@ -149,11 +150,13 @@ def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, ns
     row.update(comparison(tuple(key.values()), r, e, nsl["K"]))
     if rehearse is not None:
         row.update(planted_comparison(rehearse, key, row, r, e, nsl["K"]))
+    if not backtest:
+        return row
     log_r = np.log(r)
     cut = float(np.exp(log_r.min() + nsl["backtest_cut"] * (log_r.max() - log_r.min())))
     try:
-        backtest = backtest_broken_law(r, e, cut, **options | {"breaks": fit.b})
-        row.update(backtest_cut=cut, backtest_margin=backtest.margin, backtest_final_ratio=backtest.final_ratio)
+        held_out = backtest_broken_law(r, e, cut, **options | {"breaks": fit.b})
+        row.update(backtest_cut=cut, backtest_margin=held_out.margin, backtest_final_ratio=held_out.final_ratio)
     except NSLFitError:
         row.update(backtest_cut=cut, backtest_margin=None, backtest_final_ratio=None)
     return row
@@ -203,10 +206,11 @@ def fit_from_row(row: Mapping[str, Any]) -> NSLFit:
                   {int(b): m for b, m in json.loads(row["margins_by_b"]).items()}, row["objective"])
 
 
-def fit_sweep(results: pa.Table, nsl: DictConfig, workers: int | None, rehearse: Mapping[str, Any] | None = None
-              ) -> list[dict[str, Any]]:
+def fit_sweep(results: pa.Table, nsl: DictConfig | Mapping[str, Any], workers: int | None,
+              rehearse: Mapping[str, Any] | None = None, backtest: bool = True) -> list[dict[str, Any]]:
     """Every NSL of the sweep, fitted in parallel processes, in (system, arch, resource, metric) order
-    (``rehearse``: a rehearsal's settings, whose planted laws are set beside the fitted ones)."""
+    (``rehearse``: a rehearsal's settings, whose planted laws are set beside the fitted ones; ``backtest``: see
+    ``fit_one``)."""
     settings = plain(nsl)
     jobs = []
     present = set(zip(results["system"].to_pylist(), results["arch"].to_pylist(), strict=True))
@@ -221,7 +225,7 @@ def fit_sweep(results: pa.Table, nsl: DictConfig, workers: int | None, rehearse:
                     r = subset[spec["column"]].to_numpy().astype(float)[keep]
                     e = subset[metric].to_numpy().astype(float)[keep]
                     key = {"system": system, "arch": arch, "resource": resource, "metric": metric}
-                    jobs.append((key, r, e, int((~keep).sum()), settings, spec["symbol"], rehearse))
+                    jobs.append((key, r, e, int((~keep).sum()), settings, spec["symbol"], rehearse, backtest))
     with ProcessPoolExecutor(workers or os.cpu_count()) as pool:
         futures = [pool.submit(fit_one, *job) for job in jobs]
         return [future.result() for future in tqdm(futures, desc="NSL fits", unit="fit", disable=None)]

@@ -16,7 +16,11 @@ as long as the planner's prediction of them (``cost.*``: their lockstep groups' 
 runs them) fits in the round's allowance: with ``budget.spread`` its equal share of what the budget has left for
 it and the rounds after it (so the long rounds are reached), else all that is left; a candidate that does not
 fit is passed over for later ones that do (``affordable``); the others are skipped, each with its reason.
-``budget.share`` is a share of the planner's prediction for the whole sweep. Every decision depends only on the rows
+``budget.share`` is a share of the planner's prediction for the whole sweep. With ``budget.track_laws`` (or
+``budget.stop_when``) every law is fitted with its bootstrap intervals on the rows before each later round
+(analysis/widths.py; status shows their widths); a resource whose laws are all as narrow as ``budget.stop_when``
+asks runs no more candidates for its own sake (and none at all once every resource's are, or, with
+``each_resource: false``, once every law is). Every decision depends only on the rows
 of earlier rounds; a round's decisions are written (``budget/round-<r>.parquet``) before its tasks run, so a launch
 that stops anywhere continues with the same decisions.
 """
@@ -39,6 +43,56 @@ from nsl_hpc.sweep.decisions import decided_structure, describe_rounds, read_dec
 from nsl_hpc.sweep.plan import packing_for, sweep_groups
 from nsl_hpc.sweep.rows import read_task_rows
 
+WIDTHS = ("last_slope", "breaks", "prediction")
+
+
+@dataclass(frozen=True)
+class StopWhen:
+    """The widths (``WIDTHS``; None: not asked) at which a law is narrow enough, and whether each resource stops on
+    its own laws (else the sweep stops once every law is narrow)."""
+
+    last_slope: float | None
+    breaks: float | None
+    prediction: float | None
+    each_resource: bool
+
+    def narrow(self, widths: Mapping[str, float]) -> bool:
+        """Whether every width asked for is at most its limit (a law without intervals never is)."""
+        return all(widths[name] <= limit for name in WIDTHS if (limit := getattr(self, name)) is not None)
+
+
+def stop_when_of(settings: Mapping[str, Any] | None) -> StopWhen | None:
+    """``budget.stop_when`` checked (None: the budget is spent whatever the laws' widths)."""
+    if settings is None:
+        return None
+    settings = plain(settings)
+    unknown = set(settings) - {*WIDTHS, "each_resource"}
+    if unknown:
+        raise ConfigError(f"budget.stop_when has no key {sorted(unknown)[0]!r}: it takes {', '.join(WIDTHS)} and "
+                          "each_resource")
+    limits = {name: settings.get(name) for name in WIDTHS}
+    if all(limit is None for limit in limits.values()):
+        raise ConfigError("budget.stop_when sets no width: give last_slope, breaks or prediction (or stop_when=null)")
+    for name, limit in limits.items():
+        if limit is not None:
+            require_number(f"budget.stop_when.{name}", limit, 0 if name == "last_slope" else 1, low_open=True)
+    each = settings.get("each_resource", True)
+    if not isinstance(each, bool):
+        raise ConfigError(f"budget.stop_when.each_resource={each!r}: true or false")
+    return StopWhen(**limits, each_resource=each)
+
+
+def stopped_resources(state: Sequence[Mapping[str, Any]], stop_when: StopWhen | None,
+                      resources: Mapping[str, str]) -> set[str]:
+    """The result columns (of ``resources``: name -> column) whose laws in ``state`` are all narrow enough by
+    ``stop_when``: each resource on its own, or every one once all laws are (``each_resource: false``)."""
+    if stop_when is None or not state:
+        return set()
+    narrow = {name: all(stop_when.narrow(law) for law in state if law["resource"] == name) for name in resources}
+    if stop_when.each_resource:
+        return {resources[name] for name, done in narrow.items() if done}
+    return set(resources.values()) if all(narrow.values()) else set()
+
 
 @dataclass(frozen=True)
 class Budget:
@@ -54,6 +108,8 @@ class Budget:
     resources: tuple[str, ...]  # the result columns of the fits' resources (flops, train_points, params)
     metrics: tuple[str, ...]  # and their metrics (nmae, nmse)
     spread: bool = True  # a later round spends at most its equal share of what is left (else all it can)
+    stop_when: StopWhen | None = None  # the laws' widths at which spending on a resource stops
+    track_laws: bool = False  # fit the laws with their intervals before each round (status shows their widths)
 
 
 def budget_requested(launch: DictConfig) -> bool:
@@ -90,10 +146,13 @@ def budget_of(launch: DictConfig, full_seconds: float) -> Budget | None:
     seconds = 3600 * float(hours) if hours is not None else float(share or 0) * full_seconds
     if seconds >= full_seconds:
         return None
+    if not isinstance(settings["track_laws"], bool):
+        raise ConfigError(f"budget.track_laws={settings['track_laws']!r}: true or false")
+    stop_when = stop_when_of(settings["stop_when"])
     resources, metrics = fitted_columns(plain(launch.nsl))
     return Budget(seconds, full_seconds, settings["first_levels"], settings["first_share"],
                   settings["levels_per_round"], settings["margin"], tuple(resources), tuple(metrics),
-                  settings["spread"])
+                  settings["spread"], stop_when, settings["track_laws"] or stop_when is not None)
 
 
 def planned_seconds(tasks: Mapping[str, Mapping[str, Any]], launch: DictConfig) -> Callable[[Sequence[str]], float]:
@@ -257,10 +316,11 @@ def affordable(ranked: Sequence[str], planned_s: Callable[[Sequence[str]], float
 
 def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, Any]], ran: Collection[str],
                  rows: Mapping[str, Mapping[str, Any]], planned_s: Callable[[Sequence[str]], float], left_s: float,
-                 budget: Budget) -> list[dict[str, Any]]:
+                 budget: Budget, stopped: Collection[str] = ()) -> list[dict[str, Any]]:
     """The decisions (DECISION_SCHEMA) of round ``number`` (``ran``: the tasks earlier rounds ran; ``rows``: the
     rows of those that finished): round 1 runs all its tasks; a later round the
-    promising ones (``promise`` below 1), most promising first, those that ``affordable`` fits in ``left_s`` (by
+    promising ones (``promise`` below 1 on a resource not in ``stopped``, the result columns whose laws are narrow
+    enough), most promising first, those that ``affordable`` fits in ``left_s`` (by
     ``planned_s`` of their ids: lockstep groups and all). ``cost_s``: a run task's share of the round's
     predicted seconds."""
     candidates = sorted(rounds.tasks_of(number))
@@ -268,12 +328,14 @@ def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, A
     if number == 1:
         scored = [((0.0, 0.0), task_id, "") for task_id in candidates]
     envelopes = Envelopes(list(rows.values()), budget.resources, budget.metrics)
+    open_resources = [resource for resource in budget.resources if resource not in stopped]
     for task_id in candidates if number > 1 else ():
         ancestor = rounds.ancestor(task_id, ran)
         row = rows.get(ancestor) if ancestor is not None else None
-        value = (math.inf, math.inf) if row is None else promise(tasks[task_id], row, envelopes, budget.margin,
-                                                                 budget.resources, budget.metrics)
-        scored.append((value, task_id, "its ancestor did not finish" if row is None else "far above the envelope"))
+        value = (math.inf, math.inf) if row is None or not open_resources else promise(
+            tasks[task_id], row, envelopes, budget.margin, open_resources, budget.metrics)
+        scored.append((value, task_id, "its ancestor did not finish" if row is None
+                       else "laws narrow enough" if not open_resources else "far above the envelope"))
     scored.sort(key=lambda item: (item[0], item[1]))
     promising = [task_id for value, task_id, _ in scored if value[0] < 1]
     chosen = affordable(promising, planned_s, left_s)
@@ -319,24 +381,31 @@ def done_rows(sweep_dir: Path, task_ids: Sequence[str]) -> dict[str, dict[str, A
 
 def next_round(number: int, rounds: Rounds, manifest: Mapping[str, Mapping[str, Any]],
                decisions: Sequence[Mapping[str, Any]], rows: Mapping[str, Mapping[str, Any]],
-               planned_s: Callable[[Sequence[str]], float], budget: Budget) -> list[dict[str, Any]]:
+               planned_s: Callable[[Sequence[str]], float], budget: Budget, stopped: Collection[str] = ()
+               ) -> list[dict[str, Any]]:
     """The decisions of round ``number`` from those of the rounds before (``decisions``), the rows of their run
-    tasks that finished (``rows``, by task id) and what they left of the budget."""
+    tasks that finished (``rows``, by task id), what they left of the budget and the resources whose laws are
+    narrow enough (``stopped``, result columns: ``stopped_resources``)."""
     chosen = {d["task_id"] for d in decisions if d["run"]}
     rows = {task_id: {**manifest[task_id], **row} for task_id, row in rows.items() if task_id in chosen}
     left = budget.seconds - sum(d["cost_s"] for d in decisions)
     if budget.spread and number > 1:  # this round's equal share of what is left to it and the rounds after it
         left /= rounds.count - number + 1
-    return decide_round(number, rounds, manifest, chosen, rows, planned_s, left, budget)
+    return decide_round(number, rounds, manifest, chosen, rows, planned_s, left, budget, stopped)
+
+
+def ran_rows(sweep_dir: Path, decisions: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The rows (status ok) of the tasks that ``decisions`` ran, by task id."""
+    return done_rows(sweep_dir, sorted(d["task_id"] for d in decisions if d["run"]))
 
 
 def decide_next_round(sweep_dir: Path, number: int, rounds: Rounds, manifest: Mapping[str, Mapping[str, Any]],
-                      planned_s: Callable[[Sequence[str]], float], budget: Budget) -> None:
+                      planned_s: Callable[[Sequence[str]], float], budget: Budget, stopped: Collection[str] = ()
+                      ) -> None:
     """Decide round ``number`` from the rows of the rounds before (``next_round``) and write its decisions."""
     if decided_structure(sweep_dir) not in (None, rounds.structure):
         raise RunError(f"another launch decided round 1 of sweep_dir={str(sweep_dir)!r} with other rounds while "
                        "this one waited for the sweep: launch again")
     decisions = read_decisions(sweep_dir)
-    rows = done_rows(sweep_dir, sorted(d["task_id"] for d in decisions if d["run"]))
-    write_decisions(sweep_dir, number, next_round(number, rounds, manifest, decisions, rows, planned_s, budget),
-                    rounds.structure)
+    write_decisions(sweep_dir, number, next_round(number, rounds, manifest, decisions, ran_rows(sweep_dir, decisions),
+                                                  planned_s, budget, stopped), rounds.structure)

@@ -116,5 +116,10 @@ def round_decisions_path(sweep_dir: str | os.PathLike, number: int) -> Path:
     return Path(sweep_dir) / BUDGET / f"round-{number:03d}.parquet"
 
 
+def law_state_path(sweep_dir: str | os.PathLike, number: int) -> Path:
+    """The laws' widths on the rows of a budgeted sweep's rounds up to ``number`` (analysis/widths.py)."""
+    return Path(sweep_dir) / BUDGET / f"laws-{number:03d}.json"
+
+
 def round_job_path(sweep_dir: str | os.PathLike) -> Path:
     return Path(sweep_dir) / BUDGET / "round_job.json"

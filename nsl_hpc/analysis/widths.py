@@ -1,0 +1,139 @@
+"""How sure a sweep's laws are while its rows land, and when a budgeted sweep's law counts as decided.
+
+A law's widths are those of its bootstrap intervals (``nsl.bootstrap_level``, analysis/bootstrap.py):
+``last_slope``: high - low of its last slope (log-log slope units); ``breaks``: the largest high / low of its
+break positions (a factor; 1 without a break); ``prediction``: high / low of L at ten times its largest resource
+(a factor). ``budget.stop_when`` sets the widths at which a law is narrow enough: a budgeted sweep then stops
+spending on the resource whose laws all are (or, with ``each_resource: false``, once every law is).
+
+Against a full sweep (the replay's measurement, benchmarks/budget_replay.py ``--laws-decided``), a budgeted law is
+decided when it has the full law's number of breaks, and its last slope, its breaks and its value at ten times the
+full sweep's largest resource lie inside the full law's intervals.
+"""
+
+import json
+import math
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+
+from nsl_hpc.analysis.fitting import fit_from_row, fit_sweep, nsl_key
+from nsl_hpc.atomic import write_text
+from nsl_hpc.errors import damaged_file
+from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.budget import WIDTHS, Budget, StopWhen, ran_rows, stopped_resources
+from nsl_hpc.sweep.decisions import read_decisions
+
+
+def widths_of(row: Mapping[str, Any]) -> dict[str, float]:
+    """The widths (``WIDTHS``) of an nsl_fits row's intervals; inf where it has none (no fit, no bootstrap)."""
+    if row.get("error") or not row.get("bootstrap") or row.get("last_slope_lo") is None:
+        return dict.fromkeys(WIDTHS, math.inf)
+    breaks = [row[f"sigma_{i}_hi"] / row[f"sigma_{i}_lo"] for i in range(1, row["b"] + 1)]
+    return {"last_slope": row["last_slope_hi"] - row["last_slope_lo"], "breaks": max(breaks, default=1.0),
+            "prediction": row["L_at_10x_hi"] / row["L_at_10x_lo"]}
+
+
+def law_state(fits: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Per law of ``fits`` (nsl_fits rows with bootstrap intervals): its key, resource, outcomes, b, last slope,
+    ``error`` where it could not be fitted, and ``widths_of``."""
+    return [{"law": nsl_key(row), "resource": row["resource"], "outcomes": row["outcomes"], "b": row.get("b"),
+             "last_slope": row.get("last_slope"), "error": row.get("error"), **widths_of(row)} for row in fits]
+
+
+def decided(budgeted: Mapping[str, Any] | None, full: Mapping[str, Any]) -> bool:
+    """Whether a budgeted sweep's law (an nsl_fits row) is decided against the full sweep's law of the same key:
+    as many breaks, and last slope, breaks and L at ten times the full sweep's largest resource inside the full
+    law's intervals (a full law without intervals decides nothing)."""
+    if budgeted is None or budgeted.get("error") or full.get("error") or full.get("last_slope_lo") is None:
+        return False
+    if budgeted["b"] != full["b"] or not full["last_slope_lo"] <= budgeted["last_slope"] <= full["last_slope_hi"]:
+        return False
+    if not all(full[f"sigma_{i}_lo"] <= budgeted[f"sigma_{i}"] <= full[f"sigma_{i}_hi"]
+               for i in range(1, full["b"] + 1)):
+        return False
+    prediction = float(fit_from_row(budgeted).predict(10 * full["r_max"]))
+    return bool(full["L_at_10x_lo"] <= prediction <= full["L_at_10x_hi"])
+
+
+def describe_state(state: Sequence[Mapping[str, Any]], stop_when: StopWhen | None) -> list[str]:
+    """Lines for status: per resource, how many of its laws could be fitted with intervals, the median and widest
+    of their 90% widths, and how many are narrow enough by ``stop_when``."""
+    lines = []
+    for resource in dict.fromkeys(law["resource"] for law in state):
+        laws = [law for law in state if law["resource"] == resource]
+        fitted = [law for law in laws if math.isfinite(law["prediction"])]
+        line = f"  {resource}: {len(fitted)} of {len(laws)} laws with intervals"
+        for name, unit in (("last_slope", ""), ("prediction", "x"), ("breaks", "x")) if fitted else ():
+            values = sorted(law[name] for law in fitted)
+            line += (f"{',' if name != 'last_slope' else ':'} {name.replace('_', ' ')} "
+                     f"{values[len(values) // 2]:.3g}{unit} (widest {values[-1]:.3g}{unit})")
+        if stop_when is not None:
+            line += f"; {sum(stop_when.narrow(law) for law in laws)} narrow enough (budget.stop_when)"
+        lines.append(line)
+    return lines
+
+
+def track_laws(sweep_dir: Path, number: int, manifest: Mapping[str, Mapping[str, Any]], nsl: Mapping[str, Any],
+               budget: Budget) -> set[str]:
+    """Fit the laws on the rows of a budgeted sweep's rounds up to ``number``, record their state
+    (``layout.law_state_path``) and return the result columns whose laws are narrow enough by ``budget.stop_when``
+    (``stopped_resources``; none without ``budget.track_laws`` or before round 1, ``number`` 0)."""
+    if not budget.track_laws or number == 0:
+        return set()
+    decisions = read_decisions(sweep_dir)
+    rows = [{**manifest[task_id], **row} for task_id, row in ran_rows(sweep_dir, decisions).items()]
+    fits = fit_sweep(pa.Table.from_pylist(rows), nsl, len(os.sched_getaffinity(0)), backtest=False) if rows else []
+    state = law_state(fits)
+    committed = sum(d["cost_s"] for d in decisions if d["run"]) / 3600
+    record = {"round": number, "rows": len(rows), "committed_core_hours": committed, "laws": state}
+    write_text(json.dumps(record, indent=1, default=float), layout.law_state_path(sweep_dir, number))
+    columns = {name: spec["column"] for name, spec in nsl["resources"].items()}
+    return stopped_resources(state, budget.stop_when, columns)
+
+
+def law_records(sweep_dir: Path) -> list[dict[str, Any]]:
+    """The recorded law states of a budgeted sweep (``track_laws``), in round order (a damaged one refused)."""
+    records = []
+    for path in sorted((Path(sweep_dir) / layout.BUDGET).glob("laws-*.json")):
+        try:
+            records.append(json.loads(path.read_text()))
+        except (OSError, ValueError) as error:
+            raise damaged_file(path, error) from None
+    return records
+
+
+def narrowing(before: Mapping[str, Any], after: Mapping[str, Any]) -> dict[str, float]:
+    """Per resource, how much its laws' intervals narrowed per predicted core-hour between two law states: the
+    mean over its laws of ln(width before / width after) of the last slope and the prediction, over the
+    core-hours committed in between (nan where nothing was committed or no width is finite in both)."""
+    hours = after["committed_core_hours"] - before["committed_core_hours"]
+    earlier = {law["law"]: law for law in before["laws"]}
+    gains: dict[str, list[float]] = {}
+    for law in after["laws"]:
+        for name in ("last_slope", "prediction"):
+            old, new = earlier.get(law["law"], {}).get(name, math.inf), law[name]
+            if math.isfinite(old) and math.isfinite(new) and old > 0 and new > 0:
+                gains.setdefault(law["resource"], []).append(math.log(old / new))
+    return {resource: float(np.mean(values)) / hours if hours > 0 else math.nan for resource, values in gains.items()}
+
+
+def describe_law_records(records: Sequence[Mapping[str, Any]], stop_when: StopWhen | None) -> list[str]:
+    """status's lines on a budgeted sweep's laws: their widths after the latest round (``describe_state``) and the
+    resource whose laws narrowed most per core-hour in it."""
+    if not records:
+        return []
+    latest = records[-1]
+    lines = [f"laws on the {latest['rows']:,} rows of rounds 1-{latest['round']} "
+             f"({latest['committed_core_hours']:,.3g} predicted core-hours), 90% interval widths:",
+             *describe_state(latest["laws"], stop_when)]
+    if len(records) > 1 and (rates := {k: v for k, v in narrowing(records[-2], latest).items() if math.isfinite(v)}):
+        best = max(rates, key=lambda resource: rates[resource])
+        lines.append(f"  narrowed most per core-hour in round {latest['round']}: {best} "
+                     f"({', '.join(f'{k} {v:.3g}' for k, v in sorted(rates.items()))}: mean ln(width before / after) "
+                     "per predicted core-hour)")
+    return lines
