@@ -39,17 +39,9 @@ from nsl_hpc.analysis.fitting import fit_sweep, fittable, nsl_key, pair_outcomes
 from nsl_hpc.analysis.widths import decided, law_state, widths_of
 from nsl_hpc.config import compose_config, plain
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.sweep.budget import (
-    WIDTHS,
-    Budget,
-    Rounds,
-    budget_of,
-    first_round_levels,
-    next_round,
-    planned_seconds,
-    stopped_resources,
-)
+from nsl_hpc.sweep.budget import WIDTHS, Budget, budget_of, planned_seconds, stopped_resources
 from nsl_hpc.sweep.prepare import build_sweep
+from nsl_hpc.sweep.rounds import Rounds, first_round_levels, next_round
 
 OracleLaw = tuple[list[str], np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # ids, resources, errors, grid, full
 

@@ -9,8 +9,9 @@ import pytest
 from nsl_hpc.config import compose_config
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import budget as budget_module
-from nsl_hpc.sweep.budget import Budget, Rounds, decide_round, first_round_levels, planned_seconds
+from nsl_hpc.sweep.budget import Budget, decide_round, planned_seconds
 from nsl_hpc.sweep.decisions import read_decisions
+from nsl_hpc.sweep.rounds import Rounds, first_round_levels
 from tests.sweeps import nsl, row_files
 
 STUDY = study_named("input_state")
@@ -36,10 +37,14 @@ ERRORS = {"s0w2e2": 0.10, "s1w2e2": 0.50, "s0w4e2": 0.12, "s1w4e2": 0.90}  # rou
 
 def round_two(tasks: list[dict], seconds: float = 1e9, rows_order: list[str] | None = None,
               stopped: tuple[str, ...] = ()) -> list[dict]:
-    rounds = Rounds(tasks, STUDY, 1, 1)
     rows = {task_id: {**BY_ID[task_id], "nmae": ERRORS[task_id]} for task_id in rows_order or list(ERRORS)}
-    return decide_round(2, rounds, BY_ID, set(ERRORS), rows, lambda ids: 10.0 * len(ids), seconds, budget(seconds),
-                        stopped)
+    return decide_round(2, ancestors(Rounds(tasks, STUDY, 1, 1), 2, set(ERRORS)), BY_ID, rows,
+                        lambda ids: 10.0 * len(ids), seconds, budget(seconds), stopped)
+
+
+def ancestors(rounds: Rounds, number: int, ran: set[str]) -> dict[str, str | None]:
+    """Each task of round ``number`` -> its ancestor among ``ran``, as the rounds give it to the rule."""
+    return {task_id: rounds.ancestor(task_id, ran) for task_id in rounds.tasks_of(number)}
 
 
 def test_rounds_follow_the_cost_axis_and_each_task_continues_its_line():
@@ -78,8 +83,8 @@ def test_a_candidate_that_does_not_fit_is_passed_over_for_a_cheaper_one_behind_i
 
     rounds = Rounds(TASKS, STUDY, 1, 1)
     rows = {task_id: {**BY_ID[task_id], "nmae": error} for task_id, error in ERRORS.items()}
-    decisions = {d["task_id"]: d for d in decide_round(2, rounds, BY_ID, set(ERRORS), rows, planned, 15.0,
-                                                      budget(15.0))}
+    decisions = {d["task_id"]: d for d in decide_round(2, ancestors(rounds, 2, set(ERRORS)), BY_ID, rows, planned,
+                                                      15.0, budget(15.0))}
     assert [t for t, d in decisions.items() if d["run"]] == ["s0w4e4"] and decisions["s0w4e4"]["cost_s"] == 10.0
     assert decisions["s0w2e4"]["reason"] == "budget spent"
 
@@ -95,8 +100,8 @@ def test_of_equally_promising_tasks_the_one_nearer_more_envelopes_runs_first():
     tasks = [task("z", 4, 2, 10), task("z", 4, 4, 10), task("b", 2, 2, 5), task("b", 2, 4, 5)]
     by_id = {t["task_id"]: t for t in tasks}
     rows = {"z2": {**by_id["z2"], "nmae": 0.1}, "b2": {**by_id["b2"], "nmae": 0.2}}
-    decided = decide_round(2, Rounds(tasks, STUDY, 1, 1), by_id, set(rows), rows, lambda ids: 10.0 * len(ids), 15.0,
-                           budget(15.0))
+    decided = decide_round(2, ancestors(Rounds(tasks, STUDY, 1, 1), 2, set(rows)), by_id, rows,
+                           lambda ids: 10.0 * len(ids), 15.0, budget(15.0))
     assert [d["task_id"] for d in decided if d["run"]] == ["z4"]
     assert {d["task_id"]: d["promise"] for d in decided} == {"z4": 0.5, "b4": 0.5}
 

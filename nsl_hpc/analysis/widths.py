@@ -25,8 +25,7 @@ from nsl_hpc.analysis.fitting import fit_from_row, fit_sweep, nsl_key
 from nsl_hpc.atomic import write_text
 from nsl_hpc.errors import damaged_file
 from nsl_hpc.sweep import layout
-from nsl_hpc.sweep.budget import WIDTHS, Budget, StopWhen, ran_rows, stopped_resources
-from nsl_hpc.sweep.decisions import read_decisions
+from nsl_hpc.sweep.budget import WIDTHS, StopWhen, stopped_resources
 
 
 def widths_of(row: Mapping[str, Any]) -> dict[str, float]:
@@ -78,22 +77,18 @@ def describe_state(state: Sequence[Mapping[str, Any]], stop_when: StopWhen | Non
     return lines
 
 
-def track_laws(sweep_dir: Path, number: int, manifest: Mapping[str, Mapping[str, Any]], nsl: Mapping[str, Any],
-               budget: Budget) -> set[str]:
-    """Fit the laws on the rows of a budgeted sweep's rounds up to ``number``, record their state
-    (``layout.law_state_path``) and return the result columns whose laws are narrow enough by ``budget.stop_when``
-    (``stopped_resources``; none without ``budget.track_laws`` or before round 1, ``number`` 0)."""
-    if not budget.track_laws or number == 0:
-        return set()
-    decisions = read_decisions(sweep_dir)
-    rows = [{**manifest[task_id], **row} for task_id, row in ran_rows(sweep_dir, decisions).items()]
-    fits = fit_sweep(pa.Table.from_pylist(rows), nsl, len(os.sched_getaffinity(0)), backtest=False) if rows else []
+def track_laws(sweep_dir: Path, number: int, rows: Sequence[Mapping[str, Any]], committed_core_hours: float,
+               nsl: Mapping[str, Any], stop_when: StopWhen | None) -> set[str]:
+    """Fit the laws on ``rows`` (a budgeted sweep's rows of its rounds up to ``number``, manifest columns with
+    each), record their state (``layout.law_state_path``) and return the result columns whose laws are narrow
+    enough by ``stop_when`` (``stopped_resources``)."""
+    table = pa.Table.from_pylist(list(rows))
+    fits = fit_sweep(table, nsl, len(os.sched_getaffinity(0)), backtest=False) if rows else []
     state = law_state(fits)
-    committed = sum(d["cost_s"] for d in decisions if d["run"]) / 3600
-    record = {"round": number, "rows": len(rows), "committed_core_hours": committed, "laws": state}
+    record = {"round": number, "rows": len(rows), "committed_core_hours": committed_core_hours, "laws": state}
     write_text(json.dumps(record, indent=1, default=float), layout.law_state_path(sweep_dir, number))
     columns = {name: spec["column"] for name, spec in nsl["resources"].items()}
-    return stopped_resources(state, budget.stop_when, columns)
+    return stopped_resources(state, stop_when, columns)
 
 
 def law_records(sweep_dir: Path) -> list[dict[str, Any]]:

@@ -1,5 +1,6 @@
-"""Budgeted sweeps: which tasks of a sweep run, in rounds along the study's cost axis (input-state: epochs;
-input-output: iter_multiplier), so that a budget is spent where the lower envelopes are decided.
+"""Budgeted sweeps: the budget, and the rule that decides which tasks of each round run (the rounds, along the
+study's cost axis, input-state: epochs, input-output: iter_multiplier, are nsl_hpc/sweep/rounds.py), so that a
+budget is spent where the lower envelopes are decided.
 
 The rule. The grid's values of the cost axis are levels (2, 4, ..., 16384 epochs: 14 levels). Round 1 runs every
 task at the cheapest levels: as many as the planner predicts within ``budget.first_share`` of the budget, at most
@@ -30,18 +31,15 @@ import math
 from collections import defaultdict
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.config import plain
-from nsl_hpc.errors import ConfigError, RunError, require_number, require_positive_int
-from nsl_hpc.studies.base import Study
-from nsl_hpc.sweep.decisions import decided_structure, describe_rounds, read_decisions, write_decisions
+from nsl_hpc.errors import ConfigError, require_number, require_positive_int
+from nsl_hpc.sweep.decisions import describe_rounds
 from nsl_hpc.sweep.plan import packing_for, sweep_groups
-from nsl_hpc.sweep.rows import read_task_rows
 
 WIDTHS = ("last_slope", "breaks", "prediction")
 
@@ -168,64 +166,6 @@ def planned_seconds(tasks: Mapping[str, Mapping[str, Any]], launch: DictConfig) 
     return lambda task_ids: seconds_of(frozenset(task_ids))
 
 
-def round_of_level(level: int, first_levels: int, levels_per_round: int) -> int:
-    """The round (1, 2, ...) that runs the tasks at ``level`` (0: the cheapest value of the cost axis)."""
-    return 1 if level < first_levels else 2 + (level - first_levels) // levels_per_round
-
-
-def levels_of(tasks: Sequence[Mapping[str, Any]], study: Study) -> dict[Any, int]:
-    """Each value of the study's cost axis among ``tasks`` -> its level (0: the cheapest)."""
-    return {value: index for index, value in enumerate(sorted({task[study.length_axis] for task in tasks}))}
-
-
-def first_round_levels(tasks: Sequence[Mapping[str, Any]], study: Study, budget: Budget,
-                       planned_s: Callable[[Sequence[str]], float]) -> int:
-    """How many of the cheapest levels round 1 runs: the most, up to ``budget.first_levels``, whose tasks the
-    planner predicts within ``budget.first_share`` of the budget; at least one."""
-    level = levels_of(tasks, study)
-    count = 1
-    while count < min(budget.first_levels, len(level)) and planned_s(
-            [task["task_id"] for task in tasks if level[task[study.length_axis]] <= count]) \
-            <= budget.first_share * budget.seconds:
-        count += 1
-    return count
-
-
-class Rounds:
-    """The rounds of a sweep's tasks: round 1 the ``first_levels`` cheapest levels of the cost axis, each later
-    one the next ``levels_per_round``; each task's round and its line's tasks in earlier rounds (``earlier``:
-    latest first, none in round 1)."""
-
-    def __init__(self, tasks: Sequence[Mapping[str, Any]], study: Study, first_levels: int, levels_per_round: int):
-        self.first_levels, self.levels_per_round = first_levels, levels_per_round
-        axis = self.axis = study.length_axis
-        level = levels_of(tasks, study)
-        self.values = sorted(level)  # the cost axis's values, cheapest first
-        self.round = {task["task_id"]: round_of_level(level[task[axis]], first_levels, levels_per_round)
-                      for task in tasks}
-        self.count = max(self.round.values())
-        lines: dict[tuple, dict[int, str]] = defaultdict(dict)  # line -> level -> task id
-        for task in tasks:
-            lines[tuple(task[key] for key in study.axes if key != axis)][level[task[axis]]] = task["task_id"]
-        self.earlier: dict[str, list[str]] = {}
-        for line in lines.values():
-            for task_id in line.values():
-                self.earlier[task_id] = [line[lv] for lv in sorted(line, reverse=True)
-                                         if self.round[line[lv]] < self.round[task_id]]
-
-    def ancestor(self, task_id: str, ran: Collection[str]) -> str | None:
-        """The latest task of ``task_id``'s line that an earlier round ran (``ran``), if any."""
-        return next((earlier for earlier in self.earlier[task_id] if earlier in ran), None)
-
-    @property
-    def structure(self) -> tuple[int, int]:
-        """(levels of round 1, levels per later round): what the decisions record and a relaunch must match."""
-        return self.first_levels, self.levels_per_round
-
-    def tasks_of(self, number: int) -> list[str]:
-        return [task_id for task_id, r in self.round.items() if r == number]
-
-
 class Envelopes:
     """Lower envelopes (Definition 1, the step envelope) of the outcomes so far, per (system, arch), resource column
     and metric: ``at`` gives the smallest error of the outcomes whose resource is at most x."""
@@ -251,23 +191,6 @@ class Envelopes:
             return math.inf
         index = int(np.searchsorted(curve[0], x, side="right")) - 1
         return math.inf if index < 0 else float(curve[1][index])
-
-
-def describe_first_round(budget: Budget, rounds: Rounds, planned_s: Callable[[Sequence[str]], float]) -> str:
-    """A line: round 1's tasks, their predicted core-hours and share of the budget (a warning where it is most of
-    over its ``budget.first_share`` and half the budget: the later rounds, which decide the envelopes, share the
-    rest)."""
-    tasks = rounds.tasks_of(1)
-    seconds = planned_s(tasks)
-    values = rounds.values[:rounds.first_levels]
-    line = (f"budget: round 1 is the {len(tasks):,} tasks at {rounds.axis} {values[0]}"
-            + (f"-{values[-1]}" if len(values) > 1 else "")
-            + f", {seconds / 3600:,.3g} predicted core-hours ({seconds / budget.seconds:.0%} of the budget)")
-    if seconds > max(budget.first_share, 0.5) * budget.seconds and rounds.count > 1:  # one level alone, most of it
-        later = "round 2 gets" if rounds.count == 2 else f"rounds 2-{rounds.count} share"
-        line += (f"; {later} the rest and will run few tasks: raise the budget (on a small grid the tasks' fixed "
-                 "costs, start-up and scoring, dominate)")
-    return line
 
 
 def fitted_columns(nsl: Mapping[str, Any]) -> tuple[list[str], list[str]]:
@@ -314,23 +237,23 @@ def affordable(ranked: Sequence[str], planned_s: Callable[[Sequence[str]], float
     return chosen[:longest_prefix(chosen, planned_s, left_s, at_least=first)]
 
 
-def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, Any]], ran: Collection[str],
+def decide_round(number: int, ancestors: Mapping[str, str | None], tasks: Mapping[str, Mapping[str, Any]],
                  rows: Mapping[str, Mapping[str, Any]], planned_s: Callable[[Sequence[str]], float], left_s: float,
                  budget: Budget, stopped: Collection[str] = ()) -> list[dict[str, Any]]:
-    """The decisions (DECISION_SCHEMA) of round ``number`` (``ran``: the tasks earlier rounds ran; ``rows``: the
-    rows of those that finished): round 1 runs all its tasks; a later round the
-    promising ones (``promise`` below 1 on a resource not in ``stopped``, the result columns whose laws are narrow
-    enough), most promising first, those that ``affordable`` fits in ``left_s`` (by
-    ``planned_s`` of their ids: lockstep groups and all). ``cost_s``: a run task's share of the round's
-    predicted seconds."""
-    candidates = sorted(rounds.tasks_of(number))
+    """The decisions (DECISION_SCHEMA) of round ``number`` over its tasks (``ancestors``: each task id -> its
+    line's latest task an earlier round ran, or None; ``rows``: the rows of the earlier rounds' tasks that
+    finished): round 1 runs all its tasks; a later round the promising ones (``promise`` below 1 on a resource not
+    in ``stopped``, the result columns whose laws are narrow enough), most promising first, those that
+    ``affordable`` fits in ``left_s`` (by ``planned_s`` of their ids: lockstep groups and all). ``cost_s``: a run
+    task's share of the round's predicted seconds."""
+    candidates = sorted(ancestors)
     scored: list[tuple[tuple[float, float], str, str]] = []
     if number == 1:
         scored = [((0.0, 0.0), task_id, "") for task_id in candidates]
     envelopes = Envelopes(list(rows.values()), budget.resources, budget.metrics)
     open_resources = [resource for resource in budget.resources if resource not in stopped]
     for task_id in candidates if number > 1 else ():
-        ancestor = rounds.ancestor(task_id, ran)
+        ancestor = ancestors[task_id]
         row = rows.get(ancestor) if ancestor is not None else None
         value = (math.inf, math.inf) if row is None or not open_resources else promise(
             tasks[task_id], row, envelopes, budget.margin, open_resources, budget.metrics)
@@ -350,62 +273,3 @@ def decide_round(number: int, rounds: Rounds, tasks: Mapping[str, Mapping[str, A
             for value, task_id, reason in scored]
 
 
-def refuse_small_budget(budget: Budget, rounds: Rounds, planned_s: Callable[[Sequence[str]], float]) -> None:
-    """A budget that does not cover round 1 is refused, in one line."""
-    first = planned_s(rounds.tasks_of(1))
-    if first > budget.seconds:
-        raise ConfigError(f"the budget ({budget.seconds / 3600:.3g} core-hours) is less than its first round "
-                          f"({first / 3600:.3g} predicted core-hours, the tasks at the {rounds.first_levels} "
-                          f"cheapest level{'s' * (rounds.first_levels > 1)} of the cost axis): raise it")
-
-
-def sweep_rounds(sweep_dir: Path, tasks: Sequence[Mapping[str, Any]], study: Study, budget: Budget,
-                 planned_s: Callable[[Sequence[str]], float]) -> Rounds:
-    """The rounds of a budgeted sweep: as already decided (a budget with other budget.levels_per_round is
-    refused), else round 1 sized by ``first_round_levels``; a budget below round 1 is refused."""
-    decided = decided_structure(sweep_dir)
-    if decided is not None and decided[1] != budget.levels_per_round:
-        raise ConfigError(f"the rounds of sweep_dir={str(sweep_dir)!r} were decided with budget.levels_per_round="
-                          f"{decided[1]}: relaunch with it (the rounds of a budgeted sweep stay as decided)")
-    first = decided[0] if decided is not None else first_round_levels(tasks, study, budget, planned_s)
-    rounds = Rounds(tasks, study, first, budget.levels_per_round)
-    refuse_small_budget(budget, rounds, planned_s)
-    return rounds
-
-
-def done_rows(sweep_dir: Path, task_ids: Sequence[str]) -> dict[str, dict[str, Any]]:
-    """The rows (status ok) of those of ``task_ids`` that have one."""
-    return {task_id: row for task_id, row in read_task_rows(sweep_dir, task_ids).items()
-            if row.get("status", "ok") == "ok"}
-
-
-def next_round(number: int, rounds: Rounds, manifest: Mapping[str, Mapping[str, Any]],
-               decisions: Sequence[Mapping[str, Any]], rows: Mapping[str, Mapping[str, Any]],
-               planned_s: Callable[[Sequence[str]], float], budget: Budget, stopped: Collection[str] = ()
-               ) -> list[dict[str, Any]]:
-    """The decisions of round ``number`` from those of the rounds before (``decisions``), the rows of their run
-    tasks that finished (``rows``, by task id), what they left of the budget and the resources whose laws are
-    narrow enough (``stopped``, result columns: ``stopped_resources``)."""
-    chosen = {d["task_id"] for d in decisions if d["run"]}
-    rows = {task_id: {**manifest[task_id], **row} for task_id, row in rows.items() if task_id in chosen}
-    left = budget.seconds - sum(d["cost_s"] for d in decisions)
-    if budget.spread and number > 1:  # this round's equal share of what is left to it and the rounds after it
-        left /= rounds.count - number + 1
-    return decide_round(number, rounds, manifest, chosen, rows, planned_s, left, budget, stopped)
-
-
-def ran_rows(sweep_dir: Path, decisions: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
-    """The rows (status ok) of the tasks that ``decisions`` ran, by task id."""
-    return done_rows(sweep_dir, sorted(d["task_id"] for d in decisions if d["run"]))
-
-
-def decide_next_round(sweep_dir: Path, number: int, rounds: Rounds, manifest: Mapping[str, Mapping[str, Any]],
-                      planned_s: Callable[[Sequence[str]], float], budget: Budget, stopped: Collection[str] = ()
-                      ) -> None:
-    """Decide round ``number`` from the rows of the rounds before (``next_round``) and write its decisions."""
-    if decided_structure(sweep_dir) not in (None, rounds.structure):
-        raise RunError(f"another launch decided round 1 of sweep_dir={str(sweep_dir)!r} with other rounds while "
-                       "this one waited for the sweep: launch again")
-    decisions = read_decisions(sweep_dir)
-    write_decisions(sweep_dir, number, next_round(number, rounds, manifest, decisions, ran_rows(sweep_dir, decisions),
-                                                  planned_s, budget, stopped), rounds.structure)
