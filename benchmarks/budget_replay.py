@@ -12,7 +12,10 @@ by the rule's own code (``next_round``) from the full sweep's rows of the tasks 
 of a sweep's minutes. With lockstep packing a row may differ from the full sweep's in its last digits (the
 groups differ), so a real budgeted run can decide a close call differently. Prints markdown: the rounds, one line
 per resource (the range of the laws' median and largest envelope ratios, the share of points within ``--goal``,
-the last slopes inside the full fits' 90% intervals) and, with ``--laws``, every law.
+the last slopes inside the full fits' 90% intervals) and, with ``--laws``, every law. Where the budget tracks its
+laws (``budget.track_laws``, on by default; ``budget.stop_when``) each round's laws are fitted as the launch fits
+them, and a table says, per law, after which round and at what share of the prediction it was first decided
+against the full fit (analysis/widths.py ``decided``).
 
 ``--oracle``: the cheapest tasks a chooser that knew every outcome would run to bring every law within 1.15x,
 1.5x and 2x of the full envelope at all its K points (exact, by integer programming over the tasks' predicted

@@ -6,9 +6,8 @@ break positions (a factor; 1 without a break); ``prediction``: high / low of L a
 (a factor). ``budget.stop_when`` sets the widths at which a law is narrow enough: a budgeted sweep then stops
 spending on the resource whose laws all are (or, with ``each_resource: false``, once every law is).
 
-Against a full sweep (the replay's measurement, benchmarks/budget_replay.py ``--laws-decided``), a budgeted law is
-decided when it has the full law's number of breaks, and its last slope, its breaks and its value at ten times the
-full sweep's largest resource lie inside the full law's intervals.
+Against a full sweep (the replay's measurement, benchmarks/budget_replay.py), a budgeted law is decided when it has the full law's number of breaks, and its last slope, its breaks and its value at ten times the
+full sweep's largest resource lie inside the full law's intervals (each widened to hold the full law's own value).
 """
 
 import json
@@ -44,19 +43,24 @@ def law_state(fits: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
              "last_slope": row.get("last_slope"), "error": row.get("error"), **widths_of(row)} for row in fits]
 
 
+def inside(value: float, full: Mapping[str, Any], name: str) -> bool:
+    """Whether ``value`` lies in the full law's interval of ``name`` widened to hold its own value (a basic
+    interval of a biased quantity can leave it out: then only a law other than the full one could be inside)."""
+    low, high, point = full[f"{name}_lo"], full[f"{name}_hi"], full[name]
+    return bool(min(low, point) <= value <= max(high, point))
+
+
 def decided(budgeted: Mapping[str, Any] | None, full: Mapping[str, Any]) -> bool:
     """Whether a budgeted sweep's law (an nsl_fits row) is decided against the full sweep's law of the same key:
-    as many breaks, and last slope, breaks and L at ten times the full sweep's largest resource inside the full
+    as many breaks, and last slope, breaks and L at ten times the full sweep's largest resource ``inside`` the full
     law's intervals (a full law without intervals decides nothing)."""
     if budgeted is None or budgeted.get("error") or full.get("error") or full.get("last_slope_lo") is None:
         return False
-    if budgeted["b"] != full["b"] or not full["last_slope_lo"] <= budgeted["last_slope"] <= full["last_slope_hi"]:
+    if budgeted["b"] != full["b"] or not inside(budgeted["last_slope"], full, "last_slope"):
         return False
-    if not all(full[f"sigma_{i}_lo"] <= budgeted[f"sigma_{i}"] <= full[f"sigma_{i}_hi"]
-               for i in range(1, full["b"] + 1)):
+    if not all(inside(budgeted[f"sigma_{i}"], full, f"sigma_{i}") for i in range(1, full["b"] + 1)):
         return False
-    prediction = float(fit_from_row(budgeted).predict(10 * full["r_max"]))
-    return bool(full["L_at_10x_lo"] <= prediction <= full["L_at_10x_hi"])
+    return inside(float(fit_from_row(budgeted).predict(10 * full["r_max"])), full, "L_at_10x")
 
 
 def describe_state(state: Sequence[Mapping[str, Any]], stop_when: StopWhen | None) -> list[str]:
