@@ -52,6 +52,31 @@ def test_measured_records_load_through_the_loader_with_the_official_split_sizes(
     assert wh.tests["test"].y.std() == pytest.approx(0.24386, abs=1e-4)
 
 
+@MEASURED
+def test_the_process_noise_benchmark_trains_on_its_realisations_in_turn_and_tests_on_both_records(tmp_path, cache):
+    place_data(compose_config([f"source={SHARED_DATA}", f"data_dir={tmp_path}"], "place_data"))
+    records = load_benchmark(io_system("wiener_hammerstein_process_noise", data_dir=str(tmp_path)), cache)
+    assert (len(records.train), len(records.validation)) == (80_000, 1_920)  # 10 x 8,192 samples
+    assert list(records.tests) == ["multisine", "swept_sine"]
+    assert records.tests["multisine"].y.std() == pytest.approx(0.1283, abs=1e-4)  # the README's 128.3 mV
+    assert records.tests["swept_sine"].y.std() == pytest.approx(0.0796, abs=1e-4)  # and 79.6 mV
+    with np.load(SHARED_DATA / "wh_process_noise" / "WH_EstimationExample.npz") as estimation:
+        assert np.array_equal(records.train.y[8192:16384], estimation["y"][:, 1])  # realisation 2 after 1
+        assert np.array_equal(records.validation.u, estimation["u"][-1920:, 9])
+
+
+def test_process_noise_records_of_the_wrong_shape_are_refused_with_the_file_named(tmp_path, cache):
+    folder = tmp_path / "wh_process_noise"
+    folder.mkdir()
+    np.savez(folder / "WH_EstimationExample.npz", u=np.zeros((8192, 10)), y=np.zeros((8192, 9)))
+    np.savez(folder / "WH_TestDataset.npz", u=np.zeros((16384, 2)), y=np.zeros((16384, 2)))
+    with pytest.raises(ConfigError, match=r"WH_EstimationExample.npz holds u \(8192, 10\) and y \(8192, 9\)"):
+        load_benchmark(io_system("wiener_hammerstein_process_noise", data_dir=str(tmp_path)), cache)
+    (folder / "WH_EstimationExample.npz").write_bytes(b"not an npz file")
+    with pytest.raises(ConfigError, match=r"cannot read u and y of .*WH_EstimationExample\.npz"):
+        load_benchmark(io_system("wiener_hammerstein_process_noise", data_dir=str(tmp_path)), cache)
+
+
 def write_wh_file(data_dir: Path, u, y) -> None:
     folder = data_dir / "WienerHammerBenchMark"
     folder.mkdir(parents=True)

@@ -6,8 +6,9 @@ break positions (a factor; 1 without a break); ``prediction``: high / low of L a
 (a factor). ``budget.stop_when`` sets the widths at which a law is narrow enough: a budgeted sweep then stops
 spending on the resource whose laws all are (or, with ``each_resource: false``, once every law is).
 
-Against a full sweep (the replay's measurement, benchmarks/budget_replay.py), a budgeted law is decided when it has the full law's number of breaks, and its last slope, its breaks and its value at ten times the
-full sweep's largest resource lie inside the full law's intervals (each widened to hold the full law's own value).
+Against a full sweep (the replay's measurement, benchmarks/budget_replay.py), a budgeted law is decided when it
+has the full law's number of breaks, and its last slope, its breaks and its value at ten times the full sweep's
+largest resource lie inside the full law's intervals (each widened to hold the full law's own value).
 """
 
 import json

@@ -1,6 +1,7 @@
-"""Input-output signals of the input-output study: the measured benchmarks (Silverbox, Wiener-Hammerstein),
-read with the standard ``nonlinear_benchmarks`` loaders from ``data_dir`` (``system.source.data_dir``), or
-their simulated stand-ins, and their split into training pool, validation and test records.
+"""Input-output signals of the input-output study: the measured benchmarks (Silverbox, Wiener-Hammerstein 2009),
+read with the standard ``nonlinear_benchmarks`` loaders from ``data_dir`` (``system.source.data_dir``), the
+Wiener-Hammerstein benchmark with process noise, read from its records (.npz, one column per realisation), or
+simulated stand-ins, and their split into training pool, validation and test records.
 
 A task trains on the prefix u_1..u_{n_l}, y_1..y_{n_l} of the training pool (the first ``train_samples``
 samples of the benchmark's training record); the rest of that record is the validation split, kept out of
@@ -48,12 +49,18 @@ class Benchmark:
     tests: dict[str, Signals]  # the test records by name (system.tests); scored after their first init_samples
 
 
+MEASURED = ("benchmark", "records")  # source kinds read from files: a nonlinear_benchmarks loader, .npz records
+
+
 def load_benchmark(system_cfg: Mapping[str, Any], cache: ArrayCache) -> Benchmark:
     """The records of an input-output system (measured or simulated), split as configured."""
     source = system_cfg["source"]
     if source["kind"] == "benchmark":
         train, tests = read_measured(system_cfg["name"], source, system_cfg["tests"])
         origin = f" of {measured_file(source)}"
+    elif source["kind"] == "records":
+        train, tests = read_records(system_cfg["name"], source, system_cfg["tests"])
+        origin = f" of {Path(source['data_dir']) / source['train']['file']}"
     else:
         train, tests = simulated_signals(system_cfg, cache)
         origin = ""
@@ -86,6 +93,38 @@ def read_measured(name: str, source: Mapping[str, Any], names: list[str]) -> tup
     return (checked_signals(name, data_file, "training", train.u, train.y),
             {test_name: checked_signals(name, data_file, f"{test_name} test", test.u, test.y)
              for test_name, test in zip(names, tests, strict=True)})
+
+
+def read_records(name: str, source: Mapping[str, Any], names: list[str]) -> tuple[Signals, dict[str, Signals]]:
+    """Training record and test records (``names``) from .npz files of u and y arrays, (samples, realisations):
+    the training record is ``source.train``'s realisations (``columns``) one after another; each test record one
+    column of ``source.test.file`` (``source.test.columns``: name -> column)."""
+    require_files(name, source)
+    if sorted(names) != sorted(source["test"]["columns"]):
+        raise ConfigError(f"{name}: system.tests names {', '.join(names)}; source.test.columns holds "
+                          f"{', '.join(source['test']['columns'])}")
+    train_file = Path(source["data_dir"]) / source["train"]["file"]
+    u, y = record_columns(name, train_file)
+    train = checked_signals(name, train_file, "training", u[:, source["train"]["columns"]].T.ravel(),
+                            y[:, source["train"]["columns"]].T.ravel())
+    test_file = Path(source["data_dir"]) / source["test"]["file"]
+    u, y = record_columns(name, test_file)
+    return train, {test: checked_signals(name, test_file, f"{test} test", u[:, source["test"]["columns"][test]],
+                                         y[:, source["test"]["columns"][test]]) for test in names}
+
+
+def record_columns(name: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The u and y arrays of an .npz file of records, (samples, realisations) each."""
+    try:
+        with np.load(path) as arrays:
+            u, y = np.asarray(arrays["u"], dtype=float), np.asarray(arrays["y"], dtype=float)
+    except (OSError, ValueError, KeyError) as error:
+        raise ConfigError(f"{name}: cannot read u and y of {path} ({type(error).__name__}: {error}); replace it "
+                          "with an intact copy") from None
+    if u.ndim != 2 or u.shape != y.shape:
+        raise ConfigError(f"{name}: {path} holds u {u.shape} and y {y.shape}; expected two equal (samples, "
+                          "realisations) arrays")
+    return u, y
 
 
 def require_files(name: str, source: Mapping[str, Any]) -> None:

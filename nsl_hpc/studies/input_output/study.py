@@ -26,7 +26,7 @@ from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
 from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, require_member
 from nsl_hpc.studies.base import Study, draw_tier
-from nsl_hpc.studies.input_output.data import Benchmark, load_benchmark, require_files
+from nsl_hpc.studies.input_output.data import MEASURED, Benchmark, load_benchmark, require_files
 
 if TYPE_CHECKING:
     from nsl_hpc.models.narx import NARX
@@ -97,7 +97,7 @@ class InputOutput(Study):
     def check_pair(self, base: Mapping[str, Any]) -> None:
         system = base["system"]
         require_member("system.score_on", system["score_on"], list(system["tests"]))
-        if base["system"]["source"]["kind"] == "benchmark":
+        if base["system"]["source"]["kind"] in MEASURED:
             require_files(base["system"]["name"], base["system"]["source"])
 
     def check_task(self, task: Mapping[str, Any], sizes: Mapping[str, Any], base: Mapping[str, Any]) -> None:
