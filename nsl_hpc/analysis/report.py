@@ -129,8 +129,8 @@ def scores_note(launch: Mapping[str, Any]) -> str:
     study, whose scores are of one output column (both normalisations agree)."""
     if launch["study"]["name"] != "input_state":
         return ""
-    normalization = (launch.get("metric") or {}).get("normalization")
-    if normalization is None:
+    normalization = launch["metric"]["normalization"]
+    if normalization is None:  # a format-1 sweep (nsl_hpc/sweep/formats.py), before either could be chosen
         return "Scores: nMAE and nMSE per dx/dt column (a sweep from before metric.normalization)."
     return (f"Scores: {NORMALIZATION_NOTES[normalization]} (metric.normalization={normalization}); every row also "
             "holds the other pair (nmae_per_column, nmae_scalar, ...: fit metrics=[...] fits them).")

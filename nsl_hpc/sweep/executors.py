@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import submitit
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tqdm import tqdm
 
 from nsl_hpc.config.launchers import DebugLauncher, Launcher, LocalLauncher, SlurmLauncher, launcher_from
@@ -26,7 +26,7 @@ from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.directory import process_alive
 from nsl_hpc.sweep.failures import read_failures
-from nsl_hpc.sweep.groups import STALE_S, HeldLock, held_locks, this_node
+from nsl_hpc.sweep.groups import HeldLock, held_locks, this_node
 from nsl_hpc.sweep.job import JobRunner, record_group_failure
 from nsl_hpc.sweep.limits import ClusterLimits, read_cluster_limits
 from nsl_hpc.sweep.manifest import write_run_settings
@@ -344,9 +344,9 @@ def run_jobs(sweep_dir: Path, launch: DictConfig, packs: Sequence[Pack], tasks: 
     """Run the planned ``packs`` of ``tasks`` (manifest rows) with the run settings ``launch`` (within the cluster's
     ``limits``): the data they share first (none in a rehearsal), the settings recorded in run.yaml, then
     ``dispatch``; returns its exit status."""
-    if not launch.get("rehearsal"):  # a rehearsal's tasks read no data
+    if not launch.rehearsal:  # a rehearsal's tasks read no data
         prepare_shared_data(tasks, configs, study_named(launch.study.name))
     write_run_settings(sweep_dir, launch)
-    limit_threads(OmegaConf.select(launch, "threads", default=1))
-    silence_s = OmegaConf.select(launch, "watchdog.worker_silence_s", default=STALE_S)  # run.yaml of before it
-    return dispatch(sweep_dir, packs, launcher_from(launch.launcher), launch.sweep.name, silence_s, limits)
+    limit_threads(launch.threads)
+    return dispatch(sweep_dir, packs, launcher_from(launch.launcher), launch.sweep.name,
+                    launch.watchdog.worker_silence_s, limits)

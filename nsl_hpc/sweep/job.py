@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import submitit
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info, remove_checkpoint
 from nsl_hpc.config import plain
@@ -93,8 +93,8 @@ def task_sizes(cfg: Mapping[str, Any], task: Mapping[str, Any]) -> dict[str, Any
 
 
 def checkpoint_seconds(launch: DictConfig) -> float:
-    """How often (s of training) a group writes its checkpoint; 0: never (a sweep from before checkpoints)."""
-    return 60.0 * OmegaConf.select(launch, "checkpoint.every_minutes", default=0)
+    """How often (s of training) a group writes its checkpoint; 0: never."""
+    return 60.0 * launch.checkpoint.every_minutes
 
 
 def die_with_parent() -> None:
@@ -185,11 +185,11 @@ class JobRunner:
         signal.signal(signal.SIGCONT, signal.SIG_DFL)
         if refusal := unsafe_refusal(list(tree(compile_cache(launch))), launch):  # Inductor unpickles from it
             return self.refuse(sweep, groups, refusal)
-        if not launch.get("rehearsal"):  # a rehearsal trains nothing
+        if not launch.rehearsal:  # a rehearsal trains nothing
             import_training_code()  # once, not in each group's forked process
         prepare_row_writes()
         self.checkpointing = checkpoint_seconds(launch) > 0
-        self.stop_wait_s = launch.launcher.get("signal_delay_s", 60) / 2
+        self.stop_wait_s = launch.launcher.get("signal_delay_s", 60) / 2  # SLURM's warning; local launchers: 60
         rows = manifest_rows(sweep, [task_id for group in groups for task_id in group.task_ids])
         by_id = {task["task_id"]: task for task in rows}
         counts: Counter[str] = Counter()
@@ -224,7 +224,7 @@ class JobRunner:
                 lock.release()
             LOG.info("%s: %s", name, outcome)
             counts[outcome] += len(todo)
-            if launch.get("rehearsal"):  # the rehearsal's lost node, after the group it was planted behind
+            if launch.rehearsal:  # the rehearsal's lost node, after the group it was planted behind
                 die_if_planted(sweep, group.task_ids[0])
             if outcome == "stopped":
                 break
@@ -257,7 +257,7 @@ class JobRunner:
         watchdog = launch.watchdog
         silence_s = watchdog.heartbeat_timeout_s + (compile_allowance(launch, group[0]["arch"]) if planned.compiled
                                                     else 0.0)  # no heartbeat while the first block compiles
-        if launch.get("rehearsal"):  # nothing trains or compiles: a silent group is frozen
+        if launch.rehearsal:  # nothing trains or compiles: a silent group is frozen
             silence_s = launch.rehearse.heartbeat_timeout_s
         ids = [task["task_id"] for task in group]
         context = multiprocessing.get_context("fork")
@@ -335,7 +335,7 @@ class JobRunner:
 def compile_allowance(launch: DictConfig, arch: str) -> float:
     """Seconds a compiled group of ``arch`` may go without a heartbeat beyond the watchdog's: three times its
     predicted compile time (cost.compile_s; a slower node, a cold cache)."""
-    return 3.0 * float(OmegaConf.select(launch, f"cost.compile_s.{arch}", default=None) or 0.0)
+    return 3.0 * float(launch.cost.compile_s.get(arch) or 0.0)
 
 
 def lost_work(path: Path, started: float) -> str:

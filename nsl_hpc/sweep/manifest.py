@@ -5,7 +5,8 @@
   n_traj, width, depth) and what they imply (train_points, params, steps, flops); created once, exclusively.
 - ``configs/<system>__<arch>.yaml``: the resolved task config shared by those tasks; a task's own config is that
   with its manifest row's values set.
-- ``launch.yaml``: the launch's whole config (grid, sweep seed, study, ...), written by the first launch.
+- ``launch.yaml``: the launch's whole config (grid, sweep seed, study, ...) and the directory's ``format``
+  (``nsl_hpc.sweep.formats``: an older one is upgraded as it is read), written by the first launch.
 - ``run.yaml``: the settings jobs run by (launcher, packing, cost, watchdog, lockstep, checkpoint), written at
   every launch or resubmit that dispatches work: resubmit starts from the last ones.
 Paths inside the sweep directory are stored relative to it (``nsl_hpc.sweep.directory.portable_paths``), so a sweep can
@@ -27,6 +28,7 @@ from nsl_hpc.errors import ConfigError, damaged_file
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.directory import portable_paths
+from nsl_hpc.sweep.formats import FORMAT, upgrade_launch
 from nsl_hpc.sweep.layout import base_config_path
 
 # what a resubmit may change
@@ -70,7 +72,7 @@ def write_sweep(sweep_dir: Path, manifest: pa.Table, base_configs: Mapping[tuple
     a concurrent launch that got there first makes this one fail)."""
     for (system, arch), values in base_configs.items():
         write_yaml(values, base_config_path(sweep_dir, system, arch), sweep_dir)
-    write_yaml(launch, Path(sweep_dir) / layout.LAUNCH_CONFIG, sweep_dir)
+    write_yaml({**launch, "format": FORMAT}, Path(sweep_dir) / layout.LAUNCH_CONFIG, sweep_dir)
     try:
         create_parquet(manifest, manifest_path(sweep_dir))
     except FileExistsError:
@@ -99,13 +101,12 @@ def read_launch_config(sweep_dir: Path) -> DictConfig:
     if run_file.exists():
         run = read_yaml(run_file, sweep_dir)
         for key in RUN_SETTINGS:  # each group replaced whole: a slurm launcher is no local one plus keys
-            if key in run:  # a sweep from before checkpoints has none
+            if key in run:  # one a format-1 sweep's run.yaml lacks is upgraded below
                 launch[key] = run[key]
-    return launch
+    return upgrade_launch(launch, str(Path(sweep_dir) / layout.LAUNCH_CONFIG))
 
 
 def write_run_settings(sweep_dir: Path, cfg: Mapping[str, Any]) -> None:
     """Record the run settings of ``cfg`` (a launch config) as the ones jobs and the next resubmit use."""
     values = plain(cfg)
-    write_yaml({key: values[key] for key in RUN_SETTINGS if key in values}, Path(sweep_dir) / layout.RUN_SETTINGS,
-               sweep_dir)  # a sweep launched before a setting existed has none
+    write_yaml({key: values[key] for key in RUN_SETTINGS}, Path(sweep_dir) / layout.RUN_SETTINGS, sweep_dir)

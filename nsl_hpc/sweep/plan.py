@@ -16,7 +16,7 @@ from nsl_hpc.errors import ConfigError, require_choice, require_int, require_num
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import model_of
 from nsl_hpc.studies.settings import COMPILE_MODES
-from nsl_hpc.sweep.groups import RENEW_S, STALE_S
+from nsl_hpc.sweep.groups import RENEW_S
 
 SBATCH_MEMORY = re.compile(r"[1-9][0-9]*[KMGT]?")  # sbatch --mem: megabytes, or with a unit
 SBATCH_FLAG = re.compile(r"[A-Za-z][A-Za-z0-9_-]*")  # a long option's name (submitit writes _ as -)
@@ -104,10 +104,10 @@ def training_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any]
 
 
 def fixed_seconds(group: Sequence[Mapping[str, Any]], cost: Mapping[str, Any]) -> float:
-    """Predicted seconds of a lockstep group's own start in its job (``cost.group_start_s``; 0 in the run settings
-    of a sweep from before it) and of scoring each task, ``cost.score_seconds`` per test sample and parameter (its
-    ``test_points``: none for a study, or a sweep from before, whose manifest has no such column)."""
-    return cost.get("group_start_s", 0.0) + cost.get("score_seconds", 0.0) * sum(
+    """Predicted seconds of a lockstep group's own start in its job (``cost.group_start_s``) and of scoring each
+    task, ``cost.score_seconds`` per test sample and parameter (its ``test_points``: none for the input-output
+    study, whose manifest has no such column)."""
+    return cost["group_start_s"] + cost["score_seconds"] * sum(
         task.get("test_points", 0) * task["params"] for task in group)
 
 
@@ -117,7 +117,7 @@ def compiles(arch: str, eager_seconds: float, cost: Mapping[str, Any], mode: str
     compiling costs, cost.compile_s[arch]; an architecture whose compile_speedup is null runs eagerly)."""
     if mode != "auto":
         return mode == "always"
-    speedup = cost.get("compile_speedup", {}).get(arch)
+    speedup = cost["compile_speedup"].get(arch)
     return speedup is not None and eager_seconds * (1 - 1 / speedup) > cost["compile_s"][arch]
 
 
@@ -126,8 +126,8 @@ def with_compile(arch: str, eager_seconds: float, cost: Mapping[str, Any], mode:
     cost.compile_speedup[arch] (1 when null) plus cost.compile_s[arch] (0 when null)."""
     if not compiles(arch, eager_seconds, cost, mode):
         return eager_seconds, False
-    speedup = cost.get("compile_speedup", {}).get(arch) or 1.0
-    return eager_seconds / speedup + (cost.get("compile_s", {}).get(arch) or 0.0), True
+    speedup = cost["compile_speedup"].get(arch) or 1.0
+    return eager_seconds / speedup + (cost["compile_s"].get(arch) or 0.0), True
 
 
 @dataclass(frozen=True)
@@ -205,9 +205,9 @@ def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
     """Of a launch config: ``size`` (K, the models a job trains in lockstep: ``lockstep.size`` when enabled
     and the study can, else 1), ``width_buckets``, ``model_keys``, the keys of one model: with epoch
     milestones (train.schedule_epochs, shared draws) the study's draw keys, else none (a model per task), and
-    ``compile`` (a sweep launched before it had none: auto)."""
+    ``compile``."""
     settings, study = launch["lockstep"], study_named(launch["study"]["name"])
-    compile_mode = launch.get("compile", "auto")
+    compile_mode = launch["compile"]
     require_choice("compile", compile_mode, COMPILE_MODES)
     require_positive_int("lockstep.size", settings["size"])
     for width in settings["width_buckets"]:
@@ -233,7 +233,7 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
     watchdog = launch["watchdog"]
     require_number("watchdog.heartbeat_timeout_s", watchdog["heartbeat_timeout_s"], 0, 86400, low_open=True)
     require_number("watchdog.overrun_factor", watchdog["overrun_factor"], 1, 1000)
-    require_number("watchdog.worker_silence_s", watchdog.get("worker_silence_s", STALE_S), 2 * RENEW_S, 86400)
+    require_number("watchdog.worker_silence_s", watchdog["worker_silence_s"], 2 * RENEW_S, 86400)
     for key in ("short_task_minutes", "pack_minutes"):
         require_number(f"packing.{key}", launch["packing"][key], 0, 10080, low_open=True)
     require_number("packing.time_safety", launch["packing"]["time_safety"], 1, 100)
@@ -242,13 +242,13 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
     for limit in launch["packing"]["time_classes_minutes"]:
         require_number("packing.time_classes_minutes value", limit, 0, 525600, low_open=True)
     require_number("cost.startup_s", launch["cost"]["startup_s"], 0, 3600)
-    require_number("cost.group_start_s", launch["cost"].get("group_start_s", 0.0), 0, 3600)
+    require_number("cost.group_start_s", launch["cost"]["group_start_s"], 0, 3600)
     for key, high in (("step_seconds", 3600), ("params_per_overhead", 1e12), ("lockstep_extra", 100)):
         for arch, value in launch["cost"][key].items():
             require_number(f"cost.{key}.{arch}", value, 0, high, low_open=True)
-    require_number("cost.score_seconds", launch["cost"].get("score_seconds", 0.0), 0, 1)
-    compile_s = launch["cost"].get("compile_s", {})
-    for arch, value in launch["cost"].get("compile_speedup", {}).items():
+    require_number("cost.score_seconds", launch["cost"]["score_seconds"], 0, 1)
+    compile_s = launch["cost"]["compile_s"]
+    for arch, value in launch["cost"]["compile_speedup"].items():
         if value is None:  # never compiled under compile=auto
             continue
         require_number(f"cost.compile_speedup.{arch}", value, 0, 100, low_open=True)

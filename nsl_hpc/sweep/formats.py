@@ -1,0 +1,55 @@
+"""The format of a sweep directory, and the one upgrade of an older one.
+
+launch.yaml records the ``format`` it was written in (``FORMAT``). A sweep launched before that (format 1: no
+``format`` key) may lack settings added since, in launch.yaml and run.yaml; ``upgrade_launch`` gives each the value
+such a sweep ran with, so every reader of a sweep's launch config sees one shape. The settings added to the pairs'
+task configs are upgraded by ``Study.with_neutral_settings`` (they also keep the task ids). A sweep written in a
+later format, by a newer nsl_hpc, is refused in one line.
+"""
+
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from nsl_hpc.errors import ConfigError
+
+FORMAT = 2
+ABSENT = object()  # OmegaConf.select's default for a key a config lacks (null is a value)
+
+# (dotted key, the value a format-1 sweep ran with where its launch.yaml and run.yaml lack the key)
+FORMAT_1_SETTINGS: tuple[tuple[str, Any], ...] = (
+    ("threads", 1),
+    ("compile", "auto"),
+    ("rehearsal", False),
+    ("checkpoint", {"every_minutes": 0}),
+    ("watchdog.worker_silence_s", 120.0),
+    ("cost.group_start_s", 0.0),
+    ("cost.score_seconds", 0.0),
+    ("cost.compile_s", {}),
+    ("cost.compile_speedup", {}),
+    ("metric", {"normalization": None}),  # input-state scores per dx/dt column, without the other normalisation
+)
+
+
+def format_of(launch: DictConfig, where: str) -> int:
+    """The format ``launch`` (a stored launch config, from ``where``) was written in, refused when it is not one
+    this nsl_hpc reads."""
+    written = OmegaConf.select(launch, "format", default=1)
+    if not isinstance(written, int) or written < 1:
+        raise ConfigError(f"{where} says format={written!r}; the sweep directory is damaged")
+    if written > FORMAT:
+        raise ConfigError(f"{where} was written in format {written} by a newer nsl_hpc (this one reads formats up "
+                          f"to {FORMAT}): upgrade nsl_hpc to work on this sweep")
+    return written
+
+
+def upgrade_launch(launch: DictConfig, where: str) -> DictConfig:
+    """``launch`` (a stored launch config with its run settings, from ``where``) in the current format: a format-1
+    one with each of ``FORMAT_1_SETTINGS`` it lacks set to the value it ran with."""
+    if format_of(launch, where) == 1:
+        with open_dict(launch):
+            for key, value in FORMAT_1_SETTINGS:
+                if OmegaConf.select(launch, key, default=ABSENT) is ABSENT:
+                    OmegaConf.update(launch, key, value, force_add=True)
+            launch.format = FORMAT
+    return launch
