@@ -37,7 +37,8 @@ from tests.sweeps import TINY_GRID, nsl
 
 GOLDEN = Path(__file__).parent / "golden"
 COST = {"startup_s": 2.0, "group_start_s": 2.0, "step_seconds": {"unstructured": 1e-3},
-        "params_per_overhead": {"unstructured": 1000}, "lockstep_extra": {"unstructured": 0.5}}
+        "params_per_overhead": {"unstructured": 1000}, "lockstep_extra": {"unstructured": 0.5}, "score_seconds": 0.0,
+        "compile_s": {}, "compile_speedup": {}}  # a cost group: eager, scoring free
 PACKING = {"enabled": True, "short_task_minutes": 5, "pack_minutes": 20, "time_safety": 3.0,
            "time_classes_minutes": [20, 60, 240]}
 

@@ -25,7 +25,7 @@ def row(fit, r_max: float = 1e7, **intervals: float) -> dict:
             **intervals}
 
 
-FULL_ROW = row(FULL, last_slope_lo=-0.6, last_slope_hi=-0.4, sigma_1_lo=5e4, sigma_1_hi=2e5,
+FULL_ROW = row(FULL, L_at_10x=FULL.predict(1e8), last_slope_lo=-0.6, last_slope_hi=-0.4, sigma_1_lo=5e4, sigma_1_hi=2e5,
                L_at_10x_lo=0.9 * FULL.predict(1e8), L_at_10x_hi=1.1 * FULL.predict(1e8))
 
 
