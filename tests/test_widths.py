@@ -47,9 +47,11 @@ def test_a_budgeted_law_is_decided_when_its_slope_breaks_and_prediction_lie_insi
 def test_stop_when_is_checked_in_one_line():
     assert stop_when_of(None) is None
     assert stop_when_of({"last_slope": 0.2}) == StopWhen(0.2, None, None, each_resource=True)
+    assert stop_when_of({"prediction": 3, "share": 0.5}).share == 0.5
     for bad, says in [({"slope": 0.2}, "no key 'slope'"), ({"each_resource": False}, "sets no width"),
                       ({"prediction": 0.5}, "budget.stop_when.prediction"), ({"last_slope": -1}, "last_slope"),
-                      ({"last_slope": 0.2, "each_resource": "yes"}, "true or false")]:
+                      ({"last_slope": 0.2, "each_resource": "yes"}, "true or false"),
+                      ({"prediction": 3, "share": 0}, "budget.stop_when.share")]:
         with pytest.raises(ConfigError, match=says):
             stop_when_of(bad)
 
@@ -67,6 +69,8 @@ def test_spending_stops_on_a_resource_once_all_its_laws_are_narrow_enough():
     assert stopped_resources(now, each, columns) == {"flops"}
     assert stopped_resources(now, StopWhen(0.3, None, 2.0, each_resource=False), columns) == set()
     assert stopped_resources(now, StopWhen(1.0, None, None, each_resource=False), columns) == {"flops", "params"}
+    assert stopped_resources(now, StopWhen(0.3, None, None, each_resource=True, share=0.5), columns) == {
+        "flops", "params"}  # one of model's two laws is narrow: half of them
     assert stopped_resources(now, None, columns) == set()
 
 

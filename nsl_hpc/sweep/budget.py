@@ -46,13 +46,15 @@ WIDTHS = ("last_slope", "breaks", "prediction")
 
 @dataclass(frozen=True)
 class StopWhen:
-    """The widths (``WIDTHS``; None: not asked) at which a law is narrow enough, and whether each resource stops on
-    its own laws (else the sweep stops once every law is narrow)."""
+    """The widths (``WIDTHS``; None: not asked) at which a law is narrow enough, the share of a resource's laws
+    that must be, and whether each resource stops on its own laws (else the sweep stops once every resource's
+    are)."""
 
     last_slope: float | None
     breaks: float | None
     prediction: float | None
     each_resource: bool
+    share: float = 1.0
 
     def narrow(self, widths: Mapping[str, float]) -> bool:
         """Whether every width asked for is at most its limit (a law without intervals never is)."""
@@ -64,10 +66,10 @@ def stop_when_of(settings: Mapping[str, Any] | None) -> StopWhen | None:
     if settings is None:
         return None
     settings = plain(settings)
-    unknown = set(settings) - {*WIDTHS, "each_resource"}
+    unknown = set(settings) - {*WIDTHS, "each_resource", "share"}
     if unknown:
-        raise ConfigError(f"budget.stop_when has no key {sorted(unknown)[0]!r}: it takes {', '.join(WIDTHS)} and "
-                          "each_resource")
+        raise ConfigError(f"budget.stop_when has no key {sorted(unknown)[0]!r}: it takes {', '.join(WIDTHS)}, "
+                          "share and each_resource")
     limits = {name: settings.get(name) for name in WIDTHS}
     if all(limit is None for limit in limits.values()):
         raise ConfigError("budget.stop_when sets no width: give last_slope, breaks or prediction (or stop_when=null)")
@@ -77,16 +79,19 @@ def stop_when_of(settings: Mapping[str, Any] | None) -> StopWhen | None:
     each = settings.get("each_resource", True)
     if not isinstance(each, bool):
         raise ConfigError(f"budget.stop_when.each_resource={each!r}: true or false")
-    return StopWhen(**limits, each_resource=each)
+    share = settings.get("share", 1.0)
+    require_number("budget.stop_when.share", share, 0, 1, low_open=True)
+    return StopWhen(**limits, each_resource=each, share=float(share))
 
 
 def stopped_resources(state: Sequence[Mapping[str, Any]], stop_when: StopWhen | None,
                       resources: Mapping[str, str]) -> set[str]:
-    """The result columns (of ``resources``: name -> column) whose laws in ``state`` are all narrow enough by
-    ``stop_when``: each resource on its own, or every one once all laws are (``each_resource: false``)."""
+    """The result columns (of ``resources``: name -> column) of which at least ``stop_when.share`` of the laws in
+    ``state`` are narrow enough: each resource on its own, or every one once all are (``each_resource: false``)."""
     if stop_when is None or not state:
         return set()
-    narrow = {name: all(stop_when.narrow(law) for law in state if law["resource"] == name) for name in resources}
+    narrow = {name: np.mean([stop_when.narrow(law) for law in state if law["resource"] == name] or [False])
+              >= stop_when.share for name in resources}
     if stop_when.each_resource:
         return {resources[name] for name, done in narrow.items() if done}
     return set(resources.values()) if all(narrow.values()) else set()
