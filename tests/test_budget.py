@@ -3,6 +3,7 @@ as a user would (real training, the local launcher)."""
 
 import random
 
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -10,7 +11,7 @@ from nsl_hpc.config import compose_config
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import budget as budget_module
 from nsl_hpc.sweep.budget import Budget, decide_round, planned_seconds
-from nsl_hpc.sweep.decisions import read_decisions
+from nsl_hpc.sweep.decisions import DECISION_SCHEMA, read_decisions
 from nsl_hpc.sweep.rounds import Rounds, first_round_levels
 from tests.sweeps import nsl, row_files
 
@@ -182,3 +183,13 @@ def test_a_budget_below_the_first_round_is_refused_in_one_line_before_anything_i
     assert refused.returncode != 0
     assert refused.stderr.strip().startswith("error: the budget") and len(refused.stderr.strip().splitlines()) == 1
     assert not sweep_dir.exists()
+
+
+def test_rounds_decided_before_the_resource_was_recorded_read_with_none(tmp_path):
+    old_schema = pa.schema([field for field in DECISION_SCHEMA if field.name != "resource"])
+    (tmp_path / "budget").mkdir()
+    pq.write_table(pa.Table.from_pylist([{"task_id": "a", "round": 2, "run": True, "reason": "promising",
+                                          "promise": 0.4, "cost_s": 3.0}], schema=old_schema),
+                   tmp_path / "budget" / "round-002.parquet")
+    assert read_decisions(tmp_path) == [{"task_id": "a", "round": 2, "run": True, "reason": "promising",
+                                         "promise": 0.4, "cost_s": 3.0, "resource": None}]

@@ -87,13 +87,14 @@ def round_two_with(stopped: tuple[str, ...]) -> list[dict]:
 
 
 def test_status_says_how_wide_the_laws_are_and_which_resource_narrowed_most_per_core_hour():
-    before = {"round": 1, "rows": 10, "committed_core_hours": 1.0,
+    before = {"round": 1, "rows": 10, "committed_core_hours": {"all": 1.0, "compute": 0.0, "data": 0.0},
               "laws": state(compute=[(0.4, 4.0)], data=[(0.4, 4.0)])}
-    after = {"round": 2, "rows": 30, "committed_core_hours": 3.0,
-             "laws": state(compute=[(0.2, 2.0)], data=[(0.4, 3.0)])}
-    assert narrowing(before, after) == pytest.approx({"compute": math.log(2) / 2, "data": math.log(4 / 3) / 4})
+    after = {"round": 2, "rows": 30, "committed_core_hours": {"all": 3.0, "compute": 1.5, "data": 0.5},
+             "laws": state(compute=[(0.2, 2.0)], data=[(0.4, 3.0)])}  # compute: each width halved for 1.5 core-h
+    assert narrowing(before, after) == pytest.approx({"compute": math.log(2) / 1.5,
+                                                      "data": math.log(4 / 3) / 2 / 0.5})
     lines = describe_law_records([before, after], StopWhen(0.3, None, None, each_resource=True))
     assert lines[0].startswith("laws on the 30 rows of rounds 1-2 (3 predicted core-hours)")
     assert "compute: 1 of 1 laws with intervals: last slope 0.2 (widest 0.2)" in lines[1]
     assert "1 narrow enough" in lines[1] and "0 narrow enough" in lines[2]
-    assert "narrowed most per core-hour in round 2: compute" in lines[3]
+    assert "narrowed most per core-hour spent on its candidates in round 2: compute" in lines[3]

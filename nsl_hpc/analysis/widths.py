@@ -82,15 +82,16 @@ def describe_state(state: Sequence[Mapping[str, Any]], stop_when: StopWhen | Non
     return lines
 
 
-def track_laws(sweep_dir: Path, number: int, rows: Sequence[Mapping[str, Any]], committed_core_hours: float,
+def track_laws(sweep_dir: Path, number: int, rows: Sequence[Mapping[str, Any]], committed: Mapping[str, float],
                nsl: Mapping[str, Any], stop_when: StopWhen | None) -> set[str]:
     """Fit the laws on ``rows`` (a budgeted sweep's rows of its rounds up to ``number``, manifest columns with
-    each), record their state (``layout.law_state_path``) and return the result columns whose laws are narrow
-    enough by ``stop_when`` (``stopped_resources``)."""
+    each), record their state with the predicted core-hours ``committed`` so far (``all``, and per resource name
+    those of the later rounds' tasks its envelopes made promising) (``layout.law_state_path``) and return the
+    result columns whose laws are narrow enough by ``stop_when`` (``stopped_resources``)."""
     table = pa.Table.from_pylist(list(rows))
     fits = fit_sweep(table, nsl, len(os.sched_getaffinity(0)), backtest=False) if rows else []
     state = law_state(fits)
-    record = {"round": number, "rows": len(rows), "committed_core_hours": committed_core_hours, "laws": state}
+    record = {"round": number, "rows": len(rows), "committed_core_hours": dict(committed), "laws": state}
     write_text(json.dumps(record, indent=1, default=float), layout.law_state_path(sweep_dir, number))
     columns = {name: spec["column"] for name, spec in nsl["resources"].items()}
     return stopped_resources(state, stop_when, columns)
@@ -108,10 +109,10 @@ def law_records(sweep_dir: Path) -> list[dict[str, Any]]:
 
 
 def narrowing(before: Mapping[str, Any], after: Mapping[str, Any]) -> dict[str, float]:
-    """Per resource, how much its laws' intervals narrowed per predicted core-hour between two law states: the
-    mean over its laws of ln(width before / width after) of the last slope and the prediction, over the
-    core-hours committed in between (nan where nothing was committed or no width is finite in both)."""
-    hours = after["committed_core_hours"] - before["committed_core_hours"]
+    """Per resource, how much its laws' intervals narrowed per predicted core-hour spent on its candidates between
+    two law states: the mean over its laws of ln(width before / width after) of the last slope and the
+    prediction, over the core-hours committed in between to the tasks its envelopes made promising (nan where none
+    were, or no width is finite in both)."""
     earlier = {law["law"]: law for law in before["laws"]}
     gains: dict[str, list[float]] = {}
     for law in after["laws"]:
@@ -119,7 +120,11 @@ def narrowing(before: Mapping[str, Any], after: Mapping[str, Any]) -> dict[str, 
             old, new = earlier.get(law["law"], {}).get(name, math.inf), law[name]
             if math.isfinite(old) and math.isfinite(new) and old > 0 and new > 0:
                 gains.setdefault(law["resource"], []).append(math.log(old / new))
-    return {resource: float(np.mean(values)) / hours if hours > 0 else math.nan for resource, values in gains.items()}
+    rates = {}
+    for resource, values in gains.items():
+        hours = after["committed_core_hours"][resource] - before["committed_core_hours"][resource]
+        rates[resource] = float(np.mean(values)) / hours if hours > 0 else math.nan
+    return rates
 
 
 def describe_law_records(records: Sequence[Mapping[str, Any]], stop_when: StopWhen | None) -> list[str]:
@@ -129,11 +134,11 @@ def describe_law_records(records: Sequence[Mapping[str, Any]], stop_when: StopWh
         return []
     latest = records[-1]
     lines = [f"laws on the {latest['rows']:,} rows of rounds 1-{latest['round']} "
-             f"({latest['committed_core_hours']:,.3g} predicted core-hours), 90% interval widths:",
+             f"({latest['committed_core_hours']['all']:,.3g} predicted core-hours), 90% interval widths:",
              *describe_state(latest["laws"], stop_when)]
     if len(records) > 1 and (rates := {k: v for k, v in narrowing(records[-2], latest).items() if math.isfinite(v)}):
         best = max(rates, key=lambda resource: rates[resource])
-        lines.append(f"  narrowed most per core-hour in round {latest['round']}: {best} "
+        lines.append(f"  narrowed most per core-hour spent on its candidates in round {latest['round']}: {best} "
                      f"({', '.join(f'{k} {v:.3g}' for k, v in sorted(rates.items()))}: mean ln(width before / after) "
                      "per predicted core-hour)")
     return lines

@@ -31,7 +31,7 @@ import math
 from collections import defaultdict
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
@@ -203,18 +203,29 @@ def fitted_columns(nsl: Mapping[str, Any]) -> tuple[list[str], list[str]]:
     return [spec["column"] for spec in nsl["resources"].values()], list(nsl["metrics"])
 
 
+class Promise(NamedTuple):
+    """How promising a candidate is: ``ratio``, the smallest over resources and metrics of its ancestor's error /
+    margin over the envelope at its own resource value (below 1, it could lower an envelope); ``spread``, the
+    geometric mean of those ratios (of candidates as promising, the one near more envelopes first: many tie at 1 /
+    margin, their ancestor on one); ``resource``, the result column of the smallest (None: no ratio)."""
+
+    ratio: float
+    spread: float
+    resource: str | None
+
+
 def promise(task: Mapping[str, Any], ancestor_row: Mapping[str, Any], envelopes: Envelopes, margin: float,
-            resources: Sequence[str], metrics: Sequence[str]) -> tuple[float, float]:
-    """The smallest, over resources and metrics, of the ancestor's error / margin over the envelope at the task's
-    own resource value (below 1, the task could lower an envelope), and the geometric mean of those ratios (of
-    tasks as promising, the one near more envelopes first: many tie at 1 / margin, their ancestor on one)."""
-    ratios = [float(ancestor_row[metric]) / envelopes.at(task["system"], task["arch"], resource, metric,
-                                                         float(task[resource])) / margin  # on it: 1 / margin exactly
+            resources: Sequence[str], metrics: Sequence[str]) -> Promise:
+    """The ``Promise`` of ``task`` from its ancestor's row over the envelopes of ``resources`` and ``metrics``."""
+    ratios = [(float(ancestor_row[metric]) / margin  # on the envelope: 1 / margin exactly
+               / envelopes.at(task["system"], task["arch"], resource, metric, float(task[resource])), resource)
               for resource in resources for metric in metrics]
-    finite = [ratio for ratio in ratios if not math.isnan(ratio)]
+    finite = [(ratio, resource) for ratio, resource in ratios if not math.isnan(ratio)]
     if not finite:
-        return math.inf, math.inf
-    return min(finite), math.exp(float(np.mean(np.log(np.maximum(finite, 1e-300)))))
+        return Promise(math.inf, math.inf, None)
+    smallest, resource = min(finite)
+    spread = math.exp(float(np.mean(np.log(np.maximum([ratio for ratio, _ in finite], 1e-300)))))
+    return Promise(smallest, spread, resource)
 
 
 def longest_prefix(task_ids: Sequence[str], planned_s: Callable[[Sequence[str]], float], left_s: float,
@@ -252,20 +263,20 @@ def decide_round(number: int, ancestors: Mapping[str, str | None], tasks: Mappin
     ``affordable`` fits in ``left_s`` (by ``planned_s`` of their ids: lockstep groups and all). ``cost_s``: a run
     task's share of the round's predicted seconds."""
     candidates = sorted(ancestors)
-    scored: list[tuple[tuple[float, float], str, str]] = []
+    scored: list[tuple[Promise, str, str]] = []
     if number == 1:
-        scored = [((0.0, 0.0), task_id, "") for task_id in candidates]
+        scored = [(Promise(0.0, 0.0, None), task_id, "") for task_id in candidates]
     envelopes = Envelopes(list(rows.values()), budget.resources, budget.metrics)
     open_resources = [resource for resource in budget.resources if resource not in stopped]
     for task_id in candidates if number > 1 else ():
         ancestor = ancestors[task_id]
         row = rows.get(ancestor) if ancestor is not None else None
-        value = (math.inf, math.inf) if row is None or not open_resources else promise(
+        value = Promise(math.inf, math.inf, None) if row is None or not open_resources else promise(
             tasks[task_id], row, envelopes, budget.margin, open_resources, budget.metrics)
         scored.append((value, task_id, "its ancestor did not finish" if row is None
                        else "laws narrow enough" if not open_resources else "far above the envelope"))
-    scored.sort(key=lambda item: (item[0], item[1]))
-    promising = [task_id for value, task_id, _ in scored if value[0] < 1]
+    scored.sort(key=lambda item: (item[0].ratio, item[0].spread, item[1]))
+    promising = [task_id for value, task_id, _ in scored if value.ratio < 1]
     chosen = affordable(promising, planned_s, left_s)
     run = set(chosen)
     seconds = planned_s(chosen) if run else 0.0
@@ -273,7 +284,7 @@ def decide_round(number: int, ancestors: Mapping[str, str | None], tasks: Mappin
     total = sum(weights.values())
     return [{"task_id": task_id, "round": number, "run": task_id in run,
              "reason": ("first round" if number == 1 else "promising") if task_id in run
-             else "budget spent" if value[0] < 1 else reason, "promise": value[0],
+             else "budget spent" if value.ratio < 1 else reason, "promise": value.ratio, "resource": value.resource,
              "cost_s": seconds * weights[task_id] / total if task_id in run else 0.0}
             for value, task_id, reason in scored]
 

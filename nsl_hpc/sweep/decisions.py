@@ -16,9 +16,11 @@ from nsl_hpc.errors import ConfigError, damaged_file
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES, job_states, slurm_command
 
-# one row per task of a decided round; cost_s: the predicted core-seconds it is charged (0 when skipped)
+# one row per task of a decided round; cost_s: the predicted core-seconds it is charged (0 when skipped); resource:
+# the result column whose envelope made it promising (null in round 1; rounds decided before it was recorded)
 DECISION_SCHEMA = pa.schema([("task_id", pa.string()), ("round", pa.int64()), ("run", pa.bool_()),
-                             ("reason", pa.string()), ("promise", pa.float64()), ("cost_s", pa.float64())])
+                             ("reason", pa.string()), ("promise", pa.float64()), ("cost_s", pa.float64()),
+                             ("resource", pa.string())])
 
 
 def skip_reasons(decisions: Sequence[Mapping[str, Any]], ran: Collection[str] = ()) -> dict[str, int]:
@@ -51,8 +53,11 @@ def read_decisions(sweep_dir: Path) -> list[dict[str, Any]]:
     decisions = []
     for path in decision_files(sweep_dir):
         try:
-            decisions += pq.read_table(path, schema=DECISION_SCHEMA).to_pylist()
-        except (OSError, pa.ArrowException) as error:
+            table = pq.read_table(path)
+            if "resource" not in table.column_names:
+                table = table.append_column("resource", pa.nulls(table.num_rows, pa.string()))
+            decisions += table.select(DECISION_SCHEMA.names).cast(DECISION_SCHEMA).to_pylist()
+        except (OSError, pa.ArrowException, KeyError) as error:
             raise damaged_file(path, error) from None
     return decisions
 

@@ -239,10 +239,12 @@ def track_round_laws(sweep_dir: Path, number: int, manifest: Mapping[str, Mappin
     (none without ``budget.track_laws`` or before round 1)."""
     if not budget.track_laws or number == 0:
         return set()
-    decisions = read_decisions(sweep_dir)
+    decisions, nsl = read_decisions(sweep_dir), plain(cfg.nsl)
     rows = [{**manifest[task_id], **row} for task_id, row in ran_rows(sweep_dir, decisions).items()]
-    committed = sum(d["cost_s"] for d in decisions if d["run"]) / 3600
-    return track_laws(sweep_dir, number, rows, committed, plain(cfg.nsl), budget.stop_when)
+    committed = {"all": sum(d["cost_s"] for d in decisions if d["run"]) / 3600}
+    for name, spec in nsl["resources"].items():  # what the candidates promising on each resource's envelopes cost
+        committed[name] = sum(d["cost_s"] for d in decisions if d["run"] and d["resource"] == spec["column"]) / 3600
+    return track_laws(sweep_dir, number, rows, committed, nsl, budget.stop_when)
 
 
 def only(prepared: PreparedSweep, task_ids: set[str]) -> PreparedSweep:
