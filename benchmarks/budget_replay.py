@@ -77,13 +77,15 @@ def replay(full: pa.Table, overrides: list[str]) -> tuple[list[dict], list[dict]
     rounds = Rounds(tasks, study, first_round_levels(tasks, study, budget, planned_s), budget.levels_per_round)
     decisions: list[dict] = []
     states: list[dict] = []
+    state: list[dict] = []
     for number in range(1, rounds.count + 2):  # and the laws after the last round
         stopped: set[str] = set()
         if number > 1 and budget.track_laws:
             ran = pa.array(sorted(d["task_id"] for d in decisions if d["run"]), pa.string())
             fits = fit_sweep(ok.filter(pc.is_in(ok["task_id"], value_set=ran)), cfg.nsl, None, backtest=False)
             states.append({"round": number - 1, "committed_s": sum(d["cost_s"] for d in decisions), "fits": fits})
-            stopped = stopped_resources(law_state(fits), budget.stop_when, columns)
+            state = law_state(fits, state)
+            stopped = stopped_resources(state, budget.stop_when, columns)
         if number <= rounds.count:
             decisions += next_round(number, rounds, manifest, decisions, rows, planned_s, budget, stopped)
     return decisions, states, budget

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from nsl_hpc.analysis.widths import decided, describe_law_records, narrowing, widths_of
+from nsl_hpc.analysis.widths import decided, describe_law_records, law_state, narrowing, widths_of
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.sweep.budget import StopWhen, stop_when_of, stopped_resources
 from tests.fit_clouds import law
@@ -59,7 +59,19 @@ def test_stop_when_is_checked_in_one_line():
 def state(**widths: tuple[float, float]) -> list[dict]:
     """A law state: per resource name, the (last slope, prediction) widths of its laws."""
     return [{"law": f"{resource}/{i}", "resource": resource, "last_slope": slope, "prediction": prediction,
-             "breaks": 1.0} for resource, laws in widths.items() for i, (slope, prediction) in enumerate(laws)]
+             "breaks": 1.0, "settled": True} for resource, laws in widths.items()
+            for i, (slope, prediction) in enumerate(laws)]
+
+
+def test_a_law_is_settled_once_it_lies_inside_the_intervals_of_its_fit_a_round_before():
+    fits = [{**FULL_ROW, "system": "ball", "arch": "unstructured", "metric": "nmae", "outcomes": 40}]
+    first = law_state(fits)
+    assert not first[0]["settled"]  # no round before
+    assert law_state(fits, first)[0]["settled"]
+    moved = [{**fits[0], **row(law(0.01, 1.0, -0.1, (1e5, 0.2, -0.7)))}]  # its last slope now -0.8
+    assert not law_state(moved, first)[0]["settled"]
+    narrow = StopWhen(1.0, None, None, each_resource=True)
+    assert narrow.narrow(law_state(fits, first)[0]) and not narrow.narrow(first[0])
 
 
 def test_spending_stops_on_a_resource_once_all_its_laws_are_narrow_enough():
@@ -96,5 +108,5 @@ def test_status_says_how_wide_the_laws_are_and_which_resource_narrowed_most_per_
     lines = describe_law_records([before, after], StopWhen(0.3, None, None, each_resource=True))
     assert lines[0].startswith("laws on the 30 rows of rounds 1-2 (3 predicted core-hours)")
     assert "compute: 1 of 1 laws with intervals: last slope 0.2 (widest 0.2)" in lines[1]
-    assert "1 narrow enough" in lines[1] and "0 narrow enough" in lines[2]
+    assert "1 settled, 1 narrow enough" in lines[1] and "0 narrow enough" in lines[2]
     assert "narrowed most per core-hour spent on its candidates in round 2: compute" in lines[3]

@@ -3,8 +3,9 @@
 A law's widths are those of its bootstrap intervals (``nsl.bootstrap_level``, analysis/bootstrap.py):
 ``last_slope``: high - low of its last slope (log-log slope units); ``breaks``: the largest high / low of its
 break positions (a factor; 1 without a break); ``prediction``: high / low of L at ten times its largest resource
-(a factor). ``budget.stop_when`` sets the widths at which a law is narrow enough: a budgeted sweep then stops
-spending on the resource whose laws all are (or, with ``each_resource: false``, once every law is).
+(a factor). A law is settled once it is ``decided`` against the law of the round before (below). ``budget.stop_when``
+sets the widths at which a settled law is narrow enough: a budgeted sweep then stops spending on the resource
+whose laws (``share`` of them) are (or, with ``each_resource: false``, once every resource's are).
 
 Against a full sweep (the replay's measurement, benchmarks/budget_replay.py), a budgeted law is decided when it
 has the full law's number of breaks, and its last slope, its breaks and its value at ten times the full sweep's
@@ -37,11 +38,32 @@ def widths_of(row: Mapping[str, Any]) -> dict[str, float]:
             "prediction": row["L_at_10x_hi"] / row["L_at_10x_lo"]}
 
 
-def law_state(fits: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """Per law of ``fits`` (nsl_fits rows with bootstrap intervals): its key, resource, outcomes, b, last slope,
-    ``error`` where it could not be fitted, and ``widths_of``."""
-    return [{"law": nsl_key(row), "resource": row["resource"], "outcomes": row["outcomes"], "b": row.get("b"),
-             "last_slope": row.get("last_slope"), "error": row.get("error"), **widths_of(row)} for row in fits]
+# what a law state keeps of an nsl_fits row (with each break's sigma, phi, delta and sigma interval): the law and
+# its intervals, as ``decided`` reads them
+FIT_FIELDS = ("error", "b", "alpha", "beta", "delta0", "margin", "margins_by_b", "objective", "r_max", "bootstrap",
+              "last_slope", "last_slope_lo", "last_slope_hi", "L_at_10x", "L_at_10x_lo", "L_at_10x_hi")
+
+
+def kept_fit(row: Mapping[str, Any]) -> dict[str, Any]:
+    """``row``'s law and intervals (``FIT_FIELDS`` and its breaks')."""
+    fit = {name: row.get(name) for name in FIT_FIELDS}
+    for i in range(1, (row.get("b") or 0) + 1):
+        fit |= {f"{name}_{i}": row.get(f"{name}_{i}") for name in ("sigma", "phi", "delta")}
+        fit |= {f"sigma_{i}_{end}": row.get(f"sigma_{i}_{end}") for end in ("lo", "hi")}
+    return fit
+
+
+def law_state(fits: Sequence[Mapping[str, Any]], before: Sequence[Mapping[str, Any]] = ()) -> list[dict[str, Any]]:
+    """Per law of ``fits`` (nsl_fits rows with bootstrap intervals): its key, resource, outcomes, ``widths_of``,
+    ``fit`` (``kept_fit``) and ``settled``: ``decided`` against the same law in the state ``before`` (the one
+    after the round before; never settled without one)."""
+    earlier = {law["law"]: law["fit"] for law in before}
+    state = []
+    for row in fits:
+        fit, previous = kept_fit(row), earlier.get(nsl_key(row))
+        state.append({"law": nsl_key(row), "resource": row["resource"], "outcomes": row["outcomes"],
+                      **widths_of(row), "settled": previous is not None and decided(fit, previous), "fit": fit})
+    return state
 
 
 def inside(value: float, full: Mapping[str, Any], name: str) -> bool:
@@ -66,7 +88,7 @@ def decided(budgeted: Mapping[str, Any] | None, full: Mapping[str, Any]) -> bool
 
 def describe_state(state: Sequence[Mapping[str, Any]], stop_when: StopWhen | None) -> list[str]:
     """Lines for status: per resource, how many of its laws could be fitted with intervals, the median and widest
-    of their 90% widths, and how many are narrow enough by ``stop_when``."""
+    of their 90% widths, how many are settled and how many narrow enough by ``stop_when``."""
     lines = []
     for resource in dict.fromkeys(law["resource"] for law in state):
         laws = [law for law in state if law["resource"] == resource]
@@ -76,8 +98,9 @@ def describe_state(state: Sequence[Mapping[str, Any]], stop_when: StopWhen | Non
             values = sorted(law[name] for law in fitted)
             line += (f"{',' if name != 'last_slope' else ':'} {name.replace('_', ' ')} "
                      f"{values[len(values) // 2]:.3g}{unit} (widest {values[-1]:.3g}{unit})")
+        line += f"; {sum(bool(law['settled']) for law in laws)} settled"
         if stop_when is not None:
-            line += f"; {sum(stop_when.narrow(law) for law in laws)} narrow enough (budget.stop_when)"
+            line += f", {sum(stop_when.narrow(law) for law in laws)} narrow enough (budget.stop_when)"
         lines.append(line)
     return lines
 
@@ -90,7 +113,8 @@ def track_laws(sweep_dir: Path, number: int, rows: Sequence[Mapping[str, Any]], 
     result columns whose laws are narrow enough by ``stop_when`` (``stopped_resources``)."""
     table = pa.Table.from_pylist(list(rows))
     fits = fit_sweep(table, nsl, len(os.sched_getaffinity(0)), backtest=False) if rows else []
-    state = law_state(fits)
+    earlier = [record for record in law_records(sweep_dir) if record["round"] < number]
+    state = law_state(fits, earlier[-1]["laws"] if earlier else ())
     record = {"round": number, "rows": len(rows), "committed_core_hours": dict(committed), "laws": state}
     write_text(json.dumps(record, indent=1, default=float), layout.law_state_path(sweep_dir, number))
     columns = {name: spec["column"] for name, spec in nsl["resources"].items()}

@@ -46,9 +46,9 @@ WIDTHS = ("last_slope", "breaks", "prediction")
 
 @dataclass(frozen=True)
 class StopWhen:
-    """The widths (``WIDTHS``; None: not asked) at which a law is narrow enough, the share of a resource's laws
-    that must be, and whether each resource stops on its own laws (else the sweep stops once every resource's
-    are)."""
+    """The widths (``WIDTHS``; None: not asked) at which a settled law (one that lies inside the intervals of its
+    fit a round before) is narrow enough, the share of a resource's laws that must be, and whether each resource
+    stops on its own laws (else the sweep stops once every resource's are)."""
 
     last_slope: float | None
     breaks: float | None
@@ -56,9 +56,11 @@ class StopWhen:
     each_resource: bool
     share: float = 1.0
 
-    def narrow(self, widths: Mapping[str, float]) -> bool:
-        """Whether every width asked for is at most its limit (a law without intervals never is)."""
-        return all(widths[name] <= limit for name in WIDTHS if (limit := getattr(self, name)) is not None)
+    def narrow(self, law: Mapping[str, Any]) -> bool:
+        """Whether a law (of a law state: its widths and whether it is settled) is settled and every width asked for
+        is at most its limit (a law without intervals never is)."""
+        return bool(law["settled"]) and all(law[name] <= limit for name in WIDTHS
+                                            if (limit := getattr(self, name)) is not None)
 
 
 def stop_when_of(settings: Mapping[str, Any] | None) -> StopWhen | None:
