@@ -297,6 +297,10 @@ def test_published_laws_are_data_and_measured_on_our_envelope():
     on_itself = comparison(("ball", "input_affine", "compute", "nmae"), r, ball.law.predict(r), 100)
     assert on_itself["paper_b"] == 2 and on_itself["paper_margin_on_ours"] < 1e-3
     assert comparison(("spring", "unstructured", "data", "nmae"), r, ball.law.predict(r), 100)["paper_b"] is None
+    wh = laws["wiener_hammerstein", "narx", "compute", "nmae"]  # beside either Wiener-Hammerstein data set
+    for system in ("wiener_hammerstein", "wiener_hammerstein_process_noise"):
+        beside = comparison((system, "narx", "compute", "nmae"), r, wh.law.predict(r), 100)
+        assert beside["paper_b"] == 3 and beside["paper_margin_on_ours"] < 1e-3
 
 
 def test_fixed_breaks_and_choice_rule():

@@ -23,7 +23,7 @@ from nsl_hpc.analysis.bootstrap import band, thetas_of
 from nsl_hpc.analysis.broken_law import NSLFit, log_law, lower_envelope
 from nsl_hpc.analysis.fitting import fit_from_row, fittable, pair_outcomes
 from nsl_hpc.analysis.published import KEY as PUBLISHED_KEY
-from nsl_hpc.analysis.published import published_laws
+from nsl_hpc.analysis.published import published_law
 from nsl_hpc.atomic import replacing
 from nsl_hpc.sweep import layout
 
@@ -99,7 +99,7 @@ def draw_nsl(ax: Axes, data: Mapping[str, np.ndarray], row: Mapping[str, Any], n
         for i, (sigma, _, _) in enumerate(fit.breaks):
             ax.axvline(sigma, color="crimson", ls=":", lw=1, label="breaks" if i == 0 else None)
     low, high = data["e"].min() / 2, data["e"].max() * 2  # a band far off stays out of the way
-    published = published_laws().get(tuple(row[k] for k in PUBLISHED_KEY))
+    published = published_law(tuple(row[k] for k in PUBLISHED_KEY))
     if published is not None:
         on_ours, law = row.get("paper_margin_on_ours"), published.law.predict(dense)
         below = law.max() < low / MAX_DECADES_BELOW

@@ -38,6 +38,23 @@ def key_of(entry: Mapping[str, Any]) -> tuple[str, ...]:
 
 
 @cache
+def published_systems() -> dict[str, str]:
+    """Our systems whose published laws are another system's (``same_laws`` in the file: the paper's
+    Wiener-Hammerstein laws beside both Wiener-Hammerstein data sets), each -> that system."""
+    return dict(plain(OmegaConf.load(config_dir() / PUBLISHED_FILE)).get("same_laws") or {})
+
+
+def published_key(key: tuple[str, ...]) -> tuple[str, ...]:
+    """``key`` (system, arch, resource, metric) under the system whose published laws it shares."""
+    return (published_systems().get(key[0], key[0]), *key[1:])
+
+
+def published_law(key: tuple[str, ...]) -> PublishedLaw | None:
+    """The published law of (system, arch, resource, metric), None where the paper publishes none."""
+    return published_laws().get(published_key(key))
+
+
+@cache
 def published_laws() -> dict[tuple[str, ...], PublishedLaw]:
     """Every published law by (system, arch, resource, metric)."""
     data = plain(OmegaConf.load(config_dir() / PUBLISHED_FILE))
@@ -63,9 +80,9 @@ def comparison(key: tuple[str, ...], resources: np.ndarray, errors: np.ndarray, 
     columns: dict[str, Any] = {"paper_b": None, "paper_margin": None, "paper_last_slope": None,
                                "paper_breaks": None, "paper_margin_on_ours": None, "paper_where": None,
                                "paper_margins_by_b": None, "paper_range": None}
-    if key in published_margins_by_b():
-        columns["paper_margins_by_b"] = json.dumps(published_margins_by_b()[key])
-    published = published_laws().get(key)
+    if published_key(key) in published_margins_by_b():
+        columns["paper_margins_by_b"] = json.dumps(published_margins_by_b()[published_key(key)])
+    published = published_law(key)
     if published is None:
         return columns
     grid_r, grid_e = lower_envelope(resources, errors, K, "step")
