@@ -12,6 +12,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from nsl_hpc.errors import ConfigError
+from nsl_hpc.sweep.groups import STALE_S
 
 FORMAT = 2
 ABSENT = object()  # OmegaConf.select's default for a key a config lacks (null is a value)
@@ -22,7 +23,7 @@ FORMAT_1_SETTINGS: tuple[tuple[str, Any], ...] = (
     ("compile", "auto"),
     ("rehearsal", False),
     ("checkpoint", {"every_minutes": 0}),
-    ("watchdog.worker_silence_s", 120.0),
+    ("watchdog.worker_silence_s", STALE_S),
     ("cost.group_start_s", 0.0),
     ("cost.score_seconds", 0.0),
     ("cost.compile_s", {}),
