@@ -19,11 +19,11 @@ it and the rounds after it (so the long rounds are reached), else all that is le
 fit is passed over for later ones that do (``affordable``); the others are skipped, each with its reason.
 ``budget.share`` is a share of the planner's prediction for the whole sweep. With ``budget.track_laws`` (or
 ``budget.stop_when``) every law is fitted with its bootstrap intervals on the rows before each later round
-(analysis/widths.py; status shows their widths); a resource whose laws are all as narrow as ``budget.stop_when``
-asks runs no more candidates for its own sake (and none at all once every resource's are, or, with
-``each_resource: false``, once every law is). Every decision depends only on the rows
-of earlier rounds; a round's decisions are written (``budget/round-<r>.parquet``) before its tasks run, so a launch
-that stops anywhere continues with the same decisions.
+(analysis/widths.py; status shows their widths); a resource of which ``budget.stop_when.share`` of the laws are
+settled and as narrow as it asks runs no more candidates for its own sake (none at all once every resource has
+stopped; with ``each_resource: false``, nothing stops before every resource could). Every decision depends only
+on the rows of earlier rounds; a round's decisions are written (``budget/round-<r>.parquet``) before its tasks
+run, so a launch that stops anywhere continues with the same decisions.
 """
 
 import functools

@@ -14,6 +14,7 @@ import pyarrow.parquet as pq
 from nsl_hpc.atomic import write_parquet, write_text
 from nsl_hpc.errors import ConfigError, damaged_file
 from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.formats import upgrade_decisions
 from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES, job_states, slurm_command
 
 # one row per task of a decided round; cost_s: the predicted core-seconds it is charged (0 when skipped); resource:
@@ -53,9 +54,7 @@ def read_decisions(sweep_dir: Path) -> list[dict[str, Any]]:
     decisions = []
     for path in decision_files(sweep_dir):
         try:
-            table = pq.read_table(path)
-            if "resource" not in table.column_names:
-                table = table.append_column("resource", pa.nulls(table.num_rows, pa.string()))
+            table = upgrade_decisions(pq.read_table(path))
             decisions += table.select(DECISION_SCHEMA.names).cast(DECISION_SCHEMA).to_pylist()
         except (OSError, pa.ArrowException, KeyError) as error:
             raise damaged_file(path, error) from None

@@ -2,13 +2,15 @@
 
 launch.yaml records the ``format`` it was written in (``FORMAT``). A sweep launched before that (format 1: no
 ``format`` key) may lack settings added since, in launch.yaml and run.yaml; ``upgrade_launch`` gives each the value
-such a sweep ran with, so every reader of a sweep's launch config sees one shape. The settings added to the pairs'
+such a sweep ran with, so every reader of a sweep's launch config sees one shape; ``upgrade_decisions`` does the
+same for a budgeted sweep's decisions. The settings added to the pairs'
 task configs are upgraded by ``Study.with_neutral_settings`` (they also keep the task ids). A sweep written in a
 later format, by a newer nsl_hpc, is refused in one line.
 """
 
 from typing import Any
 
+import pyarrow as pa
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from nsl_hpc.errors import ConfigError
@@ -54,3 +56,11 @@ def upgrade_launch(launch: DictConfig, where: str) -> DictConfig:
                     OmegaConf.update(launch, key, value, force_add=True)
             launch.format = FORMAT
     return launch
+
+
+def upgrade_decisions(table: pa.Table) -> pa.Table:
+    """A budgeted round's decisions (budget/round-<r>.parquet) with the columns added since: ``resource`` (the
+    envelope that made a task promising), null in rounds decided before it was recorded."""
+    if "resource" not in table.column_names:
+        table = table.append_column("resource", pa.nulls(table.num_rows, pa.string()))
+    return table
