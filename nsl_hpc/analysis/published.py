@@ -38,10 +38,16 @@ def key_of(entry: Mapping[str, Any]) -> tuple[str, ...]:
 
 
 @cache
+def published_data() -> dict[str, Any]:
+    """conf/published_laws.yaml as plain data, read once."""
+    return plain(OmegaConf.load(config_dir() / PUBLISHED_FILE))
+
+
+@cache
 def published_systems() -> dict[str, str]:
     """Our systems whose published laws are another system's (``same_laws`` in the file: the paper's
     Wiener-Hammerstein laws beside both Wiener-Hammerstein data sets), each -> that system."""
-    return dict(plain(OmegaConf.load(config_dir() / PUBLISHED_FILE)).get("same_laws") or {})
+    return dict(published_data().get("same_laws") or {})
 
 
 def published_key(key: tuple[str, ...]) -> tuple[str, ...]:
@@ -57,7 +63,7 @@ def published_law(key: tuple[str, ...]) -> PublishedLaw | None:
 @cache
 def published_laws() -> dict[tuple[str, ...], PublishedLaw]:
     """Every published law by (system, arch, resource, metric)."""
-    data = plain(OmegaConf.load(config_dir() / PUBLISHED_FILE))
+    data = published_data()
     laws = {}
     for entry in data["laws"]:
         law = NSLFit(entry["alpha"], entry["beta"], entry["delta0"], [tuple(b) for b in entry["breaks"]],
@@ -69,7 +75,7 @@ def published_laws() -> dict[tuple[str, ...], PublishedLaw]:
 @cache
 def published_margins_by_b() -> dict[tuple[str, ...], dict[int, float]]:
     """Published margins per b where the paper gives no formula (its appendix on choosing b)."""
-    data = plain(OmegaConf.load(config_dir() / PUBLISHED_FILE))
+    data = published_data()
     return {key_of(entry): {int(b): m for b, m in entry["margins"].items()} for entry in data["margins_by_b"]}
 
 
