@@ -9,7 +9,8 @@ import torch
 from omegaconf import OmegaConf
 
 from nsl_hpc.studies.input_output.data import Signals, load_benchmark
-from nsl_hpc.studies.input_output.lockstep import IOMember, StackedMLPs, Windows, step_gradient, train_lockstep
+from nsl_hpc.studies.input_output.lockstep import IOMember, Windows, step_gradient, train_lockstep
+from nsl_hpc.studies.input_output.stacked import StackedMLPs
 from nsl_hpc.studies.input_output.study import build_io_model, horizon
 from nsl_hpc.studies.input_output.training import SignalScaling, train_io_model
 from nsl_hpc.studies.training import StepCompiler

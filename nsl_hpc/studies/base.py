@@ -133,15 +133,15 @@ class Study:
     def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
                         on_progress: Callable[[], None]) -> dict[str, Any]:
         """Train the task's model and score it: nmae, nmse, steps, final_loss, finite, train_seconds and
-        study extras. ``task``: its coordinates and task_id; ``sizes``: its drawn sizes."""
-        raise NotImplementedError
+        study extras. ``task``: its coordinates and task_id; ``sizes``: its drawn sizes. A group of one."""
+        return self.train_and_score_group([(cfg, task, sizes)], on_progress)[0]
 
     def train_and_score_group(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
                              on_progress: Callable[[], None], checkpoint: Checkpointer | None = None
                              ) -> list[dict[str, Any]]:
-        """``train_and_score`` of each (cfg, task, sizes): one after another unless a study trains them
-        together (and then continues from ``checkpoint`` and writes it as training goes on)."""
-        return [self.train_and_score(cfg, task, sizes, on_progress) for cfg, task, sizes in items]
+        """``train_and_score`` of each (cfg, task, sizes), trained together in lockstep (they share system, arch
+        and depth), continuing from ``checkpoint`` and writing it as training goes on."""
+        raise NotImplementedError
 
 
 def model_of(task: Mapping[str, Any], model_keys: Sequence[str]) -> tuple:

@@ -1,17 +1,22 @@
-"""What the training loops share: the outcome record, the batch order, Adam on the rows of a stack of models and
-the compiled step (mini-batch bounds and the learning-rate schedules: ``studies.settings``). The loops are
-``input_state.lockstep`` (input-state models) and ``input_output.lockstep`` (NARX and SUBNET), each alone or K in
-lockstep.
+"""What the training loops share: the outcome record, the batch order, Adam on the rows of a stack of models, the
+compiled step (mini-batch bounds and the learning-rate schedules: ``studies.settings``) and the lockstep driver
+(``drive_lockstep``: blocks of steps, settling, shrinking the stack, heartbeats, checkpoints). Each study trains its
+models, alone or K in lockstep, through a ``LockstepRun`` of its own: ``input_state.lockstep`` (input-state models)
+and ``input_output.lockstep`` (NARX and SUBNET).
 """
 
+import functools
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, TypeVar, cast
 
 import numpy as np
 import torch
+from tqdm import tqdm
+
+from nsl_hpc.checkpoint import Checkpointer
 
 LOG = logging.getLogger(__name__)
 
@@ -190,3 +195,76 @@ def stack_rows(training: list[int], rows: int, static: bool) -> list[int]:
         return list(range(rows))
     finished = [row for row in range(rows) if row not in set(training)]
     return sorted([*training, *finished[:size - len(training)]])
+
+
+class LockstepRun:
+    """K models of one study trained in lockstep, as ``drive_lockstep`` drives them: each step every row of the
+    stack takes its own mini-batch and update; a model that has finished (or diverged) takes padding at learning
+    rate 0 until its rows leave the stack. A study implements the hooks."""
+
+    block_steps: int  # steps prepared and taken at once; a heartbeat, and a checkpoint's chance, after each block
+    total: int  # steps of the longest-training model
+    compiler: "StepCompiler"
+
+    @property
+    def rows(self) -> int:
+        """Rows of the stack now (finished models that still fill a static shape included)."""
+        raise NotImplementedError
+
+    def layout(self) -> dict[str, Any]:
+        """The shapes a checkpoint must have been written by (``Checkpointer.load``)."""
+        raise NotImplementedError
+
+    def state(self) -> dict[str, Any]:
+        """What a checkpoint keeps besides the step the run stands at (plain containers and tensors)."""
+        raise NotImplementedError
+
+    def restore(self, state: Mapping[str, Any]) -> None:
+        """Continue from ``state`` (``state()`` of a run of the same models, with its ``start``)."""
+        raise NotImplementedError
+
+    def train_block(self, start: int, size: int) -> torch.Tensor:
+        """Steps start .. start + size - 1 of every row; their losses (size, rows)."""
+        raise NotImplementedError
+
+    def settle(self, start: int, size: int, losses: torch.Tensor) -> list[int]:
+        """Record the outcomes the block's ``losses`` (size, rows) decide; the rows still training."""
+        raise NotImplementedError
+
+    def keep(self, rows: list[int]) -> None:
+        """Train only these rows from now on."""
+        raise NotImplementedError
+
+
+def drive_lockstep(run: LockstepRun, on_progress: Callable[[], None] = lambda: None,
+                   checkpoint: Checkpointer | None = None) -> None:
+    """Train ``run`` to its end, block by block: after each, the outcomes settled, the stack shrunk to the rows
+    still training (``stack_rows``: static shapes while the step is compiled), ``on_progress`` (a heartbeat) and,
+    with ``checkpoint``, its state offered (written when due or when a stop was asked). A run with a checkpoint
+    continues from it, bit for bit as if never stopped; at the end the checkpoint gets the state a stop during
+    scoring writes (``Checkpointer.training_done``)."""
+    start = 0
+    saved = checkpoint.load(run.layout()) if checkpoint is not None else None
+    if saved is not None:
+        start = saved["start"]
+        run.restore(saved)
+
+    def state(at: int) -> dict[str, Any]:
+        return {"start": at, **run.state()}
+
+    with tqdm(total=run.total, initial=start, desc="steps", unit="step", disable=None, leave=False,
+              mininterval=1.0) as bar:
+        while start < run.total:
+            size = min(run.block_steps, run.total - start)
+            training = run.settle(start, size, run.train_block(start, size))
+            start += size
+            bar.update(size)
+            on_progress()
+            if not training or start >= run.total:
+                break
+            if len(rows := stack_rows(training, run.rows, run.compiler.enabled)) < run.rows:
+                run.keep(rows)
+            if checkpoint is not None:
+                checkpoint.block_done(functools.partial(state, start), start, run.total)
+    if checkpoint is not None:
+        checkpoint.training_done(functools.partial(state, run.total), run.total)

@@ -17,7 +17,7 @@ from nsl_hpc.models.blocks import LAYER_NORM_EPS
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.data import Signals
-from nsl_hpc.studies.input_output.lockstep import StackedMLPs
+from nsl_hpc.studies.input_output.stacked import StackedMLPs
 from nsl_hpc.studies.input_output.training import SignalScaling
 from nsl_hpc.studies.metrics import normalized_errors
 

@@ -132,10 +132,6 @@ class InputOutput(Study):
         return {"steps": iterations,
                 "flops": float(drawn["params"]) * iterations * base["train"]["batch_size"] * horizon(base)}
 
-    def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
-                        on_progress: Callable[[], None]) -> dict[str, Any]:
-        return self.train_and_score_group([(cfg, task, sizes)], on_progress)[0]
-
     def train_and_score_group(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
                              on_progress: Callable[[], None], checkpoint: Checkpointer | None = None
                              ) -> list[dict[str, Any]]:

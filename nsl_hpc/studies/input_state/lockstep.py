@@ -14,7 +14,6 @@ rows (one gather), their loss weights (the batch spreads of the targets) and the
 then the forward pass, a four-operation loss, the backward pass and the optimizer step.
 """
 
-import functools
 import math
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -23,7 +22,6 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
-from tqdm import tqdm
 
 from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.models.state_space import StateSpaceModel
@@ -35,10 +33,11 @@ from nsl_hpc.studies.settings import batch_bounds, learning_rate_at
 from nsl_hpc.studies.training import (
     Adam,
     BatchOrder,
+    LockstepRun,
     StepCompiler,
     TrainingOutcome,
     compiled_gradient,
-    stack_rows,
+    drive_lockstep,
 )
 
 BLOCK_STEPS = 32  # steps prepared at once: (K, BLOCK_STEPS, batch) rows of data in memory
@@ -139,9 +138,12 @@ def stacked_data(members: Sequence[Member], dtype: torch.dtype) -> torch.Tensor:
     return torch.stack([nn.functional.pad(part, (0, 0, 0, rows - len(part))) for part in parts])
 
 
-class Lockstep:
-    """The state of the models still training: their rows of the stack and of Adam's moments, their data and
-    batch plans; ``member`` maps a row to its member's index."""
+class Lockstep(LockstepRun):
+    """The models still training: their rows of the stack and of Adam's moments, their data and batch plans
+    (``member`` maps a row to its member's index), and what each member has so far: its snapshots, its
+    outcome once settled and the epochs it is still to be kept after."""
+
+    block_steps = BLOCK_STEPS
 
     def __init__(self, members: Sequence[Member], cfg: Mapping[str, Any], compiler: StepCompiler | None = None):
         self.cfg, self.dtype = cfg, getattr(torch, cfg["dtype"])
@@ -157,25 +159,48 @@ class Lockstep:
         self.plans = [BatchPlan(len(mb.data), cfg["batch_size"], mb.epochs, mb.shuffle_seed, width, self.pad, repeat)
                       for mb in members]
         self.totals = np.array([plan.steps for plan in self.plans])
+        self.total = int(self.totals.max(initial=0))
         self.schedules = np.array([(mb.schedule_epochs or mb.epochs) * len(plan.slots)
                                    for mb, plan in zip(members, self.plans, strict=True)])
         self.member = list(range(len(members)))
+        self.pending = [sorted({*member.milestones, member.epochs}) for member in members]  # epochs not yet kept
+        self.due: dict[int, list[tuple[int, int]]] = {}  # step index -> (member, epochs) kept after it
+        for k, plan in enumerate(self.plans):
+            for epochs in self.pending[k]:
+                self.due.setdefault(epochs * len(plan.slots) - 1, []).append((k, epochs))
+        self.snapshots: list[list[Snapshot]] = [[] for _ in members]
+        self.outcomes: list[TrainingOutcome | None] = [
+            None if plan.steps else TrainingOutcome(0, math.nan, finite=True) for plan in self.plans]
+        self.active: list[int] = []  # steps of each row in the current block
+
+    @property
+    def rows(self) -> int:
+        return len(self.member)
+
+    def layout(self) -> dict[str, Any]:
+        return {"theta": list(self.stack.theta.shape), "data": list(self.data.shape)}
 
     def state(self) -> dict[str, Any]:
-        """What a checkpoint keeps: the members still training, their parameters, Adam's state, batch orders."""
-        return {"member": list(self.member), "adam": self.optimizer.state(),
-                "plans": [plan.state() for plan in self.plans]}
+        """The members' progress and the stack's: the members still training, their parameters, Adam's state,
+        batch orders."""
+        return {"pending": self.pending, "snapshots": [[snapshot.as_state() for snapshot in member]
+                                                       for member in self.snapshots],
+                "outcomes": [None if outcome is None else outcome.as_state() for outcome in self.outcomes],
+                "run": {"member": list(self.member), "adam": self.optimizer.state(),
+                        "plans": [plan.state() for plan in self.plans]}}
 
     def restore(self, state: Mapping[str, Any]) -> None:
-        """Continue from ``state`` (of a Lockstep of the same members)."""
-        if len(state["member"]) < len(self.member):
-            self.keep(state["member"])
-        self.optimizer.load_state(state["adam"])
-        for plan, plan_state in zip(self.plans, state["plans"], strict=True):
+        self.pending = state["pending"]
+        self.snapshots = [[Snapshot.from_state(snapshot) for snapshot in member] for member in state["snapshots"]]
+        self.outcomes = [TrainingOutcome.maybe_from_state(outcome) for outcome in state["outcomes"]]
+        stack = state["run"]
+        if len(stack["member"]) < len(self.member):
+            self.keep(stack["member"])
+        self.optimizer.load_state(stack["adam"])
+        for plan, plan_state in zip(self.plans, stack["plans"], strict=True):
             plan.load_state(plan_state)
 
     def keep(self, rows: list[int]) -> None:
-        """Train only these rows from now on (the others have finished)."""
         index = torch.tensor(rows, dtype=torch.long)
         self.stack.keep(index)
         self.optimizer.keep(index, self.stack.theta)
@@ -202,10 +227,11 @@ class Lockstep:
         return compiled_gradient(self.compiled_losses, self.stack.theta, self.stack.gradient_mask, inputs,
                                  weighted_targets, weights)
 
-    def train_block(self, start: int, size: int, after_step: Callable[[int, torch.Tensor], None]) -> torch.Tensor:
-        """Steps start .. start + size - 1 of every row; returns their losses (size, rows).
-        ``after_step(step, losses)`` is called after each update."""
+    def train_block(self, start: int, size: int) -> torch.Tensor:
+        """Steps start .. start + size - 1 of every row, each model kept (``Snapshot``) after the steps its
+        epochs are due; returns their losses (size, rows)."""
         n, m, cfg, dtype = self.stack.n, self.stack.m, self.cfg, self.dtype
+        self.active = [min(size, plan.remaining) for plan in self.plans]
         rows = torch.stack([plan.take(size) for plan in self.plans])  # (K, L, W)
         offsets = (torch.arange(len(self.plans)) * self.data.shape[1])[:, None, None]
         index = (rows + offsets).transpose(0, 1)  # (L, K, W) rows of the flattened data
@@ -224,8 +250,34 @@ class Lockstep:
             step_losses, grad = self.gradient(inputs[i], weighted_targets[i], weights[i])
             self.optimizer.step(grad, rates[i])
             losses[i] = step_losses.detach()
-            after_step(start + i, losses[i])
+            self.take_snapshots(start + i, losses[i])
         return losses
+
+    def take_snapshots(self, step: int, losses: torch.Tensor) -> None:
+        """Keep the models whose epochs end with ``step``, with their ``losses`` (rows,) of that step."""
+        for k, epochs in self.due.get(step, ()):
+            if epochs not in self.pending[k]:  # it diverged and left with its snapshots
+                continue
+            row = self.member.index(k)
+            loss = float(losses[row])
+            self.snapshots[k].append(Snapshot(epochs, TrainingOutcome(step + 1, loss, finite=math.isfinite(loss)),
+                                              self.stack.theta[row].detach().clone()))
+            self.pending[k].remove(epochs)
+
+    def settle(self, start: int, size: int, losses: torch.Tensor) -> list[int]:
+        """The outcomes of the models that finished or diverged in the block; before the last block, a diverged
+        model's later snapshots are its last parameters."""
+        for row, k in enumerate(self.member):
+            if self.outcomes[k] is None and self.active[row]:
+                self.outcomes[k] = settle(self.plans[row], losses[:self.active[row], row], start)
+        training = [row for row, k in enumerate(self.member) if self.outcomes[k] is None]
+        if len(training) < len(self.member) and start + size < self.total:
+            for row, k in enumerate(self.member):
+                if (outcome := self.outcomes[k]) is not None:
+                    self.snapshots[k] += [Snapshot(epochs, outcome, self.stack.theta[row].detach().clone())
+                                          for epochs in self.pending[k]]
+                    self.pending[k] = []
+        return training
 
 
 def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progress: Callable[[], None] = lambda: None,
@@ -233,73 +285,13 @@ def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progres
                    ) -> tuple[StackedModels, list[list[Snapshot]]]:
     """Train every member as if alone (``cfg`` is the ``train`` group); returns the stack and each member's
     snapshots, by epochs (the last after its ``epochs``). Models that have finished leave the stack at the
-    end of a block, so the stack holds the models that trained longest. ``on_progress`` is called after
-    every block of ``BLOCK_STEPS`` steps (a heartbeat); ``checkpoint`` continues from its state, if any, and
-    gets the state after each block (a resumed run gives the same snapshots, bit for bit) and, at the end, the state
-    a stop during scoring writes (``Checkpointer.training_done``). With an enabled ``compiler`` the step is compiled,
-    and the stack keeps static shapes (``stack_rows``)."""
+    end of a block, so the stack holds the models that trained longest. ``on_progress``, ``checkpoint``: as
+    ``drive_lockstep`` takes them. With an enabled ``compiler`` the step is compiled, and the stack keeps static
+    shapes (``stack_rows``)."""
     run = Lockstep(members, cfg, compiler)
-    pending = [sorted({*member.milestones, member.epochs}) for member in members]  # epochs not yet kept, per member
-    due: dict[int, list[tuple[int, int]]] = {}  # step index -> (member, epochs) kept after it
-    for k, plan in enumerate(run.plans):
-        for epochs in pending[k]:
-            due.setdefault(epochs * len(plan.slots) - 1, []).append((k, epochs))
-    snapshots: list[list[Snapshot]] = [[] for _ in members]
-    outcomes: list[TrainingOutcome | None] = [None if plan.steps else TrainingOutcome(0, math.nan, finite=True)
-                                              for plan in run.plans]
-    first = 0
-    layout = {"theta": list(run.stack.theta.shape), "data": list(run.data.shape)}
-    saved = checkpoint.load(layout) if checkpoint is not None else None
-    if saved is not None:
-        first, pending = saved["start"], saved["pending"]
-        snapshots = [[Snapshot.from_state(snapshot) for snapshot in member] for member in saved["snapshots"]]
-        outcomes = [TrainingOutcome.maybe_from_state(outcome) for outcome in saved["outcomes"]]
-        run.restore(saved["run"])
-
-    def state(start: int) -> dict[str, Any]:
-        return {"start": start, "pending": pending, "run": run.state(),
-                "snapshots": [[snapshot.as_state() for snapshot in member] for member in snapshots],
-                "outcomes": [None if outcome is None else outcome.as_state() for outcome in outcomes]}
-
-    def take_snapshots(step: int, losses: torch.Tensor) -> None:
-        for k, epochs in due.get(step, ()):
-            if epochs not in pending[k]:  # it diverged and left with its snapshots
-                continue
-            row = run.member.index(k)
-            loss = float(losses[row])
-            snapshots[k].append(Snapshot(epochs, TrainingOutcome(step + 1, loss, finite=math.isfinite(loss)),
-                                         run.stack.theta[row].detach().clone()))
-            pending[k].remove(epochs)
-
-    total = int(run.totals.max(initial=0))
-    with tqdm(total=total, initial=first, desc="steps", unit="step", disable=None, leave=False,
-              mininterval=1.0) as bar:
-        for start in range(first, total, BLOCK_STEPS):
-            size = min(BLOCK_STEPS, total - start)
-            active = [min(size, plan.remaining) for plan in run.plans]  # steps of each row in this block
-            losses = run.train_block(start, size, take_snapshots)
-            for row, k in enumerate(run.member):
-                if outcomes[k] is None and active[row]:
-                    outcomes[k] = settle(run.plans[row], losses[:active[row], row], start)
-            training = [row for row, k in enumerate(run.member) if outcomes[k] is None]
-            if len(training) < len(run.member) and start + size < total:
-                for row, k in enumerate(run.member):  # a diverged model's later snapshots: its last parameters
-                    if (outcome := outcomes[k]) is not None:
-                        snapshots[k] += [Snapshot(epochs, outcome, run.stack.theta[row].detach().clone())
-                                         for epochs in pending[k]]
-                        pending[k] = []
-                if not training:
-                    break
-                if len(rows := stack_rows(training, len(run.member), run.compiler.enabled)) < len(run.member):
-                    run.keep(rows)
-            bar.update(size)
-            on_progress()
-            if checkpoint is not None and start + size < total:
-                checkpoint.block_done(functools.partial(state, start + size), start + size, total)
-    if checkpoint is not None:
-        checkpoint.training_done(functools.partial(state, total), total)
+    drive_lockstep(run, on_progress, checkpoint)
     return run.stack, [[with_divergence(snapshot, outcome) for snapshot in member_snapshots]
-                       for member_snapshots, outcome in zip(snapshots, outcomes, strict=True)]
+                       for member_snapshots, outcome in zip(run.snapshots, run.outcomes, strict=True)]
 
 
 def with_divergence(snapshot: Snapshot, final: TrainingOutcome | None) -> Snapshot:

@@ -98,10 +98,6 @@ class InputState(Study):
                 "test_points": test_set["trajectories"] * round(test_set["duration_s"]
                                                                 / base["system"]["simulation"]["dt_s"])}
 
-    def train_and_score(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
-                        on_progress: Callable[[], None]) -> dict[str, Any]:
-        return self.train_and_score_group([(cfg, task, sizes)], on_progress)[0]
-
     def train_and_score_group(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
                              on_progress: Callable[[], None], checkpoint: Checkpointer | None = None
                              ) -> list[dict[str, Any]]:
