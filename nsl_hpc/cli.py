@@ -20,18 +20,30 @@ from nsl_hpc.config import (
     documented_config,
     user_config_dir,
 )
+from nsl_hpc.config.schema import field_docs
 from nsl_hpc.diagnostics import log_command
 from nsl_hpc.errors import ConfigError, RunError
 
 
+def schema_docs() -> dict[str, str]:
+    """Every key of a typed group -> its field's documentation (``config.schema.field_docs``)."""
+    from nsl_hpc.studies.settings import InputOutputTrain, InputStateTrain
+    from nsl_hpc.sweep.run_settings import SCHEMAS
+
+    docs = {**field_docs(InputOutputTrain, "train"), **field_docs(InputStateTrain, "train")}
+    for name, schema in SCHEMAS.items():
+        docs.update(field_docs(schema, name))
+    return docs
+
+
 def usage(doc: str, config_name: str) -> str:
     """A command's --help: what it does (its module docstring, with examples), then every key it reads with its
-    default and one line (from the comments of ``conf/<config_name>.yaml`` and what it includes) and the config
-    groups it selects."""
-    lines, seen, groups = [doc.strip(), ""], set(), config_groups()
+    default and one line (a typed group's field documentation, else the comment of ``conf/<config_name>.yaml`` and
+    what it includes) and the config groups it selects."""
+    lines, seen, groups, docs = [doc.strip(), ""], set(), config_groups(), schema_docs()
 
     def describe(config: ConfigDoc) -> None:
-        shown = [(key, default, comment) for key, default, comment in config.keys if key not in seen]
+        shown = [(key, default, docs.get(key, comment)) for key, default, comment in config.keys if key not in seen]
         if shown:
             lines.append(f"Keys (key=value) from {config.path.relative_to(config_dir())}:")
         for key, default, comment in shown:

@@ -34,7 +34,7 @@ from tests.sweeps import TINY_GRID, nsl
     (["cost.startup_s=-1"], "cost.startup_s=-1 must be a finite number in [0, 3600]"),
     (["cost.step_seconds.narx=inf"], "cost.step_seconds.narx=inf must be a finite number in (0, 3600]"),
     (["launcher.workers=100000"], "launcher.workers=100000 must be an integer from 1 to"),
-    (["packing.time_classes_minutes=[]"], "packing.time_classes_minutes=[] needs at least one time limit"),
+    (["packing.time_classes_minutes=[]"], "packing.time_classes_minutes=[] must be a list of at least one value"),
     (["packing.time_safety=nan"], "packing.time_safety=nan must be a finite number in [1, 100]"),
     (["launcher=slurm", "launcher.array_parallelism=0"], "launcher.array_parallelism=0 must be a positive integer"),
     (["launcher=slurm", "launcher.max_array_size=0"], "launcher.max_array_size=0 must be a positive integer"),

@@ -57,7 +57,7 @@ def test_a_subnet_task_counts_compute_over_its_horizon_and_reports_rmse_in_mv(co
     ("system.data_tiers=[128000]", None),  # set below with a matching data_tier
     ("arch.past=80", "subnet reads 80 past samples, more than the 50 that initialise a test simulation"),
     ("train.rollout_segment.batch_major=-1", "train.rollout_segment.batch_major=-1 must be a non-negative integer"),
-    ("train.rollout_segment=10", "train.rollout_segment=10 must give a segment length (0: none) per stack layout"),
+    ("train.rollout_segment=10", "train.rollout_segment=10 must be a group of keys: feature_major, batch_major"),
 ])
 def test_bad_input_output_tasks_are_refused_before_training(override, message, compose):
     overrides = [*SUBNET_TASK, override]

@@ -3,11 +3,56 @@ check a config, plan a sweep or read one (launch's checks, status, merge, clean,
 not the training loops (``studies.training``; torch alone is ~1.5 s of a command's start).
 """
 
+from dataclasses import dataclass
+
 import numpy as np
+
+from nsl_hpc.config.schema import setting
 
 SCHEDULES = ("warmup_cosine", "constant")
 LOSSES = ("normalised_mse", "per_column")  # input-state training losses (``input_state.lockstep.loss_weights``)
 COMPILE_MODES = ("auto", "always", "never")  # ``compile``: a sweep's planner resolves auto per group
+DTYPES = ("float32", "float64")
+
+
+@dataclass(frozen=True)
+class InputStateTrain:
+    """The ``train`` group of an input-state task (conf/train/default.yaml)."""
+
+    lr: float = setting("peak learning rate of Adam", 0, low_open=True)
+    schedule: str = setting("learning-rate schedule", choices=SCHEDULES)
+    warmup_fraction: float = setting("linear warm-up over this fraction of the steps", 0, 1, high_open=True)
+    schedule_epochs: int | None = setting("epoch milestones: the schedule's epochs (null: off)", 1)
+    grad_clip_norm: float = setting("clip the global gradient norm to this", 0, low_open=True)
+    batch_size: int = setting("samples per mini-batch", 1)
+    repeat: int = setting("R: passes over the training set per counted epoch", 1)
+    loss: str = setting("training loss", choices=LOSSES)
+    loss_std_eps: float = setting("added to the batch spread that divides the loss", 0, low_open=True)
+    output_weight: float = setting("weight of the output (y) term of the loss", 0)
+    rescale_targets: bool = setting("true: dx/dt and y rescaled (docs/science.md)")
+    dtype: str = setting("training precision", choices=DTYPES)
+
+
+@dataclass(frozen=True)
+class RolloutSegment:
+    """Simulated steps a compiled SUBNET step recomputes at a time, per layout of its stack (0: one graph)."""
+
+    feature_major: int = setting("a feature-major stack's segment", 0)
+    batch_major: int = setting("a batch-major stack's segment", 0)
+
+
+@dataclass(frozen=True)
+class InputOutputTrain:
+    """The ``train`` group of an input-output task (conf/train/input_output.yaml)."""
+
+    lr: float = setting("peak learning rate of Adam", 0, low_open=True)
+    warmup_fraction: float = setting("linear warm-up over this fraction of the iterations", 0, 1, high_open=True)
+    grad_clip_norm: float = setting("clip the global gradient norm to this", 0, low_open=True)
+    batch_size: int = setting("B: windows per mini-batch", 1)
+    dtype: str = setting("training precision", choices=DTYPES)
+    feature_major_width: dict[str, int] = setting("per arch: a stack of models no wider stores activations "
+                                                  "(K, n_h, B)", 0)
+    rollout_segment: RolloutSegment = setting("a compiled SUBNET step's rollout segments, per stack layout")
 
 
 def batch_count(samples: int, batch_size: int) -> int:

@@ -12,11 +12,12 @@ from omegaconf import DictConfig
 
 from nsl_hpc.config import plain
 from nsl_hpc.config.launchers import SlurmLauncher, launcher_from
-from nsl_hpc.errors import ConfigError, require_choice, require_int, require_number, require_positive_int
+from nsl_hpc.config.schema import typed
+from nsl_hpc.errors import ConfigError, require_choice, require_int, require_positive_int
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import model_of
 from nsl_hpc.studies.settings import COMPILE_MODES
-from nsl_hpc.sweep.groups import RENEW_S
+from nsl_hpc.sweep.run_settings import Lockstep, run_settings
 
 SBATCH_MEMORY = re.compile(r"[1-9][0-9]*[KMGT]?")  # sbatch --mem: megabytes, or with a unit
 SBATCH_FLAG = re.compile(r"[A-Za-z][A-Za-z0-9_-]*")  # a long option's name (submitit writes _ as -)
@@ -206,23 +207,19 @@ def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
     and the study can, else 1), ``width_buckets``, ``model_keys``, the keys of one model: with epoch
     milestones (train.schedule_epochs, shared draws) the study's draw keys, else none (a model per task), and
     ``compile``."""
-    settings, study = launch["lockstep"], study_named(launch["study"]["name"])
+    settings, study = typed(Lockstep, launch["lockstep"], "lockstep"), study_named(launch["study"]["name"])
     compile_mode = launch["compile"]
     require_choice("compile", compile_mode, COMPILE_MODES)
-    require_positive_int("lockstep.size", settings["size"])
-    for width in settings["width_buckets"]:
-        require_positive_int("lockstep.width_buckets value", width)
-    require_number("lockstep.memory_mb", settings["memory_mb"], 0, 100000, low_open=True)
-    return {"size": settings["size"] if settings["enabled"] and study.lockstep else 1,
-            "width_buckets": list(settings["width_buckets"]), "memory_mb": settings["memory_mb"],
+    return {"size": settings.size if settings.enabled and study.lockstep else 1,
+            "width_buckets": list(settings.width_buckets), "memory_mb": settings.memory_mb,
             "model_keys": list(study.model_keys(launch)), "compile": compile_mode}
 
 
 def check_run_settings(launch: Mapping[str, Any]) -> None:
     """Raise ConfigError for run settings (launcher, packing, cost, watchdog, lockstep, checkpoint, compile) no job can
-    run with, or that would switch a protection off: every number finite and in its range (NaN or inf would
-    silence the watchdog, 1e-9-minute checkpoints would write at every block)."""
+    run with, or that would switch a protection off (their owners: ``run_settings``, ``config.launchers``)."""
     lockstep_settings(launch)
+    settings = run_settings(launch)
     launcher = launcher_from(launch["launcher"])
     workers = getattr(launcher, "workers", None)
     if workers is not None:
@@ -230,39 +227,8 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
             require_int("launcher.workers", workers, 1, len(os.sched_getaffinity(0)))
         except ConfigError as error:
             raise ConfigError(f"{error}: one single-CPU task per CPU of this machine") from None
-    watchdog = launch["watchdog"]
-    require_number("watchdog.heartbeat_timeout_s", watchdog["heartbeat_timeout_s"], 0, 86400, low_open=True)
-    require_number("watchdog.overrun_factor", watchdog["overrun_factor"], 1, 1000)
-    require_number("watchdog.worker_silence_s", watchdog["worker_silence_s"], 2 * RENEW_S, 86400)
-    for key in ("short_task_minutes", "pack_minutes"):
-        require_number(f"packing.{key}", launch["packing"][key], 0, 10080, low_open=True)
-    require_number("packing.time_safety", launch["packing"]["time_safety"], 1, 100)
-    if not launch["packing"]["time_classes_minutes"]:
-        raise ConfigError("packing.time_classes_minutes=[] needs at least one time limit (minutes)")
-    for limit in launch["packing"]["time_classes_minutes"]:
-        require_number("packing.time_classes_minutes value", limit, 0, 525600, low_open=True)
-    require_number("cost.startup_s", launch["cost"]["startup_s"], 0, 3600)
-    require_number("cost.group_start_s", launch["cost"]["group_start_s"], 0, 3600)
-    for key, high in (("step_seconds", 3600), ("params_per_overhead", 1e12), ("lockstep_extra", 100)):
-        for arch, value in launch["cost"][key].items():
-            require_number(f"cost.{key}.{arch}", value, 0, high, low_open=True)
-    require_number("cost.score_seconds", launch["cost"]["score_seconds"], 0, 1)
-    compile_s = launch["cost"]["compile_s"]
-    for arch, value in launch["cost"]["compile_speedup"].items():
-        if value is None:  # never compiled under compile=auto
-            continue
-        require_number(f"cost.compile_speedup.{arch}", value, 0, 100, low_open=True)
-        if compile_s.get(arch) is None:
-            raise ConfigError(f"cost.compile_speedup.{arch} needs cost.compile_s.{arch} (seconds a group compiles)")
-        require_number(f"cost.compile_s.{arch}", compile_s[arch], 0, 86400)
-    every = launch["checkpoint"]["every_minutes"]
-    if every != 0:
-        try:
-            require_number("checkpoint.every_minutes", every, 0.1, 10080)
-        except ConfigError as error:
-            raise ConfigError(f"{error} (or 0: no checkpoints)") from None
     if isinstance(launcher, SlurmLauncher):
-        check_slurm_settings(launcher, every)
+        check_slurm_settings(launcher, settings.checkpoint.every_minutes)
         check_batch_text("sweep.name", launch["sweep"]["name"], flag=True)  # the jobs' --job-name
         check_signal_delay(launcher.signal_delay_s, packing_for(launch["packing"], launch["launcher"])
                            ["time_classes_minutes"])

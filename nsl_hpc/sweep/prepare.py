@@ -137,9 +137,9 @@ def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
     grid = sweep_grid(cfg)
     require_tasks_at_most(grid_size(grid, study), cfg.max_tasks)
     configs = pair_configs(cfg, overrides, study)
-    validate_grid_values(grid, study, configs)
     for values in configs.values():
         check_settings(values)
+    validate_grid_values(grid, study, configs)
     check_run_settings(cfg)
     max_flops = OmegaConf.select(cfg, "sweep.max_flops", default=None)
     if max_flops is not None:

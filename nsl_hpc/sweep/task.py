@@ -19,6 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 import nsl_hpc
 from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.config import plain
+from nsl_hpc.config.schema import typed
 from nsl_hpc.errors import ConfigError, require_choice, require_non_negative_int, require_positive_int
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_of
@@ -45,9 +46,9 @@ def resolve_task(cfg: Mapping[str, Any], sizes: Mapping[str, Any] | None = None)
     study = study_of(values)
     for key in ("seed", "sweep_seed"):
         require_non_negative_int(key, values[key])
+    check_settings(values)
     for key in study.size_axes:
         study.check_coordinate(key, key, values[key], values)
-    check_settings(values)
     coordinates = {"system": values["system"]["name"], "arch": values["arch"]["name"],
                    **{key: values[key] for key in study.task_keys}}
     sizes = dict(sizes) if sizes is not None else study.sizes(coordinates, values)
@@ -56,31 +57,11 @@ def resolve_task(cfg: Mapping[str, Any], sizes: Mapping[str, Any] | None = None)
 
 
 def check_settings(values: Mapping[str, Any]) -> None:
-    """Raise ConfigError for a training setting no task can run with (a plain task config)."""
-    train = values["train"]
-    require_positive_int("train.batch_size", train["batch_size"])
+    """Raise ConfigError for a training setting no task can run with (a plain task config): its study's ``train``
+    group (``Study.train_schema``), threads and compile."""
+    typed(study_of(values).train_schema, values["train"], "train")
     require_positive_int("threads", values["threads"])
-    require_choice("compile", values.get("compile", "auto"), COMPILE_MODES)
-    for key in ("lr", "grad_clip_norm"):
-        if not (isinstance(train[key], int | float) and train[key] > 0):
-            raise ConfigError(f"train.{key}={train[key]!r} must be a positive number")
-    if not (isinstance(train["warmup_fraction"], int | float) and 0 <= train["warmup_fraction"] < 1):
-        raise ConfigError(f"train.warmup_fraction={train['warmup_fraction']!r} must be in [0, 1)")
-    if train["dtype"] not in ("float32", "float64"):
-        raise ConfigError(f"train.dtype={train['dtype']!r} is unknown; choose one of: float32, float64")
-    widths = train.get("feature_major_width", {})  # the input-output lockstep's layouts
-    if not isinstance(widths, Mapping):
-        raise ConfigError(f"train.feature_major_width={widths!r} must map each architecture to a width, e.g. "
-                          "{narx: 64, subnet: 8}")
-    for arch, width in widths.items():
-        require_non_negative_int(f"train.feature_major_width.{arch}", width)
-    if "rollout_segment" in train:  # the input-output study's
-        segments = train["rollout_segment"]
-        if not (isinstance(segments, Mapping) and set(segments) == {"feature_major", "batch_major"}):
-            raise ConfigError(f"train.rollout_segment={segments!r} must give a segment length (0: none) per stack "
-                              "layout, e.g. {feature_major: 10, batch_major: 0}")
-        for layout, length in segments.items():
-            require_non_negative_int(f"train.rollout_segment.{layout}", length)
+    require_choice("compile", values["compile"], COMPILE_MODES)
 
 
 def task_id_from(study: Study, shared: str, values: Mapping[str, Any]) -> str:

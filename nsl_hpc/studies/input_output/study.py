@@ -27,6 +27,7 @@ from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, require_member
 from nsl_hpc.studies.base import Study, draw_tier
 from nsl_hpc.studies.input_output.data import MEASURED, Benchmark, load_benchmark, require_files
+from nsl_hpc.studies.settings import InputOutputTrain
 
 if TYPE_CHECKING:
     from nsl_hpc.models.narx import NARX
@@ -85,6 +86,7 @@ class InputOutput(Study):
     axes = ("system", "arch", "seed", "iter_multiplier", "data_tier", "width_tier", "depth")
     length_axis = "iter_multiplier"
     lockstep = True
+    train_schema = InputOutputTrain
     shared_keys = ("system", "arch", "train", "draws")
     rounding_only = (("train", "rollout_segment", {"feature_major": 10, "batch_major": 10}),)
 

@@ -1,0 +1,65 @@
+"""Typed config groups (nsl_hpc/config/schema.py): each group's owner refuses a bad value in one line naming the
+key, and --help reads the fields' own documentation."""
+
+import pytest
+from omegaconf import OmegaConf
+
+from nsl_hpc.cli import schema_docs
+from nsl_hpc.config import compose_config
+from nsl_hpc.config.schema import typed
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.studies.settings import InputOutputTrain, InputStateTrain, RolloutSegment
+from nsl_hpc.sweep.run_settings import SCHEMAS, Checkpoint, Cost, Watchdog, run_settings
+from tests.sweeps import nsl
+
+
+@pytest.fixture(scope="module")
+def launch():
+    return compose_config(["+sweep=demo"], "launch")
+
+
+def test_the_launch_configs_groups_are_typed(launch):
+    settings = run_settings(launch)
+    assert settings.lockstep.size == launch.lockstep.size and isinstance(settings.watchdog, Watchdog)
+    assert settings.cost.compile_s["narx"] == launch.cost.compile_s.narx
+    io = typed(InputOutputTrain, compose_config(["study=input_output"], "one_task").train, "train")
+    assert io.rollout_segment == RolloutSegment(10, 10)
+    assert typed(InputStateTrain, launch.train, "train").schedule == launch.train.schedule
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"overrun_factor": float("inf")}, "watchdog.overrun_factor=inf must be a finite number in [1, 1000]"),
+    ({"overrun_factor": True}, "watchdog.overrun_factor=True must be a finite number"),
+    ({"heartbeat_timeout_s": "900"}, "watchdog.heartbeat_timeout_s='900' must be a finite number in (0, 86400]"),
+    ({"worker_silence_s": 10}, "watchdog.worker_silence_s=10 must be a finite number in [30, 86400]"),
+    ({"beat": 1}, "watchdog.beat is unknown; watchdog has: heartbeat_timeout_s, overrun_factor, worker_silence_s"),
+])
+def test_a_group_refuses_a_bad_value_naming_its_key(launch, change, message):
+    values = {**OmegaConf.to_container(launch.watchdog), **change}
+    with pytest.raises(ConfigError) as error:
+        typed(Watchdog, values, "watchdog")
+    assert str(error.value).startswith(message)
+
+
+def test_missing_keys_nested_groups_and_rules_between_fields(launch):
+    with pytest.raises(ConfigError, match=r"^checkpoint.every_minutes is missing \(written every"):
+        typed(Checkpoint, {}, "checkpoint")
+    assert typed(Checkpoint, {"every_minutes": 0}, "checkpoint").every_minutes == 0  # also: 0, no checkpoints
+    segments = {"feature_major": 10, "batch_major": 1.5}
+    with pytest.raises(ConfigError, match=r"^train.rollout_segment.batch_major=1.5 must be a non-negative integer"):
+        typed(RolloutSegment, segments, "train.rollout_segment")
+    cost = {**OmegaConf.to_container(launch.cost), "compile_s": {}}
+    with pytest.raises(ConfigError, match=r"^cost.compile_speedup.\w+ needs cost.compile_s"):
+        typed(Cost, cost, "cost")
+    train = {**OmegaConf.to_container(launch.train), "dtype": "float16"}
+    with pytest.raises(ConfigError, match=r"^train.dtype='float16' is unknown; choose one of: float32, float64"):
+        typed(InputStateTrain, train, "train")
+
+
+@pytest.mark.e2e
+def test_help_gives_each_typed_key_its_fields_documentation():
+    docs = schema_docs()
+    assert set(SCHEMAS) <= set(docs) and "train.rollout_segment.batch_major" in docs
+    shown = nsl("launch", "--help").stdout
+    for key in ("watchdog.overrun_factor", "lockstep.size", "cost.compile_s"):
+        assert docs[key] in shown.replace("\n", " "), key
