@@ -20,7 +20,6 @@ from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.cards import write_law_cards
-from nsl_hpc.analysis.checks import check_nsl
 from nsl_hpc.analysis.fitting import (
     choose_metrics,
     fit_sweep,
@@ -30,13 +29,14 @@ from nsl_hpc.analysis.fitting import (
     require_some_fit,
     write_fits,
 )
+from nsl_hpc.analysis.nsl_settings import nsl_settings
 from nsl_hpc.config import plain
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 
 
 def main(cfg: DictConfig) -> int:
-    check_nsl(plain(cfg.nsl))
+    nsl_settings(cfg.nsl)
     sweep_dir = require_sweep(cfg.sweep_dir)
     results, launch = read_results(sweep_dir), read_launch_config(sweep_dir)
     chosen = choose_metrics(cfg.nsl, cfg.metrics, results)

@@ -24,8 +24,8 @@ from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.cheapest import calibration_of, cheapest_configurations, describe_cheapest
-from nsl_hpc.analysis.checks import check_nsl, check_target
 from nsl_hpc.analysis.fitting import fits_path, read_results
+from nsl_hpc.analysis.nsl_settings import check_target, nsl_settings
 from nsl_hpc.analysis.prediction import describe_need, what_it_takes
 from nsl_hpc.atomic import read_parquet
 from nsl_hpc.config import plain
@@ -36,7 +36,7 @@ from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 
 def main(cfg: DictConfig) -> int:
     nsl = plain(cfg.nsl)
-    check_nsl(nsl)
+    nsl_settings(nsl)
     check_target(cfg.target, cfg.metric, cfg.resource, nsl)
     sweep_dir = require_sweep(cfg.sweep_dir)
     if not fits_path(sweep_dir).exists():

@@ -15,7 +15,6 @@ from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.cards import write_law_cards
-from nsl_hpc.analysis.checks import check_figures, check_nsl
 from nsl_hpc.analysis.figures import draw_figures, figure_stem
 from nsl_hpc.analysis.fitting import (
     choose_metrics,
@@ -29,6 +28,7 @@ from nsl_hpc.analysis.fitting import (
     write_fits,
 )
 from nsl_hpc.analysis.mlflow_runs import log_to_mlflow, require_server, tracking_uri
+from nsl_hpc.analysis.nsl_settings import figure_settings, nsl_settings
 from nsl_hpc.analysis.prediction import what_it_takes
 from nsl_hpc.analysis.report import comparison_markdown, report_html, scores_note, what_it_takes_html
 from nsl_hpc.atomic import write_text
@@ -39,8 +39,8 @@ from nsl_hpc.sweep.merge import merge_sweep, results_path
 
 
 def main(cfg: DictConfig) -> int:
-    check_nsl(plain(cfg.nsl))
-    check_figures(plain(cfg.figures), cfg.nsl.resources)
+    nsl_settings(cfg.nsl)
+    figure_settings(cfg.figures, cfg.nsl.resources)
     sweep_dir = require_sweep(cfg.sweep_dir)
     require_server(cfg.mlflow)
     launch_config = read_launch_config(sweep_dir)
@@ -54,8 +54,8 @@ def main(cfg: DictConfig) -> int:
     write_fits(sweep_dir, rows)
     cards = write_law_cards(sweep_dir, launch_config, plain(chosen), results, rows)
     print(f"{sum(row['error'] is None for row in rows)} of {len(rows)} NSLs fitted -> {fits_path(sweep_dir)}")
-    nsl, figure_settings = plain(chosen), plain(cfg.figures, resolve=False)
-    figures = draw_figures(sweep_dir, results, rows, nsl, figure_settings)
+    nsl, figures_cfg = plain(chosen), plain(cfg.figures, resolve=False)
+    figures = draw_figures(sweep_dir, results, rows, nsl, figures_cfg)
     wanted = nsl["predict"]["report"]
     entries = what_it_takes(results, rows, wanted["resource"], wanted["metric"],
                             lambda best: [factor * best for factor in wanted["factors"]], nsl)

@@ -18,14 +18,15 @@ T = TypeVar("T")
 
 
 def setting(doc: str, low: float | None = None, high: float | None = None, *, low_open: bool = False,
-            high_open: bool = False, choices: tuple = (), nonempty: bool = False, also: str = "") -> Any:
+            high_open: bool = False, choices: tuple = (), nonempty: bool = False, also: str = "",
+            default: Any = dataclasses.MISSING) -> Any:
     """A field of a typed group: ``doc`` (one line for --help), the range [low, high] of a number (an open end
     excludes it; for a list or mapping, of each of its values), the ``choices`` of a string, ``nonempty`` for a
     list or mapping that needs a value, ``also`` 'VALUE: meaning' for one number allowed outside the range (e.g.
-    '0: none')."""
-    return dataclasses.field(metadata={"doc": doc, "low": low, "high": high, "low_open": low_open,
-                                       "high_open": high_open, "choices": choices, "nonempty": nonempty,
-                                       "also": also})
+    '0: none'). A field with a ``default`` may be left out (a group the user writes, not one conf/ holds)."""
+    return dataclasses.field(default=default, metadata={
+        "doc": doc, "low": low, "high": high, "low_open": low_open, "high_open": high_open, "choices": choices,
+        "nonempty": nonempty, "also": also})
 
 
 def typed(schema: type[T], values: Any, key: str) -> T:
@@ -41,9 +42,10 @@ def typed(schema: type[T], values: Any, key: str) -> T:
     hints = typing.get_type_hints(schema)
     built = {}
     for item in dataclasses.fields(schema):  # type: ignore[arg-type]
-        if item.name not in given:
+        if item.name in given:
+            built[item.name] = checked(f"{key}.{item.name}", given[item.name], hints[item.name], item.metadata)
+        elif item.default is dataclasses.MISSING:
             raise ConfigError(f"{key}.{item.name} is missing ({item.metadata['doc']})")
-        built[item.name] = checked(f"{key}.{item.name}", given[item.name], hints[item.name], item.metadata)
     instance = schema(**built)
     if hasattr(instance, "check"):
         instance.check()

@@ -37,7 +37,8 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.config import plain
-from nsl_hpc.errors import ConfigError, require_number, require_positive_int
+from nsl_hpc.config.schema import setting, typed
+from nsl_hpc.errors import ConfigError
 from nsl_hpc.sweep.decisions import describe_rounds
 from nsl_hpc.sweep.plan import packing_for, sweep_groups
 
@@ -50,11 +51,17 @@ class StopWhen:
     fit a round before) is narrow enough, the share of a resource's laws that must be, and whether each resource
     stops on its own laws (else the sweep stops once every resource's are)."""
 
-    last_slope: float | None
-    breaks: float | None
-    prediction: float | None
-    each_resource: bool
-    share: float = 1.0
+    last_slope: float | None = setting("high - low of the last slope's interval", 0, low_open=True, default=None)
+    breaks: float | None = setting("high / low of the break positions' intervals", 1, low_open=True, default=None)
+    prediction: float | None = setting("high / low of L at 10x the largest resource", 1, low_open=True,
+                                       default=None)
+    each_resource: bool = setting("false: wait for every resource", default=True)
+    share: float = setting("the share of a resource's laws that must be narrow", 0, 1, low_open=True, default=1.0)
+
+    def check(self) -> None:
+        if all(getattr(self, name) is None for name in WIDTHS):
+            raise ConfigError("budget.stop_when sets no width: give last_slope, breaks or prediction (or "
+                              "stop_when=null)")
 
     def narrow(self, law: Mapping[str, Any]) -> bool:
         """Whether a law (of a law state: its widths and whether it is settled) is settled and every width asked for
@@ -63,27 +70,30 @@ class StopWhen:
                                             if (limit := getattr(self, name)) is not None)
 
 
+@dataclass(frozen=True)
+class BudgetSettings:
+    """A budgeted sweep: the grid's tasks in rounds along the cost axis while the budget lasts."""
+
+    core_hours: float | None = setting("spend at most this many predicted core-hours", 0, low_open=True)
+    share: float | None = setting("or this share of the planner's prediction for the whole sweep", 0, 1,
+                                  low_open=True)
+    first_levels: int = setting("round 1: every task at up to this many cheapest values of the cost axis", 1)
+    first_share: float = setting("as many as fit in this share of the budget", 0, 1, low_open=True)
+    levels_per_round: int = setting("each later round: the next this many values", 1)
+    margin: float = setting("a task runs if its ancestor's error / margin is below an envelope", 1)
+    spread: bool = setting("a later round spends at most (budget left) / (rounds left)")
+    round_job_minutes: int = setting("launcher=slurm: time limit of the job that launches the next round", 1)
+    track_laws: bool = setting("fit the laws with their intervals before each later round")
+    stop_when: StopWhen | None = setting("the widths at which a law is narrow enough (null: spend the budget)")
+
+    def check(self) -> None:
+        if self.core_hours is not None and self.share is not None:
+            raise ConfigError(f"budget.core_hours={self.core_hours} and budget.share={self.share}: set one of them")
+
+
 def stop_when_of(settings: Mapping[str, Any] | None) -> StopWhen | None:
     """``budget.stop_when`` checked (None: the budget is spent whatever the laws' widths)."""
-    if settings is None:
-        return None
-    settings = plain(settings)
-    unknown = set(settings) - {*WIDTHS, "each_resource", "share"}
-    if unknown:
-        raise ConfigError(f"budget.stop_when has no key {sorted(unknown)[0]!r}: it takes {', '.join(WIDTHS)}, "
-                          "share and each_resource")
-    limits = {name: settings.get(name) for name in WIDTHS}
-    if all(limit is None for limit in limits.values()):
-        raise ConfigError("budget.stop_when sets no width: give last_slope, breaks or prediction (or stop_when=null)")
-    for name, limit in limits.items():
-        if limit is not None:
-            require_number(f"budget.stop_when.{name}", limit, 0 if name == "last_slope" else 1, low_open=True)
-    each = settings.get("each_resource", True)
-    if not isinstance(each, bool):
-        raise ConfigError(f"budget.stop_when.each_resource={each!r}: true or false")
-    share = settings.get("share", 1.0)
-    require_number("budget.stop_when.share", share, 0, 1, low_open=True)
-    return StopWhen(**limits, each_resource=each, share=float(share))
+    return None if settings is None else typed(StopWhen, settings, "budget.stop_when")
 
 
 def stopped_resources(state: Sequence[Mapping[str, Any]], stop_when: StopWhen | None,
@@ -131,33 +141,17 @@ def describe_budget(budget: Budget, decisions: Sequence[Mapping[str, Any]], roun
 def budget_of(launch: DictConfig, full_seconds: float) -> Budget | None:
     """The launch's budget (``budget.core_hours`` or ``budget.share``), checked; None without one, or when it
     covers the whole sweep (``budget.share=1``: a full sweep)."""
-    settings = plain(OmegaConf.select(launch, "budget", default={}) or {})
-    hours, share = settings.get("core_hours"), settings.get("share")
+    settings = typed(BudgetSettings, launch["budget"], "budget")
+    hours, share = settings.core_hours, settings.share
     if hours is None and share is None:
         return None
-    if hours is not None and share is not None:
-        raise ConfigError(f"budget.core_hours={hours} and budget.share={share}: set one of them")
-    if hours is not None:
-        require_number("budget.core_hours", hours, 0, low_open=True)
-    else:
-        require_number("budget.share", share, 0, 1, low_open=True)
-    require_positive_int("budget.first_levels", settings["first_levels"])
-    require_number("budget.first_share", settings["first_share"], 0, 1, low_open=True)
-    require_positive_int("budget.levels_per_round", settings["levels_per_round"])
-    require_number("budget.margin", settings["margin"], 1)
-    require_positive_int("budget.round_job_minutes", settings["round_job_minutes"])
-    if not isinstance(settings["spread"], bool):
-        raise ConfigError(f"budget.spread={settings['spread']!r}: true or false")
-    seconds = 3600 * float(hours) if hours is not None else float(share or 0) * full_seconds
+    seconds = 3600 * hours if hours is not None else (share or 0.0) * full_seconds
     if seconds >= full_seconds:
         return None
-    if not isinstance(settings["track_laws"], bool):
-        raise ConfigError(f"budget.track_laws={settings['track_laws']!r}: true or false")
-    stop_when = stop_when_of(settings["stop_when"])
     resources, metrics = fitted_columns(plain(launch.nsl))
-    return Budget(seconds, full_seconds, settings["first_levels"], settings["first_share"],
-                  settings["levels_per_round"], settings["margin"], tuple(resources), tuple(metrics),
-                  settings["spread"], stop_when, settings["track_laws"] or stop_when is not None)
+    return Budget(seconds, full_seconds, settings.first_levels, settings.first_share, settings.levels_per_round,
+                  settings.margin, tuple(resources), tuple(metrics), settings.spread, settings.stop_when,
+                  settings.track_laws or settings.stop_when is not None)
 
 
 def planned_seconds(tasks: Mapping[str, Mapping[str, Any]], launch: DictConfig) -> Callable[[Sequence[str]], float]:
