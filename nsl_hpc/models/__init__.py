@@ -6,8 +6,8 @@ The input-output models (NARX, SUBNET) are built by ``nsl_hpc.studies.input_outp
 from collections.abc import Mapping
 from typing import Any
 
+from nsl_hpc.config.arch import architecture_options
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.models.blocks import require_block
 from nsl_hpc.models.input_affine import InputAffine
 from nsl_hpc.models.port_hamiltonian import PortHamiltonian
 from nsl_hpc.models.state_space import StateSpaceArchitecture, StateSpaceModel
@@ -18,21 +18,18 @@ ARCHITECTURES: dict[str, type[StateSpaceArchitecture]] = {
     "input_affine": InputAffine,
     "port_hamiltonian": PortHamiltonian,
 }
-NOT_OPTIONS = ("name", "study", "block")  # arch config keys that are not the architecture's own options
-
-
 def build_architecture(arch_cfg: Mapping[str, Any], state_dim: int, input_dim: int, width: int
                        ) -> StateSpaceArchitecture:
-    """The architecture ``arch_cfg.name`` for n = state_dim, m = input_dim, n_h = width."""
-    name = arch_cfg["name"]
-    if name not in ARCHITECTURES:
-        raise ConfigError(f"unknown arch {name!r}; choose one of: {', '.join(sorted(ARCHITECTURES))}")
-    options = {k: v for k, v in arch_cfg.items() if k not in NOT_OPTIONS}
-    return ARCHITECTURES[name](state_dim, input_dim, width, **options)
+    """The architecture ``arch_cfg.name`` for n = state_dim, m = input_dim, n_h = width (its config checked by
+    ``config.arch``)."""
+    options = architecture_options(arch_cfg)
+    if arch_cfg["name"] not in ARCHITECTURES:
+        raise ConfigError(f"arch {arch_cfg['name']!r} is no input-state architecture; choose one of: "
+                          f"{', '.join(sorted(ARCHITECTURES))}")
+    return ARCHITECTURES[arch_cfg["name"]](state_dim, input_dim, width, **options)
 
 
 def build_model(arch_cfg: Mapping[str, Any], state_dim: int, input_dim: int, width: int,
                 depth: int) -> StateSpaceModel:
     """The model of architecture ``arch_cfg.name`` with n_h = width, n_d = depth hidden layers per MLP."""
-    require_block(arch_cfg["block"])
     return StateSpaceModel(build_architecture(arch_cfg, state_dim, input_dim, width), depth, arch_cfg["block"])

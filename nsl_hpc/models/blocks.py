@@ -10,21 +10,16 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.config.arch import BLOCKS
+from nsl_hpc.errors import ConfigError, require_choice
 
-BLOCKS = ("layernorm_silu", "tanh")
 LAYER_NORM_EPS = 1e-5  # torch.nn.LayerNorm's default
-
-
-def require_block(block: str) -> None:
-    if block not in BLOCKS:
-        raise ConfigError(f"arch.block={block!r} is unknown; choose one of: {', '.join(BLOCKS)}")
 
 
 def mlp(in_dim: int, out_dim: int, width: int, depth: int, block: str) -> nn.Sequential:
     """``depth`` hidden layers of ``width`` units, then a Linear to ``out_dim``: a flat Sequential
     [Linear, LayerNorm, SiLU, ..., Linear] (or [Linear, Tanh, ..., Linear])."""
-    require_block(block)
+    require_choice("arch.block", block, BLOCKS)
     if depth < 1:
         raise ConfigError(f"an MLP needs at least one hidden layer; got depth {depth}")
     layers: list[nn.Module] = []

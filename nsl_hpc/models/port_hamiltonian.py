@@ -12,13 +12,9 @@ import math
 
 import torch
 
-from nsl_hpc.errors import ConfigError
 from nsl_hpc.models.blocks import Head
 from nsl_hpc.models.state_space import Outputs, StateSpaceArchitecture
 from nsl_hpc.models.tensor_layout import BATCH_MAJOR, Layout
-
-HAMILTONIANS = ("abs", "plain", "half_square")
-DISSIPATIONS = ("square", "lower_triangular")
 
 
 def entries_to_matrix(n: int, entries: str, dtype: torch.dtype) -> torch.Tensor:
@@ -39,10 +35,6 @@ class PortHamiltonian(StateSpaceArchitecture):
 
     def __init__(self, state_dim: int, input_dim: int, width: int, hamiltonian: str, dissipation: str):
         super().__init__(state_dim, input_dim, width)
-        for key, value, allowed in (("hamiltonian", hamiltonian, HAMILTONIANS),
-                                    ("dissipation", dissipation, DISSIPATIONS)):
-            if value not in allowed:
-                raise ConfigError(f"arch.{key}={value!r} is unknown; choose one of: {', '.join(allowed)}")
         self.hamiltonian, self.dissipation = hamiltonian, dissipation
         self.maps: dict[torch.dtype, tuple[torch.Tensor, torch.Tensor]] = {}
 

@@ -7,19 +7,14 @@ width n_h on x alone, as (3a) is written.
 
 import torch
 
-from nsl_hpc.errors import ConfigError
 from nsl_hpc.models.blocks import Head
 from nsl_hpc.models.state_space import Outputs, StateSpaceArchitecture
 from nsl_hpc.models.tensor_layout import BATCH_MAJOR, Layout
-
-FORMS = ("joint", "split")
 
 
 class Unstructured(StateSpaceArchitecture):
     def __init__(self, state_dim: int, input_dim: int, width: int, form: str, width_factor: float):
         super().__init__(state_dim, input_dim, width)
-        if form not in FORMS:
-            raise ConfigError(f"arch.form={form!r} is unknown; choose one of: {', '.join(FORMS)}")
         self.form, self.f_width = form, self.scaled_width(width_factor)
 
     def heads(self) -> list[Head]:

@@ -19,6 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 import nsl_hpc
 from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.config import plain
+from nsl_hpc.config.arch import arch_settings
 from nsl_hpc.config.schema import typed
 from nsl_hpc.errors import ConfigError, require_choice, require_non_negative_int, require_positive_int
 from nsl_hpc.seeding import stable_hash
@@ -58,8 +59,9 @@ def resolve_task(cfg: Mapping[str, Any], sizes: Mapping[str, Any] | None = None)
 
 def check_settings(values: Mapping[str, Any]) -> None:
     """Raise ConfigError for a training setting no task can run with (a plain task config): its study's ``train``
-    group (``Study.train_schema``), threads and compile."""
+    group (``Study.train_schema``), its ``arch`` group (``config.arch``), threads and compile."""
     typed(study_of(values).train_schema, values["train"], "train")
+    arch_settings(values["arch"])
     require_positive_int("threads", values["threads"])
     require_choice("compile", values["compile"], COMPILE_MODES)
 

@@ -24,6 +24,7 @@ from omegaconf import DictConfig
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
 from nsl_hpc.config import plain
+from nsl_hpc.config.arch import arch_settings
 from nsl_hpc.errors import ConfigError, require_member
 from nsl_hpc.studies.base import Study, draw_tier
 from nsl_hpc.studies.input_output.data import MEASURED, Benchmark, load_benchmark, require_files
@@ -38,11 +39,10 @@ if TYPE_CHECKING:
 def build_io_model(arch_cfg: Mapping[str, Any], system_cfg: Mapping[str, Any], width: int, depth: int
                    ) -> "NARX | SUBNET":
     """The architecture ``arch_cfg.name`` (narx or subnet) with n_h = width, n_d = depth."""
-    from nsl_hpc.models.blocks import require_block
     from nsl_hpc.models.narx import NARX
     from nsl_hpc.models.subnet import SUBNET
 
-    require_block(arch_cfg["block"])
+    arch_settings(arch_cfg)
     if arch_cfg["name"] == "narx":
         return NARX(arch_cfg["past_outputs"], arch_cfg["past_inputs"], width, depth, arch_cfg["block"])
     if arch_cfg["name"] == "subnet":

@@ -1,0 +1,80 @@
+"""The typed owners of the ``arch`` group (conf/arch/<name>.yaml): one schema per architecture, its options
+with their types and choices (``config.schema``). ``arch_settings`` checks an arch config; the models build from
+it (``nsl_hpc.models``, ``studies.input_output.study.build_io_model``)."""
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from nsl_hpc.config.schema import setting, typed
+from nsl_hpc.errors import ConfigError
+
+BLOCKS = ("layernorm_silu", "tanh")  # an MLP's hidden layer: Linear -> LayerNorm -> SiLU, or Linear -> tanh
+STUDIES = ("input_state", "input_output")
+FORMS = ("joint", "split")
+HAMILTONIANS = ("abs", "plain", "half_square")
+DISSIPATIONS = ("square", "lower_triangular")
+
+
+@dataclass(frozen=True)
+class Arch:
+    name: str = setting("the architecture")
+    study: str = setting("the study it belongs to", choices=STUDIES)
+    block: str = setting("hidden layer: Linear -> LayerNorm -> SiLU, or Linear -> tanh", choices=BLOCKS)
+
+
+@dataclass(frozen=True)
+class Unstructured(Arch):
+    """dx/dt = f(x, u), y = g(x) (3a)."""
+
+    form: str = setting("joint: one MLP from (x, u) to (dx/dt, y); split: f and g", choices=FORMS)
+    width_factor: float = setting("f's width is this times n_h", 0, low_open=True)
+
+
+@dataclass(frozen=True)
+class InputAffine(Arch):
+    """dx/dt = h(x) + j(x) u, y = k(x) (3b)."""
+
+    width_factor: float = setting("the MLPs' width is this times n_h", 0, low_open=True)
+    feedthrough: bool = setting("true: y += D(x) u (the authors' code)")
+
+
+@dataclass(frozen=True)
+class PortHamiltonian(Arch):
+    """dx/dt = (J(x) - R(x)) grad H(x) + G(x) u, y = G(x)^T grad H(x) (3c)."""
+
+    hamiltonian: str = setting("H = |MLP(x)|, MLP(x), or ||MLP(x)||^2 / 2", choices=HAMILTONIANS)
+    dissipation: str = setting("Q an n x n output, or n(n+1)/2 lower-triangular entries", choices=DISSIPATIONS)
+
+
+@dataclass(frozen=True)
+class Narx(Arch):
+    """y_t = F(y_{t-1..t-n_y}, u_{t..t-n_u})."""
+
+    past_outputs: int = setting("n_y", 1)
+    past_inputs: int = setting("n_u", 1)
+
+
+@dataclass(frozen=True)
+class Subnet(Arch):
+    """SUBNET: encoder (past u, y) -> x; x_{k+1} = x_k + f(x_k, u_k); y_k = h(x_k)."""
+
+    past: int = setting("samples the encoder reads", 1)
+
+
+ARCH_SCHEMAS: dict[str, type[Arch]] = {"unstructured": Unstructured, "input_affine": InputAffine,
+                                       "port_hamiltonian": PortHamiltonian, "narx": Narx, "subnet": Subnet}
+
+
+def arch_settings(arch_cfg: Mapping[str, Any]) -> Arch:
+    """An ``arch`` group, typed and checked by its architecture's schema."""
+    name = arch_cfg.get("name") if isinstance(arch_cfg, Mapping) else None
+    if name not in ARCH_SCHEMAS:
+        raise ConfigError(f"unknown arch {name!r}; choose one of: {', '.join(sorted(ARCH_SCHEMAS))}")
+    return typed(ARCH_SCHEMAS[name], arch_cfg, "arch")
+
+
+def architecture_options(arch_cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """The options an architecture's constructor takes: its config without name, study and block."""
+    settings = arch_settings(arch_cfg)
+    return {key: value for key, value in vars(settings).items() if key not in ("name", "study", "block")}
