@@ -6,7 +6,9 @@ from omegaconf import OmegaConf
 
 from nsl_hpc.cli import schema_docs
 from nsl_hpc.config import compose_config
+from nsl_hpc.config.arch import arch_settings
 from nsl_hpc.config.schema import typed
+from nsl_hpc.config.system import InputOutputSystem, InputStateSystem
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies.settings import InputOutputTrain, InputStateTrain, RolloutSegment
 from nsl_hpc.sweep.run_settings import SCHEMAS, Checkpoint, Cost, Watchdog, run_settings
@@ -63,3 +65,22 @@ def test_help_gives_each_typed_key_its_fields_documentation():
     shown = nsl("launch", "--help").stdout
     for key in ("watchdog.overrun_factor", "lockstep.size", "cost.compile_s"):
         assert docs[key] in shown.replace("\n", " "), key
+
+
+def test_system_and_arch_groups_are_checked_by_their_kind():
+    sim = OmegaConf.to_container(compose_config(["study=input_output", "system=silverbox_sim"], "one_task").system)
+    assert typed(InputOutputSystem, sim, "system").subnet.horizon == 150
+    with pytest.raises(ConfigError, match=r"^system.score_on='arrow'; choose one of: test"):
+        typed(InputOutputSystem, {**sim, "score_on": "arrow"}, "system")
+    with pytest.raises(ConfigError, match=r"^system.fs_hz is missing: a simulated system \(duffing\)"):
+        typed(InputOutputSystem, {key: value for key, value in sim.items() if key != "fs_hz"}, "system")
+    ball = OmegaConf.to_container(compose_config(["system=ball"], "one_task").system)
+    with pytest.raises(ConfigError, match=r"^system.initial_box\[0\]=\[2.0, -0.5\] must be \[low, high\]"):
+        typed(InputStateSystem, {**ball, "initial_box": [[2.0, -0.5], *ball["initial_box"][1:]]}, "system")
+    assert arch_settings({"name": "narx", "study": "input_output", "block": "tanh", "past_outputs": 50,
+                          "past_inputs": 50}).past_inputs == 50
+    with pytest.raises(ConfigError, match=r"^arch.hamiltonian='square' is unknown; choose one of: abs, plain"):
+        arch_settings({"name": "port_hamiltonian", "study": "input_state", "block": "tanh",
+                       "hamiltonian": "square", "dissipation": "square"})
+    with pytest.raises(ConfigError, match=r"^unknown arch 'mlp'"):
+        arch_settings({"name": "mlp"})

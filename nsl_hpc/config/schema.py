@@ -70,6 +70,8 @@ def field_docs(schema: type, prefix: str) -> dict[str, str]:
 
 def checked(key: str, value: Any, kind: Any, spec: Mapping[str, Any]) -> Any:
     """``value`` of type ``kind`` within ``spec``'s range or choices (the value to build the group with)."""
+    if kind is Any:
+        return value
     origin, arguments = typing.get_origin(kind), typing.get_args(kind)
     if origin in (types.UnionType, typing.Union):
         if value is None and type(None) in arguments:

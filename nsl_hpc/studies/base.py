@@ -29,7 +29,7 @@ class Study:
     length_axis: str  # the axis of training length (with shared draws, longer runs of the same model)
     shared_keys: tuple[str, ...]  # config groups and keys that change the outcome of every task of a pair
     lockstep: bool = False  # train_and_score_group trains same-shape tasks together (in lockstep)
-    train_schema: type  # the typed owner of its ``train`` group (``studies.settings``)
+    settings_schemas: tuple[tuple[str, type], ...]  # (config group, its typed owner): train, system, ...
     # (shared group, key, value): settings added after task ids existed, at the value that trains as before
     neutral: tuple[tuple[str, str, Any], ...] = ()
     # (shared group, key, value): settings that change only float rounding (how a step is computed), in no task's

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from nsl_hpc.config.schema import setting
+from nsl_hpc.studies.metrics import NORMALIZATIONS
 
 SCHEDULES = ("warmup_cosine", "constant")
 LOSSES = ("normalised_mse", "per_column")  # input-state training losses (``input_state.lockstep.loss_weights``)
@@ -86,3 +87,11 @@ def learning_rate_at(step: np.ndarray, total_steps: np.ndarray, schedule: str, w
         progress = (step - warmup) / np.maximum(total_steps - warmup, 1e-12)
         rate = np.where(step < warmup, rising, lr * 0.5 * (1 + np.cos(np.pi * progress)))
     return np.where(step < total_steps, rate, 0.0)
+
+
+@dataclass(frozen=True)
+class Metric:
+    """How an input-state task's errors are normalised (conf/study/input_state.yaml)."""
+
+    normalization: str = setting("scalar: one spread of the whole dx/dt test matrix (the authors'); per_column: "
+                                 "sigma_j per column (the paper's formula)", choices=NORMALIZATIONS)

@@ -58,9 +58,10 @@ def resolve_task(cfg: Mapping[str, Any], sizes: Mapping[str, Any] | None = None)
 
 
 def check_settings(values: Mapping[str, Any]) -> None:
-    """Raise ConfigError for a training setting no task can run with (a plain task config): its study's ``train``
-    group (``Study.train_schema``), its ``arch`` group (``config.arch``), threads and compile."""
-    typed(study_of(values).train_schema, values["train"], "train")
+    """Raise ConfigError for a setting no task can run with (a plain task config): its study's groups
+    (``Study.settings_schemas``: train, system, ...), its ``arch`` group (``config.arch``), threads and compile."""
+    for group, schema in study_of(values).settings_schemas:
+        typed(schema, values[group], group)
     arch_settings(values["arch"])
     require_positive_int("threads", values["threads"])
     require_choice("compile", values["compile"], COMPILE_MODES)

@@ -49,7 +49,6 @@ class Benchmark:
     tests: dict[str, Signals]  # the test records by name (system.tests); scored after their first init_samples
 
 
-MEASURED = ("benchmark", "records")  # source kinds read from files: a nonlinear_benchmarks loader, .npz records
 
 
 def load_benchmark(system_cfg: Mapping[str, Any], cache: ArrayCache) -> Benchmark:

@@ -25,9 +25,10 @@ from nsl_hpc.cache import ArrayCache
 from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
 from nsl_hpc.config import plain
 from nsl_hpc.config.arch import arch_settings
+from nsl_hpc.config.system import MEASURED_KINDS, InputOutputSystem
 from nsl_hpc.errors import ConfigError, require_member
 from nsl_hpc.studies.base import Study, draw_tier
-from nsl_hpc.studies.input_output.data import MEASURED, Benchmark, load_benchmark, require_files
+from nsl_hpc.studies.input_output.data import Benchmark, load_benchmark, require_files
 from nsl_hpc.studies.settings import InputOutputTrain
 
 if TYPE_CHECKING:
@@ -86,7 +87,7 @@ class InputOutput(Study):
     axes = ("system", "arch", "seed", "iter_multiplier", "data_tier", "width_tier", "depth")
     length_axis = "iter_multiplier"
     lockstep = True
-    train_schema = InputOutputTrain
+    settings_schemas = (("train", InputOutputTrain), ("system", InputOutputSystem))
     shared_keys = ("system", "arch", "train", "draws")
     rounding_only = (("train", "rollout_segment", {"feature_major": 10, "batch_major": 10}),)
 
@@ -97,9 +98,7 @@ class InputOutput(Study):
             require_member(label, value, list(allowed[key]))
 
     def check_pair(self, base: Mapping[str, Any]) -> None:
-        system = base["system"]
-        require_member("system.score_on", system["score_on"], list(system["tests"]))
-        if base["system"]["source"]["kind"] in MEASURED:
+        if base["system"]["source"]["kind"] in MEASURED_KINDS:
             require_files(base["system"]["name"], base["system"]["source"])
 
     def check_task(self, task: Mapping[str, Any], sizes: Mapping[str, Any], base: Mapping[str, Any]) -> None:

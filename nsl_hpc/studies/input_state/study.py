@@ -20,11 +20,11 @@ from omegaconf import DictConfig
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
 from nsl_hpc.config import plain
-from nsl_hpc.errors import ConfigError, require_choice, require_member
+from nsl_hpc.config.system import InputStateSystem
+from nsl_hpc.errors import ConfigError, require_member
 from nsl_hpc.studies.base import Study, draw_tier, model_of
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set, points_per_trajectory, training_points
-from nsl_hpc.studies.metrics import NORMALIZATIONS
-from nsl_hpc.studies.settings import InputStateTrain, batch_count
+from nsl_hpc.studies.settings import InputStateTrain, Metric, batch_count
 from nsl_hpc.systems import SYSTEMS
 
 if TYPE_CHECKING:
@@ -51,13 +51,12 @@ class InputState(Study):
     shared_keys = ("system", "arch", "train", "data_per_trajectory", "draws", "metric")
     neutral = (("train", "repeat", 1),)
     lockstep = True
-    train_schema = InputStateTrain
+    settings_schemas = (("train", InputStateTrain), ("metric", Metric), ("system", InputStateSystem))
 
     def check_size(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
         if key in TIER_OF:
             require_member(label, value, list(base["tiers"][TIER_OF[key]]))
         if key == self.length_axis:
-            require_choice("metric.normalization", base["metric"]["normalization"], NORMALIZATIONS)
             train = base["train"]
             if train["schedule_epochs"] is not None:
                 if base["draws"] != "shared_across_epochs":
