@@ -32,12 +32,13 @@ import torch
 from torch import nn
 
 from nsl_hpc.checkpoint import Checkpointer
+from nsl_hpc.config.schema import typed
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.data import Signals
 from nsl_hpc.studies.input_output.stacked import Layer, StackedMLPs
 from nsl_hpc.studies.input_output.training import SignalScaling
-from nsl_hpc.studies.settings import learning_rate_at
+from nsl_hpc.studies.settings import InputOutputTrain, learning_rate_at
 from nsl_hpc.studies.training import (
     Adam,
     BatchOrder,
@@ -203,16 +204,18 @@ class IOLockstep(LockstepRun):
 
     def __init__(self, members: Sequence[IOMember], cfg: Mapping[str, Any], horizon: int,
                  compiler: StepCompiler | None = None):
-        self.cfg, self.dtype = cfg, getattr(torch, cfg["dtype"])
+        self.train = train = typed(InputOutputTrain, cfg, "train")
+        self.dtype = getattr(torch, train.dtype)
         self.compiler = compiler or StepCompiler(False)
         self.windows = Windows(members, horizon, self.dtype)
         narx = self.windows.narx
         self.nets = StackedMLPs([member.model for member in members], self.dtype,
-                                cfg["feature_major_width"]["narx" if narx else "subnet"], self.compiler.enabled)
-        self.optimizer = Adam(self.nets.theta, cfg["grad_clip_norm"])
-        segment = 0 if narx else cfg["rollout_segment"]["feature_major" if self.nets.feature_major else "batch_major"]
+                                train.feature_major_width["narx" if narx else "subnet"], self.compiler.enabled)
+        self.optimizer = Adam(self.nets.theta, train.grad_clip_norm)
+        segments = train.rollout_segment
+        segment = 0 if narx else segments.feature_major if self.nets.feature_major else segments.batch_major
         self.compiled_gradient_of = step_gradient(self.windows, self.nets, self.compiler, segment)
-        batches = [min(cfg["batch_size"], count) for count in self.windows.counts]
+        batches = [min(train.batch_size, count) for count in self.windows.counts]
         self.orders = [WindowOrder(count, batch, member.iterations, member.shuffle_seed, max(batches))
                        for count, batch, member in zip(self.windows.counts, batches, members, strict=True)]
         self.totals = np.array([member.iterations for member in members])
@@ -258,8 +261,8 @@ class IOLockstep(LockstepRun):
         starts = torch.stack([self.orders[k].take(size) for k in rows], dim=1)  # (L, K', width)
         weights = (starts >= 0).to(dtype) * self.shares[rows][:, None]
         steps = np.arange(start, start + size)[:, None]
-        scheduled = learning_rate_at(steps, self.totals[rows], "warmup_cosine", self.cfg["warmup_fraction"],
-                                     self.cfg["lr"])
+        scheduled = learning_rate_at(steps, self.totals[rows], "warmup_cosine", self.train.warmup_fraction,
+                                     self.train.lr)
         rates = torch.as_tensor(scheduled, dtype=dtype).unsqueeze(-1)  # (L, K', 1): 0 after a model's last step
         losses = torch.empty(size, len(rows), dtype=dtype)
         for i in range(size):

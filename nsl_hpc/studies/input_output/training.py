@@ -18,10 +18,11 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from nsl_hpc.config.schema import typed
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.data import Signals
-from nsl_hpc.studies.settings import warmup_cosine
+from nsl_hpc.studies.settings import InputOutputTrain, warmup_cosine
 from nsl_hpc.studies.training import TrainingOutcome, nonzero
 
 
@@ -84,10 +85,11 @@ def train_io_model(model: NARX | SUBNET, signals: Signals, scaling: SignalScalin
     """Adam (warm-up + cosine over ``iterations`` steps, gradient clipping) on mini-batches of
     ``cfg.batch_size`` windows (all windows when there are fewer); ``cfg`` is the ``train`` group.
     ``on_progress`` is called after each pass over the windows; stops early (finite=False) on a NaN loss."""
-    windows, batch_loss = window_loss(model, signals, scaling, horizon, getattr(torch, cfg["dtype"]))
-    batch = min(cfg["batch_size"], windows)
-    schedule = warmup_cosine(iterations, cfg["warmup_fraction"], cfg["lr"])
-    optimizer = torch.optim.Adam(model.parameters(), lr=cfg["lr"], foreach=True)
+    train = typed(InputOutputTrain, cfg, "train")
+    windows, batch_loss = window_loss(model, signals, scaling, horizon, getattr(torch, train.dtype))
+    batch = min(train.batch_size, windows)
+    schedule = warmup_cosine(iterations, train.warmup_fraction, train.lr)
+    optimizer = torch.optim.Adam(model.parameters(), lr=train.lr, foreach=True)
     generator = torch.Generator().manual_seed(shuffle_seed)
     parameters = list(model.parameters())
     model.train()
@@ -100,7 +102,7 @@ def train_io_model(model: NARX | SUBNET, signals: Signals, scaling: SignalScalin
                 loss = batch_loss(order[start:start + batch])
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
-                nn.utils.clip_grad_norm_(parameters, cfg["grad_clip_norm"], foreach=True)
+                nn.utils.clip_grad_norm_(parameters, train.grad_clip_norm, foreach=True)
                 optimizer.step()
                 step += 1
             progress.update(step - progress.n)

@@ -24,12 +24,13 @@ import torch
 from torch import nn
 
 from nsl_hpc.checkpoint import Checkpointer
+from nsl_hpc.config.schema import typed
 from nsl_hpc.models.state_space import StateSpaceModel
 from nsl_hpc.studies.input_state.data import Dataset
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.input_state.stacked import StackedModels
 from nsl_hpc.studies.metrics import ErrorSums, spreads
-from nsl_hpc.studies.settings import batch_bounds, learning_rate_at
+from nsl_hpc.studies.settings import InputStateTrain, batch_bounds, learning_rate_at
 from nsl_hpc.studies.training import (
     Adam,
     BatchOrder,
@@ -146,17 +147,17 @@ class Lockstep(LockstepRun):
     block_steps = BLOCK_STEPS
 
     def __init__(self, members: Sequence[Member], cfg: Mapping[str, Any], compiler: StepCompiler | None = None):
-        self.cfg, self.dtype = cfg, getattr(torch, cfg["dtype"])
+        self.train = train = typed(InputStateTrain, cfg, "train")
+        self.dtype = getattr(torch, train.dtype)
         self.compiler = compiler or StepCompiler(False)
         self.compiled_losses = self.compiler.wrap(self.losses)
         self.stack = StackedModels([member.model for member in members], self.dtype)
-        self.optimizer = Adam(self.stack.theta, cfg["grad_clip_norm"])
+        self.optimizer = Adam(self.stack.theta, train.grad_clip_norm)
         self.data = stacked_data(members, self.dtype)
         self.pad = self.data.shape[1] - 1
-        repeat = cfg["repeat"]
-        width = max(max(stop - start for start, stop in batch_bounds(len(mb.data) * repeat, cfg["batch_size"]))
-                    for mb in members)
-        self.plans = [BatchPlan(len(mb.data), cfg["batch_size"], mb.epochs, mb.shuffle_seed, width, self.pad, repeat)
+        repeat, batch = train.repeat, train.batch_size
+        width = max(max(stop - start for start, stop in batch_bounds(len(mb.data) * repeat, batch)) for mb in members)
+        self.plans = [BatchPlan(len(mb.data), batch, mb.epochs, mb.shuffle_seed, width, self.pad, repeat)
                       for mb in members]
         self.totals = np.array([plan.steps for plan in self.plans])
         self.total = int(self.totals.max(initial=0))
@@ -230,7 +231,7 @@ class Lockstep(LockstepRun):
     def train_block(self, start: int, size: int) -> torch.Tensor:
         """Steps start .. start + size - 1 of every row, each model kept (``Snapshot``) after the steps its
         epochs are due; returns their losses (size, rows)."""
-        n, m, cfg, dtype = self.stack.n, self.stack.m, self.cfg, self.dtype
+        n, m, train, dtype = self.stack.n, self.stack.m, self.train, self.dtype
         self.active = [min(size, plan.remaining) for plan in self.plans]
         rows = torch.stack([plan.take(size) for plan in self.plans])  # (K, L, W)
         offsets = (torch.arange(len(self.plans)) * self.data.shape[1])[:, None, None]
@@ -239,11 +240,11 @@ class Lockstep(LockstepRun):
         # (L, K, 2n + 2m, W): feature-major, as the stack computes
         batches = gathered.view(*index.shape, -1).transpose(-1, -2).contiguous()
         inputs, targets = batches[:, :, :n + m], batches[:, :, n + m:]
-        weights = loss_weights(targets, (rows != self.pad).transpose(0, 1).unsqueeze(-2).to(dtype), m, cfg["loss"],
-                               cfg["output_weight"], cfg["loss_std_eps"])
+        weights = loss_weights(targets, (rows != self.pad).transpose(0, 1).unsqueeze(-2).to(dtype), m, train.loss,
+                               train.output_weight, train.loss_std_eps)
         weighted_targets = -targets * weights
         steps = np.arange(start, start + size)[:, None]
-        scheduled = learning_rate_at(steps, self.schedules, cfg["schedule"], cfg["warmup_fraction"], cfg["lr"])
+        scheduled = learning_rate_at(steps, self.schedules, train.schedule, train.warmup_fraction, train.lr)
         rates = torch.as_tensor(scheduled * (steps < self.totals), dtype=dtype).unsqueeze(-1)  # (L, K, 1)
         losses = torch.empty(size, len(self.plans), dtype=dtype)
         for i in range(size):
