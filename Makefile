@@ -5,8 +5,10 @@
 #   make test-fast  the tests that need no cluster and run no command end to end (< 2 min)
 #   make demo-io  the input-output demo (io_demo, 60 tasks on the simulated stand-ins), merge ... report.html
 #   make repro  the reduced-scale reproduction (docs/reproduction.md): the repro and repro_io sweeps (~1.9 predicted
-#               core-hours, 77 min on 2 cores) into runs/repro/{input_state,input_output}, each with its
-#               report. REPRO_DIR=... REPRO_ARGS="sweep_seed=1 repro.seeds=[0]": the cheaper check run.
+#               core-hours, 77 min on 2 cores) into runs/repro/{input_state,input_output}, then the SUBNET laws'
+#               slices subnet_compute and subnet_data (~1.2 predicted core-hours; 20 and 36 min on one worker) into
+#               runs/repro/subnet_{compute,data}, each with its report. REPRO_DIR=...
+#               REPRO_ARGS="sweep_seed=1 repro.seeds=[0]": the cheaper check run of the first two.
 #   make data   copy the measured Silverbox / Wiener-Hammerstein files from DATA_SOURCE into data/
 PYTHON ?= python3
 VENV ?= .venv
@@ -49,6 +51,10 @@ repro: data
 	$(PY) -m nsl_hpc.report sweep_dir=$(REPRO_DIR)/input_state
 	$(PY) -m nsl_hpc.launch +sweep=repro_io sweep_dir=$(REPRO_DIR)/input_output $(REPRO_ARGS)
 	$(PY) -m nsl_hpc.report sweep_dir=$(REPRO_DIR)/input_output
+	$(PY) -m nsl_hpc.launch +sweep=subnet_compute sweep_dir=$(REPRO_DIR)/subnet_compute
+	$(PY) -m nsl_hpc.report sweep_dir=$(REPRO_DIR)/subnet_compute
+	$(PY) -m nsl_hpc.launch +sweep=subnet_data sweep_dir=$(REPRO_DIR)/subnet_data
+	$(PY) -m nsl_hpc.report sweep_dir=$(REPRO_DIR)/subnet_data
 
 data: $(INSTALLED)
 	$(PY) -m nsl_hpc.place_data source=$(DATA_SOURCE) data_dir=data

@@ -168,6 +168,27 @@ def test_repro_presets_slice_both_studies_as_documented():
     assert per_pair == {("narx", "silverbox"): 2 * 9 * 6 * 2, ("narx", "wiener_hammerstein"): 7 * 6 * 3}
 
 
+def test_the_subnet_and_long_epoch_presets_hold_the_slices_they_document():
+    """conf/sweep/subnet_compute.yaml: every task of seed 0's Silverbox SUBNET grid below 5e9 flops (here on the
+    stand-in, whose draws and counts are the same); subnet_data.yaml: one model size at every Wiener-Hammerstein
+    data tier; long_epochs.yaml: ball / pH at data tier 64 to the study's 16,384 epochs."""
+    stand_in = ["sweep.grid.0.system=[silverbox_sim]"]
+    cut = build_sweep(compose_config(["+sweep=subnet_compute", *stand_in], "launch"), ["+sweep=subnet_compute"])
+    whole = build_sweep(compose_config(["+sweep=subnet_compute", *stand_in, "sweep.max_flops=null"], "launch"),
+                        ["+sweep=subnet_compute"])
+    assert whole.manifest.num_rows == 12 * 9 * 5 * 2
+    below = {row["task_id"] for row in whole.manifest.to_pylist() if row["flops"] < 5e9}
+    assert set(cut.manifest["task_id"].to_pylist()) == below and cut.above_max_flops > 0
+    data = OmegaConf.to_container(compose_config(["+sweep=subnet_data"], "launch").sweep.grid, resolve=True)
+    tasks = list(expand_grid(data, INPUT_OUTPUT))
+    assert sorted(task["data_tier"] for task in tasks) == sorted(80000 // 2**k for k in range(9))
+    assert {(task["width_tier"], task["depth"], task["iter_multiplier"]) for task in tasks} == {(8, 1, 1)}
+    long = OmegaConf.to_container(compose_config(["+sweep=long_epochs"], "launch").sweep.grid, resolve=True)
+    tasks = list(expand_grid(long, INPUT_STATE))
+    assert len(tasks) == 16 and max(task["epochs"] for task in tasks) == 2**14
+    assert {(task["system"], task["arch"], task["data_tier"]) for task in tasks} == {("ball", "port_hamiltonian", 64)}
+
+
 def test_input_output_manifest_sizes_follow_the_draw_rules_and_the_single_task_path():
     stand_ins = [f"sweep.grid.{i}.system=[{name}_sim]"
                  for i, name in enumerate(["wiener_hammerstein", "silverbox"] * 2)]  # no measured files needed
