@@ -226,7 +226,7 @@ def test_control_files_others_can_write_are_refused_and_written_private(tmp_path
     ("sweep.grid=[]", "Error merging override sweep.grid=[]"),
     ("launcher.workers=-1", "launcher.workers=-1 must be an integer from 1 to"),
     ("launcher.workers=abc", "launcher.workers=abc: Value 'abc' of type 'str' could not be converted to Integer"),
-    ("train.lr=-1", "train.lr=-1 must be a positive number"),
+    ("train.lr=-1", "train.lr=-1 must be a finite number in (0, inf)"),
     ("watchdog.heartbeat_timeout_s=-1", "watchdog.heartbeat_timeout_s=-1 must be a finite number in (0, 86400]"),
     ("watchdog.overrun_factor=nan", "watchdog.overrun_factor=nan must be a finite number in [1, 1000]"),
 ])
