@@ -48,7 +48,8 @@ def test_stop_when_is_checked_in_one_line():
     assert stop_when_of(None) is None
     assert stop_when_of({"last_slope": 0.2}) == StopWhen(0.2, None, None, each_resource=True)
     assert stop_when_of({"prediction": 3, "share": 0.5}).share == 0.5
-    for bad, says in [({"slope": 0.2}, "budget.stop_when.slope is unknown"), ({"each_resource": False}, "sets no width"),
+    for bad, says in [({"slope": 0.2}, "budget.stop_when.slope is unknown"),
+                      ({"each_resource": False}, "sets no width"),
                       ({"prediction": 0.5}, "budget.stop_when.prediction"), ({"last_slope": -1}, "last_slope"),
                       ({"last_slope": 0.2, "each_resource": "yes"}, "true or false"),
                       ({"prediction": 3, "share": 0}, "budget.stop_when.share")]:
