@@ -1,7 +1,8 @@
 """Typed owners of config groups: a group is a frozen dataclass whose fields carry their type, their range and
 their documentation (``setting``); ``typed`` turns a group's plain values into it, refusing a missing or unknown
 key, a value of another type or out of its range in one line that names the key. The values themselves stay in
-``conf/`` (the dataclasses have no defaults); ``--help`` reads each field's documentation (``field_docs``).
+``conf/``: a field has a default only in a group users write themselves (``budget.stop_when``). ``--help`` reads
+each field's documentation (``field_docs``).
 """
 
 import dataclasses
