@@ -9,6 +9,9 @@
 #               slices subnet_compute and subnet_data (~1.2 predicted core-hours; 20 and 36 min on one worker) into
 #               runs/repro/subnet_{compute,data}, each with its report. REPRO_DIR=...
 #               REPRO_ARGS="sweep_seed=1 repro.seeds=[0]": the cheaper check run of the first two.
+#   make mechanisms  the mechanism table (docs/reproduction.md, "One table for every candidate"): every candidate of
+#               conf/mechanisms.yaml trained on the slices mechanism_compute and mechanism_data into runs/mechanisms,
+#               scored on every published law they cover; runs/mechanisms/table.md. MECHANISMS_ARGS="only=[...]"
 #   make data   copy the measured Silverbox / Wiener-Hammerstein files from DATA_SOURCE into data/
 PYTHON ?= python3
 VENV ?= .venv
@@ -19,8 +22,9 @@ IO_DEMO_DIR ?= runs/io_demo
 DATA_SOURCE ?= ../shared/data
 REPRO_DIR ?= runs/repro
 REPRO_ARGS ?=
+MECHANISMS_ARGS ?=
 
-.PHONY: install demo demo-io repro data test test-fast lint
+.PHONY: install demo demo-io repro mechanisms data test test-fast lint
 
 install: $(INSTALLED)
 
@@ -55,6 +59,9 @@ repro: data
 	$(PY) -m nsl_hpc.report sweep_dir=$(REPRO_DIR)/subnet_compute
 	$(PY) -m nsl_hpc.launch +sweep=subnet_data sweep_dir=$(REPRO_DIR)/subnet_data
 	$(PY) -m nsl_hpc.report sweep_dir=$(REPRO_DIR)/subnet_data
+
+mechanisms: $(INSTALLED)
+	$(PY) benchmarks/mechanisms.py $(MECHANISMS_ARGS)
 
 data: $(INSTALLED)
 	$(PY) -m nsl_hpc.place_data source=$(DATA_SOURCE) data_dir=data

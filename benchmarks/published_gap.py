@@ -27,17 +27,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 
-from nsl_hpc.analysis.published import published_laws
-
-RESOURCE_COLUMNS = {"compute": "flops", "data": "train_points", "model": "params"}
-
-
-def step_envelope_at(resources: np.ndarray, errors: np.ndarray, at: np.ndarray) -> np.ndarray:
-    """E(r) = min { e_i : r_i <= r } at each ``at`` (NaN where no outcome is at or below)."""
-    order = np.argsort(resources)
-    running = np.minimum.accumulate(errors[order])
-    index = np.searchsorted(resources[order], at, side="right") - 1
-    return np.where(index >= 0, running[np.maximum(index, 0)], np.nan)
+from nsl_hpc.analysis.published import published_laws, resource_columns, step_envelope_at
 
 
 def main() -> None:
@@ -72,7 +62,7 @@ def main() -> None:
             print(f"| {sweep.name} | no {system} / {arch} outcomes |")
             continue
         columns = args.columns or sorted(key for key in rows[0] if key.startswith(metric))
-        r = np.array([row[args.resource_column or RESOURCE_COLUMNS[resource]] for row in rows], dtype=float)
+        r = np.array([row[args.resource_column or resource_columns()[resource]] for row in rows], dtype=float)
         if resource == "compute":
             r = r / args.repeat
         for column in columns:

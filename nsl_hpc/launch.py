@@ -15,7 +15,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.studies.base import model_of
@@ -103,8 +103,9 @@ def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> in
                              cfg.checkpoint.every_minutes > 0):
         print(f"  {line}")
     if built.above_max_flops:
-        print(f"  sweep.max_flops={cfg.sweep.max_flops:g}: {built.above_max_flops:,} tasks of the grid above it "
-              "are not part of the sweep")
+        column = OmegaConf.select(cfg, "sweep.max_flops_column", default="flops")
+        print(f"  sweep.max_flops={cfg.sweep.max_flops:g} ({column}): {built.above_max_flops:,} tasks of the grid "
+              "above it are not part of the sweep")
     if tasks and (lockstep["size"] > 1 or lockstep["model_keys"]):
         print(describe_lockstep(tasks, packs, lockstep))
     if prepared.infeasible:

@@ -3,6 +3,7 @@ input-state lockstep loop and the input-output packed loop; a group's lock keeps
 time cap makes a long group a chain of jobs."""
 
 import copy
+import dataclasses
 import math
 import multiprocessing
 import os
@@ -107,11 +108,13 @@ def test_a_lockstep_group_stopped_and_resumed_gives_its_snapshots_bit_for_bit(co
 
 
 def test_a_group_over_repeated_data_stopped_and_resumed_gives_its_snapshots_bit_for_bit(compose, cache, tmp_path):
-    """train.repeat=2: 11 batches per epoch of 1,300 samples taken twice (66 and 33 steps, blocks of 32)."""
+    """Each member its own passes per epoch: 1,300 samples taken twice, 11 batches per epoch (33 and 66 steps), and
+    three times, 16 batches (48 steps), in blocks of 32."""
     members, train_cfg = ph_members(compose, cache, [(6, 6, (3,)), (3, 3, ())])
-    train = lockstep_trainer(members, {**train_cfg, "repeat": 2})
+    members = [dataclasses.replace(member, repeat=repeat) for member, repeat in zip(members, (2, 3), strict=True)]
+    train = lockstep_trainer(members, train_cfg)
     expected = train(lambda: None)
-    assert [[s.outcome.steps for s in member] for member in expected] == [[33, 66], [33]]
+    assert [[s.outcome.steps for s in member] for member in expected] == [[33, 66], [48]]
     (resumed, _) = interrupted(train, tmp_path / "group.pt")
     assert_same_snapshots(expected, resumed)
 

@@ -8,6 +8,7 @@ from omegaconf import OmegaConf
 from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies import study_named
+from nsl_hpc.studies.settings import batch_count
 from nsl_hpc.sweep.grid import build_manifest, expand_grid, grid_size
 from nsl_hpc.sweep.prepare import build_sweep, pair_configs, prepare_sweep
 from nsl_hpc.sweep.task import task_id
@@ -225,6 +226,28 @@ def test_the_plateau_preset_holds_every_task_of_the_grid_below_its_compute_cap()
         build_sweep(compose_config(["+sweep=plateau", "sweep.max_flops=1"], "launch"), [])
     with pytest.raises(ConfigError, match=r"sweep.max_flops=-1 must be a finite number"):
         build_sweep(compose_config(["+sweep=plateau", "sweep.max_flops=-1"], "launch"), [])
+
+
+def test_the_mechanism_slices_cap_on_either_compute_column_and_count_each_tasks_passes():
+    """conf/sweep/mechanism_compute.yaml keeps the grid's tasks below its cap on the column it names (flops or the
+    paper's flops_paper); with train.repeat_by_trajectories each task's steps take its own R passes per epoch."""
+    for column in ("flops", "flops_paper"):
+        overrides = ["+sweep=mechanism_compute", f"sweep.max_flops_column={column}"]
+        cut = build_sweep(compose_config(overrides, "launch"), overrides)
+        whole = build_sweep(compose_config([*overrides, "sweep.max_flops=null"], "launch"), overrides)
+        below = {row["task_id"] for row in whole.manifest.to_pylist() if row[column] < 2e7}
+        assert set(cut.manifest["task_id"].to_pylist()) == below and cut.above_max_flops > 0
+    with pytest.raises(ConfigError, match=r"sweep.max_flops_column='params' is not a compute column.*flops_paper"):
+        build_sweep(compose_config(["+sweep=mechanism_compute", "sweep.max_flops_column=params"], "launch"), [])
+    rule = "train.repeat_by_trajectories=[[1,50],[3,20],[10,10],[30,5]]"
+    overrides = ["+sweep=mechanism_data", "sweep.grid.0.epochs=[2]", rule]
+    rows = build_sweep(compose_config(overrides, "launch"), overrides).manifest.to_pylist()
+    for row in rows:
+        passes = 50 if row["n_traj"] < 3 else 20
+        assert row["steps"] == row["epochs"] * batch_count(row["train_points"] * passes, 256)
+    assert {row["n_traj"] >= 3 for row in rows} == {False, True}  # both rules' pairs are in the slice
+    with pytest.raises(ConfigError, match="both set"):
+        build_sweep(compose_config([*overrides, "train.repeat=2"], "launch"), [*overrides, "train.repeat=2"])
 
 
 def test_an_arch_option_applies_to_the_pairs_that_have_it_and_a_relaunch_with_it_names_it(tmp_path):

@@ -81,10 +81,14 @@ def test_a_sweep_stored_before_a_setting_existed_reads_it_at_its_neutral_value(t
     sweep_dir = tmp_path / "sweep"
     assert nsl("launch", *TINY_GRID, f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0
     (stored,) = (sweep_dir / "configs").glob("*.yaml")
-    stored.write_text(stored.read_text().replace("  repeat: 1\n", ""))  # as stored before train.repeat existed
-    assert "repeat" not in stored.read_text()
+    text = stored.read_text()
+    for line in ("  repeat: 1\n", "  weight_decay: 0.0\n", "  repeat_by_trajectories: null\n"):
+        assert line in text
+        text = text.replace(line, "")  # as stored before these settings existed
+    stored.write_text(text)
     system, arch = stored.stem.split("__")
-    assert read_base_config(sweep_dir, system, arch).train.repeat == 1
+    train = read_base_config(sweep_dir, system, arch).train
+    assert (train.repeat, train.weight_decay, train.repeat_by_trajectories) == (1, 0.0, None)
 
 
 def test_launch_on_a_directory_of_another_grid_is_refused(tmp_path):

@@ -23,7 +23,7 @@ from nsl_hpc.analysis.broken_law import (
     trimmed_margin,
 )
 from nsl_hpc.analysis.prediction import need_for, resource_for
-from nsl_hpc.analysis.published import comparison, published_laws
+from nsl_hpc.analysis.published import comparison, gap_to_published, published_laws, step_envelope_at
 from nsl_hpc.nsl import backtest_nsl, default_settings, fit_nsl
 from tests.fit_clouds import b_acceptable, cloud, direct_margin, law, published_shapes, random_shapes
 
@@ -301,6 +301,20 @@ def test_published_laws_are_data_and_measured_on_our_envelope():
     for system in ("wiener_hammerstein", "wiener_hammerstein_process_noise"):
         beside = comparison((system, "narx", "compute", "nmae"), r, wh.law.predict(r), 100)
         assert beside["paper_b"] == 3 and beside["paper_margin_on_ours"] < 1e-3
+
+
+def test_the_gap_to_a_published_law_is_our_step_envelope_over_it():
+    """The envelope at r is the least error at or below r (NaN below every outcome); over the law, a cloud twice
+    the law at its own resources reads 2 there and the running minimum between them."""
+    r, e = np.array([10.0, 100.0, 1000.0]), np.array([0.5, 0.7, 0.2])
+    np.testing.assert_array_equal(step_envelope_at(r, e, np.array([5.0, 10.0, 500.0, 1e4])), [np.nan, 0.5, 0.5, 0.2])
+    key = ("spring", "input_affine", "data", "nmae")
+    law = published_laws()[key].law
+    r = np.array([1e2, 1e3, 1e4])
+    gap = gap_to_published(key, r, 2 * law.predict(r), np.array([1e2, 3e2, 1e4]))
+    np.testing.assert_allclose(gap, [2.0, 2 * law.predict(np.array([1e2]))[0] / law.predict(np.array([3e2]))[0], 2.0])
+    with pytest.raises(KeyError, match="no spring/unstructured/data/nmae law"):
+        gap_to_published(("spring", "unstructured", "data", "nmae"), r, r, r)
 
 
 def test_fixed_breaks_and_choice_rule():

@@ -8,6 +8,9 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
+from nsl_hpc.config import config_dir
+from nsl_hpc.config.schema import typed
+from nsl_hpc.errors import ConfigError
 from nsl_hpc.models import build_model
 from nsl_hpc.studies.input_state.data import Dataset, build_test_set, build_training_set
 from nsl_hpc.studies.input_state.lockstep import (
@@ -20,8 +23,8 @@ from nsl_hpc.studies.input_state.lockstep import (
 )
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.metrics import normalized_errors, scores_both_ways
-from nsl_hpc.studies.settings import batch_bounds, batch_count, warmup_cosine
-from nsl_hpc.studies.training import StepCompiler, stack_rows
+from nsl_hpc.studies.settings import InputStateTrain, batch_bounds, batch_count, warmup_cosine
+from nsl_hpc.studies.training import Adam, StepCompiler, stack_rows
 from nsl_hpc.systems import SYSTEMS
 from tests.helpers import ARCH_NAMES, SYSTEM_NAMES
 
@@ -217,8 +220,41 @@ def milestone_run(compose, cache, schedule: str, epochs: int, milestones=(), sch
     data = build_training_set(OmegaConf.to_container(cfg.system, resolve=True), 0, 1.3, cache)
     torch.manual_seed(0)
     model = build_model(cfg.arch, 4, 2, width=6, depth=2)
-    member = Member(model, data, Scaling.fit(data, rescale_targets=False), epochs, 7, milestones, schedule_epochs)
+    member = Member(model, data, Scaling.fit(data, rescale_targets=False), epochs, 7, milestones, schedule_epochs,
+                    repeat=cfg.train.repeat)
     return train_lockstep([member], OmegaConf.to_container(cfg.train))[1][0]
+
+
+@pytest.mark.parametrize(("clip", "decay", "reference"), [(0.0, 0.0, torch.optim.Adam),
+                                                          (0.0, 0.01, torch.optim.AdamW)])
+def test_the_stacked_optimizer_steps_each_row_as_torch_does(clip, decay, reference):
+    """Without clipping, the stacked Adam (weight_decay 0) and AdamW step each row of theta as torch.optim's
+    Adam and AdamW step that row alone, at each row's own learning rate."""
+    torch.manual_seed(0)
+    theta, grads = torch.randn(3, 5, dtype=torch.float64), torch.randn(4, 3, 5, dtype=torch.float64)
+    rates = torch.tensor([[1e-2], [3e-3], [5e-2]], dtype=torch.float64)
+    stacked = Adam(theta.clone(), clip, decay)
+    for grad in grads:
+        stacked.step(grad.clone(), rates)
+    for k in range(3):
+        row = theta[k].clone().requires_grad_()
+        optimizer = reference([row], lr=float(rates[k]), weight_decay=decay)
+        for grad in grads:
+            row.grad = grad[k].clone()
+            optimizer.step()
+        torch.testing.assert_close(stacked.theta[k], row.detach(), rtol=1e-12, atol=1e-12)
+
+
+def test_passes_by_trajectories_follow_the_last_pair_at_or_below_a_task():
+    train = typed(InputStateTrain, {**OmegaConf.to_container(OmegaConf.load(config_dir() / "train" / "default.yaml")),
+                                    "repeat_by_trajectories": [[1, 50], [3, 20], [10, 10], [30, 5]]}, "train")
+    assert [train.passes(n_t) for n_t in (0.1, 1.0, 2.9, 3.0, 12.5, 51.2)] == [50, 50, 50, 20, 10, 5]
+    assert dataclasses.replace(train, repeat_by_trajectories=None, repeat=4).passes(0.1) == 4
+    for bad in ([[3, 20], [1, 50]], [[1, 2.5]], [[1]]):
+        with pytest.raises(ConfigError, match="repeat_by_trajectories"):
+            dataclasses.replace(train, repeat_by_trajectories=bad).check()
+    with pytest.raises(ConfigError, match="both set"):
+        dataclasses.replace(train, repeat=8).check()
 
 
 def test_epoch_milestones_with_a_constant_learning_rate_are_the_separate_runs(compose, cache):

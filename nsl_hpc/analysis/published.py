@@ -44,6 +44,13 @@ def published_data() -> dict[str, Any]:
 
 
 @cache
+def resource_columns() -> dict[str, str]:
+    """The results column of each resource (conf/nsl/default.yaml): compute -> flops, data -> train_points..."""
+    resources = OmegaConf.load(config_dir() / "nsl" / "default.yaml").resources
+    return {name: entry.column for name, entry in resources.items()}
+
+
+@cache
 def published_systems() -> dict[str, str]:
     """Our systems whose published laws are another system's (``same_laws`` in the file: the paper's
     Wiener-Hammerstein laws beside both Wiener-Hammerstein data sets), each -> that system."""
@@ -98,3 +105,21 @@ def comparison(key: tuple[str, ...], resources: np.ndarray, errors: np.ndarray, 
                       "paper_breaks": json.dumps([sigma for sigma, _, _ in published.law.breaks]),
                       "paper_margin_on_ours": on_ours, "paper_where": published.where,
                       "paper_range": json.dumps(list(published.resource_range))}
+
+
+def step_envelope_at(resources: np.ndarray, errors: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Definition 1's step envelope E(r) = min { e_i : r_i <= r } at each resource of ``at`` (NaN where no
+    outcome lies at or below it); resources, errors (n,), at (m,) -> (m,)."""
+    order = np.argsort(resources)
+    running = np.minimum.accumulate(errors[order])
+    index = np.searchsorted(resources[order], at, side="right") - 1
+    return np.where(index >= 0, running[np.maximum(index, 0)], np.nan)
+
+
+def gap_to_published(key: tuple[str, ...], resources: np.ndarray, errors: np.ndarray,
+                     at: np.ndarray) -> np.ndarray:
+    """Our step envelope over the published law of ``key`` (system, arch, resource, metric) at ``at`` (m,)."""
+    published = published_law(key)
+    if published is None:
+        raise KeyError(f"the paper publishes no {'/'.join(key)} law")
+    return step_envelope_at(resources, errors, at) / published.law.predict(at)

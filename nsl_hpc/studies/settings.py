@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from nsl_hpc.config.schema import setting
+from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies.metrics import NORMALIZATIONS
 
 SCHEDULES = ("warmup_cosine", "constant")
@@ -24,14 +25,36 @@ class InputStateTrain:
     schedule: str = setting("learning-rate schedule", choices=SCHEDULES)
     warmup_fraction: float = setting("linear warm-up over this fraction of the steps", 0, 1, high_open=True)
     schedule_epochs: int | None = setting("epoch milestones: the schedule's epochs (null: off)", 1)
-    grad_clip_norm: float = setting("clip the global gradient norm to this", 0, low_open=True)
+    grad_clip_norm: float = setting("clip the global gradient norm to this", 0, low_open=True, also="0: no clipping")
+    weight_decay: float = setting("AdamW's decoupled weight decay: each step scales the parameters by 1 - lr x this "
+                                  "(0: Adam)", 0)
     batch_size: int = setting("samples per mini-batch", 1)
     repeat: int = setting("R: passes over the training set per counted epoch", 1)
+    repeat_by_trajectories: list[list[float]] | None = setting(
+        "[[n_t, R], ...] ascending: R of the last pair whose n_t is at most the task's trajectories (the first "
+        "pair's below it); null: repeat", 0, low_open=True)
     loss: str = setting("training loss", choices=LOSSES)
     loss_std_eps: float = setting("added to the batch spread that divides the loss", 0, low_open=True)
     output_weight: float = setting("weight of the output (y) term of the loss", 0)
     rescale_targets: bool = setting("true: dx/dt and y rescaled (docs/science.md)")
     dtype: str = setting("training precision", choices=DTYPES)
+
+    def check(self) -> None:
+        rule = self.repeat_by_trajectories
+        if rule is None:
+            return
+        if self.repeat != 1:
+            raise ConfigError(f"train.repeat={self.repeat} and train.repeat_by_trajectories are both set: keep one "
+                              "(repeat=1 with a rule)")
+        trajectories = [pair[0] for pair in rule]
+        if (not rule or any(len(pair) != 2 or pair[1] != int(pair[1]) for pair in rule)
+                or trajectories != sorted(set(trajectories))):
+            raise ConfigError(f"train.repeat_by_trajectories={rule} must be [[n_t, R], ...] pairs with n_t "
+                              "ascending and R a positive integer, e.g. [[1, 50], [3, 20], [10, 10], [30, 5]]")
+
+    def passes(self, trajectories: float) -> int:
+        """R, the passes over the training set per counted epoch of a task on ``trajectories`` (n_t)."""
+        return passes(self.repeat, self.repeat_by_trajectories, trajectories)
 
 
 @dataclass(frozen=True)
@@ -54,6 +77,14 @@ class InputOutputTrain:
     feature_major_width: dict[str, int] = setting("per arch: a stack of models no wider stores activations "
                                                   "(K, n_h, B)", 0)
     rollout_segment: RolloutSegment = setting("a compiled SUBNET step's rollout segments, per stack layout")
+
+
+def passes(repeat: int, rule: list[list[float]] | None, trajectories: float) -> int:
+    """R of a task on ``trajectories`` (n_t): ``repeat``, or with a ``rule`` [[n_t, R], ...] (ascending) the R
+    of its last pair whose n_t is at most ``trajectories``, the first pair's below it."""
+    if rule is None:
+        return repeat
+    return int(next((r for n_t, r in reversed(rule) if n_t <= trajectories), rule[0][1]))
 
 
 def batch_count(samples: int, batch_size: int) -> int:

@@ -94,10 +94,12 @@ class BatchOrder:
 
 
 class Adam:
-    """torch.optim.Adam with gradient-norm clipping (clip_grad_norm_), per row of ``theta`` (K, P)."""
+    """torch.optim.Adam with gradient-norm clipping (clip_grad_norm_; ``clip_norm`` 0: none), per row of ``theta``
+    (K, P); with ``weight_decay`` > 0, torch.optim.AdamW (the parameters scaled by 1 - lr x weight_decay before
+    each update)."""
 
-    def __init__(self, theta: torch.Tensor, clip_norm: float):
-        self.theta, self.clip_norm = theta, clip_norm
+    def __init__(self, theta: torch.Tensor, clip_norm: float, weight_decay: float = 0.0):
+        self.theta, self.clip_norm, self.weight_decay = theta, clip_norm, weight_decay
         self.first, self.second = torch.zeros_like(theta), torch.zeros_like(theta)
         self.steps = 0
 
@@ -121,8 +123,11 @@ class Adam:
     def step(self, grad: torch.Tensor, lr: torch.Tensor) -> None:
         """One update from the parameters' gradient ``grad`` (K, P), overwritten, with learning rates ``lr``
         (K, 1)."""
-        norm = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
-        grad.mul_((self.clip_norm / (norm + CLIP_EPS)).clamp_max_(1.0))
+        if self.clip_norm:
+            norm = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
+            grad.mul_((self.clip_norm / (norm + CLIP_EPS)).clamp_max_(1.0))
+        if self.weight_decay:
+            self.theta.mul_(1.0 - lr * self.weight_decay)
         beta1, beta2 = ADAM_BETAS
         self.steps += 1
         self.first.lerp_(grad, 1 - beta1)

@@ -142,15 +142,20 @@ def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
     validate_grid_values(grid, study, configs)
     check_run_settings(cfg)
     max_flops = OmegaConf.select(cfg, "sweep.max_flops", default=None)
+    column = OmegaConf.select(cfg, "sweep.max_flops_column", default="flops")
     if max_flops is not None:
         require_number("sweep.max_flops", max_flops, 0, low_open=True)
     manifest = build_manifest(grid, study, configs, cfg.sweep_seed)
+    compute_columns = [name for name in manifest.column_names if name.startswith("flops")]
+    if column not in compute_columns:
+        raise ConfigError(f"sweep.max_flops_column={column!r} is not a compute column of this study's tasks; "
+                          f"choose one of: {', '.join(compute_columns)}")
     if max_flops is None:
         return BuiltSweep(manifest, configs, study)
-    kept = manifest.filter(pc.less(manifest["flops"], max_flops))
+    kept = manifest.filter(pc.less(manifest[column], max_flops))
     if kept.num_rows == 0:
-        raise ConfigError(f"sweep.max_flops={max_flops:g} leaves no task of the grid (its least compute is "
-                          f"{pc.min(manifest['flops']).as_py():.3g} flops)")
+        raise ConfigError(f"sweep.max_flops={max_flops:g} leaves no task of the grid (its least {column} is "
+                          f"{pc.min(manifest[column]).as_py():.3g})")
     return BuiltSweep(kept, configs, study, manifest.num_rows - kept.num_rows)
 
 

@@ -47,8 +47,8 @@ BLOCK_STEPS = 32  # steps prepared at once: (K, BLOCK_STEPS, batch) rows of data
 @dataclass(frozen=True)
 class Member:
     """One model of a lockstep group, initialised, with what it trains on: ``epochs`` of a learning-rate
-    schedule ``schedule_epochs`` long (0: ``epochs``), kept (``Snapshot``) after each of ``milestones``
-    epochs (and after ``epochs``)."""
+    schedule ``schedule_epochs`` long (0: ``epochs``), each epoch ``repeat`` passes over ``data``
+    (``InputStateTrain.passes``), kept (``Snapshot``) after each of ``milestones`` epochs (and after ``epochs``)."""
 
     model: StateSpaceModel
     data: Dataset
@@ -57,6 +57,7 @@ class Member:
     shuffle_seed: int
     milestones: tuple[int, ...] = ()
     schedule_epochs: int = 0
+    repeat: int = 1
 
 
 @dataclass(frozen=True)
@@ -152,12 +153,13 @@ class Lockstep(LockstepRun):
         self.compiler = compiler or StepCompiler(False)
         self.compiled_losses = self.compiler.wrap(self.losses)
         self.stack = StackedModels([member.model for member in members], self.dtype)
-        self.optimizer = Adam(self.stack.theta, train.grad_clip_norm)
+        self.optimizer = Adam(self.stack.theta, train.grad_clip_norm, train.weight_decay)
         self.data = stacked_data(members, self.dtype)
         self.pad = self.data.shape[1] - 1
-        repeat, batch = train.repeat, train.batch_size
-        width = max(max(stop - start for start, stop in batch_bounds(len(mb.data) * repeat, batch)) for mb in members)
-        self.plans = [BatchPlan(len(mb.data), batch, mb.epochs, mb.shuffle_seed, width, self.pad, repeat)
+        batch = train.batch_size
+        width = max(max(stop - start for start, stop in batch_bounds(len(mb.data) * mb.repeat, batch))
+                    for mb in members)
+        self.plans = [BatchPlan(len(mb.data), batch, mb.epochs, mb.shuffle_seed, width, self.pad, mb.repeat)
                       for mb in members]
         self.totals = np.array([plan.steps for plan in self.plans])
         self.total = int(self.totals.max(initial=0))

@@ -20,11 +20,12 @@ from omegaconf import DictConfig
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
 from nsl_hpc.config import plain
+from nsl_hpc.config.schema import typed
 from nsl_hpc.config.system import InputStateSystem
 from nsl_hpc.errors import ConfigError, require_member
 from nsl_hpc.studies.base import Study, draw_tier, model_of
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set, points_per_trajectory, training_points
-from nsl_hpc.studies.settings import InputStateTrain, Metric, batch_count
+from nsl_hpc.studies.settings import InputStateTrain, Metric, batch_count, passes
 from nsl_hpc.systems import SYSTEMS
 
 if TYPE_CHECKING:
@@ -49,7 +50,7 @@ class InputState(Study):
     axes = ("system", "arch", "seed", "epochs", "data_tier", "width_tier", "depth_tier")
     length_axis = "epochs"
     shared_keys = ("system", "arch", "train", "data_per_trajectory", "draws", "metric")
-    neutral = (("train", "repeat", 1),)
+    neutral = (("train", "repeat", 1), ("train", "weight_decay", 0.0), ("train", "repeat_by_trajectories", None))
     lockstep = True
     settings_schemas = (("train", InputStateTrain), ("metric", Metric), ("system", InputStateSystem))
 
@@ -85,7 +86,8 @@ class InputState(Study):
                         base: Mapping[str, Any]) -> dict[str, Any]:
         points, test_set = drawn["train_points"], base["system"]["test_set"]
         train = base["train"]
-        return {"steps": task["epochs"] * batch_count(points * train["repeat"], train["batch_size"]),
+        repeat = passes(train["repeat"], train["repeat_by_trajectories"], drawn["n_traj"])
+        return {"steps": task["epochs"] * batch_count(points * repeat, train["batch_size"]),
                 "flops": float(drawn["params"]) * task["epochs"] * points,
                 # the same with the paper's "approximately 4 n_d n_h^2" parameters (docs/reproduction.md)
                 "flops_paper": 4.0 * drawn["depth"] * drawn["width"] ** 2 * task["epochs"] * points,
@@ -129,9 +131,9 @@ class InputState(Study):
         return [{**model_scores, "steps": snapshot.outcome.steps,
                  "final_loss": snapshot.outcome.final_loss, "finite": snapshot.outcome.finite,
                  "train_seconds": train_seconds, "milestone": cfg.train.schedule_epochs is not None,
-                 "repeat": cfg.train.repeat,
+                 "repeat": members[k].repeat,
                  "compiled": compiler.enabled}
-                for model_scores, (_, snapshot) in zip(scores, kept, strict=True)]
+                for model_scores, (k, snapshot) in zip(scores, kept, strict=True)]
 
     def member(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
                epochs: Sequence[int]) -> "Member":
@@ -148,6 +150,7 @@ class InputState(Study):
         model = build_model(cfg.arch, system_class.state_dim, system_class.input_dim, sizes["width"], sizes["depth"])
         system_cfg = plain(cfg.system)
         data = build_training_set(system_cfg, task["seed"], sizes["n_traj"], ArrayCache(cfg.cache_dir))
-        return Member(model, data, Scaling.fit(data, cfg.train.rescale_targets), max(epochs),
-                      self.seed_for("shuffle", task, cfg.draws),
-                      milestones=tuple(epochs), schedule_epochs=cfg.train.schedule_epochs or 0)
+        train = typed(InputStateTrain, cfg.train, "train")
+        return Member(model, data, Scaling.fit(data, train.rescale_targets), max(epochs),
+                      self.seed_for("shuffle", task, cfg.draws), milestones=tuple(epochs),
+                      schedule_epochs=train.schedule_epochs or 0, repeat=train.passes(sizes["n_traj"]))
