@@ -12,6 +12,7 @@ from nsl_hpc.config.system import InputOutputSystem, InputStateSystem
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies.settings import InputOutputTrain, InputStateTrain, RolloutSegment
 from nsl_hpc.sweep.run_settings import SCHEMAS, Checkpoint, Cost, Watchdog, run_settings
+from nsl_hpc.sweep.task import check_settings
 from tests.sweeps import nsl
 
 
@@ -84,3 +85,26 @@ def test_system_and_arch_groups_are_checked_by_their_kind():
                        "hamiltonian": "square", "dissipation": "square"})
     with pytest.raises(ConfigError, match=r"^unknown arch 'mlp'"):
         arch_settings({"name": "mlp"})
+
+
+def test_a_tasks_fault_and_rehearsal_groups_are_checked_before_any_work():
+    task = OmegaConf.to_container(compose_config(["system=ball"], "one_task"), resolve=True)
+    check_settings(task)
+    for group, change, message in [
+        ("fault", {"kind": "crash"}, r"^fault.kind='crash' is unknown; choose one of: raise, hang, slow"),
+        ("fault", {"heartbeat_s": -1}, r"^fault.heartbeat_s=-1 must be a finite number in \[0, 86400\]"),
+        ("rehearse", {"frozen_share": 0.7, "failed_share": 0.5}, r"^rehearse.frozen_share \+ rehearse.failed_share"),
+        ("rehearse", {"laws": {"nmae": task["rehearse"]["laws"]["nmae"]}}, r"^rehearse.laws has nmae: it needs"),
+        ("rehearse", {"laws": {**task["rehearse"]["laws"], "nmse": {**task["rehearse"]["laws"]["nmse"], "beta": 0}}},
+         r"^rehearse.laws.nmse.beta=0 must be a finite number in \(0, inf\)"),
+    ]:
+        with pytest.raises(ConfigError, match=message):
+            check_settings({**task, group: {**task[group], **change}})
+
+
+@pytest.mark.e2e
+def test_a_launch_refuses_a_bad_rehearsal_setting_in_one_line(tmp_path):
+    bad = nsl("launch", "+sweep=demo", "rehearsal=true", "rehearse.killed_jobs=-1", "dry_run=true",
+              f"sweep_dir={tmp_path / 'sweep'}")
+    assert bad.returncode == 2 and bad.stderr.startswith("error: rehearse.killed_jobs=-1 must be a non-negative")
+    assert not (tmp_path / "sweep").exists()

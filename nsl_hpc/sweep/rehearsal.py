@@ -21,17 +21,60 @@ import os
 import signal
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from nsl_hpc.analysis.law import NSLFit
+from nsl_hpc.config.schema import setting
+from nsl_hpc.errors import ConfigError
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.plan import Pack
+from nsl_hpc.sweep.run_settings import DAY_S
 
 METRICS = ("nmae", "nmse")
+
+
+@dataclass(frozen=True)
+class PlantedLaw:
+    """L(c) = alpha + beta c^delta0 prod_i [1 + (c / sigma_i)^(1 / phi_i)]^(delta_i phi_i), as
+    conf/published_laws.yaml writes laws."""
+
+    alpha: float = setting("the floor", 0)
+    beta: float = setting("the scale", 0, low_open=True)
+    delta0: float = setting("the first slope")
+    breaks: list[list[float]] = setting("[sigma, phi, delta] per break")
+
+    def check(self) -> None:
+        if any(len(brk) != 3 or brk[0] <= 0 or brk[1] <= 0 for brk in self.breaks):
+            raise ConfigError(f"rehearse.laws: breaks={self.breaks} must be [sigma, phi, delta] triples with sigma "
+                              "and phi above 0")
+
+
+@dataclass(frozen=True)
+class Rehearse:
+    """A rehearsal's planted laws and faults (conf/config.yaml)."""
+
+    laws: dict[str, PlantedLaw] = setting("the planted compute law of each metric (nmae, nmse)")
+    near_share: float = setting("share of the tasks trained as well as the law allows", 0, 1)
+    near_sd: float = setting("their log(e / L) = |N(0, near_sd)|", 0)
+    far_mean: float = setting("the others add Exp(far_mean) to that", 0)
+    frozen_share: float = setting("share of lockstep groups that freeze at every attempt", 0, 1)
+    failed_share: float = setting("share of lockstep groups that fail at every attempt", 0, 1)
+    killed_jobs: int = setting("jobs of a launch killed after their first group, once", 0)
+    heartbeat_timeout_s: float = setting("the watchdog's patience in a rehearsal's jobs (s)", 0, DAY_S,
+                                         low_open=True)
+
+    def check(self) -> None:
+        if sorted(self.laws) != sorted(METRICS):
+            raise ConfigError(f"rehearse.laws has {', '.join(sorted(self.laws))}: it needs a law for each of "
+                              f"{', '.join(METRICS)}")
+        if self.frozen_share + self.failed_share > 1:
+            raise ConfigError(f"rehearse.frozen_share + rehearse.failed_share = "
+                              f"{self.frozen_share + self.failed_share:g}: at most 1 (a share of the groups)")
 
 
 def planted_law(rehearse: Mapping[str, Any], metric: str) -> NSLFit:

@@ -16,6 +16,20 @@ from nsl_hpc.sweep.groups import RENEW_S
 DAY_S, WEEK_MINUTES, YEAR_MINUTES = 86400, 10080, 525600
 
 
+FAULT_KINDS = ("raise", "hang", "slow")
+
+
+@dataclass(frozen=True)
+class Fault:
+    """Test-only fault injection (``sweep.task.inject_fault``) for tasks of one seed."""
+
+    kind: str | None = setting("raise: the task fails, hang: it freezes, slow: it sleeps at every heartbeat "
+                               "(null: none)", choices=FAULT_KINDS)
+    seed: int | None = setting("the seed whose tasks it strikes (null: every task)", 0)
+    once: bool = setting("true: a task's first attempt only")
+    heartbeat_s: float = setting("slow: seconds slept at every heartbeat", 0, DAY_S)
+
+
 @dataclass(frozen=True)
 class Lockstep:
     """Tasks of one system, arch and depth trained up to ``size`` at a time in one process, each as if alone."""

@@ -27,8 +27,9 @@ from nsl_hpc.studies import study_of
 from nsl_hpc.studies.base import Study
 from nsl_hpc.studies.settings import COMPILE_MODES
 from nsl_hpc.sweep.layout import row_path
-from nsl_hpc.sweep.rehearsal import rehearsed_group
+from nsl_hpc.sweep.rehearsal import Rehearse, rehearsed_group
 from nsl_hpc.sweep.rows import write_row_atomically
+from nsl_hpc.sweep.run_settings import Fault
 
 
 @dataclass(frozen=True)
@@ -59,8 +60,9 @@ def resolve_task(cfg: Mapping[str, Any], sizes: Mapping[str, Any] | None = None)
 
 def check_settings(values: Mapping[str, Any]) -> None:
     """Raise ConfigError for a setting no task can run with (a plain task config): its study's groups
-    (``Study.settings_schemas``: train, system, ...), its ``arch`` group (``config.arch``), threads and compile."""
-    for group, schema in study_of(values).settings_schemas:
+    (``Study.settings_schemas``: train, system, ...), its ``arch`` group (``config.arch``), the test-only
+    ``fault``, a rehearsal's ``rehearse``, threads and compile."""
+    for group, schema in (*study_of(values).settings_schemas, ("fault", Fault), ("rehearse", Rehearse)):
         typed(schema, values[group], group)
     arch_settings(values["arch"])
     require_positive_int("threads", values["threads"])
@@ -111,9 +113,7 @@ def inject_fault(fault: Mapping[str, Any], seed: int) -> float:
     if fault["kind"] == "hang":
         while True:
             time.sleep(3600)
-    if fault["kind"] == "slow":
-        return float(fault["heartbeat_s"])
-    raise ConfigError(f"fault.kind={fault['kind']!r}; allowed: null, raise, hang, slow")
+    return float(fault["heartbeat_s"])  # slow (``Fault`` allows no other kind)
 
 
 def slowed(on_progress: Callable[[], None], seconds: float) -> Callable[[], None]:
