@@ -2,6 +2,8 @@
 group (``launcher=local|debug|slurm``, fields overridden with ``launcher.<field>=...``). Site settings (a
 partition, an account) go in ``conf/local/default.yaml``."""
 
+import os
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, cast
@@ -9,7 +11,11 @@ from typing import Any, cast
 from omegaconf import OmegaConf
 
 from nsl_hpc.config.mapping import plain
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.errors import ConfigError, require_int, require_positive_int
+
+SBATCH_MEMORY = re.compile(r"[1-9][0-9]*[KMGT]?")  # sbatch --mem: megabytes, or with a unit
+SBATCH_FLAG = re.compile(r"[A-Za-z][A-Za-z0-9_-]*")  # a long option's name (submitit writes _ as -)
+BATCH_BREAKERS = re.compile(r"[\x00-\x1f\x7f]")  # control characters: a newline ends a line of the batch script
 
 
 @dataclass
@@ -19,6 +25,13 @@ class LocalLauncher:
 
     name: str = "local"
     workers: int | None = None  # processes at once; None = every CPU of this machine
+
+    def check(self) -> None:
+        if self.workers is not None:
+            try:
+                require_int("launcher.workers", self.workers, 1, len(os.sched_getaffinity(0)))
+            except ConfigError as error:
+                raise ConfigError(f"{error}: one single-CPU task per CPU of this machine") from None
 
 
 @dataclass
@@ -51,6 +64,42 @@ class SlurmLauncher:
     #   behind the first array (resubmit states=[missing]), and so on; None = by launching again by hand
     extra_sbatch: dict[str, Any] = field(default_factory=dict)  # any other sbatch flag, e.g. {constraint: cpu}
     setup: list[str] = field(default_factory=list)  # shell lines run before each job (e.g. module load python)
+
+    def check(self) -> None:
+        """Refuse settings sbatch would refuse, that would submit nothing or break the batch script."""
+        require_positive_int("launcher.array_parallelism", self.array_parallelism)
+        for key in ("max_array_size", "max_job_count", "max_submit_jobs", "max_time_minutes", "max_running",
+                    "feed_minutes"):
+            if getattr(self, key) is not None:
+                require_positive_int(f"launcher.{key}", getattr(self, key))
+        if not SBATCH_MEMORY.fullmatch(self.mem):
+            raise ConfigError(f"launcher.mem={self.mem!r} is no sbatch --mem: a positive integer with an optional "
+                              "unit K, M, G or T (2G, 1500M)")
+        for key in ("partition", "account", "qos", "mem"):
+            check_batch_text(f"launcher.{key}", getattr(self, key), flag=True)
+        for flag, value in self.extra_sbatch.items():
+            if not SBATCH_FLAG.fullmatch(str(flag)):
+                raise ConfigError(f"launcher.extra_sbatch.{flag} is no sbatch option name (letters, digits and -, "
+                                  "as in +launcher.extra_sbatch.constraint=cpu)")
+            if not isinstance(value, str | int | float | bool):
+                raise ConfigError(f"launcher.extra_sbatch.{flag}={value!r} must be one value (a string or a "
+                                  f"number), as written after --{flag}=")
+            check_batch_text(f"launcher.extra_sbatch.{flag}", value, flag=True)
+        for line in self.setup:
+            check_batch_text("launcher.setup line", line, flag=False)
+
+
+def check_batch_text(key: str, value: object, flag: bool) -> None:
+    """Raise ConfigError for a value that would break the batch script it is written to: a control character
+    (a newline starts a line of its own) anywhere, whitespace in an ``#SBATCH`` option (``flag``: sbatch splits
+    the line there)."""
+    if value is None or isinstance(value, bool | int | float):
+        return
+    text = str(value)
+    bad = BATCH_BREAKERS.search(text) or (flag and re.search(r"\s", text))
+    if bad:
+        raise ConfigError(f"{key}={text!r} holds {bad.group()!r} at position {bad.start()}: it would break the job's "
+                          f"batch script (no {'whitespace or ' if flag else ''}control characters)")
 
 
 Launcher = LocalLauncher | DebugLauncher | SlurmLauncher

@@ -2,8 +2,6 @@
 groups, time classes, and SLURM limits."""
 
 import math
-import os
-import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -11,17 +9,13 @@ from typing import Any
 from omegaconf import DictConfig
 
 from nsl_hpc.config import plain
-from nsl_hpc.config.launchers import SlurmLauncher, launcher_from
+from nsl_hpc.config.launchers import LocalLauncher, SlurmLauncher, check_batch_text, launcher_from
 from nsl_hpc.config.schema import typed
-from nsl_hpc.errors import ConfigError, require_choice, require_int, require_positive_int
+from nsl_hpc.errors import ConfigError, require_choice, require_positive_int
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import model_of
 from nsl_hpc.studies.settings import COMPILE_MODES
 from nsl_hpc.sweep.run_settings import Lockstep, run_settings
-
-SBATCH_MEMORY = re.compile(r"[1-9][0-9]*[KMGT]?")  # sbatch --mem: megabytes, or with a unit
-SBATCH_FLAG = re.compile(r"[A-Za-z][A-Za-z0-9_-]*")  # a long option's name (submitit writes _ as -)
-BATCH_BREAKERS = re.compile(r"[\x00-\x1f\x7f]")  # control characters: a newline ends a line of the batch script
 
 
 def predicted_seconds(arch: str, steps: int, params: int, cost: Mapping[str, Any]) -> float:
@@ -221,58 +215,16 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
     lockstep_settings(launch)
     settings = run_settings(launch)
     launcher = launcher_from(launch["launcher"])
-    workers = getattr(launcher, "workers", None)
-    if workers is not None:
-        try:
-            require_int("launcher.workers", workers, 1, len(os.sched_getaffinity(0)))
-        except ConfigError as error:
-            raise ConfigError(f"{error}: one single-CPU task per CPU of this machine") from None
+    if isinstance(launcher, LocalLauncher | SlurmLauncher):
+        launcher.check()
     if isinstance(launcher, SlurmLauncher):
-        check_slurm_settings(launcher, settings.checkpoint.every_minutes)
+        if launcher.max_time_minutes is not None and not settings.checkpoint.every_minutes:
+            raise ConfigError(f"launcher.max_time_minutes={launcher.max_time_minutes} needs checkpoints "
+                              "(checkpoint.every_minutes > 0): a group longer than the cap continues in its next "
+                              "job from its checkpoint")
         check_batch_text("sweep.name", launch["sweep"]["name"], flag=True)  # the jobs' --job-name
         check_signal_delay(launcher.signal_delay_s, packing_for(launch["packing"], launch["launcher"])
                            ["time_classes_minutes"])
-
-
-def check_slurm_settings(launcher: SlurmLauncher, checkpoint_minutes: float) -> None:
-    """Raise ConfigError for SLURM settings sbatch would refuse or that would submit nothing."""
-    require_positive_int("launcher.array_parallelism", launcher.array_parallelism)
-    for key in ("max_array_size", "max_job_count", "max_submit_jobs", "max_time_minutes", "max_running",
-                "feed_minutes"):
-        if getattr(launcher, key) is not None:
-            require_positive_int(f"launcher.{key}", getattr(launcher, key))
-    if not SBATCH_MEMORY.fullmatch(launcher.mem):
-        raise ConfigError(f"launcher.mem={launcher.mem!r} is no sbatch --mem: a positive integer with an optional "
-                          "unit K, M, G or T (2G, 1500M)")
-    for key in ("partition", "account", "qos", "mem"):
-        check_batch_text(f"launcher.{key}", getattr(launcher, key), flag=True)
-    for flag, value in launcher.extra_sbatch.items():
-        if not SBATCH_FLAG.fullmatch(str(flag)):
-            raise ConfigError(f"launcher.extra_sbatch.{flag} is no sbatch option name (letters, digits and -, as in "
-                              "+launcher.extra_sbatch.constraint=cpu)")
-        if not isinstance(value, str | int | float | bool):
-            raise ConfigError(f"launcher.extra_sbatch.{flag}={value!r} must be one value (a string or a number), as "
-                              f"written after --{flag}=")
-        check_batch_text(f"launcher.extra_sbatch.{flag}", value, flag=True)
-    for line in launcher.setup:
-        check_batch_text("launcher.setup line", line, flag=False)
-    if launcher.max_time_minutes is not None and not checkpoint_minutes:
-        raise ConfigError(f"launcher.max_time_minutes={launcher.max_time_minutes} needs checkpoints "
-                          "(checkpoint.every_minutes > 0): a group longer than the cap continues in its next job "
-                          "from its checkpoint")
-
-
-def check_batch_text(key: str, value: object, flag: bool) -> None:
-    """Raise ConfigError for a value that would break the batch script it is written to: a control character
-    (a newline starts a line of its own) anywhere, whitespace in an ``#SBATCH`` option (``flag``: sbatch splits
-    the line there)."""
-    if value is None or isinstance(value, bool | int | float):
-        return
-    text = str(value)
-    bad = BATCH_BREAKERS.search(text) or (flag and re.search(r"\s", text))
-    if bad:
-        raise ConfigError(f"{key}={text!r} holds {bad.group()!r} at position {bad.start()}: it would break the job's "
-                          f"batch script (no {'whitespace or ' if flag else ''}control characters)")
 
 
 def check_signal_delay(signal_delay_s: int, time_classes_minutes: Sequence[float]) -> None:
