@@ -31,12 +31,15 @@ def schema_docs() -> dict[str, str]:
     from nsl_hpc.config.system import InputOutputSystem, InputStateSystem
     from nsl_hpc.studies.settings import InputOutputTrain, InputStateTrain, Metric
     from nsl_hpc.sweep.budget import BudgetSettings
-    from nsl_hpc.sweep.run_settings import SCHEMAS
+    from nsl_hpc.sweep.prepare import SweepSettings
+    from nsl_hpc.sweep.rehearsal import Rehearse
+    from nsl_hpc.sweep.run_settings import SCHEMAS, Fault
 
     docs = {**field_docs(InputOutputTrain, "train"), **field_docs(InputStateTrain, "train"),
             **field_docs(Nsl, "nsl"), **field_docs(Figures, "figures"), **field_docs(BudgetSettings, "budget"),
             **field_docs(InputOutputSystem, "system"), **field_docs(InputStateSystem, "system"),
-            **field_docs(Metric, "metric")}
+            **field_docs(Metric, "metric"), **field_docs(SweepSettings, "sweep"), **field_docs(Fault, "fault"),
+            **field_docs(Rehearse, "rehearse")}
     for name, schema in SCHEMAS.items():
         docs.update(field_docs(schema, name))
     return docs

@@ -13,7 +13,8 @@ import pyarrow.compute as pc
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.config import compose_config, plain, unknown_key
-from nsl_hpc.errors import ConfigError, require_non_negative_int, require_number, require_positive_int
+from nsl_hpc.config.schema import setting, typed
+from nsl_hpc.errors import ConfigError, require_non_negative_int, require_positive_int
 from nsl_hpc.studies import study_named, study_of
 from nsl_hpc.studies.base import Study
 from nsl_hpc.sweep import layout
@@ -40,11 +41,24 @@ def override_key(override: str) -> str:
     return override.split("=", 1)[0].lstrip("+~")
 
 
+@dataclass(frozen=True)
+class SweepSettings:
+    """The ``sweep`` group (conf/sweep/<name>.yaml, a preset or the user's): its name, grid and compute cap."""
+
+    name: str = setting("the sweep's name: its directory under runs/ and its jobs' name")
+    grid: Any = setting("axis -> values, or a list of such sub-grids (their tasks together)")
+    max_flops: float | None = setting("only the grid's tasks below this compute are the sweep's (null: all)", 0,
+                                      low_open=True, default=None)
+    max_flops_column: str = setting("the compute column max_flops caps: flops (exact p), or flops_paper (the "
+                                    "paper's 4 n_d n_h^2; input-state)", default="flops")
+
+
 def validate_launch(cfg: DictConfig, overrides: Sequence[str]) -> Study:
     """Refuse, before any work, a launch without a sweep or with grid axes set outside the grid; returns the
     sweep's study."""
     if "sweep" not in cfg:
         raise ConfigError("no sweep chosen: add +sweep=<name> (see conf/sweep/, e.g. +sweep=demo)")
+    typed(SweepSettings, cfg.sweep, "sweep")
     study = study_named(cfg.study.name)
     for override in overrides:
         if override_key(override) in study.axes:
@@ -141,10 +155,8 @@ def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
         check_settings(values)
     validate_grid_values(grid, study, configs)
     check_run_settings(cfg)
-    max_flops = OmegaConf.select(cfg, "sweep.max_flops", default=None)
-    column = OmegaConf.select(cfg, "sweep.max_flops_column", default="flops")
-    if max_flops is not None:
-        require_number("sweep.max_flops", max_flops, 0, low_open=True)
+    sweep = typed(SweepSettings, cfg.sweep, "sweep")
+    max_flops, column = sweep.max_flops, sweep.max_flops_column
     manifest = build_manifest(grid, study, configs, cfg.sweep_seed)
     compute_columns = [name for name in manifest.column_names if name.startswith("flops")]
     if column not in compute_columns:
