@@ -28,11 +28,12 @@ from nsl_hpc.analysis.fitting import (
     write_fits,
 )
 from nsl_hpc.analysis.mlflow_runs import log_to_mlflow, require_server, tracking_uri
-from nsl_hpc.analysis.nsl_settings import figure_settings, nsl_settings
+from nsl_hpc.analysis.nsl_settings import MlflowSettings, figure_settings, nsl_settings
 from nsl_hpc.analysis.prediction import what_it_takes
 from nsl_hpc.analysis.report import comparison_markdown, report_html, scores_note, what_it_takes_html
 from nsl_hpc.atomic import write_text
 from nsl_hpc.config import plain
+from nsl_hpc.config.schema import typed
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 from nsl_hpc.sweep.merge import merge_sweep, results_path
@@ -42,7 +43,8 @@ def main(cfg: DictConfig) -> int:
     nsl_settings(cfg.nsl)
     figure_settings(cfg.figures, cfg.nsl.resources)
     sweep_dir = require_sweep(cfg.sweep_dir)
-    require_server(cfg.mlflow)
+    mlflow = typed(MlflowSettings, cfg.mlflow, "mlflow")
+    require_server(mlflow)
     launch_config = read_launch_config(sweep_dir)
     launch = plain(launch_config)
     summary = merge_sweep(sweep_dir, cfg.compact)
@@ -64,14 +66,14 @@ def main(cfg: DictConfig) -> int:
     write_text(report_html(sweep_dir, launch, summary, rows, figures, section, nsl, cards["core_hours"]), report)
     notes = " ".join(note for note in (scores_note(launch), fit_note(nsl)) if note)
     write_text(comparison_markdown(rows, notes), sweep_dir / layout.COMPARISON)
-    if cfg.mlflow.enabled:
+    if mlflow.enabled:
         by_key = {nsl_key(row): figure_stem(sweep_dir, row).with_suffix(".png") for row in rows}
         artifacts = [results_path(sweep_dir), fits_path(sweep_dir), sweep_dir / layout.FITS_TEXT, report,
                      sweep_dir / layout.COMPARISON,
                      *(path for path in figures["overview"])]
-        experiment, run = log_to_mlflow(sweep_dir, cfg.mlflow, launch, summary, rows,
+        experiment, run = log_to_mlflow(sweep_dir, mlflow, launch, summary, rows,
                                         {key: path for key, path in by_key.items() if path.exists()}, artifacts)
-        uri = tracking_uri(sweep_dir, cfg.mlflow.tracking_uri)
+        uri = tracking_uri(sweep_dir, mlflow.tracking_uri)
         print(f"MLflow: run {run} in {uri}; browse with `mlflow ui --backend-store-uri {uri}` at "
               f"#/experiments/{experiment}/runs (MLflow 3 opens on its GenAI overview)")
     print(f"report: {report.resolve()}")

@@ -275,6 +275,7 @@ def test_merge_compacts_the_rows_and_status_launch_resubmit_and_budgets_still_fi
     ("report", "nsl.predict.report.metric=foo", "nsl.predict.report.metric='foo'; choose one of: nmae, nmse"),
     ("report", "figures.dpi=0", "figures.dpi=0 must be an integer from 10 to 2400"),
     ("report", "figures.formats=[pngg]", "figures.formats value='pngg'; choose one of:"),
+    ("report", "mlflow.timeout_s=0", "mlflow.timeout_s=0 must be a finite number in (0, 600]"),
 ])
 def test_a_bad_setting_is_one_line_before_any_work_and_keeps_the_fits(fitted_sweep, verb, override, message):
     fits = (fitted_sweep / "nsl_fits.parquet").read_bytes()

@@ -22,7 +22,8 @@ from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.fitting import interval_columns, nsl_key
-from nsl_hpc.errors import RunError, require_number
+from nsl_hpc.analysis.nsl_settings import MlflowSettings
+from nsl_hpc.errors import RunError
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import layout
@@ -44,16 +45,15 @@ def tracking_uri(sweep_dir: Path, configured: str | None) -> str:
     return configured or f"sqlite:///{Path(sweep_dir).resolve() / layout.MLFLOW_DB}"
 
 
-def require_server(settings: Mapping[str, Any]) -> None:
+def require_server(settings: MlflowSettings) -> None:
     """Before any work: a RunError in one line unless the tracking server of an http(s) ``tracking_uri`` answers
     an MLflow request within ``timeout_s``; then bound MLflow's own requests (its defaults, 120 s and 7 retries
     with backoff, hang a report for many minutes on a server that is gone). Variables the user set
     (MLFLOW_HTTP_REQUEST_TIMEOUT, MLFLOW_HTTP_REQUEST_MAX_RETRIES) win after the first request."""
-    require_number("mlflow.timeout_s", settings["timeout_s"], 0, 600, low_open=True)
-    uri = settings["tracking_uri"]
-    if not settings["enabled"] or not uri or not uri.startswith(("http://", "https://")):
+    uri = settings.tracking_uri
+    if not settings.enabled or not uri or not uri.startswith(("http://", "https://")):
         return
-    timeout = str(math.ceil(settings["timeout_s"]))
+    timeout = str(math.ceil(settings.timeout_s))
     probe = {"MLFLOW_HTTP_REQUEST_TIMEOUT": timeout, "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0"}
     after = {"MLFLOW_HTTP_REQUEST_TIMEOUT": timeout, "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "2"}
     before = {name: os.environ.get(name) for name in probe}
@@ -62,7 +62,7 @@ def require_server(settings: Mapping[str, Any]) -> None:
         MlflowClient(uri).search_experiments(max_results=1)
     except Exception as error:  # requests' connection errors, MLflow's on an answer that is no MLflow's
         reason = " ".join(str(error).split())[:160]
-        raise RunError(f"no MLflow tracking server answers at {uri} (mlflow.timeout_s={settings['timeout_s']:g}; "
+        raise RunError(f"no MLflow tracking server answers at {uri} (mlflow.timeout_s={settings.timeout_s:g}; "
                        f"{type(error).__name__}: {reason}); nothing was written: start it, fix "
                        "mlflow.tracking_uri, or set mlflow.enabled=false") from None
     finally:
@@ -146,7 +146,7 @@ def log_nsl_runs(client: MlflowClient, experiment: str, parent: str, rows: Seque
         client.delete_run(stale.info.run_id)
 
 
-def log_to_mlflow(sweep_dir: Path, settings: Mapping[str, Any], launch_config: Mapping[str, Any],
+def log_to_mlflow(sweep_dir: Path, settings: MlflowSettings, launch_config: Mapping[str, Any],
                   summary: MergeSummary, rows: Sequence[Mapping[str, Any]], figures: Mapping[str, Path],
                   artifacts: Sequence[Path]) -> tuple[str, str]:
     """Log (or update) the sweep's runs; returns the experiment's id and the parent run's. A RunError in one line
@@ -154,17 +154,17 @@ def log_to_mlflow(sweep_dir: Path, settings: Mapping[str, Any], launch_config: M
     try:
         return logged(sweep_dir, settings, launch_config, summary, rows, figures, artifacts)
     except (MlflowException, OSError) as error:
-        raise RunError(f"logging to MLflow at {tracking_uri(sweep_dir, settings['tracking_uri'])} failed "
+        raise RunError(f"logging to MLflow at {tracking_uri(sweep_dir, settings.tracking_uri)} failed "
                        f"({type(error).__name__}: {' '.join(str(error).split())[:160]}); the results, fits, figures "
                        "and report on disk are complete: run the report again to log them") from None
 
 
-def logged(sweep_dir: Path, settings: Mapping[str, Any], launch_config: Mapping[str, Any],
+def logged(sweep_dir: Path, settings: MlflowSettings, launch_config: Mapping[str, Any],
            summary: MergeSummary, rows: Sequence[Mapping[str, Any]], figures: Mapping[str, Path],
            artifacts: Sequence[Path]) -> tuple[str, str]:
     """``log_to_mlflow``'s work."""
-    client = MlflowClient(tracking_uri(sweep_dir, settings["tracking_uri"]))
-    experiment = experiment_id(client, settings["experiment"], sweep_dir, settings["tracking_uri"] is None)
+    client = MlflowClient(tracking_uri(sweep_dir, settings.tracking_uri))
+    experiment = experiment_id(client, settings.experiment, sweep_dir, settings.tracking_uri is None)
     study = study_named(launch_config["study"]["name"])
     keys = ("sweep", "sweep_seed", "study", *(key for key in study.shared_keys if key not in ("system", "arch")))
     params = flatten({key: launch_config[key] for key in keys})

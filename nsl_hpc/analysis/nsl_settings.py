@@ -1,5 +1,5 @@
 """The typed owners of the post-processing settings: the ``nsl`` group (conf/nsl/default.yaml: the fits, their
-intervals, predict's joint law) and the ``figures`` group (conf/figures/default.yaml). ``nsl_settings`` and
+intervals, predict's joint law), the ``figures`` group (conf/figures/default.yaml) and report's ``mlflow``. ``nsl_settings`` and
 ``figure_settings`` check a config's before any work, so that a bad value is one line and nothing written is
 replaced (``config.schema``)."""
 
@@ -165,3 +165,14 @@ def check_target(target: Any, metric: str, resource: str, nsl: Mapping[str, Any]
     require_choice("metric", metric, list(nsl["metrics"]))
     require_choice("resource", resource, list(nsl["resources"]))
     require_number("target", target, 0, low_open=True)
+
+
+@dataclass(frozen=True)
+class MlflowSettings:
+    """Where and whether post-processing logs to MLflow (conf/report.yaml's ``mlflow``)."""
+
+    enabled: bool = setting("false: write no MLflow runs")
+    tracking_uri: str | None = setting("a tracking server or store (null: sqlite:///<sweep_dir>/mlflow.db)")
+    experiment: str = setting("the experiment the sweep's runs go in")
+    timeout_s: float = setting("a tracking server must answer within this before anything is written (s)", 0, 600,
+                               low_open=True)
