@@ -69,13 +69,13 @@ def law_table(law: str, cfg: DictConfig, candidates: list[DictConfig]) -> tuple[
     part = next(name for name, entry in cfg.parts.items() if law in entry.laws)
     at = np.asarray(cfg.at[law], dtype=float)
     lines = [f"**{law}** (envelope / published law; {metric} scores)", "",
-             "| candidate | outcomes | " + " | ".join(f"{r:.0e}" for r in at) + f" | first below {cfg.below:g} "
+             "| candidate | outcomes | " + " | ".join(map(short, at)) + f" | first below {cfg.below:g} "
              f"| within {cfg.within:g}x (largest factor) |", "|---|---:|" + "---:|" * (len(at) + 2)]
     worst: dict[str, float] = {}
     for candidate in candidates:
-        own = part in parts_of(candidate, cfg)
-        sweep_dir = Path(cfg.root) / (candidate.name if own else "baseline") / part
-        label = candidate.name if own else f"{candidate.name} (baseline's runs: its change leaves them)"
+        borrowed = part in (candidate.get("baseline_parts") or [])
+        sweep_dir = Path(cfg.root) / ("baseline" if borrowed else candidate.name) / part
+        label = f"{candidate.name} (the baseline's runs: its change leaves them)" if borrowed else candidate.name
         if not (sweep_dir / "results.parquet").exists():
             lines.append(f"| {label} | not run | " + " | ".join("" for _ in at) + " | | |")
             continue
@@ -87,10 +87,18 @@ def law_table(law: str, cfg: DictConfig, candidates: list[DictConfig]) -> tuple[
         known = ratios[~np.isnan(ratios)]
         worst[candidate.name] = float(np.max(np.maximum(known, 1 / known))) if len(known) else np.nan
         below = r[e < cfg.below]
-        first = f"{below.min():.2g}" if len(below) else f"> {r.max():.2g}"
+        first = short(below.min()) if len(below) else f"> {short(r.max())}"
         cells = " | ".join("-" if np.isnan(x) else f"{x:.2f}" for x in ratios)
         lines.append(f"| {label} | {len(rows)} | {cells} | {first} | {verdict(worst[candidate.name], cfg)} |")
     return lines, worst
+
+
+def short(resource: float) -> str:
+    """150, 3e4, 2.2e6: a resource as the tables write it."""
+    if resource < 1e4:
+        return f"{resource:.3g}"
+    mantissa, exponent = f"{resource:.1e}".split("e")
+    return f"{mantissa.removesuffix('.0')}e{int(exponent)}"
 
 
 def verdict(worst: float, cfg: DictConfig) -> str:
