@@ -1,7 +1,7 @@
 """The typed owners of the post-processing settings: the ``nsl`` group (conf/nsl/default.yaml: the fits, their
-intervals, predict's joint law), the ``figures`` group (conf/figures/default.yaml) and report's ``mlflow``. ``nsl_settings`` and
-``figure_settings`` check a config's before any work, so that a bad value is one line and nothing written is
-replaced (``config.schema``)."""
+intervals, predict's joint law), the ``figures`` group (conf/figures/default.yaml) and report's ``mlflow``.
+``nsl_settings`` and ``figure_settings`` check a config's before any work, so that a bad value is one line and
+nothing written is replaced (``config.schema``)."""
 
 from collections.abc import Mapping
 from dataclasses import dataclass
