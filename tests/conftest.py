@@ -62,3 +62,18 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> FileOrCluster:
     config.option.loadscopereorder = False  # keep the order above, not xdist's default of the most tests first
     return FileOrCluster(config, log)
+
+
+BUSY: Counter[str] = Counter()  # seconds of setup, call and teardown per xdist worker (the controller sees them all)
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    gateway = getattr(getattr(report, "node", None), "gateway", None)  # a worker's report, on the controller
+    BUSY[gateway.id if gateway else "main"] += report.duration
+
+
+def pytest_terminal_summary(terminalreporter: Any) -> None:
+    """Each worker's busy time: the longest sets the run's wall time (make test: keep them even)."""
+    if BUSY and "main" not in BUSY:  # under xdist
+        terminalreporter.write_line("busy per worker: " + ", ".join(f"{worker} {seconds:.0f} s"
+                                                                     for worker, seconds in sorted(BUSY.items())))
