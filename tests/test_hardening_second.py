@@ -42,6 +42,7 @@ from tests.sweeps import TINY_GRID, nsl
     (["launcher=slurm", "launcher.max_job_count=-5"], "launcher.max_job_count=-5 must be a positive integer"),
     (["launcher=slurm", "launcher.mem=abc"], "launcher.mem='abc' is no sbatch --mem"),
     (["launcher=slurm", "launcher.mem=0G"], "launcher.mem='0G' is no sbatch --mem"),
+    (["launcher=slurm", "launcher.signal_delay_s=0"], "launcher.signal_delay_s=0 must be a positive integer"),
     (["cost.compile_speedup.unstructured=0"], "cost.compile_speedup.unstructured=0 must be a finite number in (0, "),
     (["cost.compile_s.subnet=null"], "cost.compile_speedup.subnet needs cost.compile_s.subnet"),
     (["cost.compile_s.unstructured=-1"], "cost.compile_s.unstructured=-1 must be a finite number in [0, 86400]"),

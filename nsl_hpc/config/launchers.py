@@ -68,6 +68,7 @@ class SlurmLauncher:
     def check(self) -> None:
         """Refuse settings sbatch would refuse, that would submit nothing or break the batch script."""
         require_positive_int("launcher.array_parallelism", self.array_parallelism)
+        require_positive_int("launcher.signal_delay_s", self.signal_delay_s)
         for key in ("max_array_size", "max_job_count", "max_submit_jobs", "max_time_minutes", "max_running",
                     "feed_minutes"):
             if getattr(self, key) is not None:

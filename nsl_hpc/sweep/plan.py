@@ -11,7 +11,7 @@ from omegaconf import DictConfig
 from nsl_hpc.config import plain
 from nsl_hpc.config.launchers import LocalLauncher, SlurmLauncher, check_batch_text, launcher_from
 from nsl_hpc.config.schema import typed
-from nsl_hpc.errors import ConfigError, require_choice, require_positive_int
+from nsl_hpc.errors import ConfigError, require_choice
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import model_of
 from nsl_hpc.studies.settings import COMPILE_MODES
@@ -230,7 +230,6 @@ def check_run_settings(launch: Mapping[str, Any]) -> None:
 def check_signal_delay(signal_delay_s: int, time_classes_minutes: Sequence[float]) -> None:
     """Raise ConfigError unless SLURM's warning (``--signal``, sent up to 30 s early: slurmctld checks time
     limits every 30 s) reaches every job after its start-up, i.e. leaves at least 5 s of its shortest limit."""
-    require_positive_int("launcher.signal_delay_s", signal_delay_s)
     shortest_s = 60 * min(time_classes_minutes)
     if signal_delay_s + 30 > shortest_s - 5:
         raise ConfigError(f"launcher.signal_delay_s={signal_delay_s} leaves no start-up time in a "
