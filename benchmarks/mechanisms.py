@@ -94,9 +94,9 @@ def law_table(law: str, cfg: DictConfig, candidates: list[DictConfig]) -> tuple[
 
 
 def short(resource: float) -> str:
-    """150, 3e4, 2.2e6: a resource as the tables write it."""
+    """150, 1170, 3e4, 2.2e6: a resource as the tables write it."""
     if resource < 1e4:
-        return f"{resource:.3g}"
+        return f"{resource:.0f}"
     mantissa, exponent = f"{resource:.1e}".split("e")
     return f"{mantissa.removesuffix('.0')}e{int(exponent)}"
 
