@@ -76,3 +76,46 @@ def test_the_checker_resolves_paths_and_anchors_as_github_does():
     assert repository_path("sweep/plan.py") == ROOT / "nsl_hpc" / "sweep" / "plan.py"
     assert repository_path("runs/demo/report.html") is None  # an output, not a file of the repository
     assert slug("### Reading a fit: the published laws") == "reading-a-fit-the-published-laws"
+
+
+FIGURE = re.compile(r"(?<![\w.])\d+(?:\.\d+)?e[+-]?\d+|(?<![\w.])\d+\.\d+")  # 0.95, 2.2e6: a quoted figure
+NOT_FIGURES = re.compile(r"`[^`]*`|Section \d+(?:\.\d+)*|arXiv:\S+")  # code, settings and places in the paper
+DATE = re.compile(r"\b20\d\d-\d\d-\d\d\b")
+OUTPUT = re.compile(r"docs/reproduction/[\w.-]+\.md")  # a committed copy of a command's output
+
+
+def quoted_figures(text: str) -> list[str]:
+    return FIGURE.findall(NOT_FIGURES.sub(" ", text))
+
+
+def measurement_units() -> list[tuple[str, str]]:
+    """(where, text) of each place that quotes measured figures: the README Fidelity table's last column (the
+    alternatives and the evidence), and docs/reproduction.md's summary (its "In short" paragraphs)."""
+    readme = (ROOT / "README.md").read_text()
+    fidelity = readme.split("## Fidelity", 1)[1].split("\n## ", 1)[0]
+    units = [(f"README Fidelity, {cells[0].strip()}", cells[-1])
+             for cells in (line.strip("|").split(" | ") for line in fidelity.splitlines()
+                           if line.startswith("| ") and not line.startswith(("| choice", "|---")))]
+    reproduction = (ROOT / "docs" / "reproduction.md").read_text()
+    summary = reproduction.split("**In short", 1)[1].split("\n## ", 1)[0]
+    return units + [(f"docs/reproduction.md summary, paragraph {i}", paragraph)
+                    for i, paragraph in enumerate(summary.split("\n\n"))]
+
+
+@pytest.mark.parametrize(("where", "text"), measurement_units(), ids=[where for where, _ in measurement_units()])
+def test_every_quoted_figure_is_dated_or_in_the_output_it_names(where, text):
+    """A measured figure in the README's Fidelity table or the reproduction summary is either dated (the run's
+    date in the same cell or paragraph) or appears verbatim in the committed command output it names."""
+    figures = quoted_figures(text)
+    if not figures or DATE.search(text):
+        return
+    outputs = OUTPUT.findall(text)
+    assert outputs, f"{where}: quotes {figures[:4]} with neither a date nor the output (docs/reproduction/*.md)"
+    produced = " ".join((ROOT / output).read_text() for output in outputs)
+    missing = [figure for figure in figures if figure not in produced]
+    assert not missing, f"{where}: {missing} are not in {', '.join(outputs)}"
+
+
+def test_the_figure_finder_skips_code_settings_and_places_in_the_paper():
+    assert quoted_figures("0.95-1.83x at 2.2e6 flops, `train.lr=2.0e-3`, Section 4.3, 1,106 steps") == [
+        "0.95", "1.83", "2.2e6"]
