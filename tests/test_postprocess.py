@@ -121,7 +121,7 @@ def test_fit_writes_one_row_per_nsl_and_reports_excluded_outcomes(sweep_copy):
 def test_predict_answers_from_the_fitted_laws_and_refuses_bad_targets(sweep_copy):
     assert nsl("predict", f"sweep_dir={sweep_copy}", "target=0.1").stderr.startswith("error: ")  # not fitted yet
     assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
-    assert nsl("fit", f"sweep_dir={sweep_copy}", "nsl.max_breaks=1").returncode == 0
+    assert nsl("fit", f"sweep_dir={sweep_copy}", "nsl.max_breaks=1", "nsl.bootstrap=20").returncode == 0
     best = min(pq.read_table(sweep_copy / "results.parquet")["nmae"].to_pylist())
     within = nsl("predict", f"sweep_dir={sweep_copy}", f"target={2 * best}")
     assert within.returncode == 0, within.stderr
@@ -144,7 +144,8 @@ def test_predict_answers_from_the_fitted_laws_and_refuses_bad_targets(sweep_copy
 
 
 def test_report_figures_and_mlflow_runs_are_updated_not_duplicated(sweep_copy):
-    result = nsl("report", f"sweep_dir={sweep_copy}", "nsl.max_breaks=1", "compact=false")  # a row to remove below
+    result = nsl("report", f"sweep_dir={sweep_copy}", "nsl.max_breaks=1", "nsl.bootstrap=20",
+                 "compact=false")  # a row to remove below
     assert result.returncode == 0, result.stderr
     report = (sweep_copy / "report.html").read_text()
     assert report.count("data:image/png;base64,") == NSLS + NSLS  # every NSL and the 6 overview grids
