@@ -250,7 +250,7 @@ def test_passes_by_trajectories_follow_the_last_pair_at_or_below_a_task():
                                     "repeat_by_trajectories": [[1, 50], [3, 20], [10, 10], [30, 5]]}, "train")
     assert [train.passes(n_t) for n_t in (0.1, 1.0, 2.9, 3.0, 12.5, 51.2)] == [50, 50, 50, 20, 10, 5]
     assert dataclasses.replace(train, repeat_by_trajectories=None, repeat=4).passes(0.1) == 4
-    for bad in ([[3, 20], [1, 50]], [[1, 2.5]], [[1]]):
+    for bad in ([[3, 20], [1, 50]], [[1, 2.5]], [[1]], [[]], [], [[1, 5], [1, 4]]):
         with pytest.raises(ConfigError, match="repeat_by_trajectories"):
             dataclasses.replace(train, repeat_by_trajectories=bad).check()
     with pytest.raises(ConfigError, match="both set"):

@@ -46,9 +46,8 @@ class InputStateTrain:
         if self.repeat != 1:
             raise ConfigError(f"train.repeat={self.repeat} and train.repeat_by_trajectories are both set: keep one "
                               "(repeat=1 with a rule)")
-        trajectories = [pair[0] for pair in rule]
         if (not rule or any(len(pair) != 2 or pair[1] != int(pair[1]) for pair in rule)
-                or trajectories != sorted(set(trajectories))):
+                or [n_t for n_t, _ in rule] != sorted({n_t for n_t, _ in rule})):
             raise ConfigError(f"train.repeat_by_trajectories={rule} must be [[n_t, R], ...] pairs with n_t "
                               "ascending and R a positive integer, e.g. [[1, 50], [3, 20], [10, 10], [30, 5]]")
 
