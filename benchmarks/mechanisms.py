@@ -50,10 +50,12 @@ def train(candidate: DictConfig, part: str, cfg: DictConfig) -> None:
     """Launch the candidate's sweep of ``part`` on local workers (resuming one that is there), then merge it."""
     sweep_dir = Path(cfg.root) / candidate.name / part
     print(f"== {candidate.name} / {part}: {sweep_dir}", flush=True)
-    python = [sys.executable, "-m"]
-    subprocess.run([*python, "nsl_hpc.launch", f"+sweep={cfg.parts[part].sweep}", f"sweep_dir={sweep_dir}",
-                    f"launcher.workers={cfg.workers}", *candidate.overrides], check=True)
-    subprocess.run([*python, "nsl_hpc.merge", f"sweep_dir={sweep_dir}"], check=True)
+    for command in (["nsl_hpc.launch", f"+sweep={cfg.parts[part].sweep}", f"sweep_dir={sweep_dir}",
+                     f"launcher.workers={cfg.workers}", *candidate.overrides],
+                    ["nsl_hpc.merge", f"sweep_dir={sweep_dir}"]):
+        if subprocess.run([sys.executable, "-m", *command]).returncode != 0:  # it printed why
+            sys.exit(f"error: {command[0]} of {candidate.name} / {part} failed; the sweeps before it are kept, and "
+                     "running this again goes on from there")
 
 
 def outcomes(sweep_dir: Path, system: str, arch: str) -> list[dict]:
