@@ -18,7 +18,6 @@ from typing import Any
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.config.schema import typed
 from nsl_hpc.studies.base import model_of
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 from nsl_hpc.sweep.executors import run_jobs
@@ -29,7 +28,6 @@ from nsl_hpc.sweep.prepare import (
     PAIR_KEYS,
     BuiltSweep,
     PreparedSweep,
-    SweepSettings,
     build_sweep,
     describe_infeasible,
     prepare_sweep,
@@ -105,7 +103,7 @@ def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> in
                              cfg.checkpoint.every_minutes > 0):
         print(f"  {line}")
     if built.above_max_flops:
-        sweep = typed(SweepSettings, cfg.sweep, "sweep")
+        sweep = built.sweep
         print(f"  sweep.max_flops={sweep.max_flops:g} ({sweep.max_flops_column}): {built.above_max_flops:,} tasks "
               "of the grid above it are not part of the sweep")
     if tasks and (lockstep["size"] > 1 or lockstep["model_keys"]):

@@ -6,10 +6,10 @@ state and horizon). ``config.schema`` checks them."""
 from dataclasses import dataclass
 from typing import Any
 
+from nsl_hpc.config.arch import STUDIES
 from nsl_hpc.config.schema import setting
 from nsl_hpc.errors import ConfigError, require_choice
 
-STUDIES = ("input_state", "input_output")
 MEASURED_KINDS = ("benchmark", "records")  # read from files: a nonlinear_benchmarks loader, .npz records
 SIMULATED_KINDS = ("duffing", "wiener_hammerstein")  # the measured systems' simulated stand-ins
 

@@ -18,6 +18,8 @@ ARCHITECTURES: dict[str, type[StateSpaceArchitecture]] = {
     "input_affine": InputAffine,
     "port_hamiltonian": PortHamiltonian,
 }
+
+
 def build_architecture(arch_cfg: Mapping[str, Any], state_dim: int, input_dim: int, width: int
                        ) -> StateSpaceArchitecture:
     """The architecture ``arch_cfg.name`` for n = state_dim, m = input_dim, n_h = width (its config checked by

@@ -53,19 +53,19 @@ class SweepSettings:
                                     "paper's 4 n_d n_h^2; input-state)", default="flops")
 
 
-def validate_launch(cfg: DictConfig, overrides: Sequence[str]) -> Study:
-    """Refuse, before any work, a launch without a sweep or with grid axes set outside the grid; returns the
-    sweep's study."""
+def validate_launch(cfg: DictConfig, overrides: Sequence[str]) -> tuple[Study, SweepSettings]:
+    """Refuse, before any work, a launch without a sweep, with a bad sweep group or with grid axes set outside the
+    grid; returns the sweep's study and its typed sweep group."""
     if "sweep" not in cfg:
         raise ConfigError("no sweep chosen: add +sweep=<name> (see conf/sweep/, e.g. +sweep=demo)")
-    typed(SweepSettings, cfg.sweep, "sweep")
+    sweep = typed(SweepSettings, cfg.sweep, "sweep")
     study = study_named(cfg.study.name)
     for override in overrides:
         if override_key(override) in study.axes:
             raise ConfigError(f"{override_key(override)} is a grid axis of the sweep; set "
                               f"sweep.grid.{override_key(override)}=[...] instead of {override}")
     validate_grid(sweep_grid(cfg), study)
-    return study
+    return study, sweep
 
 
 def sweep_grid(cfg: DictConfig) -> Grid:
@@ -121,6 +121,7 @@ class BuiltSweep:
     manifest: pa.Table
     configs: dict[tuple[str, str], dict]  # the plain config of each (system, arch)
     study: Study
+    sweep: SweepSettings
     above_max_flops: int = 0  # tasks of the grid left out by sweep.max_flops
 
 
@@ -147,7 +148,7 @@ def require_tasks_at_most(tasks: int, cap: Any) -> None:
 
 def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
     """Validate everything a launch depends on and expand its grid; writes nothing."""
-    study = validate_launch(cfg, overrides)
+    study, sweep = validate_launch(cfg, overrides)
     grid = sweep_grid(cfg)
     require_tasks_at_most(grid_size(grid, study), cfg.max_tasks)
     configs = pair_configs(cfg, overrides, study)
@@ -155,7 +156,6 @@ def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
         check_settings(values)
     validate_grid_values(grid, study, configs)
     check_run_settings(cfg)
-    sweep = typed(SweepSettings, cfg.sweep, "sweep")
     max_flops, column = sweep.max_flops, sweep.max_flops_column
     manifest = build_manifest(grid, study, configs, cfg.sweep_seed)
     compute_columns = [name for name in manifest.column_names if name.startswith("flops")]
@@ -163,12 +163,12 @@ def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
         raise ConfigError(f"sweep.max_flops_column={column!r} is not a compute column of this study's tasks; "
                           f"choose one of: {', '.join(compute_columns)}")
     if max_flops is None:
-        return BuiltSweep(manifest, configs, study)
+        return BuiltSweep(manifest, configs, study, sweep)
     kept = manifest.filter(pc.less(manifest[column], max_flops))
     if kept.num_rows == 0:
         raise ConfigError(f"sweep.max_flops={max_flops:g} leaves no task of the grid (its least {column} is "
                           f"{pc.min(manifest[column]).as_py():.3g})")
-    return BuiltSweep(kept, configs, study, manifest.num_rows - kept.num_rows)
+    return BuiltSweep(kept, configs, study, sweep, manifest.num_rows - kept.num_rows)
 
 
 def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> PreparedSweep:

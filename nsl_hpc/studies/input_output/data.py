@@ -49,8 +49,6 @@ class Benchmark:
     tests: dict[str, Signals]  # the test records by name (system.tests); scored after their first init_samples
 
 
-
-
 def load_benchmark(system_cfg: Mapping[str, Any], cache: ArrayCache) -> Benchmark:
     """The records of an input-output system (measured or simulated), split as configured."""
     source = system_cfg["source"]
