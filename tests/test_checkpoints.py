@@ -22,7 +22,6 @@ from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models import build_model
 from nsl_hpc.studies.input_output import lockstep as io_lockstep
-from nsl_hpc.studies.input_output.study import horizon
 from nsl_hpc.studies.input_state.data import build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
@@ -143,12 +142,11 @@ def test_a_stop_while_scoring_keeps_the_trained_models_and_the_resumed_run_only_
     assert_same_snapshots(train(lambda: None), resumed)
 
     cfg = compose("study=input_output", "system=silverbox_sim", "arch=narx")
-    base = {"system": OmegaConf.to_container(cfg.system, resolve=True), "arch": OmegaConf.to_container(cfg.arch)}
     io_members = members_of(cfg, cache, [(700, 40, 4, 0), (400, 20, 3, 1)])
 
     def io_train(on_progress, checkpoint=None):
-        return io_lockstep.train_lockstep(copy.deepcopy(io_members), OmegaConf.to_container(cfg.train),
-                                          horizon(base), on_progress, checkpoint)[1:]
+        return io_lockstep.train_lockstep(copy.deepcopy(io_members), OmegaConf.to_container(cfg.train), on_progress,
+                                          checkpoint)[1:]
 
     (final, outcomes), beats = stopped_while_scoring(io_train, tmp_path / "io.pt")
     assert beats == []
@@ -201,14 +199,12 @@ def test_a_packed_input_output_group_stopped_and_resumed_gives_its_models_bit_fo
     second (one model has finished), then to the end; eager, or compiled (NARX: SUBNET's compiled step shares
     the loop and its state, and compiles for minutes)."""
     cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}")
-    base = {"system": OmegaConf.to_container(cfg.system, resolve=True), "arch": OmegaConf.to_container(cfg.arch)}
     members = members_of(cfg, cache, [(700, 40, 4, 0), (400, 20, 3, 1), (1300, 35, 5, 2)])
     train_cfg = OmegaConf.to_container(cfg.train)
 
     def train(on_progress, checkpoint=None):
         compiler = StepCompiler(compiled)
-        result = io_lockstep.train_lockstep(copy.deepcopy(members), train_cfg, horizon(base), on_progress,
-                                            checkpoint, compiler)[1:]
+        result = io_lockstep.train_lockstep(copy.deepcopy(members), train_cfg, on_progress, checkpoint, compiler)[1:]
         assert compiler.enabled == compiled
         return result
 

@@ -2,6 +2,7 @@
 the plain loop (``train_io_model``), whatever their widths, training prefixes and iteration counts."""
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
@@ -25,7 +26,9 @@ PACKED_RTOL = 1e-4
 MEMBERS = [(400, 7, 6, 0), (1300, 12, 3, 6), (300, 9, 5, 2), (700, 4, 6, 3)]
 
 
-def members_of(cfg, cache, specs, record=None) -> list[IOMember]:
+def members_of(cfg, cache, specs, record=None, steps=None) -> list[IOMember]:
+    """Members of (n_l, iterations, n_h, seed) ``specs``, each simulating ``steps`` per window (None: its horizon
+    as a task's)."""
     system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
     train = load_benchmark(system_cfg, cache).train if record is None else record
     members = []
@@ -33,7 +36,8 @@ def members_of(cfg, cache, specs, record=None) -> list[IOMember]:
         torch.manual_seed(seed)
         model = build_io_model(cfg.arch, system_cfg, width, depth=2)
         prefix = train.head(points)
-        members.append(IOMember(model, prefix, SignalScaling.fit(prefix), iterations, shuffle_seed=10 + seed))
+        members.append(IOMember(model, prefix, SignalScaling.fit(prefix), iterations, 10 + seed,
+                                steps or horizon({"system": system_cfg, "arch": cfg.arch}, points)))
     return members
 
 
@@ -47,32 +51,43 @@ def parameters_of(nets: StackedMLPs, theta: torch.Tensor, model: torch.nn.Module
     return cut
 
 
-@pytest.mark.parametrize(("arch", "compiled", "layout", "segment"), [
-    ("narx", False, "feature_major", 0), ("subnet", False, "feature_major", 0),
-    ("narx", False, "batch_major", 0), ("subnet", False, "batch_major", 0),
-    pytest.param("narx", True, "feature_major", 0, marks=pytest.mark.slow),
-    pytest.param("subnet", True, "feature_major", 3, marks=pytest.mark.slow),
-    pytest.param("subnet", True, "batch_major", 0, marks=pytest.mark.slow),
+# SUBNET as deepSI lays it out: a bypass in every MLP, f without the residual, zero initial biases, n_x 10
+DEEPSI = ("arch.bypass=[encoder,f,h]", "arch.residual=false", "arch.zero_bias=true", "arch.block=tanh",
+          "arch.state_dim=10")
+
+
+@pytest.mark.parametrize(("arch", "compiled", "layout", "segment", "options"), [
+    ("narx", False, "feature_major", 0, ()), ("subnet", False, "feature_major", 0, ()),
+    ("narx", False, "batch_major", 0, ()), ("subnet", False, "batch_major", 0, ()),
+    ("subnet", False, "feature_major", 0, DEEPSI), ("subnet", False, "batch_major", 0, DEEPSI),
+    pytest.param("narx", True, "feature_major", 0, (), marks=pytest.mark.slow),
+    pytest.param("subnet", True, "feature_major", 3, (), marks=pytest.mark.slow),
+    pytest.param("subnet", True, "batch_major", 0, (), marks=pytest.mark.slow),
 ])
-def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, compiled, layout, segment, compose,
-                                                                          cache):
+def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, compiled, layout, segment, options,
+                                                                          compose, cache):
     """Eager, or compiled (``StepCompiler``, the first two models: one shape to compile; the compiled stack's
     shrinking is tests/test_checkpoints.py's), each model of the pack trains as the plain loop trains it alone,
-    its activations stored either way (``train.feature_major_width``: the widths here are 3-6).
+    its activations stored either way (``train.feature_major_width``: the widths here are 3-6), SUBNET in the
+    paper's layout (bypass in h and the encoder, residual f) and in deepSI's (``DEEPSI``).
     Compiled SUBNET simulates T = 4 steps (Inductor takes a minute or more per shape to compile the study's
     segments), in one graph or recomputed in segments of 3 and 1 steps (``train.rollout_segment``)."""
     width = 8 if layout == "feature_major" else 0
     cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}",
-                  f"train.feature_major_width.{arch}={width}", f"train.rollout_segment.{layout}={segment}")
-    base = {"system": OmegaConf.to_container(cfg.system, resolve=True), "arch": OmegaConf.to_container(cfg.arch)}
-    steps = 4 if compiled else horizon(base)
-    members = members_of(cfg, cache, MEMBERS[:2] if compiled else MEMBERS)  # compiled: 2 shapes to compile
+                  f"train.feature_major_width.{arch}={width}", f"train.rollout_segment.{layout}={segment}", *options)
+    members = members_of(cfg, cache, MEMBERS[:2] if compiled else MEMBERS,  # compiled: 2 shapes to compile
+                         steps=4 if compiled else None)
+    assert_packed_equal_alone(members, cfg, compiled, layout)
+
+
+def assert_packed_equal_alone(members, cfg, compiled=False, layout="batch_major"):
+    """Each of ``members`` trained in lockstep ends where the plain loop takes it alone."""
     alone = [copy.deepcopy(member.model) for member in members]
     compiler = StepCompiler(compiled)
-    nets, theta, outcomes = train_lockstep(members, OmegaConf.to_container(cfg.train), steps, compiler=compiler)
+    nets, theta, outcomes = train_lockstep(members, OmegaConf.to_container(cfg.train), compiler=compiler)
     assert compiler.enabled == compiled and nets.feature_major == (layout == "feature_major")
     for k, (member, model) in enumerate(zip(members, alone, strict=True)):
-        single = train_io_model(model, member.record, member.scaling, cfg.train, member.iterations, steps,
+        single = train_io_model(model, member.record, member.scaling, cfg.train, member.iterations, member.horizon,
                                 member.shuffle_seed)
         assert outcomes[k].steps == single.steps == member.iterations and outcomes[k].finite
         assert outcomes[k].final_loss == pytest.approx(single.final_loss, rel=PACKED_RTOL)
@@ -83,14 +98,32 @@ def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, 
 
 
 @pytest.mark.parametrize("layout", ["feature_major", "batch_major"])
-def test_a_rollout_recomputed_in_segments_has_the_losses_and_gradient_of_the_whole_rollout(layout, compose, cache):
+def test_a_prefix_shorter_than_one_window_trains_on_its_one_window_beside_full_windows(layout, compose, cache):
+    """With ``arch.shorten_horizon`` a prefix of n_l < P + T samples has one window of n_l - P simulated steps
+    (silverbox_sim: P 50, T 150; n_l 180 and 120: 130 and 70 steps); packed with a model of full windows, each
+    trains as the plain loop trains it alone on its own horizon."""
+    cfg = compose("study=input_output", "system=silverbox_sim", "arch=subnet",
+                  f"train.feature_major_width.subnet={8 if layout == 'feature_major' else 0}")
+    members = members_of(cfg, cache, [(180, 9, 5, 2), (700, 6, 6, 3), (120, 5, 4, 1)])
+    assert [member.horizon for member in members] == [130, 150, 70]
+    assert_packed_equal_alone(members, cfg, layout=layout)
+    refused = compose("study=input_output", "system=silverbox_sim", "arch=subnet", "arch.shorten_horizon=false")
+    base = {"system": OmegaConf.to_container(refused.system, resolve=True), "arch": refused.arch}
+    assert horizon(base, 180) == 150
+
+
+@pytest.mark.parametrize(("layout", "options", "horizons"), [
+    ("feature_major", (), (7, 7, 7, 7)), ("batch_major", (), (7, 7, 7, 7)), ("batch_major", DEEPSI, (7, 7, 7, 7)),
+    ("feature_major", (), (7, 5, 7, 2))])
+def test_a_rollout_recomputed_in_segments_has_the_losses_and_gradient_of_the_whole_rollout(layout, options, horizons,
+                                                                                           compose, cache):
     """``segmented_gradient`` (eager here: the function a compiled SUBNET step runs, its parts uncompiled) gives
     each model's loss and gradient as one backward through all T steps does, with segments that divide T or
-    leave a shorter last one, and one longer than T."""
-    cfg = compose("study=input_output", "system=silverbox_sim", "arch=subnet")
-    members = members_of(cfg, cache, MEMBERS)
-    steps = 7
-    windows = Windows(members, steps, torch.float32)
+    leave a shorter last one, and one longer than T; members of shorter horizons count only their own steps."""
+    cfg = compose("study=input_output", "system=silverbox_sim", "arch=subnet", *options)
+    members = [dataclasses.replace(member, horizon=steps)
+               for member, steps in zip(members_of(cfg, cache, MEMBERS), horizons, strict=True)]
+    windows = Windows(members, torch.float32)
     nets = StackedMLPs([member.model for member in members], torch.float32, 8 if layout == "feature_major" else 0)
     starts = torch.stack([torch.randperm(count, generator=torch.Generator().manual_seed(k))[:16]
                           for k, count in enumerate(windows.counts)])
@@ -105,14 +138,15 @@ def test_a_rollout_recomputed_in_segments_has_the_losses_and_gradient_of_the_who
         torch.testing.assert_close(grad, whole[1], rtol=1e-4, atol=1e-5 * float(whole[1].abs().max()))
 
 
-@pytest.mark.parametrize("arch", ["narx", "subnet"])
-def test_a_stack_laid_out_for_compiling_computes_the_losses_and_gradient_of_the_eager_stack(arch, compose, cache):
+@pytest.mark.parametrize(("arch", "options"), [("narx", ()), ("subnet", ()), ("subnet", DEEPSI)])
+def test_a_stack_laid_out_for_compiling_computes_the_losses_and_gradient_of_the_eager_stack(arch, options, compose,
+                                                                                            cache):
     """A batch-major stack built for a compiled step (centred LayerNorm weights; its products of few output
     columns, f's and h's last layers or NARX's, computed as their transposes), here run eagerly, gives each
     model's loss and gradient as the eager stack does."""
-    cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}")
-    members = members_of(cfg, cache, MEMBERS)
-    windows = Windows(members, 7, torch.float32)
+    cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}", *options)
+    members = members_of(cfg, cache, MEMBERS, steps=7)
+    windows = Windows(members, torch.float32)
     starts = torch.stack([torch.randperm(count, generator=torch.Generator().manual_seed(k))[:16]
                           for k, count in enumerate(windows.counts)])
     weights = torch.rand(len(members), 16, generator=torch.Generator().manual_seed(5))
@@ -135,10 +169,10 @@ def test_a_diverging_model_leaves_the_others_of_its_pack_as_they_are_alone(compo
     train = load_benchmark(OmegaConf.to_container(cfg.system, resolve=True), cache).train.head(1300)
     poisoned = Signals(train.u, np.where(np.arange(len(train)) == 600, np.nan, train.y))
     bad = members_of(cfg, cache, [(1300, 20, 4, 0)], record=poisoned)[0]
-    bad = IOMember(bad.model, bad.record, SignalScaling.fit(train), bad.iterations, bad.shuffle_seed)
+    bad = dataclasses.replace(bad, scaling=SignalScaling.fit(train))
     good = members_of(cfg, cache, [(1300, 20, 6, 1)])[0]
     model = copy.deepcopy(good.model)
-    _, _, (bad_outcome, good_outcome) = train_lockstep([bad, good], OmegaConf.to_container(cfg.train), 1)
+    _, _, (bad_outcome, good_outcome) = train_lockstep([bad, good], OmegaConf.to_container(cfg.train))
     per_pass = (1300 - 50) // 256
     assert not bad_outcome.finite and bad_outcome.steps == per_pass
     single = train_io_model(model, good.record, good.scaling, cfg.train, 20, 1, good.shuffle_seed)

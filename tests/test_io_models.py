@@ -44,10 +44,18 @@ def test_subnet_encoder_sees_only_the_past(subnet):
 
 
 def test_parameter_counts_leave_out_the_encoder_only(subnet):
+    """The paper's layout: the bypasses of h (n_x weights) and of the encoder (2 P n_x) count as their MLPs do;
+    deepSI's: f's bypass, (n_x + 1) n_x weights, counts too."""
     f = mlp_parameter_count(NX + 1, NX, 8, 2, "layernorm_silu")
-    h = mlp_parameter_count(NX, 1, 8, 2, "layernorm_silu")
+    h = mlp_parameter_count(NX, 1, 8, 2, "layernorm_silu") + NX
+    encoder = mlp_parameter_count(2 * P, NX, 8, 2, "layernorm_silu") + 2 * P * NX
     assert subnet.counted_parameters() == f + h
-    assert sum(p.numel() for p in subnet.parameters()) == f + h + mlp_parameter_count(2 * P, NX, 8, 2, "layernorm_silu")
+    assert sum(p.numel() for p in subnet.parameters()) == f + h + encoder
+    deepsi = SUBNET(NX, P, 8, 2, "tanh", bypass=("encoder", "f", "h"), residual=False, zero_bias=True)
+    assert deepsi.counted_parameters() == (mlp_parameter_count(NX + 1, NX, 8, 2, "tanh") + (NX + 1) * NX
+                                           + mlp_parameter_count(NX, 1, 8, 2, "tanh") + NX)
+    assert all(float(layer.bias.abs().sum()) == 0 for layer in deepsi.modules()
+               if isinstance(layer, torch.nn.Linear) and layer.bias is not None)
     assert NARX(50, 50, 8, 3, "tanh").counted_parameters() == mlp_parameter_count(101, 1, 8, 3, "tanh")
 
 
@@ -74,19 +82,21 @@ def numpy_of(*models) -> dict:
     return numpy_mlps(nets, nets.theta)
 
 
-@pytest.mark.parametrize("block", ["layernorm_silu", "tanh"])
-def test_numpy_free_run_of_a_pack_equals_each_torch_model_step_by_step(block):
+@pytest.mark.parametrize(("block", "bypass", "residual"), [
+    ("layernorm_silu", ("encoder", "h"), True), ("tanh", ("encoder", "h"), True), ("layernorm_silu", (), True),
+    ("tanh", ("encoder", "f", "h"), False)])
+def test_numpy_free_run_of_a_pack_equals_each_torch_model_step_by_step(block, bypass, residual):
     """Two models of different widths simulated together (the narrower zero-padded) give what each torch
-    module gives alone."""
+    module gives alone, with or without bypasses and the residual."""
     rng = np.random.default_rng(2)
     u, y = rng.standard_normal(P + 40), rng.standard_normal(P + 40)
     subnets = []
     for seed, width in ((0, 8), (1, 5)):
         torch.manual_seed(seed)
-        subnets.append(SUBNET(state_dim=NX, past=P, width=width, depth=2, block=block).double())
+        subnets.append(SUBNET(NX, P, width, 2, block, bypass, residual).double())
         for parameter in subnets[-1].parameters():  # LayerNorm scales and shifts away from 1 and 0 too
             parameter.data.normal_(0, 0.3)
-    simulated = simulate_subnet(numpy_of(*subnets), NX, P, np.stack([u, u]), np.stack([y, y]), P)
+    simulated = simulate_subnet(numpy_of(*subnets), NX, P, residual, np.stack([u, u]), np.stack([y, y]), P)
     for subnet, row in zip(subnets, simulated, strict=True):
         with torch.no_grad():
             expected = subnet(torch.tensor(u[None, :P]), torch.tensor(y[None, :P]), torch.tensor(u[None, P:]))[0]
@@ -98,8 +108,8 @@ def test_numpy_free_run_of_a_pack_equals_each_torch_model_step_by_step(block):
         torch.manual_seed(seed)
         narxes.append(NARX(past_outputs=6, past_inputs=4, width=width, depth=2, block=block).double())
     mlps = numpy_of(*narxes)
-    simulated = simulate_narx(mlps["net"], 6, 4, np.stack([u, u]), np.stack([y, y]), init=P)
-    one_step = one_step_narx(mlps["net"], 6, 4, np.stack([u, u]), np.stack([y, y]), init=P)
+    simulated = simulate_narx(mlps["net"].layers, 6, 4, np.stack([u, u]), np.stack([y, y]), init=P)
+    one_step = one_step_narx(mlps["net"].layers, 6, 4, np.stack([u, u]), np.stack([y, y]), init=P)
     for narx, free_row, one_step_row in zip(narxes, simulated, one_step, strict=True):
         fed_back, measured_past = y.copy(), y.copy()
         with torch.no_grad():

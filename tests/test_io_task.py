@@ -46,6 +46,16 @@ def test_a_subnet_task_counts_compute_over_its_horizon_and_reports_rmse_in_mv(co
     assert (row["nmae"], row["nmse"], row["rmse_mv"]) == (
         row["nmae_free_run_test"], row["nmse_free_run_test"], row["rmse_mv_free_run_test"])
     assert "nmae_one_step_test" not in row  # SUBNET is scored in simulation only
+    assert row["horizon"] == 150
+
+
+def test_a_subnet_task_on_a_prefix_shorter_than_one_window_simulates_what_it_holds(compose):
+    """silverbox_sim, data tier 250, seed 1: n_l = 132 < P + T = 200 samples; the task trains on its one window
+    of n_l - P = 82 simulated steps and counts them in its compute."""
+    row = run_task(compose(*SUBNET_TASK, "data_tier=250", "seed=1")).row
+    assert row["train_points"] == 132 and row["status"] == "ok"
+    assert row["horizon"] == 82
+    assert row["flops"] == row["params"] * row["steps"] * 256 * 82
 
 
 @pytest.mark.parametrize(("override", "message"), [
@@ -53,14 +63,16 @@ def test_a_subnet_task_counts_compute_over_its_horizon_and_reports_rmse_in_mv(co
     ("width_tier=128", "width_tier=128 is outside the grid"),
     ("depth=4", "depth=4 is outside the grid"),
     ("iter_multiplier=0", "iter_multiplier=0 must be a positive integer"),
-    ("system.subnet.horizon=600", "is shorter than one subnet window of 650 samples (50 past + T=600)"),
+    ("system.subnet.horizon=600 arch.shorten_horizon=false",
+     "is shorter than one subnet window of 650 samples (50 past + T=600); use a larger data_tier or "
+     "arch.shorten_horizon=true"),
     ("system.data_tiers=[128000]", None),  # set below with a matching data_tier
     ("arch.past=80", "subnet reads 80 past samples, more than the 50 that initialise a test simulation"),
     ("train.rollout_segment.batch_major=-1", "train.rollout_segment.batch_major=-1 must be a non-negative integer"),
     ("train.rollout_segment=10", "train.rollout_segment=10 must be a group of keys: feature_major, batch_major"),
 ])
 def test_bad_input_output_tasks_are_refused_before_training(override, message, compose):
-    overrides = [*SUBNET_TASK, override]
+    overrides = [*SUBNET_TASK, *override.split()]
     if message is None:
         overrides.append("data_tier=128000")
         message = "data_tier=128000 is larger than the training pool of silverbox_sim"

@@ -85,11 +85,11 @@ def input_output_run(spec: Mapping[str, Any]) -> tuple[Train, int, float]:
     for k in range(spec["models"]):
         torch.manual_seed(k)
         members.append(io_lockstep.IOMember(build_io_model(arch, system, spec["width"], spec["depth"]), record,
-                                            scaling, spec["blocks"] * io_lockstep.BLOCK_STEPS, k))
+                                            scaling, spec["blocks"] * io_lockstep.BLOCK_STEPS, k, steps))
     train = plain(cfg.train, resolve=False)
     flops = 6.0 * members[0].model.counted_parameters() * train["batch_size"] * steps * spec["models"]
-    return (lambda compiler, on_progress: io_lockstep.train_lockstep(members, train, steps, on_progress, None,
-                                                                     compiler), io_lockstep.BLOCK_STEPS, flops)
+    return (lambda compiler, on_progress: io_lockstep.train_lockstep(members, train, on_progress, None, compiler),
+            io_lockstep.BLOCK_STEPS, flops)
 
 
 def time_shares(table: Any, wall_s: float) -> dict[str, float]:

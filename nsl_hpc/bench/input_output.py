@@ -63,7 +63,7 @@ class IOBench:
         for k in range(count):
             torch.manual_seed(k)
             members.append(IOMember(build_io_model(base["arch"], base["system"], width, depth), self.record, scaling,
-                                    iterations, k))
+                                    iterations, k, horizon(base)))
         return members
 
     def iteration_seconds(self, arch: str, width: int, depth: int, iterations: int) -> dict[str, float]:
@@ -74,10 +74,10 @@ class IOBench:
         steps = horizon(base)
         _, reference_s = timed(lambda: train_io_model(reference, member.record, member.scaling, base["train"],
                                                       iterations, steps, 0))
-        _, single_s = timed(lambda: train_lockstep([member], base["train"], steps))
+        _, single_s = timed(lambda: train_lockstep([member], base["train"]))
         pack = self.pack_size(arch, width, depth)
         packed = self.members(arch, width, depth, pack, iterations)
-        _, packed_s = timed(lambda: train_lockstep(packed, base["train"], steps))
+        _, packed_s = timed(lambda: train_lockstep(packed, base["train"]))
         return {"reference": reference_s / iterations, "single": single_s / iterations,
                 "packed": packed_s / iterations, "pack": pack, "params": member.model.counted_parameters()}
 
@@ -88,7 +88,7 @@ class IOBench:
         seconds = {}
         for name, count in (("alone", 1), ("packed", pack)):
             members = self.members(arch, 8, 2, count, 0)
-            nets, theta, _ = train_lockstep(members, base["train"], horizon(base))
+            nets, theta, _ = train_lockstep(members, base["train"])
             _, elapsed = timed(lambda: score_records(members[0].model, numpy_mlps(nets, theta),  # noqa: B023
                                                      [m.scaling for m in members], test,  # noqa: B023
                                                      base["system"]["init_samples"], 1.0))

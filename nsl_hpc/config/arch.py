@@ -14,6 +14,7 @@ STUDIES = ("input_state", "input_output")
 FORMS = ("joint", "split")
 HAMILTONIANS = ("abs", "plain", "half_square")
 DISSIPATIONS = ("square", "lower_triangular")
+SUBNET_NETWORKS = ("encoder", "f", "h")  # SUBNET's MLPs: the encoder, the state transition f and the output map h
 
 
 @dataclass(frozen=True)
@@ -57,9 +58,17 @@ class Narx(Arch):
 
 @dataclass(frozen=True)
 class Subnet(Arch):
-    """SUBNET: encoder (past u, y) -> x; x_{k+1} = x_k + f(x_k, u_k); y_k = h(x_k)."""
+    """SUBNET: encoder (past u, y) -> x; x_{k+1} = x_k + f(x_k, u_k) (or f(x_k, u_k)); y_k = h(x_k)."""
 
     past: int = setting("samples the encoder reads", 1)
+    bypass: list[str] = setting("the MLPs that add a linear map of their input to their output (deepSI's "
+                                "MLP_res_net)", choices=SUBNET_NETWORKS)
+    residual: bool = setting("x_{k+1} = x_k + f(x_k, u_k); false: f(x_k, u_k)")
+    zero_bias: bool = setting("every bias starts at 0 (deepSI); false: PyTorch's default initialisation")
+    zero_f_output: bool = setting("f's output layer starts at 0 (with the residual: x_{k+1} = x_k at the start)")
+    state_dim: int | None = setting("n_x; null: the system's (system.subnet.state_dim)", 1)
+    shorten_horizon: bool = setting("a training prefix shorter than P + T samples trains on its one window of "
+                                    "n_l - P simulated steps (counted so in the flops); false: such a task is refused")
 
 
 ARCH_SCHEMAS: dict[str, type[Arch]] = {"unstructured": Unstructured, "input_affine": InputAffine,

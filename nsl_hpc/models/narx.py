@@ -22,6 +22,10 @@ class NARX(nn.Module):
         """Its MLPs by name (the lockstep path stacks them)."""
         return {"net": self.net}
 
+    def bypasses(self) -> dict[str, nn.Linear]:
+        """None of its MLPs has a bypass."""
+        return {}
+
     def counted_parameters(self) -> int:
         """p of the compute and model-size resources: every parameter."""
         return sum(p.numel() for p in self.parameters())

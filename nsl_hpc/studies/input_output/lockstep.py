@@ -36,7 +36,7 @@ from nsl_hpc.config.schema import typed
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.data import Signals
-from nsl_hpc.studies.input_output.stacked import Layer, StackedMLPs
+from nsl_hpc.studies.input_output.stacked import Layer, StackedMLPs, split_bypass
 from nsl_hpc.studies.input_output.training import SignalScaling
 from nsl_hpc.studies.settings import InputOutputTrain, learning_rate_at
 from nsl_hpc.studies.training import (
@@ -60,32 +60,38 @@ H_CHUNK_VALUES = {"eager": 2**18, "compiled": 2**21}
 @dataclass(frozen=True)
 class IOMember:
     """One model of a lockstep group, initialised, with what it trains on: the training prefix ``record``, its scaling,
-    ``iterations`` optimizer steps and the seed of its window shuffle."""
+    ``iterations`` optimizer steps, the seed of its window shuffle and its ``horizon`` (SUBNET's simulated steps
+    per window, T or fewer where the prefix is shorter than one window: ``study.horizon``; NARX: 1)."""
 
     model: NARX | SUBNET
     record: Signals
     scaling: SignalScaling
     iterations: int
     shuffle_seed: int
+    horizon: int
 
 
 class Windows:
-    """The training windows of the members' standardised records (zero-padded to the longest, (K, N)), by
-    the index w of their first sample: NARX regressors y_{t-n_y..t-1}, u_{t-n_u..t} with t = w + max(n_y, n_u)
-    and the target y_t; SUBNET sub-sequences u, y_{w..w+P+T-1}."""
+    """The training windows of the members' standardised records (zero-padded, (K, N)), by the index w of their
+    first sample: NARX regressors y_{t-n_y..t-1}, u_{t-n_u..t} with t = w + max(n_y, n_u) and the target y_t;
+    SUBNET sub-sequences u, y_{w..w+P+T-1}, T the longest of the members' horizons: a member of a shorter horizon
+    T_k reads T - T_k samples more, whose errors count 0 (``step_mask``)."""
 
-    def __init__(self, members: Sequence[IOMember], horizon: int, dtype: torch.dtype):
+    def __init__(self, members: Sequence[IOMember], dtype: torch.dtype):
         model = members[0].model
         self.narx = isinstance(model, NARX)
+        horizons = [member.horizon for member in members]
+        self.horizon = max(horizons)
         if isinstance(model, NARX):
             self.past = max(model.past_outputs, model.past_inputs)
-            length = self.past + 1
         else:
-            self.past, self.horizon, self.state_dim = model.past, horizon, model.state_dim
-            length = model.past + horizon
-        self.counts = [len(member.record) - length + 1 for member in members]
+            self.past, self.state_dim, self.residual = model.past, model.state_dim, model.residual
+        self.counts = [len(member.record) - self.past - member.horizon + 1 for member in members]
+        # (K, T, 1): 1 on each member's own steps; None when every member simulates all T
+        self.step_mask = (None if min(horizons) == self.horizon else
+                          (torch.arange(self.horizon) < torch.tensor(horizons)[:, None])[..., None])
         records = [member.scaling.normalise(member.record) for member in members]
-        samples = max(len(member.record) for member in members)
+        samples = max(len(member.record) + self.horizon - member.horizon for member in members)
         as_rows = lambda signals: torch.stack([  # noqa: E731
             nn.functional.pad(torch.as_tensor(signal, dtype=dtype), (0, samples - len(signal))) for signal in signals])
         self.u, self.y = as_rows(u for u, _ in records), as_rows(y for _, y in records)
@@ -94,7 +100,7 @@ class Windows:
             self.offsets = torch.cat([torch.arange(self.past - model.past_outputs, self.past),
                                       samples + torch.arange(self.past - model.past_inputs, self.past + 1)])
         else:
-            self.offsets = torch.arange(length)
+            self.offsets = torch.arange(self.past + self.horizon)
         if self.narx:
             self.signals = torch.cat([self.y, self.u], dim=1)
 
@@ -102,6 +108,8 @@ class Windows:
         self.u, self.y = self.u[rows], self.y[rows]
         if self.signals is not None:
             self.signals = self.signals[rows]
+        if self.step_mask is not None:
+            self.step_mask = self.step_mask[rows]
 
     def index(self, starts: torch.Tensor) -> torch.Tensor:
         """Positions (K, len(offsets) B) of the samples at ``offsets`` after each of ``starts`` (K, B)."""
@@ -125,7 +133,7 @@ class Windows:
             return ((predicted - target).square() * weights).sum(dim=1)
         u, y = self.sequences(starts)
         x = self.encode(nets, layers, u, y)
-        return self.simulate(nets, stored, layers, x, u[:, self.past:], y[:, self.past:], weights)[0]
+        return self.simulate(nets, stored, layers, x, u[:, self.past:], y[:, self.past:], weights, self.step_mask)[0]
 
     def sequences(self, starts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """SUBNET's sub-sequences u, y (K, P + T, B) of the windows ``starts`` (K, B)."""
@@ -139,10 +147,10 @@ class Windows:
         return nets.run(nets.activations(torch.cat([u[:, :self.past], y[:, :self.past]], dim=1)), layers["encoder"])
 
     def simulate(self, nets: StackedMLPs, stored: Mapping[str, list[Layer]], layers: Mapping[str, list[Layer]],
-                 x: torch.Tensor, u: torch.Tensor, y: torch.Tensor, weights: torch.Tensor
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
-        """SUBNET's loss (K,) over the S steps of inputs u and targets y (K, S, B) simulated from states x, and
-        the state after them."""
+                 x: torch.Tensor, u: torch.Tensor, y: torch.Tensor, weights: torch.Tensor,
+                 step_mask: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """SUBNET's loss (K,) over the S steps of inputs u and targets y (K, S, B) simulated from states x (the
+        errors of steps where ``step_mask`` (K, S, 1) is 0 left out; None: none), and the state after them."""
         models, batch = weights.shape
         states, x = self.rollout(nets, stored, layers, x, u)
         horizon = len(states)
@@ -150,21 +158,29 @@ class Windows:
         steps = max(1, chunk // (models * batch * nets.width))  # h of this many steps at once
         simulated = torch.cat([nets.run(torch.cat(states[k:k + steps], dim=nets.samples), layers["h"])
                                .view(models, -1, batch) for k in range(0, horizon, steps)], dim=1)  # (K, S, B)
-        return ((simulated - y).square().sum(dim=1) * weights).sum(dim=1), x
+        errors = simulated - y if step_mask is None else torch.where(step_mask, simulated - y, 0.0)
+        return (errors.square().sum(dim=1) * weights).sum(dim=1), x
 
     def rollout(self, nets: StackedMLPs, stored: Mapping[str, list[Layer]], layers: Mapping[str, list[Layer]],
                 x: torch.Tensor, u: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
         """SUBNET's states over the S steps of inputs u (K, S, B) from states x: the S states its steps start
         from, and the state after them."""
-        weight, bias, *_ = stored["f"][0]
+        f, bypass = split_bypass(stored["f"])
+        weight, bias, *_ = f[0]
         w_x, w_u, bias = (nets.orient(tensor) for tensor in (weight[:, :self.state_dim], weight[:, self.state_dim:],
                                                               bias))
-        from_inputs = torch.addcmul(bias[:, None], u.unsqueeze(nets.features),
-                                    w_u[:, None])  # (K, S, width, B) or (K, S, B, width): u's part, every step
+        inputs = u.unsqueeze(nets.features)
+        from_inputs = torch.addcmul(bias[:, None], inputs, w_u[:, None])  # (K, S, width, B) or (K, S, B, width):
+        # u's part, every step; and of the bypass, (K, S, n_x, B) or (K, S, B, n_x)
+        if bypass is not None:
+            b_x, b_u = nets.orient(bypass[:, :self.state_dim]), nets.orient(bypass[:, self.state_dim:])
+            bypass_inputs = (inputs * b_u[:, None]).unbind(1)
         states = []
-        for from_input in from_inputs.unbind(1):  # unbind: one backward for all S (a slice's zero-fills all S)
-            states.append(x)
-            x = x + nets.run(x, layers["f"], first=nets.linear(x, w_x, from_input))
+        for s, from_input in enumerate(from_inputs.unbind(1)):  # unbind: one backward for all S (a slice's
+            states.append(x)                                    # zero-fills all S)
+            bypassed = None if bypass is None else nets.linear(x, b_x, bypass_inputs[s])
+            change = nets.run(x, layers["f"], first=nets.linear(x, w_x, from_input), bypassed=bypassed)
+            x = x + change if self.residual else change
         return states, x
 
 
@@ -202,12 +218,11 @@ class IOLockstep(LockstepRun):
 
     block_steps = BLOCK_STEPS
 
-    def __init__(self, members: Sequence[IOMember], cfg: Mapping[str, Any], horizon: int,
-                 compiler: StepCompiler | None = None):
+    def __init__(self, members: Sequence[IOMember], cfg: Mapping[str, Any], compiler: StepCompiler | None = None):
         self.train = train = typed(InputOutputTrain, cfg, "train")
         self.dtype = getattr(torch, train.dtype)
         self.compiler = compiler or StepCompiler(False)
-        self.windows = Windows(members, horizon, self.dtype)
+        self.windows = Windows(members, self.dtype)
         narx = self.windows.narx
         self.nets = StackedMLPs([member.model for member in members], self.dtype,
                                 train.feature_major_width["narx" if narx else "subnet"], self.compiler.enabled)
@@ -220,7 +235,8 @@ class IOLockstep(LockstepRun):
                        for count, batch, member in zip(self.windows.counts, batches, members, strict=True)]
         self.totals = np.array([member.iterations for member in members])
         self.total = int(self.totals.max(initial=0))
-        self.shares = torch.tensor([1.0 / (batch * (1 if narx else horizon)) for batch in batches], dtype=self.dtype)
+        self.shares = torch.tensor([1.0 / (batch * member.horizon)
+                                    for batch, member in zip(batches, members, strict=True)], dtype=self.dtype)
         self.final = self.nets.theta.detach().clone()
         self.outcomes: list[TrainingOutcome | None] = [None if total else TrainingOutcome(0, math.nan, finite=True)
                                                        for total in self.totals]
@@ -287,14 +303,14 @@ class IOLockstep(LockstepRun):
         return [row for row, k in enumerate(self.member) if self.outcomes[k] is None]
 
 
-def train_lockstep(members: Sequence[IOMember], cfg: Mapping[str, Any], horizon: int,
-                   on_progress: Callable[[], None] = lambda: None, checkpoint: Checkpointer | None = None,
-                   compiler: StepCompiler | None = None) -> tuple[StackedMLPs, torch.Tensor, list[TrainingOutcome]]:
-    """Train every member as if alone (``cfg`` is the ``train`` group; ``horizon``: SUBNET's T); returns the
-    group, each member's trained parameters (K, P) (rows of its ``theta`` layout) and outcomes. ``on_progress``,
-    ``checkpoint``: as ``drive_lockstep`` takes them. With an enabled ``compiler`` the step is compiled, and the
-    stack keeps static shapes (``stack_rows``)."""
-    run = IOLockstep(members, cfg, horizon, compiler)
+def train_lockstep(members: Sequence[IOMember], cfg: Mapping[str, Any], on_progress: Callable[[], None] = lambda: None,
+                   checkpoint: Checkpointer | None = None, compiler: StepCompiler | None = None
+                   ) -> tuple[StackedMLPs, torch.Tensor, list[TrainingOutcome]]:
+    """Train every member as if alone (``cfg`` is the ``train`` group); returns the group, each member's trained
+    parameters (K, P) (rows of its ``theta`` layout) and outcomes. ``on_progress``, ``checkpoint``: as
+    ``drive_lockstep`` takes them. With an enabled ``compiler`` the step is compiled, and the stack keeps static
+    shapes (``stack_rows``)."""
+    run = IOLockstep(members, cfg, compiler)
     drive_lockstep(run, on_progress, checkpoint)
     return run.nets, run.final, cast(list[TrainingOutcome], run.outcomes)  # every model has settled
 
@@ -333,10 +349,11 @@ def advance_step(windows: Windows, nets: StackedMLPs, theta: torch.Tensor, x: to
 
 
 def simulate_step(windows: Windows, nets: StackedMLPs, theta: torch.Tensor, x: torch.Tensor, u: torch.Tensor,
-                  y: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                  y: torch.Tensor, weights: torch.Tensor, step_mask: torch.Tensor | None
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
     """``Windows.simulate`` with parameters ``theta``: a function a ``StepCompiler`` compiles."""
     stored = nets.computed(theta)
-    return windows.simulate(nets, stored, nets.oriented(stored), x, u, y, weights)
+    return windows.simulate(nets, stored, nets.oriented(stored), x, u, y, weights, step_mask)
 
 
 def segmented_gradient(windows: Windows, encode: Callable[..., torch.Tensor], advance: Callable[..., torch.Tensor],
@@ -358,8 +375,9 @@ def segmented_gradient(windows: Windows, encode: Callable[..., torch.Tensor], ad
     grad, losses, upstream = torch.zeros_like(theta), torch.zeros(len(theta), dtype=theta.dtype), None
     for start, state in zip(reversed(bounds), reversed(states), strict=True):
         state = state.requires_grad_(True)
+        steps = None if windows.step_mask is None else windows.step_mask[:, start - past:start - past + segment]
         segment_losses, end = simulate(leaf, state, u[:, start:start + segment], y[:, start:start + segment],
-                                       weights)
+                                       weights, steps)
         outputs: list[torch.Tensor] = [segment_losses.sum()]
         upstreams: list[torch.Tensor | None] = [None]
         if upstream is not None:

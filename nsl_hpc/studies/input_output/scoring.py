@@ -17,7 +17,7 @@ from nsl_hpc.models.blocks import LAYER_NORM_EPS
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.data import Signals
-from nsl_hpc.studies.input_output.stacked import StackedMLPs
+from nsl_hpc.studies.input_output.stacked import StackedMLPs, split_bypass
 from nsl_hpc.studies.input_output.training import SignalScaling
 from nsl_hpc.studies.metrics import normalized_errors
 
@@ -50,17 +50,33 @@ class NumpyLayer:
         return t / (1.0 + np.exp(-t))
 
 
-def numpy_mlps(nets: StackedMLPs, theta: torch.Tensor) -> dict[str, list[NumpyLayer]]:
+@dataclass(frozen=True)
+class NumpyMLP:
+    """K MLPs in float64: their ``layers`` (hidden, then output) and the weight (K, in, out) of their bypass
+    (None: none)."""
+
+    layers: list[NumpyLayer]
+    bypass: np.ndarray | None = None
+
+    def __call__(self, z: np.ndarray) -> np.ndarray:
+        """Outputs (K, B, out) of inputs z (K, B, in)."""
+        out = hidden(self.layers, z @ self.layers[0].weight + self.layers[0].bias)
+        return out if self.bypass is None else out + z @ self.bypass
+
+
+def numpy_mlps(nets: StackedMLPs, theta: torch.Tensor) -> dict[str, NumpyMLP]:
     """The MLPs of the group's models with parameters ``theta`` (K, P), every model it was built from, in
     float64."""
     mask, inverse = (tensor.double().numpy() for tensor in nets.model_units)
     units = (mask, inverse)
     mlps = {}
-    for name, layers in nets.layers(theta.detach().double()).items():
+    for name, stacked in nets.layers(theta.detach().double()).items():
+        layers, bypass = split_bypass(stacked)
         arrays = [[tensor.numpy() for tensor in layer] for layer in layers]
-        mlps[name] = [NumpyLayer(weight, bias, (norm[0], norm[1]) if norm else None, units)
-                      for weight, bias, *norm in arrays[:-1]]
-        mlps[name].append(NumpyLayer(arrays[-1][0], arrays[-1][1]))
+        numpy_layers = [NumpyLayer(weight, bias, (norm[0], norm[1]) if norm else None, units)
+                        for weight, bias, *norm in arrays[:-1]]
+        numpy_layers.append(NumpyLayer(arrays[-1][0], arrays[-1][1]))
+        mlps[name] = NumpyMLP(numpy_layers, None if bypass is None else bypass.numpy())
     return mlps
 
 
@@ -106,34 +122,39 @@ def one_step_narx(net: list[NumpyLayer], past_outputs: int, past_inputs: int, u:
     return predicted
 
 
-def simulate_subnet(mlps: Mapping[str, list[NumpyLayer]], state_dim: int, past: int, u: np.ndarray, y: np.ndarray,
-                    init: int) -> np.ndarray:
+def simulate_subnet(mlps: Mapping[str, NumpyMLP], state_dim: int, past: int, residual: bool, u: np.ndarray,
+                    y: np.ndarray, init: int) -> np.ndarray:
     """Free-run simulation (K, N) on standardised u, y (K, N): the encoder reads the ``past`` samples before
-    index ``init`` (init >= P), then x_{k+1} = x_k + f(x_k, u_k), y_k = h(x_k)."""
+    index ``init`` (init >= P), then x_{k+1} = x_k + f(x_k, u_k) (``residual``) or f(x_k, u_k), y_k = h(x_k)."""
     encoder, f, h = mlps["encoder"], mlps["f"], mlps["h"]
-    window = np.concatenate([u[:, init - past:init], y[:, init - past:init]], axis=1)[:, None]  # (K, 1, 2P)
-    x = hidden(encoder, window @ encoder[0].weight + encoder[0].bias)  # (K, 1, n_x)
-    w_x, w_u = f[0].weight[:, :state_dim], f[0].weight[:, state_dim:]  # (K, n_x, width), (K, 1, width)
+    x = encoder(np.concatenate([u[:, init - past:init], y[:, init - past:init]], axis=1)[:, None])  # (K, 1, n_x)
+    first = f.layers[0]
+    w_x, w_u = first.weight[:, :state_dim], first.weight[:, state_dim:]  # (K, n_x, width), (K, 1, width)
     simulated = y.astype(float).copy()
     for begin in range(init, u.shape[1], CHUNK):
         stop = min(begin + CHUNK, u.shape[1])
-        from_inputs = u[:, begin:stop, None] * w_u + f[0].bias  # (K, chunk, width)
+        from_inputs = u[:, begin:stop, None] * w_u + first.bias  # (K, chunk, width)
+        if f.bypass is not None:
+            bypass_inputs = u[:, begin:stop, None] * f.bypass[:, state_dim:]  # (K, chunk, n_x)
         for j in range(stop - begin):
-            simulated[:, begin + j] = hidden(h, x @ h[0].weight + h[0].bias)[:, 0, 0]
-            x = x + hidden(f, from_inputs[:, j:j + 1] + x @ w_x)
+            simulated[:, begin + j] = h(x)[:, 0, 0]
+            change = hidden(f.layers, from_inputs[:, j:j + 1] + x @ w_x)
+            if f.bypass is not None:
+                change = change + bypass_inputs[:, j:j + 1] + x @ f.bypass[:, :state_dim]
+            x = x + change if residual else change
     return simulated
 
 
-def predictions(model: NARX | SUBNET, mlps: Mapping[str, list[NumpyLayer]], u: np.ndarray, y: np.ndarray,
+def predictions(model: NARX | SUBNET, mlps: Mapping[str, NumpyMLP], u: np.ndarray, y: np.ndarray,
                 init: int) -> dict[str, np.ndarray]:
     """Standardised outputs (K, N) of the models (of ``model``'s architecture) by mode."""
     if isinstance(model, NARX):
-        args = (mlps["net"], model.past_outputs, model.past_inputs, u, y, init)
+        args = (mlps["net"].layers, model.past_outputs, model.past_inputs, u, y, init)
         return {"free_run": simulate_narx(*args), "one_step": one_step_narx(*args)}
-    return {"free_run": simulate_subnet(mlps, model.state_dim, model.past, u, y, init)}
+    return {"free_run": simulate_subnet(mlps, model.state_dim, model.past, model.residual, u, y, init)}
 
 
-def score_records(model: NARX | SUBNET, mlps: Mapping[str, list[NumpyLayer]], scalings: Sequence[SignalScaling],
+def score_records(model: NARX | SUBNET, mlps: Mapping[str, NumpyMLP], scalings: Sequence[SignalScaling],
                   tests: Mapping[str, Signals], init: int, mv_per_unit: float) -> list[dict[str, float]]:
     """Per model (K, in the order of ``scalings``), its scores on every test record by name: nmae, nmse and
     rmse_mv (RMSE times ``mv_per_unit``) of each mode, counted after the first ``init`` samples."""

@@ -22,14 +22,27 @@ from nsl_hpc.models.subnet import SUBNET
 # slower).
 NARROW_OUTPUTS = 8
 
-Layer = tuple[torch.Tensor, ...]  # weight (K, in, out), bias (K, 1, out)[, LayerNorm scale, shift (K, 1, out)]
+# A layer's tensors: weight (K, in, out), bias (K, 1, out)[, LayerNorm scale, shift (K, 1, out)]; a bypass, the
+# last layer of an MLP that has one: its weight (K, in, out) alone
+Layer = tuple[torch.Tensor, ...]
 
 
-def mlp_shape(net: nn.Sequential) -> tuple[int, int, int, bool]:
-    """(inputs, outputs, depth, LayerNorm) of an MLP of ``nsl_hpc.models.blocks.mlp``."""
+def mlp_shape(net: nn.Sequential, bypass: nn.Linear | None) -> tuple[int, int, int, bool, bool]:
+    """(inputs, outputs, depth, LayerNorm, bypass) of an MLP of ``nsl_hpc.models.blocks.mlp`` and its bypass."""
     linears = [layer for layer in net if isinstance(layer, nn.Linear)]
     return (linears[0].in_features, linears[-1].out_features, len(linears) - 1,
-            any(isinstance(layer, nn.LayerNorm) for layer in net))
+            any(isinstance(layer, nn.LayerNorm) for layer in net), bypass is not None)
+
+
+def mlp_shapes(model: NARX | SUBNET) -> dict[str, tuple[int, int, int, bool, bool]]:
+    """``mlp_shape`` of each MLP of ``model`` by name."""
+    bypasses = model.bypasses()
+    return {name: mlp_shape(net, bypasses.get(name)) for name, net in model.mlps().items()}
+
+
+def split_bypass(layers: list[Layer]) -> tuple[list[Layer], torch.Tensor | None]:
+    """An MLP's layers without its bypass, and the bypass weight (None without one)."""
+    return (layers[:-1], layers[-1][0]) if len(layers[-1]) == 1 else (layers, None)
 
 
 class StackedMLPs:
@@ -41,9 +54,8 @@ class StackedMLPs:
 
     def __init__(self, models: Sequence[NARX | SUBNET], dtype: torch.dtype, feature_major_width: int = 0,
                  compiled: bool = False):
-        first = models[0].mlps()
-        self.shapes = {name: mlp_shape(net) for name, net in first.items()}
-        if any({name: mlp_shape(net) for name, net in model.mlps().items()} != self.shapes for model in models):
+        self.shapes = mlp_shapes(models[0])
+        if any(mlp_shapes(model) != self.shapes for model in models):
             raise ValueError(f"models trained together need one architecture, depth and block ({type(models[0])}, "
                              f"MLPs {self.shapes}); widths may differ")
         own = [cast(nn.Linear, next(iter(model.mlps().values()))[0]).out_features for model in models]
@@ -77,12 +89,12 @@ class StackedMLPs:
         self.units = (mask[models] if self.padded else None, inverse[models])
 
     def tensor_shapes(self, name: str) -> list[list[tuple[int, int]]]:
-        """(rows, columns) of each tensor of each layer of MLP ``name``."""
-        inputs, outputs, depth, layer_norm = self.shapes[name]
+        """(rows, columns) of each tensor of each layer of MLP ``name`` (its bypass last)."""
+        inputs, outputs, depth, layer_norm, bypass = self.shapes[name]
         norm = [(1, self.width)] * 2 if layer_norm else []
         return [*([[(fan_in, self.width), (1, self.width), *norm]
                    for fan_in in [inputs] + [self.width] * (depth - 1)]),
-                [(self.width, outputs), (1, outputs)]]
+                [(self.width, outputs), (1, outputs)], *([[(inputs, outputs)]] if bypass else [])]
 
     def layers(self, theta: torch.Tensor) -> dict[str, list[Layer]]:
         """Per MLP, per layer, views (K, rows, columns) of its tensors in ``theta`` (K, P)."""
@@ -127,15 +139,18 @@ class StackedMLPs:
     def load(self, k: int, model: NARX | SUBNET, mask: torch.Tensor) -> None:
         """Copy the parameters of ``model`` into row k; set its entries of ``mask`` (K, P) to 1."""
         masks = self.layers(mask)
+        bypasses = model.bypasses()
         for name, net in model.mlps().items():
             linears = [layer for layer in net if isinstance(layer, nn.Linear)]
             norms = [layer for layer in net if isinstance(layer, nn.LayerNorm)] + [None] * len(linears)
-            for tensors, mask_tensors, linear, norm in zip(self.trained[name], masks[name], linears, norms,
-                                                           strict=False):
-                values = [linear.weight.T, linear.bias[None]]
-                if norm is not None:
-                    values += [norm.weight[None], norm.bias[None]]
-                for tensor, tensor_mask, value in zip(tensors, mask_tensors, values, strict=True):
+            values = []
+            for linear, norm in zip(linears, norms, strict=False):
+                values.append([linear.weight.T, linear.bias[None]] + ([] if norm is None else
+                                                                      [norm.weight[None], norm.bias[None]]))
+            if name in bypasses:
+                values.append([bypasses[name].weight.T])
+            for tensors, mask_tensors, layer_values in zip(self.trained[name], masks[name], values, strict=True):
+                for tensor, tensor_mask, value in zip(tensors, mask_tensors, layer_values, strict=True):
                     tensor[k, :value.shape[0], :value.shape[1]] = value
                     tensor_mask[k, :value.shape[0], :value.shape[1]] = 1.0
 
@@ -163,18 +178,26 @@ class StackedMLPs:
         """Inputs x (K, in, B) in the stack's layout: as they are, or (K, B, in) batch-major."""
         return x if self.feature_major else x.mT
 
-    def run(self, x: torch.Tensor, layers: list[Layer], first: torch.Tensor | None = None) -> torch.Tensor:
-        """Output of one MLP, its ``layers`` oriented, for inputs x, or from its first layer's pre-activation
-        ``first`` (then x is not read); activations in the stack's layout: (K, features, B) or (K, B, features)."""
+    def run(self, x: torch.Tensor, layers: list[Layer], first: torch.Tensor | None = None,
+            bypassed: torch.Tensor | None = None) -> torch.Tensor:
+        """Output of one MLP, its ``layers`` oriented, for inputs x (plus its bypass of x), or from its first
+        layer's pre-activation ``first`` and its bypass's output ``bypassed`` (then x is not read; None: no bypass);
+        activations in the stack's layout: (K, features, B) or (K, B, features)."""
+        layers, bypass = split_bypass(layers)
+        if first is None and bypass is not None:
+            bypassed = self.linear(x, bypass, None)
         for weight, bias, *norm in layers[:-1]:
             a = self.linear(x, weight, bias) if first is None else first
             first, x = None, self.activate(a, norm)
         weight, bias = layers[-1]
-        return self.linear(x, weight, bias)
+        return self.linear(x, weight, bias if bypassed is None else bias + bypassed)
 
-    def linear(self, x: torch.Tensor, weight: torch.Tensor, added: torch.Tensor) -> torch.Tensor:
-        """An oriented ``weight`` applied to x plus ``added`` (an oriented bias, or a pre-activation part); a
-        compiled batch-major stack computes a product of at most ``NARROW_OUTPUTS`` columns as its transpose."""
+    def linear(self, x: torch.Tensor, weight: torch.Tensor, added: torch.Tensor | None) -> torch.Tensor:
+        """An oriented ``weight`` applied to x plus ``added`` (an oriented bias, or a pre-activation part; None:
+        nothing); a compiled batch-major stack computes a product of at most ``NARROW_OUTPUTS`` columns as its
+        transpose."""
+        if added is None:
+            return torch.bmm(weight, x) if self.feature_major else torch.bmm(x, weight)
         if self.feature_major:
             return torch.baddbmm(added, weight, x)
         if self.compiled and weight.shape[-1] <= NARROW_OUTPUTS:

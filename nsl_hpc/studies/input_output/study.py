@@ -24,7 +24,7 @@ from omegaconf import DictConfig
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
 from nsl_hpc.config import plain
-from nsl_hpc.config.arch import arch_settings
+from nsl_hpc.config.arch import Narx, Subnet, arch_settings
 from nsl_hpc.config.system import MEASURED_KINDS, InputOutputSystem
 from nsl_hpc.errors import ConfigError, require_member
 from nsl_hpc.studies.base import Study, draw_tier
@@ -43,18 +43,25 @@ def build_io_model(arch_cfg: Mapping[str, Any], system_cfg: Mapping[str, Any], w
     from nsl_hpc.models.narx import NARX
     from nsl_hpc.models.subnet import SUBNET
 
-    arch_settings(arch_cfg)
-    if arch_cfg["name"] == "narx":
-        return NARX(arch_cfg["past_outputs"], arch_cfg["past_inputs"], width, depth, arch_cfg["block"])
-    if arch_cfg["name"] == "subnet":
-        return SUBNET(system_cfg["subnet"]["state_dim"], arch_cfg["past"], width, depth, arch_cfg["block"])
+    arch = arch_settings(arch_cfg)
+    if isinstance(arch, Narx):
+        return NARX(arch.past_outputs, arch.past_inputs, width, depth, arch.block)
+    if isinstance(arch, Subnet):
+        return SUBNET(subnet_state_dim(arch_cfg, system_cfg), arch.past, width, depth, arch.block, tuple(arch.bypass),
+                      arch.residual, arch.zero_bias, arch.zero_f_output)
     raise ConfigError(f"unknown arch {arch_cfg['name']!r} for the input_output study; choose one of: narx, subnet")
+
+
+def subnet_state_dim(arch_cfg: Mapping[str, Any], system_cfg: Mapping[str, Any]) -> int:
+    """SUBNET's n_x: the arch's ``state_dim``, or the system's (``system.subnet.state_dim``) where that is null."""
+    return arch_cfg.get("state_dim") or system_cfg["subnet"]["state_dim"]
 
 
 @cache
 def model_parameters(arch_items: tuple, state_dim: int, width: int, depth: int) -> int:
     """p of one architecture (SUBNET without its encoder), built once per distinct shape."""
-    return build_io_model(dict(arch_items), {"subnet": {"state_dim": state_dim}}, width, depth).counted_parameters()
+    arch = {key: list(value) if isinstance(value, tuple) else value for key, value in arch_items}
+    return build_io_model(arch, {"subnet": {"state_dim": state_dim}}, width, depth).counted_parameters()
 
 
 def past_window(arch_cfg: Mapping[str, Any]) -> int:
@@ -64,9 +71,16 @@ def past_window(arch_cfg: Mapping[str, Any]) -> int:
     return arch_cfg["past"]
 
 
-def horizon(base: Mapping[str, Any]) -> int:
-    """T, simulated steps per training window: the system's SUBNET horizon, 1 for NARX (one step ahead)."""
-    return base["system"]["subnet"]["horizon"] if base["arch"]["name"] == "subnet" else 1
+def horizon(base: Mapping[str, Any], train_points: int | None = None) -> int:
+    """Simulated steps per training window: SUBNET's T (``system.subnet.horizon``), or, with
+    ``arch.shorten_horizon``, the n_l - P steps a training prefix of ``train_points`` samples holds where that
+    is fewer (its one window; None: T); 1 for NARX (one step ahead)."""
+    if base["arch"]["name"] != "subnet":
+        return 1
+    steps = base["system"]["subnet"]["horizon"]
+    if train_points is None or not base["arch"]["shorten_horizon"]:
+        return steps
+    return min(steps, train_points - past_window(base["arch"]))
 
 
 def training_memory_mb(base: Mapping[str, Any], width: int, depth: int) -> float:
@@ -106,15 +120,16 @@ class InputOutput(Study):
         if task["data_tier"] > system["train_samples"]:
             raise ConfigError(f"data_tier={task['data_tier']} is larger than the training pool of {system['name']} "
                               f"(system.train_samples={system['train_samples']})")
-        past, steps = past_window(arch), horizon(base)
+        past, steps = past_window(arch), horizon(base, sizes["train_points"])
         if past > system["init_samples"]:
             raise ConfigError(f"{arch['name']} reads {past} past samples, more than the {system['init_samples']} "
                               f"that initialise a test simulation (system.init_samples)")
-        window = past + steps if arch["name"] == "subnet" else past + 1
-        if sizes["train_points"] < window:
+        if steps < 1 or sizes["train_points"] < past + steps:
+            shorten = " or arch.shorten_horizon=true" if arch["name"] == "subnet" else ""
+            steps = max(steps, 1)
             raise ConfigError(f"the training subset (n_l={sizes['train_points']} samples, data_tier="
-                              f"{task['data_tier']}) is shorter than one {arch['name']} window of {window} samples "
-                              f"({past} past + T={steps}); use a larger data_tier or a shorter horizon")
+                              f"{task['data_tier']}) is shorter than one {arch['name']} window of {past + steps} "
+                              f"samples ({past} past + T={steps}); use a larger data_tier{shorten}")
 
     def prepare_data(self, base: Mapping[str, Any]) -> None:
         load_benchmark(base["system"], ArrayCache(base["cache_dir"]))
@@ -122,16 +137,19 @@ class InputOutput(Study):
     def draw(self, task: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
         rng = self.draw_rng(task, base["draws"])
         points, width = draw_tier(rng, task["data_tier"]), draw_tier(rng, task["width_tier"])
-        state_dim = base["system"]["subnet"]["state_dim"]
+        arch_items = tuple((key, tuple(value) if isinstance(value, list) else value)
+                           for key, value in base["arch"].items())
         return {"train_points": points, "width": width,
-                "params": model_parameters(tuple(base["arch"].items()), state_dim, width, task["depth"]),
+                "params": model_parameters(arch_items, subnet_state_dim(base["arch"], base["system"]), width,
+                                           task["depth"]),
                 "train_memory_mb": training_memory_mb(base, width, task["depth"])}
 
     def training_length(self, task: Mapping[str, Any], drawn: Mapping[str, Any],
                         base: Mapping[str, Any]) -> dict[str, Any]:
         iterations = task["iter_multiplier"] * drawn["train_points"]
         return {"steps": iterations,
-                "flops": float(drawn["params"]) * iterations * base["train"]["batch_size"] * horizon(base)}
+                "flops": float(drawn["params"]) * iterations * base["train"]["batch_size"]
+                * horizon(base, drawn["train_points"])}
 
     def train_and_score_group(self, items: Sequence[tuple[DictConfig, Mapping[str, Any], Mapping[str, Any]]],
                              on_progress: Callable[[], None], checkpoint: Checkpointer | None = None
@@ -149,19 +167,18 @@ class InputOutput(Study):
         benchmark = load_benchmark(system_cfg, ArrayCache(cfg.cache_dir))
         members = [self.member(item_cfg, task, sizes, system_cfg, benchmark) for item_cfg, task, sizes in items]
         started = time.perf_counter()
-        base = {"system": system_cfg, "arch": plain(cfg.arch, resolve=False)}
         compiler = StepCompiler(cfg.get("compile") == "always")  # auto is resolved by a sweep's planner
-        nets, theta, outcomes = train_lockstep(members, plain(cfg.train, resolve=False), horizon(base), on_progress,
-                                               checkpoint, compiler)
+        nets, theta, outcomes = train_lockstep(members, plain(cfg.train, resolve=False), on_progress, checkpoint,
+                                               compiler)
         train_seconds = (time.perf_counter() - started + trained_before(checkpoint)) / len(items)
         scoring_progress(checkpoint, on_progress)()  # a stop asked by now keeps the trained models
         scores = score_records(members[0].model, numpy_mlps(nets, theta), [member.scaling for member in members],
                                benchmark.tests, system_cfg["init_samples"], system_cfg["mv_per_unit"])
         default = f"free_run_{system_cfg['score_on']}"
         return [{**{metric: row[f"{metric}_{default}"] for metric in ("nmae", "nmse", "rmse_mv")}, **row,
-                 "steps": outcome.steps, "final_loss": outcome.final_loss, "finite": outcome.finite,
-                 "train_seconds": train_seconds, "compiled": compiler.enabled}
-                for row, outcome in zip(scores, outcomes, strict=True)]
+                 "steps": outcome.steps, "horizon": member.horizon, "final_loss": outcome.final_loss,
+                 "finite": outcome.finite, "train_seconds": train_seconds, "compiled": compiler.enabled}
+                for row, outcome, member in zip(scores, outcomes, members, strict=True)]
 
     def member(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
                system_cfg: Mapping[str, Any], benchmark: Benchmark) -> "IOMember":
@@ -175,4 +192,5 @@ class InputOutput(Study):
         model = build_io_model(cfg.arch, system_cfg, sizes["width"], task["depth"])
         record = benchmark.train.head(sizes["train_points"])
         return IOMember(model, record, SignalScaling.fit(record), sizes["steps"],
-                        self.seed_for("shuffle", task, cfg.draws))
+                        self.seed_for("shuffle", task, cfg.draws),
+                        horizon({"system": system_cfg, "arch": cfg.arch}, sizes["train_points"]))
