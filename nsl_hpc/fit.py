@@ -8,7 +8,9 @@ Reads ``<sweep_dir>/results.parquet`` (``python -m nsl_hpc.merge``) and writes `
 formula, extrapolation backtest), ``<sweep_dir>/nsl_fits.txt`` and a card per law,
 ``<sweep_dir>/law_cards/<system>__<arch>__<resource>__<metric>.json`` (the grid and its hash, the envelope and
 its points, b and why, M, intervals, backtest, the published law, code version, predicted and measured
-core-hours: what it takes to reproduce or reject the law). Only tasks with status ok and finite,
+core-hours: what it takes to reproduce or reject the law). It prints, per (system, arch), the share of tasks no
+better than the mean predictor, flagging a pair whose models do not learn (``nsl.learning``). Only tasks with
+status ok and finite,
 positive errors are fitted; an NSL that cannot be fitted gets its reason in the ``error`` column. ``metrics``
 picks the results columns fitted (default: ``nsl.metrics``, nmae and nmse), e.g. an input-output sweep's extra
 scores (``<metric>_<mode>_<record>``).
@@ -29,6 +31,7 @@ from nsl_hpc.analysis.fitting import (
     require_some_fit,
     write_fits,
 )
+from nsl_hpc.analysis.learning import learning_lines, sweep_learning
 from nsl_hpc.analysis.nsl_settings import nsl_settings
 from nsl_hpc.config import plain
 from nsl_hpc.sweep import layout
@@ -44,6 +47,7 @@ def main(cfg: DictConfig) -> int:
     require_some_fit(rows, fits_path(sweep_dir))
     write_fits(sweep_dir, rows)
     write_law_cards(sweep_dir, launch, plain(chosen), results, rows)
+    print("\n".join(learning_lines(sweep_learning(results, chosen.learning))))
     failed = sum(row["error"] is not None for row in rows)
     print(f"{len(rows) - failed} NSLs fitted ({failed} not fittable) -> {fits_path(sweep_dir)}, "
           f"{Path(sweep_dir) / layout.FITS_TEXT}, a card per law in {Path(sweep_dir) / layout.LAW_CARDS}")

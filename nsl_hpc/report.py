@@ -1,4 +1,5 @@
-"""Post-process a sweep in one go: merge the rows, fit every NSL, draw the figures, write the
+"""Post-process a sweep in one go: merge the rows, fit every NSL, check that the models learned (per (system, arch),
+the share of tasks no better than the mean predictor, flagged where too many do not), draw the figures, write the
 self-contained ``<sweep_dir>/report.html`` (and its comparison with the published laws as Markdown,
 ``comparison.md``) and log it all to MLflow.
 
@@ -27,6 +28,7 @@ from nsl_hpc.analysis.fitting import (
     require_some_fit,
     write_fits,
 )
+from nsl_hpc.analysis.learning import learning_lines, sweep_learning
 from nsl_hpc.analysis.mlflow_runs import log_to_mlflow, require_server, tracking_uri
 from nsl_hpc.analysis.nsl_settings import MlflowSettings, figure_settings, nsl_settings
 from nsl_hpc.analysis.prediction import what_it_takes
@@ -57,13 +59,16 @@ def main(cfg: DictConfig) -> int:
     cards = write_law_cards(sweep_dir, launch_config, plain(chosen), results, rows)
     print(f"{sum(row['error'] is None for row in rows)} of {len(rows)} NSLs fitted -> {fits_path(sweep_dir)}")
     nsl, figures_cfg = plain(chosen), plain(cfg.figures, resolve=False)
+    learning = sweep_learning(results, nsl["learning"])
+    print("\n".join(learning_lines(learning)))
     figures = draw_figures(sweep_dir, results, rows, nsl, figures_cfg)
     wanted = nsl["predict"]["report"]
     entries = what_it_takes(results, rows, wanted["resource"], wanted["metric"],
                             lambda best: [factor * best for factor in wanted["factors"]], nsl)
     section = what_it_takes_html(entries, wanted, nsl["resources"][wanted["resource"]]["symbol"])
     report = sweep_dir / layout.REPORT
-    write_text(report_html(sweep_dir, launch, summary, rows, figures, section, nsl, cards["core_hours"]), report)
+    write_text(report_html(sweep_dir, launch, summary, rows, figures, section, nsl, cards["core_hours"], learning),
+               report)
     notes = " ".join(note for note in (scores_note(launch), fit_note(nsl)) if note)
     write_text(comparison_markdown(rows, notes), sweep_dir / layout.COMPARISON)
     if mlflow.enabled:

@@ -136,7 +136,8 @@ def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, ns
     row.update(b=fit.b, alpha=fit.alpha, beta=fit.beta, delta0=fit.delta0, margin=fit.margin,
                fit_margin=fit.fit_margin, envelope=fit.envelope, formula=fit.formula(symbol),
                margins_by_b=json.dumps(fit.margins), objective=fit.objective, r_min=float(r.min()),
-               r_max=float(r.max()), slopes=fit.slopes.tolist(), segment_points=list(fit.segment_points),
+               r_max=float(r.max()), slopes=fit.slopes.tolist(), last_slope=float(fit.slopes[-1]),
+               segment_points=list(fit.segment_points),
                undetermined_segments=sorted(fit.undetermined), undetermined=fit.undetermined_text(),
                envelope_r=fit.envelope_r.tolist(), envelope_e=fit.envelope_e.tolist())
     for i, (sigma, phi, delta) in enumerate(padded, start=1):

@@ -69,6 +69,17 @@ class Joint:
 
 
 @dataclass(frozen=True)
+class Learning:
+    """Did the models learn (nsl_hpc.analysis.learning): fit's and report's check of each (system, arch)."""
+
+    below: float = setting("a task learned where its nmae is below this times the mean predictor's", 0, 1,
+                           low_open=True)
+    flag_share: float = setting("a pair is flagged where more than this share of its tasks above the smallest tiers "
+                                "score no better than the mean predictor", 0, 1)
+    tier_axes: list[str] = setting("the grid axes whose smallest tier is left out of the flag's count")
+
+
+@dataclass(frozen=True)
 class Nsl:
     """Fitting broken NSLs (nsl_hpc.nsl.fit_nsl) to every (system, arch, resource, metric) of a sweep."""
 
@@ -110,6 +121,7 @@ class Nsl:
     joint: Joint = setting("predict's joint law")
     backtest_cut: float = setting("extrapolation backtest: fit below this share of the log resource range", 0, 1,
                                   low_open=True, high_open=True)
+    learning: Learning = setting("did the models learn: the flag of a pair whose models do not")
 
     def check(self) -> None:
         if self.max_breaks > self.positions:

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from nsl_hpc.analysis.fitting import fit_note, last_slope_undetermined, nsl_key
+from nsl_hpc.analysis.learning import PairLearning
 from nsl_hpc.analysis.mlflow_runs import flatten
 from nsl_hpc.analysis.prediction import format_need
 from nsl_hpc.config import compose_config, plain
@@ -229,9 +230,29 @@ def configuration_html(settings: Mapping[tuple[str, str], Mapping[str, tuple[str
     return f"<table>{rows}</table>{verdict}"
 
 
+def learning_html(pairs: Sequence[PairLearning], settings: Mapping[str, Any]) -> str:
+    """The report's table of how each (system, arch) learned (``analysis.learning``), flagged pairs in red."""
+    if not pairs:
+        return ("<p>The rows carry no mean predictor's score (<code>mean_predictor_nmae</code>): a sweep from before "
+                "it was recorded.</p>")
+    head = ("<tr><th>system</th><th>arch</th><th>no better than the mean predictor</th>"
+            "<th>... above the smallest tiers</th><th>worst task</th><th></th></tr>")
+    body = "".join(
+        ('<tr style="color:#b00">' if pair.flagged else "<tr>") + cells((
+            pair.system, pair.arch, f"{pair.not_learned:,} of {pair.tasks:,} ({pair.share:.0%})",
+            f"{pair.not_learned_above:,} of {pair.above_smallest:,} ({pair.share_above:.0%})", pair.worst,
+            "NOT LEARNING: its laws describe models that fail" if pair.flagged else "")) + "</tr>"
+        for pair in pairs)
+    return (f"<p>A task did not learn where its nMAE is not below {settings['below']:g} times the mean predictor's "
+            f"(the constant output at its training data's mean) or it did not finish with finite scores. A pair is "
+            f"flagged where more than {settings['flag_share']:.0%} of its tasks above the smallest tiers of "
+            f"{', '.join(settings['tier_axes']) or 'no axis'} did not learn (<code>nsl.learning</code>).</p>"
+            f"<table>{head}{body}</table>")
+
+
 def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummary, rows: Sequence[Mapping[str, Any]],
                 figures: Mapping[str, list[Path]], what_it_takes: str, nsl: Mapping[str, Any],
-                core_hours: Mapping[str, Any]) -> str:
+                core_hours: Mapping[str, Any], learning: Sequence[PairLearning]) -> str:
     grid = launch["sweep"]["grid"]
     parts = sub_grids(grid)
     axes = "".join((f"<tr><th colspan='2'>sub-grid {index + 1} of {len(parts)}</th></tr>" if len(parts) > 1 else "")
@@ -253,6 +274,7 @@ def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummar
 <h2>Configuration</h2>{configuration_html(science_settings(sweep_dir, launch))}
 <h2>Tasks</h2><p>{summary.merged:,} tasks merged. {html.escape(core_hours_line(core_hours))}</p>
 <pre>{html.escape(summary.describe())}</pre>
+<h2>Did the models learn?</h2>{learning_html(learning, nsl["learning"])}
 <h2>Neural scaling laws ({sum(r['error'] is None for r in rows)} of {len(rows)} fitted)</h2>
 <p>L(r) = &alpha; + &beta; r<sup>&delta;0</sup> &prod;<sub>i</sub>
 [1 + (r/&sigma;<sub>i</sub>)<sup>1/&phi;<sub>i</sub></sup>]<sup>&delta;<sub>i</sub>&phi;<sub>i</sub></sup>

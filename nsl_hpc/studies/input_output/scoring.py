@@ -3,10 +3,14 @@ once, in float64 numpy (a step of these tiny MLPs costs a few microseconds there
 
 Every model is simulated freely (its own outputs fed back; the first ``init`` samples of a record are the
 measured ones) and a NARX model also one step ahead (measured past outputs). Columns are named
-``<metric>_<mode>_<record>``: metric nmae, nmse or rmse_mv (RMSE in mV), mode free_run or one_step, the record
-as the system's ``tests`` name it (e.g. ``nmae_free_run_arrow_full``).
+``<metric>_<mode>_<record>``: metric nmae, nmse, rmse_mv (RMSE in mV), spread (the predicted output's standard
+deviation over the measured one's; NaN where the prediction is not finite) or finite (1 where every predicted
+sample is finite, else 0), mode free_run or one_step, the record as the system's ``tests`` name it (e.g.
+``nmae_free_run_arrow_full``); and ``nmae_mean_predictor_<record>``, ``nmse_mean_predictor_<record>``: the scores of
+the constant output at the training prefix's mean, the level a model that learned nothing reaches.
 """
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -162,13 +166,26 @@ def score_records(model: NARX | SUBNET, mlps: Mapping[str, NumpyMLP], scalings: 
     for record_name, record in tests.items():
         u = np.stack([scaling.normalise(record)[0] for scaling in scalings])
         y = np.stack([scaling.normalise(record)[1] for scaling in scalings])
+        measured = record.y[init:]
         with np.errstate(all="ignore"):  # a diverged or unstable model's simulation overflows to inf / NaN
             by_mode = predictions(model, mlps, u, y, init)
             for mode, standardised in by_mode.items():
                 for row, scaling, output in zip(rows, scalings, standardised, strict=True):
-                    predicted, measured = output[init:] * scaling.y_std + scaling.y_mean, record.y[init:]
-                    errors = normalized_errors(measured[:, None], predicted[:, None])
-                    row.update({f"{metric}_{mode}_{record_name}": value for metric, value in errors.items()})
-                    row[f"rmse_mv_{mode}_{record_name}"] = mv_per_unit * float(
-                        np.sqrt(np.mean(np.square(predicted - measured))))
+                    predicted = output[init:] * scaling.y_std + scaling.y_mean
+                    row.update(output_scores(measured, predicted, mv_per_unit, f"{mode}_{record_name}"))
+        for row, scaling in zip(rows, scalings, strict=True):
+            constant = np.full((len(measured), 1), scaling.y_mean)
+            row.update({f"{metric}_mean_predictor_{record_name}": value
+                        for metric, value in normalized_errors(measured[:, None], constant).items()})
     return rows
+
+
+def output_scores(measured: np.ndarray, predicted: np.ndarray, mv_per_unit: float, name: str) -> dict[str, float]:
+    """nmae, nmse, rmse_mv, spread and finite (the module's columns) of ``predicted`` against ``measured`` (N,),
+    each named ``<metric>_<name>``."""
+    finite = bool(np.isfinite(predicted).all())
+    scores = normalized_errors(measured[:, None], predicted[:, None])
+    scores["rmse_mv"] = mv_per_unit * float(np.sqrt(np.mean(np.square(predicted - measured))))
+    scores["spread"] = float(predicted.std() / measured.std()) if finite else math.nan
+    scores["finite"] = float(finite)
+    return {f"{metric}_{name}": value for metric, value in scores.items()}

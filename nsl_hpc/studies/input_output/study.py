@@ -13,6 +13,7 @@ The models and the training code (torch: ~1.5 s to import) are imported by the f
 model, so that the commands that only read or check a sweep (status, merge, clean, resubmit) start without them.
 """
 
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from functools import cache
@@ -96,6 +97,20 @@ def training_memory_mb(base: Mapping[str, Any], width: int, depth: int) -> float
     return dtype_bytes * batch * values / 2**20
 
 
+VALIDATION = "validation"  # the record name of the validation split (the training record after the pool)
+
+
+def learning_fields(scores: Mapping[str, float], score_on: str) -> dict[str, Any]:
+    """A row's scores from a model's ``scores`` (``scoring.score_records``' columns): nmae, nmse, rmse_mv of the free
+    run on ``score_on``; whether that run stayed finite and its output's spread over the measured one's; the mean
+    predictor's nmae there; and the free run's nmae on the validation split (NaN where the system has none)."""
+    run = f"free_run_{score_on}"
+    return {**{metric: scores[f"{metric}_{run}"] for metric in ("nmae", "nmse", "rmse_mv")},
+            "free_run_finite": bool(scores[f"finite_{run}"]), "output_spread": scores[f"spread_{run}"],
+            "mean_predictor_nmae": scores[f"nmae_mean_predictor_{score_on}"],
+            "validation_nmae": scores.get(f"nmae_free_run_{VALIDATION}", math.nan)}
+
+
 class InputOutput(Study):
     name = "input_output"
     axes = ("system", "arch", "seed", "iter_multiplier", "data_tier", "width_tier", "depth")
@@ -172,10 +187,13 @@ class InputOutput(Study):
                                                compiler)
         train_seconds = (time.perf_counter() - started + trained_before(checkpoint)) / len(items)
         scoring_progress(checkpoint, on_progress)()  # a stop asked by now keeps the trained models
+        init = system_cfg["init_samples"]
+        records = dict(benchmark.tests)
+        if len(benchmark.validation) > init:
+            records[VALIDATION] = benchmark.validation
         scores = score_records(members[0].model, numpy_mlps(nets, theta), [member.scaling for member in members],
-                               benchmark.tests, system_cfg["init_samples"], system_cfg["mv_per_unit"])
-        default = f"free_run_{system_cfg['score_on']}"
-        return [{**{metric: row[f"{metric}_{default}"] for metric in ("nmae", "nmse", "rmse_mv")}, **row,
+                               records, init, system_cfg["mv_per_unit"])
+        return [{**learning_fields(row, system_cfg["score_on"]), **row,
                  "steps": outcome.steps, "horizon": member.horizon, "final_loss": outcome.final_loss,
                  "finite": outcome.finite, "train_seconds": train_seconds, "compiled": compiler.enabled}
                 for row, outcome, member in zip(scores, outcomes, members, strict=True)]

@@ -355,3 +355,11 @@ def score_derivatives(stack: StackedModels, data: Dataset, scalings: Sequence[Sc
         for model_sums, model_predicted in zip(sums, predicted, strict=True):
             model_sums.add(model_predicted - data.dx[rows])
     return [model_sums.both_ways(normalization) for model_sums in sums]
+
+
+def score_mean_predictor(data: Dataset, mean: np.ndarray, normalization: str) -> dict[str, float]:
+    """The row scores (``ErrorSums.both_ways``) on ``data`` of the constant prediction ``mean`` (n,): what a model
+    that learned nothing but the training set's mean dx/dt scores."""
+    sums = ErrorSums(spreads(data.dx))
+    sums.add(mean[None, :] - data.dx)
+    return sums.both_ways(normalization)

@@ -103,7 +103,12 @@ class InputState(Study):
         ``checkpoint``) divided among the items; compiled: whether the step ran compiled (``compile``)."""
         import torch
 
-        from nsl_hpc.studies.input_state.lockstep import Snapshot, score_derivatives, train_lockstep
+        from nsl_hpc.studies.input_state.lockstep import (
+            Snapshot,
+            score_derivatives,
+            score_mean_predictor,
+            train_lockstep,
+        )
         from nsl_hpc.studies.training import StepCompiler
 
         runs: dict[tuple, list[int]] = {}
@@ -125,15 +130,21 @@ class InputState(Study):
         scoring = scoring_progress(checkpoint, on_progress)  # a stop from now on keeps the trained models
         scoring()
         theta = torch.stack([snapshot.theta for _, snapshot in kept])
-        scores = score_derivatives(stack, test_data, [members[k].scaling for k, _ in kept],
-                                   getattr(torch, cfg.train.dtype), theta, [k for k, _ in kept],
-                                   cfg.metric.normalization, scoring)
-        return [{**model_scores, "steps": snapshot.outcome.steps,
+        dtype, normalization = getattr(torch, cfg.train.dtype), cfg.metric.normalization
+        scores = score_derivatives(stack, test_data, [members[k].scaling for k, _ in kept], dtype, theta,
+                                   [k for k, _ in kept], normalization, scoring)
+        on_training_data = [score_derivatives(stack, members[k].data, [members[k].scaling], dtype,
+                                              snapshot.theta[None], [k], normalization, scoring)[0]
+                            for k, snapshot in kept]
+        return [{**model_scores, "train_nmae": fitted["nmae"],
+                 "mean_predictor_nmae": score_mean_predictor(test_data, members[k].data.dx.mean(axis=0),
+                                                             normalization)["nmae"],
+                 "steps": snapshot.outcome.steps,
                  "final_loss": snapshot.outcome.final_loss, "finite": snapshot.outcome.finite,
                  "train_seconds": train_seconds, "milestone": cfg.train.schedule_epochs is not None,
                  "repeat": members[k].repeat,
                  "compiled": compiler.enabled}
-                for model_scores, (k, snapshot) in zip(scores, kept, strict=True)]
+                for model_scores, fitted, (k, snapshot) in zip(scores, on_training_data, kept, strict=True)]
 
     def member(self, cfg: DictConfig, task: Mapping[str, Any], sizes: Mapping[str, Any],
                epochs: Sequence[int]) -> "Member":

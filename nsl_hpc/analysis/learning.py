@@ -1,0 +1,94 @@
+"""Did the models learn? Per (system, arch) of a merged sweep, the share of tasks that score no better than the mean
+predictor (the constant output at the training data's mean, each row's ``mean_predictor_nmae``; a task learned where
+its nmae is below ``nsl.learning.below`` times that), or did not finish with finite scores; the worst of them by
+name; and a flag where more than ``nsl.learning.flag_share`` of the tasks above the smallest tier of every
+``nsl.learning.tier_axes`` did not learn: such a pair's laws describe models that fail, not the scaling of ones that
+identify the system.
+"""
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+
+from nsl_hpc.analysis.fitting import pair_outcomes
+
+MEAN_PREDICTOR = "mean_predictor_nmae"  # the rows' column of the mean predictor's nmae
+
+
+@dataclass(frozen=True)
+class PairLearning:
+    """How the tasks of one (system, arch) learned."""
+
+    system: str
+    arch: str
+    tasks: int
+    not_learned: int  # tasks at or above the mean predictor's nmae, or without finite scores
+    above_smallest: int  # tasks above the smallest tier of every tier axis ...
+    not_learned_above: int  # ... and those of them that did not learn
+    worst: str  # the task that scored worst, with its score and the mean predictor's
+    flagged: bool
+
+    @property
+    def share(self) -> float:
+        return self.not_learned / self.tasks
+
+    @property
+    def share_above(self) -> float:
+        return self.not_learned_above / self.above_smallest if self.above_smallest else 0.0
+
+    def line(self) -> str:
+        """One line for a command's output."""
+        flag = "  NOT LEARNING" if self.flagged else ""
+        return (f"{self.system} / {self.arch}: {self.not_learned:,} of {self.tasks:,} tasks ({self.share:.0%}) no "
+                f"better than the mean predictor, {self.not_learned_above:,} of {self.above_smallest:,} "
+                f"({self.share_above:.0%}) above the smallest tiers; worst {self.worst}{flag}")
+
+
+def learned(results: pa.Table, below: float) -> np.ndarray:
+    """Mask of the rows whose model learned: status ok and an nmae below ``below`` times the mean predictor's (all
+    False where the rows carry no mean predictor's score)."""
+    if MEAN_PREDICTOR not in results.column_names:
+        return np.zeros(results.num_rows, dtype=bool)
+    nmae = results["nmae"].to_numpy(zero_copy_only=False).astype(float)
+    mean = results[MEAN_PREDICTOR].to_numpy(zero_copy_only=False).astype(float)
+    ok = np.asarray(results["status"].to_pylist()) == "ok"
+    with np.errstate(invalid="ignore"):
+        return ok & np.isfinite(nmae) & (nmae < below * mean)
+
+
+def pair_learning(results: pa.Table, system: str, arch: str, settings: Mapping[str, Any]) -> PairLearning:
+    """``PairLearning`` of the (system, arch) rows of ``results``; ``settings``: the ``nsl.learning`` group."""
+    rows = pair_outcomes(results, system, arch)
+    failed = ~learned(rows, settings["below"])
+    above = np.ones(rows.num_rows, dtype=bool)
+    for axis in settings["tier_axes"]:
+        if axis in rows.column_names:
+            values = rows[axis].to_numpy(zero_copy_only=False)
+            above &= values > values.min()
+    nmae = rows["nmae"].to_numpy(zero_copy_only=False).astype(float)
+    worst = int(np.argmax(np.where(np.isfinite(nmae), nmae, np.inf)))
+    mean = rows[MEAN_PREDICTOR][worst].as_py() if MEAN_PREDICTOR in rows.column_names else None
+    worst_text = (f"{rows['task_id'][worst].as_py()} (nmae {nmae[worst]:.3g}, status {rows['status'][worst].as_py()}"
+                  + (f", mean predictor {mean:.3g})" if mean is not None else ")"))
+    not_above = int((failed & above).sum())
+    return PairLearning(system, arch, rows.num_rows, int(failed.sum()), int(above.sum()), not_above, worst_text,
+                        bool(above.sum()) and not_above > settings["flag_share"] * above.sum())
+
+
+def sweep_learning(results: pa.Table, settings: Mapping[str, Any]) -> list[PairLearning]:
+    """``pair_learning`` of every (system, arch) of ``results``, in the order they first appear; none where the rows
+    carry no mean predictor's score (a sweep from before it was recorded)."""
+    if MEAN_PREDICTOR not in results.column_names:
+        return []
+    pairs = dict.fromkeys(zip(results["system"].to_pylist(), results["arch"].to_pylist(), strict=True))
+    return [pair_learning(results, system, arch, settings) for system, arch in pairs]
+
+
+def learning_lines(pairs: Sequence[PairLearning]) -> list[str]:
+    """The command output: one line per pair, flagged pairs marked."""
+    if not pairs:
+        return ["learning: the rows carry no mean predictor's score (mean_predictor_nmae): a sweep from before it"]
+    return [pair.line() for pair in pairs]
