@@ -1,0 +1,47 @@
+"""The status table of docs/reproduction.md: every published law against the slice of `make repro` that measures it
+(conf/reproduction.yaml). Reads the merged slices under ``root`` into the committed ``status`` file (a slice not on
+this machine keeps its entry and date), then writes the table from that file alone between the document's status
+markers, and prints it.
+
+    python benchmarks/reproduction_status.py [root=runs/repro] [collect=false]
+"""
+
+import sys
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from nsl_hpc.analysis.reproduction import (
+    collect,
+    mechanism_factors,
+    read_statuses,
+    status_table,
+    statuses_json,
+    with_table,
+)
+from nsl_hpc.atomic import write_text
+from nsl_hpc.config import config_dir, plain
+
+
+def main() -> None:
+    cfg = OmegaConf.load(config_dir() / "reproduction.yaml")
+    OmegaConf.set_struct(cfg, True)
+    try:
+        cfg = plain(OmegaConf.merge(cfg, OmegaConf.from_dotlist(sys.argv[1:])))
+    except Exception as error:  # OmegaConf's errors name the key; one line, no traceback
+        sys.exit(f"error: {str(error).splitlines()[0]}")
+    status_path, document = Path(cfg["status"]), Path(cfg["document"])
+    before = read_statuses(status_path)
+    if cfg["collect"]:
+        mechanisms = mechanism_factors(Path(cfg["mechanisms"]).read_text())
+        statuses = collect(cfg["laws"], Path(cfg["root"]), cfg["candidates"], mechanisms, before)
+        write_text(statuses_json(statuses), status_path)
+    else:
+        statuses = [before[law] for law in cfg["laws"]]
+    table = status_table(statuses, cfg["within"])
+    write_text(with_table(document.read_text(), table), document)
+    print(table)
+
+
+if __name__ == "__main__":
+    main()
