@@ -24,7 +24,7 @@ REPRO_DIR ?= runs/repro
 REPRO_ARGS ?=
 MECHANISMS_ARGS ?=
 
-.PHONY: install demo demo-io repro mechanisms data test test-fast lint
+.PHONY: install demo demo-io repro repro-candidates mechanisms data test test-fast lint
 
 install: $(INSTALLED)
 
@@ -59,6 +59,10 @@ repro: data
 	$(PY) -m nsl_hpc.report sweep_dir=$(REPRO_DIR)/subnet_compute
 	$(PY) -m nsl_hpc.launch +sweep=subnet_data sweep_dir=$(REPRO_DIR)/subnet_data
 	$(PY) -m nsl_hpc.report sweep_dir=$(REPRO_DIR)/subnet_data
+	$(PY) benchmarks/reproduction_status.py root=$(REPRO_DIR)
+
+repro-candidates: data
+	$(PY) benchmarks/reproduction_status.py root=$(REPRO_DIR) train=true
 
 mechanisms: $(INSTALLED)
 	$(PY) benchmarks/mechanisms.py $(MECHANISMS_ARGS)

@@ -1,11 +1,12 @@
 """The status table of docs/reproduction.md: every published law against the slice of `make repro` that measures it
 (conf/reproduction.yaml). Reads the merged slices under ``root`` into the committed ``status`` file (a slice not on
 this machine keeps its entry and date), then writes the table from that file alone between the document's status
-markers, and prints it.
+markers, and prints it. ``train=true`` first trains each slice's candidates that are not there.
 
-    python benchmarks/reproduction_status.py [root=runs/repro] [collect=false]
+    python benchmarks/reproduction_status.py [root=runs/repro] [collect=false] [train=true]
 """
 
+import subprocess
 import sys
 from pathlib import Path
 
@@ -23,6 +24,23 @@ from nsl_hpc.atomic import write_text
 from nsl_hpc.config import config_dir, plain
 
 
+def train_candidates(cfg: dict) -> None:
+    """Launch and merge each candidate sweep of ``cfg["candidates"]`` not yet merged under ``root`` (a launch that
+    is there goes on from where it stopped)."""
+    for slice_name, candidates in cfg["candidates"].items():
+        for name, overrides in candidates.items():
+            sweep_dir = Path(cfg["root"]) / f"{slice_name}__{name}"
+            if (sweep_dir / "results.parquet").exists():
+                continue
+            print(f"== {slice_name} / {name}: {sweep_dir}", flush=True)
+            for command in (["nsl_hpc.launch", f"+sweep={cfg['sweeps'][slice_name]}", f"sweep_dir={sweep_dir}",
+                             f"launcher.workers={cfg['workers']}", *overrides],
+                            ["nsl_hpc.merge", f"sweep_dir={sweep_dir}"]):
+                if subprocess.run([sys.executable, "-m", *command]).returncode != 0:  # it printed why
+                    sys.exit(f"error: {command[0]} of {slice_name} / {name} failed; the sweeps before it are kept, "
+                             "and running this again goes on from there")
+
+
 def main() -> None:
     cfg = OmegaConf.load(config_dir() / "reproduction.yaml")
     OmegaConf.set_struct(cfg, True)
@@ -32,6 +50,8 @@ def main() -> None:
         sys.exit(f"error: {str(error).splitlines()[0]}")
     status_path, document = Path(cfg["status"]), Path(cfg["document"])
     before = read_statuses(status_path)
+    if cfg["train"]:
+        train_candidates(cfg)
     if cfg["collect"]:
         mechanisms = mechanism_factors(Path(cfg["mechanisms"]).read_text())
         statuses = collect(cfg["laws"], Path(cfg["root"]), cfg["candidates"], mechanisms, before)

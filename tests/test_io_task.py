@@ -26,6 +26,7 @@ SUBNET_TASK = ["study=input_output", "system=silverbox_sim", "arch=subnet", "ite
 
 def test_a_narx_task_writes_one_row_with_the_study_resources(compose):
     row = run_task(compose(*NARX_TASK)).row
+    assert row["task_id"] == "263fa82d4ea22077"  # NARX's ids are those of every sweep since draws=per_task
     assert row["status"] == "ok" and np.isfinite([row["nmae"], row["nmse"], row["rmse_mv"]]).all()
     assert 313 <= row["train_points"] <= 625 and 8 <= row["width"] <= 16 and row["depth"] == 1
     assert row["steps"] == 2 * row["train_points"]  # n_i = m n_l
