@@ -13,6 +13,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from nsl_hpc.analysis.reproduction import (
+    candidates_table,
     collect,
     mechanism_factors,
     read_statuses,
@@ -56,6 +57,9 @@ def main() -> None:
         mechanisms = mechanism_factors(Path(cfg["mechanisms"]).read_text())
         statuses = collect(cfg["laws"], Path(cfg["root"]), cfg["candidates"], mechanisms, before)
         write_text(statuses_json(statuses), status_path)
+        if any((Path(cfg["root"]) / slice_name).exists() for slice_name in cfg["candidates"]):
+            write_text(candidates_table(cfg["laws"], Path(cfg["root"]), cfg["candidates"], cfg["learned_below"]),
+                       Path(cfg["candidates_output"]))
     else:
         statuses = [before[law] for law in cfg["laws"]]
     table = status_table(statuses, cfg["within"])

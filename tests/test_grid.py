@@ -77,6 +77,19 @@ def test_a_setting_added_later_changes_task_ids_only_away_from_its_neutral_value
     assert task_id(before) == task_id(cfg) != task_id(compose_config([*overrides, "train.repeat=2"]))
 
 
+def test_an_architectures_own_schedule_changes_only_its_own_task_ids():
+    """train.schedule is per architecture: NARX's warmup_cosine trains as every NARX task did before the setting
+    (a config stored then keeps its ids), SUBNET's schedule is in SUBNET's ids and in no NARX id."""
+    narx = ["study=input_output", "system=silverbox_sim", "arch=narx"]
+    subnet = ["study=input_output", "system=silverbox_sim", "arch=subnet"]
+    before = OmegaConf.create(OmegaConf.to_container(compose_config(narx)))
+    del before.train.schedule
+    assert task_id(before) == task_id(compose_config(narx)) == task_id(
+        compose_config([*narx, "train.schedule.subnet=warmup_cosine"])) != task_id(
+        compose_config([*narx, "train.schedule.narx=constant"]))
+    assert task_id(compose_config(subnet)) != task_id(compose_config([*subnet, "train.schedule.subnet=warmup_cosine"]))
+
+
 def test_a_setting_that_changes_only_rounding_is_in_no_task_id():
     """train.rollout_segment (how a compiled SUBNET step recomputes its rollout) leaves the ids of the tasks, at
     any value and in a config stored before it existed; the learning rate does not."""

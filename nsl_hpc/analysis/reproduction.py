@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 
+from nsl_hpc.analysis.fitting import pair_outcomes
+from nsl_hpc.analysis.learning import learned
 from nsl_hpc.analysis.published import gap_to_published, resource_columns
 
 BEGIN, END = "<!-- status table: begin -->", "<!-- status table: end -->"
@@ -45,9 +47,12 @@ def largest_factor(ratios: np.ndarray) -> float:
     return float(np.max(np.maximum(known, 1 / known))) if len(known) else math.nan
 
 
-def envelope_factors(sweep_dir: Path, law: str, at: Sequence[float]) -> tuple[int, np.ndarray]:
-    """(outcomes, envelope / law at ``at``) of one law on a merged sweep (its finished rows of the law's pair)."""
+def envelope_factors(sweep_dir: Path, law: str, at: Sequence[float], column: str | None = None
+                     ) -> tuple[int, np.ndarray]:
+    """(outcomes, envelope / law at ``at``) of one law on a merged sweep (its finished rows of the law's pair), the
+    envelope of the results ``column`` (None: the law's metric)."""
     system, arch, resource, metric = key = tuple(law.split("/"))
+    metric = column or metric
     table = pq.read_table(sweep_dir / "results.parquet")
     rows = [row for row in table.to_pylist() if (row["system"], row["arch"], row["status"]) == (system, arch, "ok")]
     r = np.array([row[resource_columns()[resource]] for row in rows], dtype=float)
@@ -78,6 +83,34 @@ def collect(laws: Mapping[str, Mapping], root: Path, candidates: Mapping[str, Ma
         statuses.append(LawStatus(law, at, spec["slice"], today, outcomes, [float(x) for x in ratios],
                                   largest_factor(ratios), scored))
     return statuses
+
+
+def candidates_table(laws: Mapping[str, Mapping], root: Path, candidates: Mapping[str, Mapping[str, Sequence[str]]],
+                     below: float) -> str:
+    """Per slice with candidates, a Markdown table of its default run and each candidate run under ``root``: the
+    overrides, the outcomes, how many learned (nMAE below ``below`` times the mean predictor's) and, per law of the
+    slice, the envelope over the law at its resources and the largest factor ('' where no slice has candidates)."""
+    lines: list[str] = []
+    for slice_name, runs in candidates.items():
+        slice_laws = [law for law, spec in laws.items() if spec.get("slice") == slice_name]
+        for law in slice_laws:
+            at = [float(value) for value in laws[law]["at"]]
+            lines += [f"**{law}** on `{slice_name}` (envelope / published law)", "",
+                      "| settings | outcomes | learned | " + " | ".join(map(resource_text, at))
+                      + " | largest factor |", "|---|---:|---:|" + "---:|" * (len(at) + 1)]
+            for name, overrides in {"default": [], **runs}.items():
+                sweep_dir = root / (slice_name if name == "default" else f"{slice_name}__{name}")
+                label = f"{name}" + (f" (`{' '.join(overrides)}`)" if overrides else "")
+                if not (sweep_dir / "results.parquet").exists():
+                    lines.append(f"| {label} | not run | | " + " | ".join("" for _ in at) + " | |")
+                    continue
+                pair = pair_outcomes(pq.read_table(sweep_dir / "results.parquet"), *law.split("/")[:2])
+                ratios = envelope_factors(sweep_dir, law, at)[1]
+                cells = [*(factor_text(x) for x in ratios), factor_text(largest_factor(ratios))]
+                lines.append(f"| {label} | {pair.num_rows:,} | {int(learned(pair, below).sum()):,} | "
+                             + " | ".join(cells) + " |")
+            lines.append("")
+    return "\n".join(lines)
 
 
 def mechanism_factors(table: str) -> dict[str, dict[str, float]]:

@@ -11,6 +11,7 @@ from nsl_hpc.errors import ConfigError
 
 BLOCKS = ("layernorm_silu", "tanh")  # an MLP's hidden layer: Linear -> LayerNorm -> SiLU, or Linear -> tanh
 STUDIES = ("input_state", "input_output")
+IO_ARCHITECTURES = ("narx", "subnet")  # the input-output study's architectures (per-arch training settings)
 FORMS = ("joint", "split")
 HAMILTONIANS = ("abs", "plain", "half_square")
 DISSIPATIONS = ("square", "lower_triangular")

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nsl_hpc.config.arch import IO_ARCHITECTURES
 from nsl_hpc.config.schema import setting
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies.metrics import NORMALIZATIONS
@@ -69,6 +70,8 @@ class InputOutputTrain:
     """The ``train`` group of an input-output task (conf/train/input_output.yaml)."""
 
     lr: float = setting("peak learning rate of Adam", 0, low_open=True)
+    schedule: dict[str, str] = setting("per arch: warmup_cosine (a linear warm-up, then cosine decay to 0) or "
+                                       "constant", choices=SCHEDULES)
     warmup_fraction: float = setting("linear warm-up over this fraction of the iterations", 0, 1, high_open=True)
     grad_clip_norm: float = setting("clip the global gradient norm to this", 0, low_open=True)
     batch_size: int = setting("B: windows per mini-batch", 1)
@@ -76,6 +79,13 @@ class InputOutputTrain:
     feature_major_width: dict[str, int] = setting("per arch: a stack of models no wider stores activations "
                                                   "(K, n_h, B)", 0)
     rollout_segment: RolloutSegment = setting("a compiled SUBNET step's rollout segments, per stack layout")
+
+    def check(self) -> None:
+        for key in ("schedule", "feature_major_width"):
+            missing = sorted(set(IO_ARCHITECTURES) - set(getattr(self, key)))
+            if missing:
+                raise ConfigError(f"train.{key} needs a value for {', '.join(missing)} (one per architecture: "
+                                  f"{', '.join(IO_ARCHITECTURES)})")
 
 
 def passes(repeat: int, rule: list[list[float]] | None, trajectories: float) -> int:

@@ -224,6 +224,7 @@ class IOLockstep(LockstepRun):
         self.compiler = compiler or StepCompiler(False)
         self.windows = Windows(members, self.dtype)
         narx = self.windows.narx
+        self.schedule = train.schedule["narx" if narx else "subnet"]
         self.nets = StackedMLPs([member.model for member in members], self.dtype,
                                 train.feature_major_width["narx" if narx else "subnet"], self.compiler.enabled)
         self.optimizer = Adam(self.nets.theta, train.grad_clip_norm)
@@ -277,7 +278,7 @@ class IOLockstep(LockstepRun):
         starts = torch.stack([self.orders[k].take(size) for k in rows], dim=1)  # (L, K', width)
         weights = (starts >= 0).to(dtype) * self.shares[rows][:, None]
         steps = np.arange(start, start + size)[:, None]
-        scheduled = learning_rate_at(steps, self.totals[rows], "warmup_cosine", self.train.warmup_fraction,
+        scheduled = learning_rate_at(steps, self.totals[rows], self.schedule, self.train.warmup_fraction,
                                      self.train.lr)
         rates = torch.as_tensor(scheduled, dtype=dtype).unsqueeze(-1)  # (L, K', 1): 0 after a model's last step
         losses = torch.empty(size, len(rows), dtype=dtype)

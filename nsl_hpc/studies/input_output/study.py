@@ -25,7 +25,7 @@ from omegaconf import DictConfig
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
 from nsl_hpc.config import plain
-from nsl_hpc.config.arch import Narx, Subnet, arch_settings
+from nsl_hpc.config.arch import IO_ARCHITECTURES, Narx, Subnet, arch_settings
 from nsl_hpc.config.system import MEASURED_KINDS, InputOutputSystem
 from nsl_hpc.errors import ConfigError, require_member
 from nsl_hpc.studies.base import Study, draw_tier
@@ -119,6 +119,16 @@ class InputOutput(Study):
     settings_schemas = (("train", InputOutputTrain), ("system", InputOutputSystem))
     shared_keys = ("system", "arch", "train", "draws")
     rounding_only = (("train", "rollout_segment", {"feature_major": 10, "batch_major": 10}),)
+    neutral = (("train", "schedule", dict.fromkeys(IO_ARCHITECTURES, "warmup_cosine")),)
+
+    def shared_identity(self, values: Mapping[str, Any]) -> str:
+        """``Study.shared_identity`` with the train group's per-architecture schedule reduced to the pair's own, left
+        out where that is warmup_cosine, the schedule of every task before the setting: their ids stay."""
+        train = dict(values["train"])
+        own = dict(train.pop("schedule", {})).get(values["arch"]["name"], "warmup_cosine")
+        if own != "warmup_cosine":
+            train["schedule"] = own
+        return super().shared_identity({**values, "train": train})
 
     def check_size(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
         allowed = {"data_tier": base["system"]["data_tiers"], "width_tier": base["tiers"]["width"],

@@ -22,7 +22,7 @@ from nsl_hpc.config.schema import typed
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.data import Signals
-from nsl_hpc.studies.settings import InputOutputTrain, warmup_cosine
+from nsl_hpc.studies.settings import InputOutputTrain, learning_rate_at
 from nsl_hpc.studies.training import TrainingOutcome, nonzero
 
 
@@ -82,13 +82,14 @@ def window_loss(model: NARX | SUBNET, signals: Signals, scaling: SignalScaling, 
 def train_io_model(model: NARX | SUBNET, signals: Signals, scaling: SignalScaling, cfg: Mapping[str, Any],
                    iterations: int, horizon: int, shuffle_seed: int,
                    on_progress: Callable[[], None] = lambda: None) -> TrainingOutcome:
-    """Adam (warm-up + cosine over ``iterations`` steps, gradient clipping) on mini-batches of
+    """Adam (``cfg.schedule``'s schedule over ``iterations`` steps, gradient clipping) on mini-batches of
     ``cfg.batch_size`` windows (all windows when there are fewer); ``cfg`` is the ``train`` group.
     ``on_progress`` is called after each pass over the windows; stops early (finite=False) on a NaN loss."""
     train = typed(InputOutputTrain, cfg, "train")
     windows, batch_loss = window_loss(model, signals, scaling, horizon, getattr(torch, train.dtype))
     batch = min(train.batch_size, windows)
-    schedule = warmup_cosine(iterations, train.warmup_fraction, train.lr)
+    kind = train.schedule["narx" if isinstance(model, NARX) else "subnet"]
+    schedule = learning_rate_at(np.arange(iterations), np.asarray(iterations), kind, train.warmup_fraction, train.lr)
     optimizer = torch.optim.Adam(model.parameters(), lr=train.lr, foreach=True)
     generator = torch.Generator().manual_seed(shuffle_seed)
     parameters = list(model.parameters())

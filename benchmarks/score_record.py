@@ -1,0 +1,44 @@
+"""Which Silverbox test record the rows' nmae should be (``system.score_on``), by the published laws: each record's
+free-run envelope over each published Silverbox law (conf/reproduction.yaml, ``score_record``) on the slices of
+`make repro`, at the status table's resources. Writes the table to ``score_record.output`` and prints it.
+
+    python benchmarks/score_record.py [root=runs/repro]
+"""
+
+import sys
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from nsl_hpc.analysis.reproduction import envelope_factors, factor_text, largest_factor, resource_text
+from nsl_hpc.atomic import write_text
+from nsl_hpc.config import config_dir, plain
+
+
+def main() -> None:
+    cfg = OmegaConf.load(config_dir() / "reproduction.yaml")
+    OmegaConf.set_struct(cfg, True)
+    try:
+        cfg = plain(OmegaConf.merge(cfg, OmegaConf.from_dotlist(sys.argv[1:])))
+    except Exception as error:  # OmegaConf's errors name the key; one line, no traceback
+        sys.exit(f"error: {str(error).splitlines()[0]}")
+    spec = cfg["score_record"]
+    lines = ["| published law | slice | record (free run) | outcomes | envelope / law | largest factor |",
+             "|---|---|---|---:|---|---:|"]
+    for law in spec["laws"]:
+        slice_name, at = cfg["laws"][law]["slice"], cfg["laws"][law]["at"]
+        sweep_dir = Path(cfg["root"]) / slice_name
+        if not (sweep_dir / "results.parquet").exists():
+            sys.exit(f"error: {sweep_dir}/results.parquet does not exist; run make repro (or that slice) first")
+        for record in spec["records"]:
+            outcomes, ratios = envelope_factors(sweep_dir, law, at, f"nmae_free_run_{record}")
+            cells = ", ".join(f"{resource_text(r)}: {factor_text(x)}" for r, x in zip(at, ratios, strict=True))
+            lines.append(f"| {law} | {slice_name} | {record} | {outcomes:,} | {cells} | "
+                         f"{factor_text(largest_factor(ratios))} |")
+    text = "\n".join(lines) + "\n"
+    write_text(text, Path(spec["output"]))
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
