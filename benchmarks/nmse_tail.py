@@ -18,6 +18,7 @@ import torch
 from omegaconf import OmegaConf
 
 from nsl_hpc.analysis.published import published_law, step_envelope_at
+from nsl_hpc.analysis.reproduction import factor_text, resource_text
 from nsl_hpc.atomic import write_text
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config, config_dir, plain
@@ -122,25 +123,40 @@ def test_sets(system_cfg: Mapping[str, Any], cfg: Mapping[str, Any], cache: Arra
                    round(spec["duration_s"] / cfg["dt_s"])) for name, spec in specs.items()}
 
 
+def spread_text(values: Sequence[float], form: str) -> str:
+    """'median (10th-90th percentile)' of ``values``."""
+    low, median, high = np.percentile(values, [10, 50, 90])
+    return f"{median:{form}} ({low:{form}}-{high:{form}})"
+
+
 def tables(measured: Sequence[Mapping[str, Any]], cfg: Mapping[str, Any]) -> str:
     """The decomposition per model and the envelopes over the law per scoring."""
     key = (cfg["system"], cfg["arch"], "compute", "nmse")
     shares = list(measured[0]["shares"])
     lines = [f"**Where the squared error lies** ({cfg['system']} / {cfg['arch']}: the {len(measured)} models within "
-             f"{cfg['near']:g}x of the nMSE envelope between {cfg['flops'][0]:.0e} and {cfg['flops'][1]:.0e} flops, "
-             "trained again; shares of the sum of (e / sigma)^2 on the default test set)", "",
+             f"{cfg['near']:g}x of the nMSE envelope between {resource_text(cfg['flops'][0])} and "
+             f"{resource_text(cfg['flops'][1])} flops, "
+             "trained again; shares of the sum of (e / sigma)^2 on the default test set; a row per model on the "
+             "envelope, then the median and the 10-90% range of all)", "",
              "| flops | nMSE (row / again) | nMSE / nMAE^2 | " + " | ".join(shares) + " |",
              "|---:|---|---:|" + "---:|" * len(shares)]
+    best = np.inf
     for entry in measured:
         row, (nmae, nmse) = entry["row"], entry["scores"]["default"]
-        lines.append(f"| {row['flops']:.2g} | {row['nmse']:.3g} / {nmse:.3g} | {nmse / nmae**2:.1f} | "
-                     + " | ".join(f"{entry['shares'][name]:.0%}" for name in shares) + " |")
+        if nmse < best:
+            best = nmse
+            lines.append(f"| {row['flops']:.2g} | {row['nmse']:.3g} / {nmse:.3g} | {nmse / nmae**2:.1f} | "
+                         + " | ".join(f"{entry['shares'][name]:.0%}" for name in shares) + " |")
+    ratio = [entry["scores"]["default"][1] / entry["scores"]["default"][0] ** 2 for entry in measured]
+    lines.append(f"| all {len(measured)} | | {spread_text(ratio, '.1f')} | "
+                 + " | ".join(spread_text([entry["shares"][name] for entry in measured], ".0%") for name in shares)
+                 + " |")
     at = np.asarray(cfg["at"], dtype=float)
     law = published_law(key)
     assert law is not None
     lines += ["", f"**The nMSE envelope over the published law** (envelope of the {len(measured)} models; "
               f"within {cfg['within']:g}x at every resource: the test set that closes the gap)", "",
-              "| scored on | " + " | ".join(f"{value:.0e}" for value in at) + " | nMSE / nMAE^2 at the last | "
+              "| scored on | " + " | ".join(map(resource_text, at)) + " | nMSE / nMAE^2 at the last | "
               f"within {cfg['within']:g}x |", "|---|" + "---:|" * (len(at) + 2)]
     r = np.array([entry["row"]["flops"] for entry in measured])
     for name in measured[0]["scores"]:
@@ -150,7 +166,7 @@ def tables(measured: Sequence[Mapping[str, Any]], cfg: Mapping[str, Any]) -> str
         best = int(np.argmin(nmse))
         known = ratios[~np.isnan(ratios)]
         within = bool(len(known)) and bool(np.all(np.maximum(known, 1 / known) <= cfg["within"]))
-        lines.append(f"| {name} | " + " | ".join("-" if np.isnan(x) else f"{x:.2g}x" for x in ratios)
+        lines.append(f"| {name} | " + " | ".join(map(factor_text, ratios))
                      + f" | {nmse[best] / nmae[best]**2:.1f} | {'yes' if within else 'no'} |")
     return "\n".join(lines) + "\n"
 

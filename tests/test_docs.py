@@ -6,6 +6,10 @@ import re
 from pathlib import Path
 
 import pytest
+from omegaconf import OmegaConf
+
+from nsl_hpc.analysis.published import published_laws
+from nsl_hpc.analysis.reproduction import BEGIN, read_statuses, status_table, table_in
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -119,3 +123,15 @@ def test_every_quoted_figure_is_dated_or_in_the_output_it_names(where, text):
 def test_the_figure_finder_skips_code_settings_and_places_in_the_paper():
     assert quoted_figures("0.95-1.83x at 2.2e6 flops, `train.lr=2.0e-3`, Section 4.3, 1,106 steps") == [
         "0.95", "1.83", "2.2e6"]
+
+
+def test_the_reproduction_status_table_is_the_one_its_committed_numbers_give():
+    """docs/reproduction.md opens with the table ``benchmarks/reproduction_status.py`` writes from the committed
+    docs/reproduction/status.json: regenerated here, it must be the document's, and it covers every published law."""
+    cfg = OmegaConf.load(ROOT / "conf" / "reproduction.yaml")
+    statuses = read_statuses(ROOT / cfg.status)
+    assert sorted(cfg.laws) == sorted("/".join(key) for key in published_laws())
+    expected = status_table([statuses[law] for law in cfg.laws], cfg.within)
+    document = (ROOT / cfg.document).read_text()
+    assert table_in(document) == expected, "run python benchmarks/reproduction_status.py collect=false"
+    assert document.index(BEGIN) < document.index("\n## ")  # the table comes before the first section
