@@ -47,7 +47,7 @@ def main(cfg: DictConfig) -> int:
     require_some_fit(rows, fits_path(sweep_dir))
     write_fits(sweep_dir, rows)
     write_law_cards(sweep_dir, launch, plain(chosen), results, rows)
-    print("\n".join(learning_lines(sweep_learning(results, chosen.learning))))
+    print("\n".join(learning_lines(sweep_learning(results, plain(chosen)))))
     failed = sum(row["error"] is not None for row in rows)
     print(f"{len(rows) - failed} NSLs fitted ({failed} not fittable) -> {fits_path(sweep_dir)}, "
           f"{Path(sweep_dir) / layout.FITS_TEXT}, a card per law in {Path(sweep_dir) / layout.LAW_CARDS}")

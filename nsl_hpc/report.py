@@ -59,7 +59,7 @@ def main(cfg: DictConfig) -> int:
     cards = write_law_cards(sweep_dir, launch_config, plain(chosen), results, rows)
     print(f"{sum(row['error'] is None for row in rows)} of {len(rows)} NSLs fitted -> {fits_path(sweep_dir)}")
     nsl, figures_cfg = plain(chosen), plain(cfg.figures, resolve=False)
-    learning = sweep_learning(results, nsl["learning"])
+    learning = sweep_learning(results, nsl)
     print("\n".join(learning_lines(learning)))
     figures = draw_figures(sweep_dir, results, rows, nsl, figures_cfg)
     wanted = nsl["predict"]["report"]

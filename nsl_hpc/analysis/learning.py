@@ -1,9 +1,11 @@
 """Did the models learn? Per (system, arch) of a merged sweep, the share of tasks that score no better than the mean
 predictor (the constant output at the training data's mean, each row's ``mean_predictor_nmae``; a task learned where
 its nmae is below ``nsl.learning.below`` times that), or did not finish with finite scores; the worst of them by
-name; and a flag where more than ``nsl.learning.flag_share`` of the tasks above the smallest tier of every
-``nsl.learning.tier_axes`` did not learn: such a pair's laws describe models that fail, not the scaling of ones that
-identify the system.
+name; and a flag where more than ``nsl.learning.flag_share`` of its better-resourced tasks, those above the
+``nsl.learning.above_quantile`` quantile of the pair's ``nsl.learning.resource``, did not learn: such a pair's laws
+describe models that fail, not the scaling of ones that identify the system. (The grid's smallest budgets, 2 epochs
+or n_i = n_l iterations on the least data, leave many tasks of every architecture untrained by design: they are
+counted, not flagged.)
 """
 
 from collections.abc import Mapping, Sequence
@@ -26,7 +28,7 @@ class PairLearning:
     arch: str
     tasks: int
     not_learned: int  # tasks at or above the mean predictor's nmae, or without finite scores
-    above_smallest: int  # tasks above the smallest tier of every tier axis ...
+    above: int  # tasks above the quantile of the resource ...
     not_learned_above: int  # ... and those of them that did not learn
     worst: str  # the task that scored worst, with its score and the mean predictor's
     flagged: bool
@@ -37,14 +39,14 @@ class PairLearning:
 
     @property
     def share_above(self) -> float:
-        return self.not_learned_above / self.above_smallest if self.above_smallest else 0.0
+        return self.not_learned_above / self.above if self.above else 0.0
 
     def line(self) -> str:
         """One line for a command's output."""
         flag = "  NOT LEARNING" if self.flagged else ""
         return (f"{self.system} / {self.arch}: {self.not_learned:,} of {self.tasks:,} tasks ({self.share:.0%}) no "
-                f"better than the mean predictor, {self.not_learned_above:,} of {self.above_smallest:,} "
-                f"({self.share_above:.0%}) above the smallest tiers; worst {self.worst}{flag}")
+                f"better than the mean predictor, {self.not_learned_above:,} of the {self.above:,} better-resourced "
+                f"({self.share_above:.0%}); worst {self.worst}{flag}")
 
 
 def learned(results: pa.Table, below: float) -> np.ndarray:
@@ -59,15 +61,15 @@ def learned(results: pa.Table, below: float) -> np.ndarray:
         return ok & np.isfinite(nmae) & (nmae < below * mean)
 
 
-def pair_learning(results: pa.Table, system: str, arch: str, settings: Mapping[str, Any]) -> PairLearning:
-    """``PairLearning`` of the (system, arch) rows of ``results``; ``settings``: the ``nsl.learning`` group."""
+def pair_learning(results: pa.Table, system: str, arch: str, settings: Mapping[str, Any], column: str
+                  ) -> PairLearning:
+    """``PairLearning`` of the (system, arch) rows of ``results``; ``settings``: the ``nsl.learning`` group,
+    ``column``: the results column of its resource."""
     rows = pair_outcomes(results, system, arch)
     failed = ~learned(rows, settings["below"])
-    above = np.ones(rows.num_rows, dtype=bool)
-    for axis in settings["tier_axes"]:
-        if axis in rows.column_names:
-            values = rows[axis].to_numpy(zero_copy_only=False)
-            above &= values > values.min()
+    resource = rows[column].to_numpy(zero_copy_only=False).astype(float)
+    above = resource > np.quantile(resource, settings["above_quantile"]) if settings["above_quantile"] else \
+        np.ones(rows.num_rows, dtype=bool)
     nmae = rows["nmae"].to_numpy(zero_copy_only=False).astype(float)
     worst = int(np.argmax(np.where(np.isfinite(nmae), nmae, np.inf)))
     mean = rows[MEAN_PREDICTOR][worst].as_py() if MEAN_PREDICTOR in rows.column_names else None
@@ -78,13 +80,16 @@ def pair_learning(results: pa.Table, system: str, arch: str, settings: Mapping[s
                         bool(above.sum()) and not_above > settings["flag_share"] * above.sum())
 
 
-def sweep_learning(results: pa.Table, settings: Mapping[str, Any]) -> list[PairLearning]:
-    """``pair_learning`` of every (system, arch) of ``results``, in the order they first appear; none where the rows
-    carry no mean predictor's score (a sweep from before it was recorded)."""
+def sweep_learning(results: pa.Table, nsl: Mapping[str, Any]) -> list[PairLearning]:
+    """``pair_learning`` of every (system, arch) of ``results`` by the ``nsl`` group's ``learning`` settings, in the
+    order they first appear; none where the rows carry no mean predictor's score (a sweep from before it was
+    recorded)."""
     if MEAN_PREDICTOR not in results.column_names:
         return []
+    settings = nsl["learning"]
+    column = nsl["resources"][settings["resource"]]["column"]
     pairs = dict.fromkeys(zip(results["system"].to_pylist(), results["arch"].to_pylist(), strict=True))
-    return [pair_learning(results, system, arch, settings) for system, arch in pairs]
+    return [pair_learning(results, system, arch, settings, column) for system, arch in pairs]
 
 
 def learning_lines(pairs: Sequence[PairLearning]) -> list[str]:

@@ -74,9 +74,11 @@ class Learning:
 
     below: float = setting("a task learned where its nmae is below this times the mean predictor's", 0, 1,
                            low_open=True)
-    flag_share: float = setting("a pair is flagged where more than this share of its tasks above the smallest tiers "
-                                "score no better than the mean predictor", 0, 1)
-    tier_axes: list[str] = setting("the grid axes whose smallest tier is left out of the flag's count")
+    flag_share: float = setting("a pair is flagged where more than this share of its better-resourced tasks score "
+                                "no better than the mean predictor", 0, 1)
+    resource: str = setting("the resource that ranks a pair's tasks (one of nsl.resources)")
+    above_quantile: float = setting("the better-resourced tasks: those above this quantile of the resource (0: all)",
+                                    0, 1, high_open=True)
 
 
 @dataclass(frozen=True)
@@ -135,6 +137,7 @@ class Nsl:
             require_number("nsl.study_phi", self.study_phi, self.phi_min)
         require_choice("nsl.predict.report.resource", self.predict.report.resource, list(self.resources))
         require_choice("nsl.predict.report.metric", self.predict.report.metric, list(self.metrics))
+        require_choice("nsl.learning.resource", self.learning.resource, list(self.resources))
 
 
 @dataclass(frozen=True)

@@ -236,17 +236,18 @@ def learning_html(pairs: Sequence[PairLearning], settings: Mapping[str, Any]) ->
         return ("<p>The rows carry no mean predictor's score (<code>mean_predictor_nmae</code>): a sweep from before "
                 "it was recorded.</p>")
     head = ("<tr><th>system</th><th>arch</th><th>no better than the mean predictor</th>"
-            "<th>... above the smallest tiers</th><th>worst task</th><th></th></tr>")
+            "<th>... of the better-resourced</th><th>worst task</th><th></th></tr>")
     body = "".join(
         ('<tr style="color:#b00">' if pair.flagged else "<tr>") + cells((
             pair.system, pair.arch, f"{pair.not_learned:,} of {pair.tasks:,} ({pair.share:.0%})",
-            f"{pair.not_learned_above:,} of {pair.above_smallest:,} ({pair.share_above:.0%})", pair.worst,
+            f"{pair.not_learned_above:,} of {pair.above:,} ({pair.share_above:.0%})", pair.worst,
             "NOT LEARNING: its laws describe models that fail" if pair.flagged else "")) + "</tr>"
         for pair in pairs)
     return (f"<p>A task did not learn where its nMAE is not below {settings['below']:g} times the mean predictor's "
             f"(the constant output at its training data's mean) or it did not finish with finite scores. A pair is "
-            f"flagged where more than {settings['flag_share']:.0%} of its tasks above the smallest tiers of "
-            f"{', '.join(settings['tier_axes']) or 'no axis'} did not learn (<code>nsl.learning</code>).</p>"
+            f"flagged where more than {settings['flag_share']:.0%} of its better-resourced tasks (above the "
+            f"{settings['above_quantile']:g} quantile of its {settings['resource']}) did not learn "
+            f"(<code>nsl.learning</code>).</p>"
             f"<table>{head}{body}</table>")
 
 

@@ -33,6 +33,7 @@ class LawStatus:
     factors: list[float] = field(default_factory=list)
     largest: float = math.nan
     candidates: dict[str, float] = field(default_factory=dict)
+    candidates_on: str = ""  # where the candidates were measured: the slice, or make mechanisms' slices
     why: str = ""
 
     def best(self) -> tuple[str, float] | None:
@@ -75,13 +76,13 @@ def collect(laws: Mapping[str, Mapping], root: Path, candidates: Mapping[str, Ma
             statuses.append(before.get(law) or LawStatus(law, at, why=spec.get("why", "its slice was not run")))
             continue
         outcomes, ratios = envelope_factors(sweep_dir, law, at)
-        scored = dict(mechanism_factors.get(law, {}))
+        scored, where = dict(mechanism_factors.get(law, {})), "make mechanisms" if law in mechanism_factors else ""
         for name in candidates.get(spec["slice"], {}):
             other = root / f"{spec['slice']}__{name}"
             if (other / "results.parquet").exists():
-                scored[name] = largest_factor(envelope_factors(other, law, at)[1])
+                scored[name], where = largest_factor(envelope_factors(other, law, at)[1]), spec["slice"]
         statuses.append(LawStatus(law, at, spec["slice"], today, outcomes, [float(x) for x in ratios],
-                                  largest_factor(ratios), scored))
+                                  largest_factor(ratios), scored, where))
     return statuses
 
 
@@ -154,15 +155,15 @@ def verdict(status: LawStatus, within: float) -> str:
 def status_table(statuses: Sequence[LawStatus], within: float) -> str:
     """The Markdown table: one row per law."""
     lines = ["| published law | slice (date) | outcomes | envelope / law at three resources | best candidate "
-             "(largest factor) | verdict |", "|---|---|---:|---|---|---|"]
+             "(its largest factor, where measured) | verdict |", "|---|---|---:|---|---|---|"]
     for status in statuses:
         best = status.best()
-        factors = ", ".join(f"{resource_text(r)}: {factor_text(x)}" for r, x in zip(status.at, status.factors,
-                                                                                     strict=True))
+        factors = [f"{resource_text(r)}: {factor_text(x)}" for r, x in zip(status.at, status.factors, strict=False)]
         lines.append(" | ".join([
             f"| {status.law}", f"{status.slice} ({status.measured})" if status.slice else "-",
-            f"{status.outcomes:,}" if status.slice else "-", factors or "-",
-            f"{best[0]} ({factor_text(best[1])})" if best else "-", verdict(status, within)]) + " |")
+            f"{status.outcomes:,}" if status.slice else "-", ", ".join(factors) or "-",
+            f"{best[0]} ({factor_text(best[1])}, {status.candidates_on})" if best else "-",
+            verdict(status, within)]) + " |")
     return "\n".join(lines) + "\n"
 
 
