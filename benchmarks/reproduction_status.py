@@ -1,7 +1,8 @@
 """The status table of docs/reproduction.md: every published law against the slice of `make repro` that measures it
 (conf/reproduction.yaml). Reads the merged slices under ``root`` into the committed ``status`` file (a slice not on
 this machine keeps its entry and date), then writes the table from that file alone between the document's status
-markers, and prints it. ``train=true`` first trains each slice's candidates that are not there.
+markers, and prints it; the candidates' table and each slice's fits beside the published laws (its report's
+``comparison.md``) are copied beside it. ``train=true`` first trains each slice's candidates that are not there.
 
     python benchmarks/reproduction_status.py [root=runs/repro] [collect=false] [train=true]
 """
@@ -60,6 +61,10 @@ def main() -> None:
         if any((Path(cfg["root"]) / slice_name).exists() for slice_name in cfg["candidates"]):
             write_text(candidates_table(cfg["laws"], Path(cfg["root"]), cfg["candidates"], cfg["learned_below"]),
                        Path(cfg["candidates_output"]))
+        for slice_name in cfg["sweeps"]:  # each slice's fits beside the published laws, as its report wrote them
+            comparison = Path(cfg["root"]) / slice_name / "comparison.md"
+            if comparison.exists():
+                write_text(comparison.read_text(), Path(cfg["comparisons"]) / f"comparison__{slice_name}.md")
     else:
         statuses = [before[law] for law in cfg["laws"]]
     table = status_table(statuses, cfg["within"])

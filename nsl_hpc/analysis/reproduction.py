@@ -14,7 +14,7 @@ import numpy as np
 import pyarrow.parquet as pq
 
 from nsl_hpc.analysis.fitting import pair_outcomes
-from nsl_hpc.analysis.learning import learned
+from nsl_hpc.analysis.learning import MEAN_PREDICTOR, learned
 from nsl_hpc.analysis.published import gap_to_published, resource_columns
 
 BEGIN, END = "<!-- status table: begin -->", "<!-- status table: end -->"
@@ -107,9 +107,10 @@ def candidates_table(laws: Mapping[str, Mapping], root: Path, candidates: Mappin
                     continue
                 pair = pair_outcomes(pq.read_table(sweep_dir / "results.parquet"), *law.split("/")[:2])
                 ratios = envelope_factors(sweep_dir, law, at)[1]
-                cells = [*(factor_text(x) for x in ratios), factor_text(largest_factor(ratios))]
-                lines.append(f"| {label} | {pair.num_rows:,} | {int(learned(pair, below).sum()):,} | "
-                             + " | ".join(cells) + " |")
+                scored = MEAN_PREDICTOR in pair.column_names and pair[MEAN_PREDICTOR].null_count == 0
+                cells = [f"{int(learned(pair, below).sum()):,}" if scored else "- (no mean predictor's score)",
+                         *(factor_text(x) for x in ratios), factor_text(largest_factor(ratios))]
+                lines.append(f"| {label} | {pair.num_rows:,} | " + " | ".join(cells) + " |")
             lines.append("")
     return "\n".join(lines)
 
