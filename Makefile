@@ -4,11 +4,14 @@
 #   make test   start the local SLURM cluster (cluster/up.sh) and run the test suite
 #   make test-fast  the tests that need no cluster and run no command end to end (< 2 min)
 #   make demo-io  the input-output demo (io_demo, 60 tasks on the simulated stand-ins), merge ... report.html
-#   make repro  the reduced-scale reproduction (docs/reproduction.md): the repro and repro_io sweeps (~1.9 predicted
-#               core-hours, 77 min on 2 cores) into runs/repro/{input_state,input_output}, then the SUBNET laws'
-#               slices subnet_compute and subnet_data (~1.2 predicted core-hours; 20 and 36 min on one worker) into
-#               runs/repro/subnet_{compute,data}, each with its report. REPRO_DIR=...
+#   make repro  the reduced-scale reproduction (docs/reproduction.md): the repro and repro_io sweeps (~1.8 predicted
+#               core-hours) into runs/repro/{input_state,input_output}, then the SUBNET laws' slices subnet_compute
+#               and subnet_data (~1.2 predicted core-hours) into runs/repro/subnet_{compute,data}, each with its
+#               report (52, 15, 11 and 17 min on one worker each), then the status table of docs/reproduction.md
+#               (benchmarks/reproduction_status.py). REPRO_DIR=...
 #               REPRO_ARGS="sweep_seed=1 repro.seeds=[0]": the cheaper check run of the first two.
+#   make repro-candidates  the other settings the status table sets beside the defaults (conf/reproduction.yaml,
+#               candidates), into REPRO_DIR/<slice>__<name>, then the table again
 #   make mechanisms  the mechanism table (docs/reproduction.md, "One table for every candidate"): every candidate of
 #               conf/mechanisms.yaml trained on the slices mechanism_compute and mechanism_data into runs/mechanisms,
 #               scored on every published law they cover; runs/mechanisms/table.md. MECHANISMS_ARGS="only=[...]"
