@@ -27,7 +27,7 @@ MEMBERS = [(400, 7, 6, 0), (1300, 12, 3, 6), (300, 9, 5, 2), (700, 4, 6, 3)]
 
 
 def members_of(cfg, cache, specs, record=None, steps=None) -> list[IOMember]:
-    """Members of (n_l, iterations, n_h, seed) ``specs``, each simulating ``steps`` per window (None: its horizon
+    """Members of (n_l, iterations, n_h, seed) ``specs``, a SUBNET simulating ``steps`` per window (None: its horizon
     as a task's)."""
     system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
     train = load_benchmark(system_cfg, cache).train if record is None else record
@@ -36,8 +36,9 @@ def members_of(cfg, cache, specs, record=None, steps=None) -> list[IOMember]:
         torch.manual_seed(seed)
         model = build_io_model(cfg.arch, system_cfg, width, depth=2)
         prefix = train.head(points)
+        own = horizon({"system": system_cfg, "arch": cfg.arch}, points)
         members.append(IOMember(model, prefix, SignalScaling.fit(prefix), iterations, 10 + seed,
-                                steps or horizon({"system": system_cfg, "arch": cfg.arch}, points)))
+                                steps if steps and cfg.arch.name == "subnet" else own))
     return members
 
 

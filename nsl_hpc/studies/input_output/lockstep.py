@@ -83,6 +83,8 @@ class Windows:
         horizons = [member.horizon for member in members]
         self.horizon = max(horizons)
         if isinstance(model, NARX):
+            if self.horizon != 1:
+                raise ValueError(f"a NARX member trains one step ahead (horizon 1), not {self.horizon}")
             self.past = max(model.past_outputs, model.past_inputs)
         else:
             self.past, self.state_dim, self.residual = model.past, model.state_dim, model.residual
