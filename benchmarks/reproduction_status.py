@@ -44,6 +44,8 @@ def train_candidates(cfg: dict) -> None:
 
 
 def main() -> None:
+    if {"-h", "--help"} & set(sys.argv[1:]):
+        sys.exit(print(__doc__) or 0)
     cfg = OmegaConf.load(config_dir() / "reproduction.yaml")
     OmegaConf.set_struct(cfg, True)
     try:

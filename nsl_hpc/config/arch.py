@@ -66,7 +66,8 @@ class Subnet(Arch):
                                 "MLP_res_net)", choices=SUBNET_NETWORKS)
     residual: bool = setting("x_{k+1} = x_k + f(x_k, u_k); false: f(x_k, u_k)")
     zero_bias: bool = setting("every bias starts at 0 (deepSI); false: PyTorch's default initialisation")
-    zero_f_output: bool = setting("f's output layer starts at 0 (with the residual: x_{k+1} = x_k at the start)")
+    zero_f_output: bool = setting("f's output layer and bypass start at 0 (with the residual: x_{k+1} = x_k at the "
+                                  "start)")
     state_dim: int | None = setting("n_x; null: the system's (system.subnet.state_dim)", 1)
     shorten_horizon: bool = setting("a training prefix shorter than P + T samples trains on its one window of "
                                     "n_l - P simulated steps (counted so in the flops); false: such a task is refused")

@@ -15,7 +15,7 @@ class SUBNET(nn.Module):
     """encoder: (u_{t-P..t-1}, y_{t-P..t-1}) -> x_t;  f: (n_x + 1) -> n_x;  h: n_x -> 1; every MLP has ``depth``
     hidden layers of ``width`` units (``block``), plus a bias-free Linear from its input to its output when named in
     ``bypass``; P = ``past`` samples. ``zero_bias``: every bias starts at 0 (deepSI), else PyTorch's default;
-    ``zero_f_output``: f's output layer starts at 0 (with the residual, x_{k+1} = x_k at initialisation)."""
+    ``zero_f_output``: f's output layer and bypass start at 0 (with the residual, x_{k+1} = x_k at initialisation)."""
 
     def __init__(self, state_dim: int, past: int, width: int, depth: int, block: str,
                  bypass: tuple[str, ...] = ("encoder", "h"), residual: bool = True, zero_bias: bool = False,
@@ -38,6 +38,8 @@ class SUBNET(nn.Module):
             assert isinstance(output, nn.Linear)
             nn.init.zeros_(output.weight)
             nn.init.zeros_(output.bias)
+            if "f" in self.bypass:
+                nn.init.zeros_(self.bypasses()["f"].weight)
 
     def network(self, name: str, z: torch.Tensor) -> torch.Tensor:
         """MLP ``name`` of inputs z (..., in), with its bypass if it has one."""
