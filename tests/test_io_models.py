@@ -59,6 +59,15 @@ def test_parameter_counts_leave_out_the_encoder_only(subnet):
     assert NARX(50, 50, 8, 3, "tanh").counted_parameters() == mlp_parameter_count(101, 1, 8, 3, "tanh")
 
 
+@pytest.mark.parametrize("bypass", [("encoder", "h"), ("encoder", "f", "h")])
+def test_a_residual_f_with_a_zeroed_output_starts_at_the_identity(bypass):
+    """zero_f_output zeroes f's last layer and, where f has one, its bypass: x_{k+1} = x_k at initialisation."""
+    model = SUBNET(NX, P, 8, 2, "tanh", bypass=bypass, residual=True, zero_f_output=True)
+    x, u = torch.randn(5, NX), torch.randn(5, 1)
+    assert torch.equal(model.step(x, u), x)
+    assert not torch.equal(SUBNET(NX, P, 8, 2, "tanh", bypass=bypass, residual=True).step(x, u), x)
+
+
 def test_narx_maps_its_regressors_to_one_output():
     """y_t = F(y_{t-5..t-1}, u_{t-3..t}): one output per sample, from that sample's regressors alone, every one
     of which counts (the current input u_t included)."""
