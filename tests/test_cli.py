@@ -59,8 +59,8 @@ def test_a_misspelt_key_names_the_closest_one_and_never_suggests_plus(overrides,
 
 
 def test_plus_still_selects_a_group_and_adds_sbatch_flags():
-    cfg = compose_config(["+sweep=demo", "launcher=slurm", "+launcher.extra_sbatch.hold=true"], "launch")
-    assert cfg.sweep.name == "demo" and cfg.launcher.extra_sbatch.hold is True
+    cfg = compose_config(["+sweep=demo", "launcher=slurm", "+launcher.extra_sbatch.constraint=cpu"], "launch")
+    assert cfg.sweep.name == "demo" and cfg.launcher.extra_sbatch.constraint == "cpu"
 
 
 def test_every_command_a_message_or_doc_names_exists():

@@ -1,6 +1,7 @@
 """A sweep directory that cannot be destroyed, hijacked, run twice or silently lose a task: one test per way a
 hostile but fair user lost a sweep before (the SLURM case is in tests/cluster/test_hardening_slurm.py)."""
 
+import getpass
 import multiprocessing
 import os
 import shutil
@@ -15,6 +16,7 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.mlflow_runs import sweep_run, tracking_uri
+from nsl_hpc.sweep.directory import unsafe_refusal
 from nsl_hpc.sweep.job import leave_warnings_to_the_runner
 from nsl_hpc.sweep.rows import read_row, read_task_rows
 from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
@@ -195,6 +197,17 @@ def test_resubmit_runs_on_the_last_launcher_with_the_settings_it_is_given(tmp_pa
 
 
 # 8. Nobody else can change what a sweep's jobs run.
+@pytest.mark.skipif(os.geteuid() != 0, reason="giving a file to another user needs root")
+def test_a_control_file_another_user_owns_is_refused_with_advice_that_fixes_ownership(tmp_path):
+    owned = tmp_path / "launch.yaml"
+    owned.write_text("{}")
+    owned.chmod(0o644)
+    os.chown(owned, 65534, 65534)  # nobody
+    refusal = unsafe_refusal([owned], {})
+    assert refusal is not None and "another user owns it (mode -rw-r--r--)" in refusal
+    assert f"ask its owner or root to `chown -R {getpass.getuser()} {owned}`" in refusal and "chmod" not in refusal
+
+
 def test_control_files_others_can_write_are_refused_and_written_private(tmp_path):
     sweep_dir = tmp_path / "sweep"
     result = nsl("launch", *LOCAL, f"sweep_dir={sweep_dir}", umask=0o002)  # a group project's umask
@@ -244,6 +257,14 @@ def test_bad_launch_settings_are_one_line_before_anything_is_written(override, m
     ("+launcher.extra_sbatch.constraint='a\rb'", "launcher.extra_sbatch.constraint='a\\rb' holds '\\r' at position 1"),
     ("+launcher.extra_sbatch.comment='two words'", "launcher.extra_sbatch.comment='two words' holds ' ' at position 3"),
     ("+launcher.extra_sbatch.x=[1,2]", "launcher.extra_sbatch.x=[1, 2] must be one value (a string or a number)"),
+    ("+launcher.extra_sbatch.hold=true", "launcher.extra_sbatch.hold is set by the launcher itself (it plans --hold "
+                                         "for every job): use launcher.hold"),
+    ("+launcher.extra_sbatch.time=1", "launcher.extra_sbatch.time is set by the launcher itself (it plans --time for "
+                                      "every job): use launcher.max_time_minutes (the plan gives each array the time "
+                                      "its tasks need, up to that cap)"),
+    ("+launcher.extra_sbatch.nodes=2", "launcher.extra_sbatch.nodes is set by the launcher itself (it plans --nodes "
+                                       "for every job): each task is a single-CPU job element on one node"),
+    ("+launcher.extra_sbatch.cpus_per_task=2", "launcher.extra_sbatch.cpus_per_task is set by the launcher itself"),
     ("launcher.extra_sbatch={x: 1}", "launcher.extra_sbatch takes its flags one at a time: +launcher.extra_sbatch."
                                      "<flag>=<value> (e.g. +launcher.extra_sbatch.constraint=cpu)"),
     ("launcher.setup=['module load python\nrm -rf x']", "launcher.setup line='module load python\\nrm -rf x' holds "

@@ -79,7 +79,7 @@ def test_resubmit_still_takes_run_settings_and_its_own_keys():
     refuse_task_overrides(["launcher=slurm", "launcher.partition=long", "watchdog.overrun_factor=50",
                            "cost.startup_s=60", "packing.pack_minutes=60", "lockstep.size=16",
                            "checkpoint.every_minutes=1", "states=[failed]", "time_factor=2", "sweep_dir=x",
-                           "allow_shared_sweep_dir=true", "+launcher.extra_sbatch.hold=true"])
+                           "allow_shared_sweep_dir=true", "launcher.hold=true"])
 
 
 # 8. report with a tracking server that does not answer: one line within mlflow.timeout_s, nothing replaced.

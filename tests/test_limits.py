@@ -13,6 +13,7 @@ from nsl_hpc.errors import ConfigError
 from nsl_hpc.sweep.directory import sweep_lock, sweep_lock_holder
 from nsl_hpc.sweep.limits import ClusterLimits, Limit, cpus_of, describe_fit, slurm_minutes, smallest
 from nsl_hpc.sweep.plan import Group, Pack
+from nsl_hpc.sweep.slurm import refused_setting
 from nsl_hpc.sweep.storage import Storage, predicted_files, read_storage
 
 
@@ -42,7 +43,11 @@ def test_a_sweep_with_more_files_than_free_inodes_is_refused_before_submission(t
     roomy = Storage(tmp_path, "lustre", 2**40, needed, None)
     lines = describe_fit(limits(submit=1), roomy, packs, 3, checkpoints=True)
     assert f"files: up to {needed:,} at once, of {needed:,} inodes free" in lines
-    assert "submissions: 2 jobs, at most 1 queued at once" in lines[-1]
+    assert lines[-1] == ("submissions: 2 jobs, at most 1 queued at once: launch (or resubmit) again as jobs end to "
+                         "submit the rest (launcher.feed_minutes=null)")
+    fed = describe_fit(limits(submit=1), roomy, packs, 3, checkpoints=True, feed_minutes=10)
+    assert fed[-1].endswith("a job of 10 minutes behind the first array submits the rest as jobs end, and so on "
+                            "until all are in (launcher.feed_minutes)")
     full = Storage(tmp_path, "lustre", 2**40, needed - 1, None)
     with pytest.raises(ConfigError, match=f"writes up to {needed:,} files .* has {needed - 1:,} inodes free"):
         describe_fit(limits(), full, packs, 3, checkpoints=True)
@@ -82,3 +87,19 @@ def test_without_flock_the_sweep_lock_is_a_file_created_exclusively(no_flock, tm
     (tmp_path / ".lock.held").write_text("clean (pid 1 on another-node, since x)\n")
     with pytest.raises(ConfigError, match=r"in use by clean \(pid 1 on another-node"), sweep_lock(tmp_path, "launch"):
         pass
+
+
+# What sbatch (Slurm 22.05) says for each cause of a refusal -> the setting the launch's one line names.
+@pytest.mark.parametrize(("message", "setting"), [
+    ("Invalid account or account/partition combination specified", "launcher.account"),
+    ("Invalid partition name specified", "launcher.partition"),
+    ("Invalid qos specification", "launcher.qos"),
+    ("Invalid feature specification", "launcher.extra_sbatch"),
+    ("Requested time limit is invalid (missing or exceeds some limit)", "launcher.max_time_minutes"),
+    ("Invalid job array specification", "launcher.max_array_size"),
+    ("Requested node configuration is not available", "launcher.extra_sbatch"),
+    ("Node count specification invalid", "launcher.extra_sbatch"),
+    ("Job violates accounting/QOS policy (job submit limit, user's size and/or time limits)", None),
+])
+def test_each_sbatch_refusal_names_its_own_setting(message, setting):
+    assert refused_setting(f"sbatch: error: Batch job submission failed: {message}", user_queued=3) == setting

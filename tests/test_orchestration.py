@@ -30,7 +30,7 @@ from nsl_hpc.sweep.plan import (
     planned_groups,
     predicted_seconds,
 )
-from nsl_hpc.sweep.slurm import expand_array_ids
+from nsl_hpc.sweep.slurm import expand_array_ids, merged_states
 from nsl_hpc.sweep.submissions import record_submission
 from nsl_hpc.sweep.task_states import ACCOUNTING_LAG_S, read_sweep_state, task_state
 from tests.sweeps import TINY_GRID, nsl
@@ -240,8 +240,7 @@ def test_array_ids_expand(job_id, elements):
     ("missing", {"time": -5.0, "status": "failed"}, "1_0", "RUNNING", 100, "running"),  # an older attempt's
     ("missing", None, "1_0", "PENDING", 100, "pending"),
     ("missing", None, "1_0", "REQUEUED", 100, "pending"),
-    ("missing", None, "1_0", None, 1, "pending"),  # just submitted, not yet in sacct
-    ("missing", None, "1_0", None, ACCOUNTING_LAG_S + 1, "missing"),
+    ("missing", None, "1_0", None, 1, "missing"),  # the queue answered without it: cancelled, whatever sacct lags
     ("missing", None, "1_0", "CANCELLED", 100, "missing"),
     ("missing", None, None, None, 0, "missing"),  # never submitted
 ])
@@ -249,10 +248,23 @@ def test_task_states_are_classified(row, failure, element, element_state, age, s
     assert task_state(row, failure, element, 0.0, element_state, now=age) == state
 
 
+@pytest.mark.parametrize(("age", "state"), [(1, "pending"), (ACCOUNTING_LAG_S + 1, "missing")])
+def test_without_the_queue_a_just_submitted_element_is_pending_for_the_accounting_lag(age, state):
+    assert task_state("missing", None, "1_0", 0.0, None, now=age, queue_answered=False) == state
+
+
+def test_the_queue_is_the_truth_for_what_has_not_ended():
+    """sacct's PENDING for an element squeue no longer holds is a stale record (slurmdbd restarted, lagging)."""
+    accounted = {"7_0": "PENDING", "7_1": "COMPLETED", "7_2": "RUNNING", "8_0": "CANCELLED"}
+    queued = {"7_2": "RUNNING", "9_0": "PENDING"}  # 9: another sweep's job
+    assert merged_states(accounted, queued, {"7", "8"}) == {"7_1": "COMPLETED", "7_2": "RUNNING", "8_0": "CANCELLED"}
+    assert merged_states(accounted, None, {"7", "8"}) == accounted
+
+
 def test_launchers_are_schemas_and_a_wrong_one_is_one_line():
     assert launcher_from({"name": "debug"}) == DebugLauncher()
-    slurm = launcher_from(OmegaConf.create({"name": "slurm", "partition": "cpu", "extra_sbatch": {"hold": True}}))
-    assert isinstance(slurm, SlurmLauncher) and slurm.partition == "cpu" and slurm.mem == "2G"
+    slurm = launcher_from(OmegaConf.create({"name": "slurm", "partition": "cpu", "hold": True}))
+    assert isinstance(slurm, SlurmLauncher) and slurm.partition == "cpu" and slurm.mem == "2G" and slurm.hold
     with pytest.raises(ConfigError, match=r"launcher\.name=.pbs. is unknown"):
         launcher_from({"name": "pbs"})
     with pytest.raises(ConfigError, match=r"launcher: .*nodes"):

@@ -16,6 +16,19 @@ from nsl_hpc.errors import ConfigError, require_int, require_positive_int
 SBATCH_MEMORY = re.compile(r"[1-9][0-9]*[KMGT]?")  # sbatch --mem: megabytes, or with a unit
 SBATCH_FLAG = re.compile(r"[A-Za-z][A-Za-z0-9_-]*")  # a long option's name (submitit writes _ as -)
 BATCH_BREAKERS = re.compile(r"[\x00-\x1f\x7f]")  # control characters: a newline ends a line of the batch script
+TIME_LIMIT = "use launcher.max_time_minutes (the plan gives each array the time its tasks need, up to that cap)"
+ONE_CPU = "each task is a single-CPU job element on one node (torch's threads: the top-level threads)"
+LOGS = "each job logs under <sweep_dir>/submitit"
+REQUEUE = "a job is requeued at its time limit as one link of a planned chain (launcher.max_time_minutes)"
+# sbatch flags the SLURM launcher sets or plans itself -> what decides them instead of launcher.extra_sbatch
+PLANNED_FLAGS = {
+    "time": TIME_LIMIT, "time-min": TIME_LIMIT, "array": "use launcher.max_array_size and launcher.array_parallelism",
+    "cpus-per-task": ONE_CPU, "nodes": ONE_CPU, "ntasks": ONE_CPU, "ntasks-per-node": ONE_CPU,
+    "mem": "use launcher.mem", "mem-per-cpu": "use launcher.mem", "output": LOGS, "error": LOGS,
+    "dependency": "use launcher.max_running (the sweep's arrays then start one after another)",
+    "hold": "use launcher.hold", "signal": "use launcher.signal_delay_s", "requeue": REQUEUE, "no-requeue": REQUEUE,
+    "partition": "use launcher.partition", "account": "use launcher.account", "qos": "use launcher.qos",
+}
 
 
 @dataclass
@@ -62,7 +75,9 @@ class SlurmLauncher:
     max_submit_jobs: int | None = None  # None = the user's MaxSubmitJobs from sacctmgr (no limit when none is set)
     feed_minutes: int | None = 10  # jobs the submit limits hold back are submitted by a job of this time limit
     #   behind the first array (resubmit states=[missing]), and so on; None = by launching again by hand
-    extra_sbatch: dict[str, Any] = field(default_factory=dict)  # any other sbatch flag, e.g. {constraint: cpu}
+    hold: bool = False  # submit every job held (--hold): none starts until released (scontrol release <job id>)
+    extra_sbatch: dict[str, Any] = field(default_factory=dict)  # any sbatch flag the launcher does not set or plan
+    #   itself (PLANNED_FLAGS), e.g. {constraint: cpu}; a flag set to null is not passed (resubmit drops one so)
     setup: list[str] = field(default_factory=list)  # shell lines run before each job (e.g. module load python)
 
     def check(self) -> None:
@@ -82,12 +97,21 @@ class SlurmLauncher:
             if not SBATCH_FLAG.fullmatch(str(flag)):
                 raise ConfigError(f"launcher.extra_sbatch.{flag} is no sbatch option name (letters, digits and -, "
                                   "as in +launcher.extra_sbatch.constraint=cpu)")
-            if not isinstance(value, str | int | float | bool):
+            planned = PLANNED_FLAGS.get(str(flag).replace("_", "-"))
+            if planned is not None:
+                raise ConfigError(f"launcher.extra_sbatch.{flag} is set by the launcher itself (it plans --{flag} "
+                                  f"for every job): {planned}")
+            if value is not None and not isinstance(value, str | int | float | bool):
                 raise ConfigError(f"launcher.extra_sbatch.{flag}={value!r} must be one value (a string or a "
                                   f"number), as written after --{flag}=")
             check_batch_text(f"launcher.extra_sbatch.{flag}", value, flag=True)
         for line in self.setup:
             check_batch_text("launcher.setup line", line, flag=False)
+
+
+    def sbatch_flags(self) -> dict[str, Any]:
+        """The extra_sbatch flags sbatch gets: those not set to null."""
+        return {flag: value for flag, value in self.extra_sbatch.items() if value is not None}
 
 
 def check_batch_text(key: str, value: object, flag: bool) -> None:

@@ -17,6 +17,7 @@ import contextlib
 import copy
 import errno
 import fcntl
+import getpass
 import os
 import re
 import socket
@@ -165,9 +166,11 @@ def unsafe_refusal(paths: Sequence[Path], launch: Mapping[str, Any]) -> str | No
         return None
     for path in paths:
         if (reason := unsafe(path)) is not None:
+            fix = (f"ask its owner or root to `chown -R {getpass.getuser()} {path}`"
+                   if reason.startswith("another user") else f"run `chmod -R go-w {path}`")
             return (f"{path} is not safe: {reason}, and whoever can change a sweep's control files or compile cache "
-                    f"can run code as you in its jobs; run `chmod -R go-w {path}` (as its owner), or pass "
-                    "allow_shared_sweep_dir=true if you trust everyone who can write there")
+                    f"can run code as you in its jobs; {fix}, or pass allow_shared_sweep_dir=true if you trust "
+                    "everyone who can write there")
     return None
 
 

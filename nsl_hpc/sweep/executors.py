@@ -90,13 +90,15 @@ def slurm_executor(sweep_dir: Path, time_limit_min: int, launcher: SlurmLauncher
     requeued up to ``chain`` + 2 times at its time limit (a chain of ``chain`` jobs, and some slack); with
     ``after``, they start once those jobs have ended (however they ended)."""
     executor = submitit.SlurmExecutor(folder=sweep_dir / layout.SUBMITIT / "%A", max_num_timeout=chain + 2)
-    dependency = {"dependency": "afterany:" + ":".join(after)} if after else {}
+    planned: dict[str, Any] = {"dependency": "afterany:" + ":".join(after)} if after else {}
+    if launcher.hold:
+        planned["hold"] = True
     executor.update_parameters(
         job_name=f"nsl-{name}", time=time_limit_min, cpus_per_task=1, ntasks_per_node=1, mem=launcher.mem,
         partition=launcher.partition, account=launcher.account, qos=launcher.qos,
         array_parallelism=min(launcher.array_parallelism, launcher.max_running or launcher.array_parallelism),
         signal_delay_s=launcher.signal_delay_s,
-        additional_parameters={**launcher.extra_sbatch, **dependency}, setup=list(launcher.setup),
+        additional_parameters={**launcher.sbatch_flags(), **planned}, setup=list(launcher.setup),
         stderr_to_stdout=True)
     return executor
 
@@ -326,8 +328,9 @@ def refuse_for_setting(sweep_dir: Path, submission: Submission) -> None:
         return
     went_in = (f"{sum(submission.arrays.values()):,} jobs in {', '.join(submission.arrays)} went in before it"
                if submission.arrays else "nothing was submitted")
+    corrected = f"+{setting}.<flag>=<value or null>" if setting == "launcher.extra_sbatch" else f"{setting}=<value>"
     raise ConfigError(f"sbatch refused the jobs ({submission.refusal.replace('sbatch: error: ', '')}): change "
-                      f"{setting}; {went_in}: python -m nsl_hpc.resubmit sweep_dir={sweep_dir} {setting}=<value> "
+                      f"{setting}; {went_in}: python -m nsl_hpc.resubmit sweep_dir={sweep_dir} {corrected} "
                       "runs the rest")
 
 

@@ -223,9 +223,10 @@ def within_limits(launch: DictConfig, limits: ClusterLimits) -> DictConfig:
 
 
 def describe_fit(limits: ClusterLimits | None, storage: Storage, packs: Sequence[Pack], tasks: int,
-                 checkpoints: bool) -> list[str]:
+                 checkpoints: bool, feed_minutes: int | None = None) -> list[str]:
     """What the cluster (``limits``; None: a local launcher) and the sweep directory allow, and how the plan of
-    ``packs`` (``tasks`` tasks) fits them; raises ConfigError where it cannot (more files than free inodes, a job
+    ``packs`` (``tasks`` tasks) fits them, the jobs the submit limit holds back submitted by a feeder job of
+    ``feed_minutes`` (None: by hand); raises ConfigError where it cannot (more files than free inodes, a job
     longer than the cluster allows without ``checkpoints`` to chain it)."""
     groups = sum(len(pack.groups) for pack in packs)
     chains = sum(pack.chain > 1 for pack in packs)
@@ -242,8 +243,10 @@ def describe_fit(limits: ClusterLimits | None, storage: Storage, packs: Sequence
     lines = [*limits.describe(), storage.describe(), f"files: up to {files:,} at once, of "
              + ("uncounted inodes" if storage.free_inodes is None else f"{storage.free_inodes:,} inodes free")]
     if limits.submit_jobs is not None and len(packs) > limits.submit_jobs.value:
-        lines.append(f"submissions: {len(packs):,} jobs, at most {limits.submit_jobs.value:,} queued at once: the rest "
-                     "are submitted by launching (or resubmitting) again as jobs end")
+        rest = (f"a job of {feed_minutes} minutes behind the first array submits the rest as jobs end, and so on "
+                "until all are in (launcher.feed_minutes)" if feed_minutes is not None else
+                "launch (or resubmit) again as jobs end to submit the rest (launcher.feed_minutes=null)")
+        lines.append(f"submissions: {len(packs):,} jobs, at most {limits.submit_jobs.value:,} queued at once: {rest}")
     if limits.max_running is not None:
         lines.append(f"running: at most {limits.max_running:,} of the sweep's jobs at once (launcher.max_running): "
                      "its arrays run one after another")

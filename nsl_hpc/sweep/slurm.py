@@ -56,13 +56,13 @@ class JobStates:
 
     states: dict[str, str]
     unaccounted: str | None = None
+    queue_answered: bool = True  # squeue answered: an element it does not hold has ended
 
 
 def job_states(job_ids: Iterable[str], queue_required: bool = True) -> JobStates:
-    """State of every array element of ``job_ids`` (array job ids): one ``squeue`` call for this user's jobs (a
-    job the controller holds is never ended, whatever the accounting database says or does not say yet) and one
-    ``sacct`` call, whose failure is reported, not raised; so is squeue's unless ``queue_required`` (what would
-    submit a task again must know the queue)."""
+    """State of every array element of ``job_ids`` (array job ids): one ``squeue`` call for this user's jobs and
+    one ``sacct`` call, whose failure is reported, not raised; so is squeue's unless ``queue_required`` (what would
+    submit a task again must know the queue). The queue is the truth for what has not ended (merged_states)."""
     ids = sorted(set(job_ids))
     if not ids:
         return JobStates({})
@@ -73,14 +73,24 @@ def job_states(job_ids: Iterable[str], queue_required: bool = True) -> JobStates
     except (SlurmError, SlurmMissing) as error:
         accounted, unaccounted = {}, str(error)
     try:
-        queued = parse_states(slurm_command("squeue", "-h", "-r", "-u", getpass.getuser(), "-o", "%i|%T"))
+        queued: dict[str, str] | None = parse_states(slurm_command("squeue", "-h", "-r", "-u", getpass.getuser(),
+                                                                   "-o", "%i|%T"))
     except (SlurmError, SlurmMissing) as error:
         if queue_required:
             raise
-        queued, unaccounted = {}, str(error)
-    wanted = set(ids)
-    return JobStates(accounted | {element: state for element, state in queued.items()
-                                  if element.split("_")[0] in wanted}, unaccounted)
+        queued, unaccounted = None, str(error)
+    return JobStates(merged_states(accounted, queued, set(ids)), unaccounted, queued is not None)
+
+
+def merged_states(accounted: dict[str, str], queued: dict[str, str] | None, job_ids: set[str]) -> dict[str, str]:
+    """Element -> state: the controller's (``queued``, squeue) for the elements of ``job_ids`` it holds, the
+    accounting database's (``accounted``, sacct) for the others. Once the queue has answered, an element it does not
+    hold has ended, so an active state sacct still gives it (a record slurmdbd has not updated) is stale and
+    dropped; ``queued`` None: the queue did not answer, sacct's states stand."""
+    if queued is None:
+        return dict(accounted)
+    ended = {element: state for element, state in accounted.items() if state not in ACTIVE_JOB_STATES}
+    return ended | {element: state for element, state in queued.items() if element.split("_")[0] in job_ids}
 
 
 def parse_states(output: str) -> dict[str, str]:
@@ -105,14 +115,15 @@ def expand_array_ids(job_id: str) -> list[str]:
     return elements
 
 
-# What sbatch says when it refuses a job for a setting (lowercase fragment -> the launcher key to change); any
-# other refusal is for room (the controller's or the user's job limits) and passes once jobs end.
-REFUSED_SETTINGS = (("partition", "launcher.partition"), ("account", "launcher.account"),
+# What sbatch says when it refuses a job for a setting (lowercase fragment -> the launcher key to change), first
+# match first: "invalid account or account/partition combination" names the account; any other refusal is for room
+# (the controller's or the user's job limits) and passes once jobs end.
+REFUSED_SETTINGS = (("account", "launcher.account"), ("partition", "launcher.partition"),
                     ("invalid qos", "launcher.qos"), ("array specification", "launcher.max_array_size"),
                     ("time limit", "launcher.max_time_minutes"), ("memory", "launcher.mem"),
-                    ("node configuration", "launcher.extra_sbatch"), ("feature specification", "launcher.extra_sbatch"),
-                    ("gres", "launcher.extra_sbatch"), ("unrecognized option", "launcher.extra_sbatch"),
-                    ("invalid option", "launcher.extra_sbatch"))
+                    ("node configuration", "launcher.extra_sbatch"), ("node count", "launcher.extra_sbatch"),
+                    ("feature specification", "launcher.extra_sbatch"), ("gres", "launcher.extra_sbatch"),
+                    ("unrecognized option", "launcher.extra_sbatch"), ("invalid option", "launcher.extra_sbatch"))
 ROOM_REFUSALS = ("temporarily", "job submit limit", "maxsubmit", "maxjobcount", "job count")
 
 

@@ -17,7 +17,7 @@ from nsl_hpc.sweep.rows import row_states
 from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES, job_states
 from nsl_hpc.sweep.submissions import predicted_shares, read_submissions
 
-ACCOUNTING_LAG_S = 30  # a just-submitted job may take a while to appear in sacct (slurmdbd restarts, load)
+ACCOUNTING_LAG_S = 30  # without the queue's answer, a just-submitted job may take a while to appear in sacct
 STATES = ("done", "running", "pending", "failed", "frozen", "timeout", "missing", "corrupt", "skipped", "waiting")
 
 
@@ -74,7 +74,7 @@ def read_sweep_state(sweep_dir: Path, queue_required: bool = True) -> SweepState
             states[task_id] = "running"
             continue
         states[task_id] = task_state(row, failures.get(task_id), element, submitted,
-                                     elements.states.get(element or ""), now)
+                                     elements.states.get(element or ""), now, elements.queue_answered)
         if states[task_id] == "missing":
             states[task_id] = without_row_state(budgeted, task_id, launching)
     return SweepState(states, failures, manifest.to_pylist(), elements.states, elements.unaccounted,
@@ -82,16 +82,18 @@ def read_sweep_state(sweep_dir: Path, queue_required: bool = True) -> SweepState
 
 
 def task_state(row: str, failure: Mapping[str, Any] | None, element: str | None, submitted: float,
-               element_state: str | None, now: float) -> str:
+               element_state: str | None, now: float, queue_answered: bool = True) -> str:
     """One task's state (of STATES) from its row's state (done, corrupt, missing), its failure record, the
     array element it was last submitted to (None: never) at time ``submitted`` (s since the epoch) and that
-    element's state (slurm.job_states; None: neither queued nor in the accounting database)."""
+    element's state (slurm.job_states; None: neither queued nor in the accounting database). A submitted element
+    with no state is missing once the queue has answered (the controller holds every job it accepted); without
+    the queue's answer it is pending for ACCOUNTING_LAG_S after its submission."""
     if row != "missing":
         return row  # done, or corrupt: the task ran to the end and its row was damaged since
     if failure is not None and failure["time"] >= submitted:
         return failure["status"]
     if element_state in ACTIVE_JOB_STATES:
         return ACTIVE_JOB_STATES[element_state]
-    if element is not None and element_state is None and now - submitted < ACCOUNTING_LAG_S:
+    if element is not None and element_state is None and not queue_answered and now - submitted < ACCOUNTING_LAG_S:
         return "pending"  # submitted, not yet in the accounting database
     return "missing"

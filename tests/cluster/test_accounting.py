@@ -7,7 +7,6 @@ import time
 
 import pytest
 
-from nsl_hpc.sweep.task_states import ACCOUNTING_LAG_S
 from tests.sweeps import TINY_GRID, nsl
 
 pytestmark = pytest.mark.slurm
@@ -38,7 +37,7 @@ def start_slurmdbd() -> None:
 
 def test_tasks_queued_while_accounting_was_down_are_never_submitted_again(slurm_cluster, tmp_path):
     sweep_dir = tmp_path / "sweep"
-    held = [*TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "+launcher.extra_sbatch.hold=true",
+    held = [*TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "launcher.hold=true",
             "packing.enabled=false", "lockstep.enabled=false", "sweep.name=unaccounted"]
     stop_slurmdbd()
     try:
@@ -51,7 +50,6 @@ def test_tasks_queued_while_accounting_was_down_are_never_submitted_again(slurm_
         assert "pending 4" in status.stdout and "missing 0" in status.stdout
         assert "accounting did not answer (sacct failed: " in status.stdout and "cannot be told apart" in status.stdout
         assert "nothing to resubmit" in nsl("resubmit", f"sweep_dir={sweep_dir}").stdout
-        time.sleep(ACCOUNTING_LAG_S + 1)  # no longer "just submitted": only the queue says they are pending
         start_slurmdbd()
         resubmitted = nsl("resubmit", f"sweep_dir={sweep_dir}")
         assert resubmitted.returncode == 0 and "nothing to resubmit" in resubmitted.stdout, resubmitted.stdout
@@ -61,3 +59,24 @@ def test_tasks_queued_while_accounting_was_down_are_never_submitted_again(slurm_
     finally:
         start_slurmdbd()
         subprocess.run(["scancel", "-n", "nsl-unaccounted"], check=False)
+
+
+def test_a_task_cancelled_before_accounting_records_it_is_missing_and_resubmitted_at_once(slurm_cluster, tmp_path):
+    """Cancelled within a second of its submission, when sacct may not know the job or still says PENDING: the
+    queue, which no longer holds it, decides; resubmit submits the tasks at once and only once."""
+    sweep_dir = tmp_path / "sweep"
+    held = [*TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "launcher.hold=true", "sweep.name=lost"]
+    try:
+        assert nsl("launch", *held).returncode == 0
+        subprocess.run(["scancel", "-n", "nsl-lost"], check=True)
+        for _ in range(60):  # the controller drops the cancelled job from the queue
+            if not subprocess.run(["squeue", "-h", "-n", "nsl-lost"], capture_output=True, text=True).stdout.strip():
+                break
+            time.sleep(0.5)
+        status = nsl("status", f"sweep_dir={sweep_dir}")
+        assert "missing 4" in status.stdout and "pending 0" in status.stdout, status.stdout
+        resubmitted = nsl("resubmit", f"sweep_dir={sweep_dir}")
+        assert resubmitted.returncode == 0 and "resubmitting 4 tasks" in resubmitted.stdout, resubmitted.stdout
+        assert "nothing to resubmit" in nsl("resubmit", f"sweep_dir={sweep_dir}").stdout
+    finally:
+        subprocess.run(["scancel", "-n", "nsl-lost"], check=False)

@@ -17,7 +17,7 @@ def queued_arrays(name: str) -> set[str]:
 
 def test_a_second_launch_leaves_queued_tasks_to_their_jobs(slurm_cluster, tmp_path):
     sweep_dir = tmp_path / "sweep"
-    held = [*TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "+launcher.extra_sbatch.hold=true",
+    held = [*TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "launcher.hold=true",
             "packing.enabled=false", "lockstep.enabled=false", "sweep.name=held-sweep"]
     first = nsl("launch", *held)
     assert first.returncode == 0 and "submitted 4 jobs in 1 arrays" in first.stdout, first.stderr
@@ -39,7 +39,7 @@ def test_a_job_trains_nothing_over_a_compile_cache_others_can_write(slurm_cluste
     """The compile cache turned writable by others after the launch checked it: each job checks it again before
     anything compiles, and records its tasks failed instead of running them (Inductor unpickles what it finds)."""
     sweep_dir = tmp_path / "sweep"
-    held = [*TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "+launcher.extra_sbatch.hold=true",
+    held = [*TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "launcher.hold=true",
             "sweep.name=shared-cache"]
     launched = nsl("launch", *held)
     assert launched.returncode == 0, launched.stderr

@@ -66,7 +66,7 @@ def test_a_qos_submit_limit_and_max_wall_are_read_and_the_plan_fits_them(limited
 def test_a_partitions_max_time_caps_the_time_limits_and_longer_groups_chain(slurm_cluster, tmp_path):
     sweep_dir = tmp_path / "sweep"
     args = [*TINY_GRID, "launcher=slurm", "launcher.partition=short", f"sweep_dir={sweep_dir}",
-            "+launcher.extra_sbatch.hold=true", "sweep.name=short-partition", "packing.time_classes_minutes=[20,60]"]
+            "launcher.hold=true", "sweep.name=short-partition", "packing.time_classes_minutes=[20,60]"]
     planned = nsl("launch", *args, "dry_run=true")
     assert planned.returncode == 0, planned.stderr
     assert "partition short: a job runs at most 15 (partition short MaxTime) minutes" in planned.stdout
@@ -94,7 +94,7 @@ def test_max_running_caps_the_sweeps_running_jobs_over_all_its_arrays(slurm_clus
     planned = nsl("launch", *args, "dry_run=true")
     assert "running: at most 1 of the sweep's jobs at once (launcher.max_running)" in planned.stdout, planned.stdout
     try:
-        launched = nsl("launch", *args, "+launcher.extra_sbatch.hold=true")  # held: the first array's second-long
+        launched = nsl("launch", *args, "launcher.hold=true")  # held: the first array's second-long
         assert launched.returncode == 0, launched.stderr  # jobs cannot end (and clear the dependency) before it is read
         assert "submitted 4 jobs in 2 arrays" in launched.stdout, launched.stdout
         first, second = (array.strip() for array in launched.stdout.split("arrays: ")[1].splitlines()[0].split(","))

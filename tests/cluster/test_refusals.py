@@ -14,7 +14,7 @@ pytestmark = pytest.mark.slurm
 
 def test_a_qos_sbatch_refuses_is_one_line_and_resubmit_corrects_it(slurm_cluster, tmp_path):
     sweep_dir = tmp_path / "sweep"
-    args = [*TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "+launcher.extra_sbatch.hold=true",
+    args = [*TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "launcher.hold=true",
             "sweep.name=refused"]
     refused = nsl("launch", *args, "launcher.qos=nope")
     assert refused.returncode == 2, refused.stdout + refused.stderr
@@ -29,9 +29,31 @@ def test_a_qos_sbatch_refuses_is_one_line_and_resubmit_corrects_it(slurm_cluster
         assert "resubmitting 4 tasks" in corrected.stdout and "submitted 1 jobs in 1 arrays" in corrected.stdout
         reasons = subprocess.run(["squeue", "-h", "-n", "nsl-refused", "-o", "%r"], capture_output=True, text=True,
                                  check=True).stdout.split()
-        assert reasons == ["JobHeldUser"]  # the sweep's other launcher settings stay (extra_sbatch.hold)
+        assert reasons == ["JobHeldUser"]  # the sweep's other launcher settings stay (launcher.hold)
     finally:
         subprocess.run(["scancel", "-n", "nsl-refused"], check=False)
+
+
+@pytest.mark.parametrize(("override", "reason", "setting", "corrected"), [
+    ("launcher.account=nope", "Invalid account", "launcher.account", "launcher.account=<value>"),
+    ("+launcher.extra_sbatch.constraint=nope", "Invalid feature specification", "launcher.extra_sbatch",
+     "+launcher.extra_sbatch.<flag>=<value or null>"),
+])
+def test_each_refusal_names_its_own_setting_and_its_correction_parses(slurm_cluster, tmp_path, override, reason,
+                                                                       setting, corrected):
+    sweep_dir = tmp_path / "sweep"
+    args = [*TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "launcher.hold=true", "sweep.name=refused-cause"]
+    refused = nsl("launch", *args, override)
+    assert refused.returncode == 2, refused.stdout + refused.stderr
+    line = refused.stderr.strip()
+    assert "\n" not in line and reason in line and f"change {setting}; nothing was submitted" in line, line
+    assert f"python -m nsl_hpc.resubmit sweep_dir={sweep_dir} {corrected} runs the rest" in line
+    if setting == "launcher.extra_sbatch":  # the correction the line names, as written, drops the flag
+        try:
+            dropped = nsl("resubmit", f"sweep_dir={sweep_dir}", "+launcher.extra_sbatch.constraint=null")
+            assert dropped.returncode == 0 and "submitted 1 jobs in 1 arrays" in dropped.stdout, dropped.stderr
+        finally:
+            subprocess.run(["scancel", "-n", "nsl-refused-cause"], check=False)
 
 
 def test_an_array_size_above_the_clusters_is_refused_before_anything_is_submitted(slurm_cluster, tmp_path):
