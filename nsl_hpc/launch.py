@@ -18,6 +18,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
+from nsl_hpc.analysis.widths import track_laws
 from nsl_hpc.studies.base import model_of
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 from nsl_hpc.sweep.executors import run_jobs
@@ -88,7 +89,7 @@ def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path, budgeted: Budget
     prepared = prepare_sweep(cfg, built, sweep_dir)
     if budgeted is None:
         return run_tasks(cfg, built, prepared)
-    return launch_rounds(cfg, built, prepared, overrides, *budgeted, run_tasks)
+    return launch_rounds(cfg, built, prepared, overrides, *budgeted, run_tasks, track_laws)
 
 
 def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> int:

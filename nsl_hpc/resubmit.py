@@ -24,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.config import plain
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.errors import ConfigError, require_number
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock
 from nsl_hpc.sweep.executors import run_jobs
@@ -74,8 +74,7 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
     bad = sorted(set(cfg.states) - set(RESUBMITTABLE))
     if bad:
         raise ConfigError(f"states={list(cfg.states)} has {bad[0]!r}; choose from {', '.join(RESUBMITTABLE)}")
-    if not cfg.time_factor >= 1:
-        raise ConfigError(f"time_factor={cfg.time_factor} must be at least 1")
+    require_number("time_factor", cfg.time_factor, 1.0, 1000.0)
     with private_umask(), sweep_lock(sweep_dir, "resubmit"):
         launch = with_named_settings(read_launch_config(sweep_dir), cfg, overrides)
         check_control_files(sweep_dir, {**plain(launch), "allow_shared_sweep_dir": cfg.allow_shared_sweep_dir})

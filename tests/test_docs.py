@@ -135,3 +135,28 @@ def test_the_reproduction_status_table_is_the_one_its_committed_numbers_give():
     document = (ROOT / cfg.document).read_text()
     assert table_in(document) == expected, "run python benchmarks/reproduction_status.py collect=false"
     assert document.index(BEGIN) < document.index("\n## ")  # the table comes before the first section
+
+
+def layout_tree() -> dict[Path, set[str]]:
+    """docs/layout.md's tree of nsl_hpc: folder -> the module names (in backticks) its paragraph lists."""
+    tree = (ROOT / "docs" / "layout.md").read_text().split("```")[1]
+    block = tree[tree.index("\nnsl_hpc/") + 1:tree.index("\njobs/")]
+    listed: dict[Path, set[str]] = {}
+    parents: list[str] = []
+    for line in block.splitlines():
+        if match := re.match(r"( *)([a-z_]+)/ ", line):  # a folder's paragraph begins
+            depth = len(match.group(1)) // 2
+            parents = [*parents[:depth], match.group(2)]
+            folder = ROOT.joinpath(*parents)
+        listed.setdefault(folder, set()).update(re.findall(r"`([A-Za-z_]+)`", line))
+    return listed
+
+
+def test_the_layout_lists_every_module_and_only_modules_that_exist():
+    listed = layout_tree()
+    packages = {path.parent for path in (ROOT / "nsl_hpc").rglob("__init__.py")}
+    assert set(listed) == packages
+    for folder, names in listed.items():
+        modules = {path.stem for path in folder.glob("*.py")}
+        assert names <= modules, f"{folder}: {sorted(names - modules)} listed but not there"
+        assert modules - {"__init__"} <= names, f"{folder}: {sorted(modules - {'__init__'} - names)} not listed"

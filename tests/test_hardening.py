@@ -188,6 +188,10 @@ def test_resubmit_runs_on_the_last_launcher_with_the_settings_it_is_given(tmp_pa
                  "cost.step_seconds.input_affine=1e-9"]
     frozen = nsl("launch", *TINY_GRID, *longer, f"sweep_dir={sweep_dir}", *too_tight)
     assert frozen.returncode == 1 and "4 frozen" in frozen.stdout, frozen.stderr
+    for bad, shown in (("time_factor=abc", "time_factor='abc'"), ("time_factor=0.5", "time_factor=0.5")):
+        refused = nsl("resubmit", f"sweep_dir={sweep_dir}", bad)  # one line, before anything runs
+        assert refused.returncode == 2
+        assert refused.stderr.strip() == f"error: {shown} must be a finite number in [1, 1000]"
     again = nsl("resubmit", f"sweep_dir={sweep_dir}")  # the debug launcher and the same tight watchdog
     assert again.returncode == 1 and "(debug)" in again.stdout and "4 frozen" in again.stdout
     recovered = nsl("resubmit", f"sweep_dir={sweep_dir}", "launcher=local", "cost.startup_s=600")

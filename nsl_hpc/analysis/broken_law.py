@@ -32,7 +32,7 @@ from numpy.typing import ArrayLike
 from scipy.optimize import least_squares, lsq_linear
 from scipy.special import expit
 
-from nsl_hpc.analysis.law import NSLFit, log_law, log_power, slopes, softplus
+from nsl_hpc.law import NSLFit, log_law, log_power, slopes, softplus
 
 OBJECTIVES = ("margin", "study")
 ENVELOPES = ("step", "interpolated")

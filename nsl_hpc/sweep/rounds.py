@@ -14,13 +14,20 @@ import pyarrow as pa
 import pyarrow.compute as pc
 from omegaconf import DictConfig
 
-from nsl_hpc.analysis.widths import track_laws
 from nsl_hpc.config import plain
 from nsl_hpc.config.launchers import SlurmLauncher, launcher_from
 from nsl_hpc.errors import ConfigError, RunError
 from nsl_hpc.studies.base import Study
 from nsl_hpc.sweep import layout
-from nsl_hpc.sweep.budget import Budget, budget_of, budget_requested, decide_round, describe_budget, planned_seconds
+from nsl_hpc.sweep.budget import (
+    Budget,
+    StopWhen,
+    budget_of,
+    budget_requested,
+    decide_round,
+    describe_budget,
+    planned_seconds,
+)
 from nsl_hpc.sweep.decisions import (
     cancel_round_job,
     decided_structure,
@@ -174,6 +181,10 @@ def decide_next_round(sweep_dir: Path, number: int, rounds: Rounds, manifest: Ma
 
 
 Budgeted = tuple[Budget, Rounds, Callable[[Sequence[str]], float]] | None
+# (sweep_dir, round, rows, committed core-hours, nsl settings, stop_when) -> the result columns whose laws are narrow
+# enough: the fits' law tracker (analysis.widths.track_laws), which the launch hands down
+LawTracker = Callable[[Path, int, Sequence[Mapping[str, Any]], Mapping[str, float], Mapping[str, Any],
+                       StopWhen | None], set[str]]
 
 
 def budgeted_rounds(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Budgeted:
@@ -196,9 +207,9 @@ def budgeted_rounds(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Budg
 
 def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, overrides: Sequence[str],
                   budget: Budget, rounds: Rounds, planned_s: Callable[[Sequence[str]], float],
-                  run_tasks: Callable[[DictConfig, BuiltSweep, PreparedSweep], int]) -> int:
+                  run_tasks: Callable[[DictConfig, BuiltSweep, PreparedSweep], int], track_laws: LawTracker) -> int:
     """A budgeted sweep: decide the next round once the rounds before have run (the laws fitted on their rows
-    first, ``track_round_laws``), run its tasks (``run_tasks``: plan, print and run or submit them), and go on (the
+    first by ``track_laws``), run its tasks (``run_tasks``: plan, print and run or submit them), and go on (the
     local launchers) until the last round; on SLURM submit one round and, behind it, a job that launches again
     (``overrides``) once it has run, and return."""
     sweep_dir, manifest = prepared.sweep_dir, {task["task_id"]: task for task in prepared.manifest.to_pylist()}
@@ -227,14 +238,14 @@ def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, o
         if decided == rounds.count:
             print("budget: every round has run")
             if not layout.law_state_path(sweep_dir, decided).exists():
-                track_round_laws(sweep_dir, decided, manifest, cfg, budget)
+                track_round_laws(sweep_dir, decided, manifest, cfg, budget, track_laws)
             return worst
-        stopped = track_round_laws(sweep_dir, decided, manifest, cfg, budget)
+        stopped = track_round_laws(sweep_dir, decided, manifest, cfg, budget, track_laws)
         decide_next_round(sweep_dir, decided + 1, rounds, manifest, planned_s, budget, stopped)
 
 
 def track_round_laws(sweep_dir: Path, number: int, manifest: Mapping[str, Mapping[str, Any]], cfg: DictConfig,
-                     budget: Budget) -> set[str]:
+                     budget: Budget, track_laws: LawTracker) -> set[str]:
     """``track_laws`` on the rows of the rounds up to ``number``: the result columns whose laws are narrow enough
     (none without ``budget.track_laws`` or before round 1)."""
     if not budget.track_laws or number == 0:
