@@ -21,19 +21,9 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.analysis.cards import write_law_cards
-from nsl_hpc.analysis.fitting import (
-    choose_metrics,
-    fit_sweep,
-    fits_path,
-    read_results,
-    rehearsal_of,
-    require_some_fit,
-    write_fits,
-)
-from nsl_hpc.analysis.learning import learning_lines, sweep_learning
+from nsl_hpc.analysis.fitted import fit_and_record
+from nsl_hpc.analysis.fitting import fits_path
 from nsl_hpc.analysis.nsl_settings import nsl_settings
-from nsl_hpc.config import plain
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 
@@ -41,13 +31,7 @@ from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 def main(cfg: DictConfig) -> int:
     nsl_settings(cfg.nsl)
     sweep_dir = require_sweep(cfg.sweep_dir)
-    results, launch = read_results(sweep_dir), read_launch_config(sweep_dir)
-    chosen = choose_metrics(cfg.nsl, cfg.metrics, results)
-    rows = fit_sweep(results, chosen, cfg.workers, rehearsal_of(launch))
-    require_some_fit(rows, fits_path(sweep_dir))
-    write_fits(sweep_dir, rows)
-    write_law_cards(sweep_dir, launch, plain(chosen), results, rows)
-    print("\n".join(learning_lines(sweep_learning(results, plain(chosen)))))
+    rows = fit_and_record(sweep_dir, cfg.nsl, cfg.metrics, cfg.workers, read_launch_config(sweep_dir)).rows
     failed = sum(row["error"] is not None for row in rows)
     print(f"{len(rows) - failed} NSLs fitted ({failed} not fittable) -> {fits_path(sweep_dir)}, "
           f"{Path(sweep_dir) / layout.FITS_TEXT}, a card per law in {Path(sweep_dir) / layout.LAW_CARDS}")

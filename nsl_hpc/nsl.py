@@ -29,7 +29,7 @@ __all__ = ["Backtest", "FitSettings", "NSLFit", "NSLFitError", "backtest_nsl", "
 
 def default_settings(**changes: Any) -> FitSettings:
     """conf/nsl/default.yaml's search settings, with ``changes`` applied."""
-    return FitSettings.from_mapping(plain(OmegaConf.load(config_dir() / "nsl" / "default.yaml")), **changes)
+    return FitSettings.of(plain(OmegaConf.load(config_dir() / "nsl" / "default.yaml")), **changes)
 
 
 def fit_nsl(resources: ArrayLike, errors: ArrayLike, breaks: int | None = None, max_breaks: int = 4,

@@ -15,20 +15,9 @@ is written. The steps also run alone: ``python -m nsl_hpc.merge``, ``python -m n
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.analysis.cards import write_law_cards
 from nsl_hpc.analysis.figures import draw_figures, figure_stem
-from nsl_hpc.analysis.fitting import (
-    choose_metrics,
-    fit_note,
-    fit_sweep,
-    fits_path,
-    nsl_key,
-    read_results,
-    rehearsal_of,
-    require_some_fit,
-    write_fits,
-)
-from nsl_hpc.analysis.learning import learning_lines, sweep_learning
+from nsl_hpc.analysis.fitted import fit_and_record
+from nsl_hpc.analysis.fitting import fit_note, fits_path, nsl_key
 from nsl_hpc.analysis.mlflow_runs import log_to_mlflow, require_server, tracking_uri
 from nsl_hpc.analysis.nsl_settings import MlflowSettings, figure_settings, nsl_settings
 from nsl_hpc.analysis.prediction import what_it_takes
@@ -51,24 +40,17 @@ def main(cfg: DictConfig) -> int:
     launch = plain(launch_config)
     summary = merge_sweep(sweep_dir, cfg.compact)
     print(f"merged {summary.merged:,} tasks into {results_path(sweep_dir)}\n{summary.describe()}")
-    results = read_results(sweep_dir)
-    chosen = choose_metrics(cfg.nsl, cfg.metrics, results)
-    rows = fit_sweep(results, chosen, cfg.workers, rehearsal_of(launch))
-    require_some_fit(rows, fits_path(sweep_dir))
-    write_fits(sweep_dir, rows)
-    cards = write_law_cards(sweep_dir, launch_config, plain(chosen), results, rows)
+    fitted = fit_and_record(sweep_dir, cfg.nsl, cfg.metrics, cfg.workers, launch_config)
+    results, rows, nsl = fitted.results, fitted.rows, fitted.nsl
     print(f"{sum(row['error'] is None for row in rows)} of {len(rows)} NSLs fitted -> {fits_path(sweep_dir)}")
-    nsl, figures_cfg = plain(chosen), plain(cfg.figures, resolve=False)
-    learning = sweep_learning(results, nsl)
-    print("\n".join(learning_lines(learning)))
-    figures = draw_figures(sweep_dir, results, rows, nsl, figures_cfg)
+    figures = draw_figures(sweep_dir, results, rows, nsl, plain(cfg.figures, resolve=False))
     wanted = nsl["predict"]["report"]
     entries = what_it_takes(results, rows, wanted["resource"], wanted["metric"],
                             lambda best: [factor * best for factor in wanted["factors"]], nsl)
     section = what_it_takes_html(entries, wanted, nsl["resources"][wanted["resource"]]["symbol"])
     report = sweep_dir / layout.REPORT
-    write_text(report_html(sweep_dir, launch, summary, rows, figures, section, nsl, cards["core_hours"], learning),
-               report)
+    write_text(report_html(sweep_dir, launch, summary, rows, figures, section, nsl, fitted.cards["core_hours"],
+                           fitted.learning), report)
     notes = " ".join(note for note in (scores_note(launch), fit_note(nsl)) if note)
     write_text(comparison_markdown(rows, notes), sweep_dir / layout.COMPARISON)
     if mlflow.enabled:

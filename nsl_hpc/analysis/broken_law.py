@@ -32,6 +32,8 @@ from numpy.typing import ArrayLike
 from scipy.optimize import least_squares, lsq_linear
 from scipy.special import expit
 
+from nsl_hpc.config.schema import field_names, setting, typed
+from nsl_hpc.errors import require_number
 from nsl_hpc.law import NSLFit, log_law, log_power, slopes, softplus
 
 OBJECTIVES = ("margin", "study")
@@ -351,34 +353,39 @@ def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings"
 
 @dataclass(frozen=True)
 class FitSettings:
-    """How the fit searches; the values and their meaning live in conf/nsl/default.yaml (``nsl_hpc.nsl``
-    reads them)."""
+    """How the fit searches: the typed owner of these keys of the ``nsl`` group (conf/nsl/default.yaml holds the
+    values; ``nsl_hpc.nsl.default_settings`` reads them)."""
 
-    objective: str
-    envelope: str
-    positions: int
-    starts: int
-    random_starts: int
-    finalists: int
-    alpha_shares: tuple[float, ...]
-    max_slope: float
-    max_rise: float
-    min_segment_points: int
-    edge: float
-    phi_min: float
-    min_gain: float
-    choice_trim: float
-    margin_floor: float
-    study_beta: float
-    study_phi: float | None
-    study_steps: int
-    study_lr: float
+    objective: str = setting("margin: least squares on the log residuals; study: Section 4.3 as written",
+                             choices=OBJECTIVES)
+    envelope: str = setting("what objective=margin fits: Definition 1's step envelope or the interpolated one",
+                            choices=ENVELOPES)
+    positions: int = setting("candidate corner positions of the piecewise-linear starts", 1)
+    starts: int = setting("piecewise-linear starts refined per b", 1)
+    random_starts: int = setting("random starts refined briefly per b", 0)
+    finalists: int = setting("the best this many refined to the end", 1)
+    alpha_shares: list[float] = setting("alpha starts besides 0, as shares of the smallest envelope error", 0, 1,
+                                        high_open=True)
+    max_slope: float = setting("every segment's log-log slope is >= -max_slope", 0, low_open=True)
+    max_rise: float = setting("... and <= max_rise", 0)
+    min_segment_points: int = setting("choice of b: every segment stands on this many outcomes of the envelope", 1)
+    edge: float = setting("breaks stay this share of the log resource range inside it", 0, 0.5, high_open=True)
+    phi_min: float = setting("smallest corner sharpness phi_i", 0, low_open=True)
+    min_gain: float = setting("choice of b: each break must cut the trimmed margin by this share", 0, 1,
+                              high_open=True)
+    choice_trim: float = setting("choice of b: the margin without this share of the worst-fitted envelope points",
+                                 0, 1, high_open=True)
+    margin_floor: float = setting("margins below this floor count as the floor", 0)
+    study_beta: float = setting("objective=study: the weight of L above the envelope (Section 4.3)", 0)
+    study_phi: float | None = setting("objective=study: every phi_i held here; null frees it (>= phi_min)", 0)
+    study_steps: int = setting("objective=study: Adam steps per start", 1)
+    study_lr: float = setting("objective=study: Adam's learning rate", 0, low_open=True)
 
     @classmethod
-    def from_mapping(cls, values: Mapping[str, Any], **changes: Any) -> "FitSettings":
-        """Settings from an ``nsl`` config (other keys ignored), with ``changes`` applied."""
-        chosen = {name: changes.get(name, values[name]) for name in cls.__dataclass_fields__}
-        return cls(**chosen | {"alpha_shares": tuple(chosen["alpha_shares"])})
+    def of(cls, values: Mapping[str, Any], **changes: Any) -> "FitSettings":
+        """The search settings of an ``nsl`` group (its other keys left out), ``changes`` applied, checked."""
+        search = {name: changes.get(name, values[name]) for name in field_names(FitSettings)}
+        return typed(FitSettings, search, "nsl")
 
     @property
     def fitted_envelope(self) -> str:
@@ -386,10 +393,10 @@ class FitSettings:
         return "step" if self.objective == "study" else self.envelope
 
     def check(self) -> None:
-        if self.objective not in OBJECTIVES:
-            raise NSLFitError(f"objective={self.objective!r}; choose from {', '.join(OBJECTIVES)}")
-        if self.envelope not in ENVELOPES:
-            raise NSLFitError(f"envelope={self.envelope!r}; choose from {', '.join(ENVELOPES)}")
+        """The rules between the fields (a ConfigError naming the ``nsl`` key)."""
+        require_number("nsl.max_rise", self.max_rise, 0, self.max_slope)
+        if self.study_phi is not None:
+            require_number("nsl.study_phi", self.study_phi, self.phi_min)
 
 
 def trimmed_margin(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, trim: float) -> float:
@@ -491,7 +498,6 @@ def fit_broken_law(resources: ArrayLike, errors: ArrayLike, breaks: int | None, 
     outcomes of the envelope (b = 0 always counts).
     ``K``: envelope points. ``settings``: the search.
     Raises NSLFitError for outcomes that cannot be fitted."""
-    settings.check()
     if K < 2:
         raise NSLFitError(f"K={K}: the envelope needs at least 2 points")
     r, e = validated_outcomes(resources, errors)

@@ -123,7 +123,7 @@ def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, ns
     ``excluded``: merged tasks left out (not ok, or non-finite / non-positive values); ``rehearse``: a
     rehearsal's settings (its planted laws), None for a real sweep; ``backtest``: false leaves the backtest out (a
     second fit)."""
-    settings = FitSettings.from_mapping(nsl)
+    settings = FitSettings.of(nsl)
     options = {"breaks": nsl["breaks"], "max_breaks": nsl["max_breaks"], "K": nsl["K"], "settings": settings}
     row: dict[str, Any] = {**key, "outcomes": len(r), "excluded": excluded, "error": None,
                            **({"rehearsal": True} if rehearse is not None else {})}

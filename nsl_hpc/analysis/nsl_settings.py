@@ -7,7 +7,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from nsl_hpc.analysis.broken_law import ENVELOPES, OBJECTIVES
+from nsl_hpc.analysis.broken_law import FitSettings
 from nsl_hpc.config.schema import setting, typed
 from nsl_hpc.errors import ConfigError, require_choice, require_number
 
@@ -82,8 +82,9 @@ class Learning:
 
 
 @dataclass(frozen=True)
-class Nsl:
-    """Fitting broken NSLs (nsl_hpc.nsl.fit_nsl) to every (system, arch, resource, metric) of a sweep."""
+class Nsl(FitSettings):
+    """Fitting broken NSLs (nsl_hpc.nsl.fit_nsl) to every (system, arch, resource, metric) of a sweep: the search
+    (FitSettings' keys) and what is fitted, how sure, what it predicts."""
 
     resources: dict[str, Resource] = setting("resource -> results column, symbol in formulas, axis label",
                                              nonempty=True)
@@ -91,30 +92,6 @@ class Nsl:
     K: int = setting("envelope points, log-spaced over the resource range", 2)
     breaks: int | None = setting("a fixed number of breaks b; null: chosen in 0..max_breaks", 0)
     max_breaks: int = setting("the most breaks a law may have", 0)
-    objective: str = setting("margin: least squares on the log residuals; study: Section 4.3 as written",
-                             choices=OBJECTIVES)
-    envelope: str = setting("what objective=margin fits: Definition 1's step envelope or the interpolated one",
-                            choices=ENVELOPES)
-    positions: int = setting("candidate corner positions of the piecewise-linear starts", 1)
-    starts: int = setting("piecewise-linear starts refined per b", 1)
-    random_starts: int = setting("random starts refined briefly per b", 0)
-    finalists: int = setting("the best this many refined to the end", 1)
-    alpha_shares: list[float] = setting("alpha starts besides 0, as shares of the smallest envelope error", 0, 1,
-                                        high_open=True)
-    max_slope: float = setting("every segment's log-log slope is >= -max_slope", 0, low_open=True)
-    max_rise: float = setting("... and <= max_rise", 0)
-    min_segment_points: int = setting("choice of b: every segment stands on this many outcomes of the envelope", 1)
-    edge: float = setting("breaks stay this share of the log resource range inside it", 0, 0.5, high_open=True)
-    phi_min: float = setting("smallest corner sharpness phi_i", 0, low_open=True)
-    min_gain: float = setting("choice of b: each break must cut the trimmed margin by this share", 0, 1,
-                              high_open=True)
-    choice_trim: float = setting("choice of b: the margin without this share of the worst-fitted envelope points",
-                                 0, 1, high_open=True)
-    margin_floor: float = setting("margins below this floor count as the floor", 0)
-    study_beta: float = setting("objective=study: the weight of L above the envelope (Section 4.3)", 0)
-    study_phi: float | None = setting("objective=study: every phi_i held here; null frees it (>= phi_min)", 0)
-    study_steps: int = setting("objective=study: Adam steps per start", 1)
-    study_lr: float = setting("objective=study: Adam's learning rate", 0, low_open=True)
     bootstrap: int = setting("resamples of the outcomes refitted for intervals (0: none)", 0)
     bootstrap_level: float = setting("interval coverage", 0, 1, low_open=True, high_open=True)
     bootstrap_interval: str = setting("basic: reflected about the fit's value; percentile: the quantiles",
@@ -126,15 +103,13 @@ class Nsl:
     learning: Learning = setting("did the models learn: the flag of a pair whose models do not")
 
     def check(self) -> None:
+        super().check()
         if self.max_breaks > self.positions:
             raise ConfigError(f"nsl.max_breaks={self.max_breaks} must be an integer from 0 to {self.positions} "
                               "(nsl.positions)")
         if self.breaks is not None and self.breaks > self.max_breaks:
             raise ConfigError(f"nsl.breaks={self.breaks} must be an integer from 0 to {self.max_breaks} "
                               "(nsl.max_breaks)")
-        require_number("nsl.max_rise", self.max_rise, 0, self.max_slope)
-        if self.study_phi is not None:
-            require_number("nsl.study_phi", self.study_phi, self.phi_min)
         require_choice("nsl.predict.report.resource", self.predict.report.resource, list(self.resources))
         require_choice("nsl.predict.report.metric", self.predict.report.metric, list(self.metrics))
         require_choice("nsl.learning.resource", self.learning.resource, list(self.resources))
