@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 import torch
 
-from nsl_hpc.models.blocks import mlp_parameter_count
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.scoring import numpy_mlps, one_step_narx, simulate_narx, simulate_subnet
 from nsl_hpc.studies.input_output.stacked import StackedMLPs
+from tests.helpers import mlp_parameter_count
 
 B, P, T, NX = 7, 50, 13, 4
 

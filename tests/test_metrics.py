@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from nsl_hpc.studies.metrics import normalized_errors, scores_both_ways
+from nsl_hpc.studies.metrics import normalized_errors
+from tests.helpers import scores_both_ways
 
 
 def test_hand_computed_values():

@@ -10,11 +10,11 @@ from omegaconf import OmegaConf
 from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models import build_model
-from nsl_hpc.models.blocks import mlp, mlp_parameter_count, parameter_count
+from nsl_hpc.models.blocks import mlp, parameter_count
 from nsl_hpc.models.tensor_layout import BATCH_MAJOR, FEATURE_MAJOR
 from nsl_hpc.studies.input_state.stacked import StackedModels
 from nsl_hpc.systems import SYSTEMS
-from tests.helpers import ARCH_NAMES, SYSTEM_NAMES
+from tests.helpers import ARCH_NAMES, SYSTEM_NAMES, mlp_parameter_count
 
 # Variants of each architecture besides the study's (conf/arch): today's choices stay buildable.
 VARIANTS = {

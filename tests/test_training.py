@@ -22,11 +22,11 @@ from nsl_hpc.studies.input_state.lockstep import (
     train_lockstep,
 )
 from nsl_hpc.studies.input_state.scaling import Scaling
-from nsl_hpc.studies.metrics import normalized_errors, scores_both_ways
+from nsl_hpc.studies.metrics import normalized_errors
 from nsl_hpc.studies.settings import InputStateTrain, batch_bounds, batch_count, warmup_cosine
 from nsl_hpc.studies.training import Adam, StepCompiler, stack_rows
 from nsl_hpc.systems import SYSTEMS
-from tests.helpers import ARCH_NAMES, SYSTEM_NAMES
+from tests.helpers import ARCH_NAMES, SYSTEM_NAMES, scores_both_ways
 
 # A trained model must reach at most this fraction of an untrained model's nMAE. Measured with the
 # settings below (4 trajectories, n_h = 16, n_d = 1, 50 epochs = 800 steps, the study's train config, seeds

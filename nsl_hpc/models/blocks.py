@@ -43,13 +43,6 @@ def masked_layer_norm(a: torch.Tensor, mask: torch.Tensor | None, inverse: torch
     return centered * spread, spread
 
 
-def mlp_parameter_count(in_dim: int, out_dim: int, width: int, depth: int, block: str) -> int:
-    """Closed form of the parameter count of ``mlp(in_dim, out_dim, width, depth, block)``:
-    (in+1) w + (n_d-1)(w+1) w + (w+1) out, plus 2 w per hidden layer with LayerNorm."""
-    norm = 2 * width * depth if block == "layernorm_silu" else 0
-    return (in_dim + 1) * width + (depth - 1) * (width + 1) * width + (width + 1) * out_dim + norm
-
-
 def parameter_count(module: nn.Module) -> int:
     """Number of trainable scalars."""
     return sum(p.numel() for p in module.parameters() if p.requires_grad)

@@ -19,14 +19,6 @@ def normalized_errors(true: np.ndarray, predicted: np.ndarray, normalization: st
     return sums.normalized(normalization)
 
 
-def scores_both_ways(true: np.ndarray, predicted: np.ndarray, normalization: str) -> dict[str, float]:
-    """nmae_per_column, nmse_per_column, nmae_scalar, nmse_scalar, and nmae / nmse: the pair ``normalization``
-    selects (``metric.normalization``)."""
-    sums = ErrorSums(spreads(true))
-    sums.add(predicted - true)
-    return sums.both_ways(normalization)
-
-
 def spreads(true: np.ndarray) -> dict[str, np.ndarray]:
     """s_j (n,) of each normalisation for the targets ``true`` (K, n): sigma_j per column, or sigma of all."""
     return {"per_column": true.std(axis=0, ddof=1), "scalar": np.full(true.shape[1], true.std(ddof=1))}

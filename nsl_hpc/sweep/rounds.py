@@ -228,7 +228,7 @@ def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, o
         if this_round.todo.num_rows or prepared.queued:
             started = time.time()
             worst = max(worst, run_tasks(cfg, built, this_round))
-            if prepared.queued or cfg.launcher.name == "slurm":
+            if prepared.queued or isinstance(launcher_from(cfg.launcher), SlurmLauncher):
                 if decided < rounds.count:
                     print(next_round_line(cfg, sweep_dir, overrides, chosen, started, decided))
                 return worst

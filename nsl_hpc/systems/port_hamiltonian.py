@@ -46,12 +46,6 @@ class PortHamiltonianSystem(ABC):
         grad = self.grad_hamiltonian(x)[..., None]
         return (np.swapaxes(self.input_matrix(x), -1, -2) @ grad)[..., 0]
 
-    def power_balance(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """dH/dt predicted by passivity: -grad H^T R grad H + y^T u, (N,)."""
-        grad = self.grad_hamiltonian(x)[..., None]
-        dissipated = (np.swapaxes(grad, -1, -2) @ self.dissipation(x) @ grad)[..., 0, 0]
-        return -dissipated + np.sum(self.output(x) * u, axis=-1)
-
 
 def diagonal(entries: np.ndarray) -> np.ndarray:
     """Batch of diagonal matrices from (N, n) entries, (N, n, n)."""
