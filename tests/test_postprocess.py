@@ -6,11 +6,14 @@ import shutil
 
 import matplotlib.image
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
 import yaml
 from mlflow.tracking import MlflowClient
+from omegaconf import OmegaConf
 
+from nsl_hpc.analysis.cards import core_hours
 from nsl_hpc.analysis.figures import power_label
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.sweep.directory import sweep_lock
@@ -18,6 +21,7 @@ from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.merge import Vanished, read_shards
 from nsl_hpc.sweep.rows import read_row, read_task_rows, row_states, write_row_atomically
+from nsl_hpc.sweep.submissions import record_submission
 from tests.sweeps import manifest_ids, nsl, row_files
 
 pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
@@ -113,6 +117,15 @@ def test_fit_writes_one_row_per_nsl_and_reports_excluded_outcomes(sweep_copy):
     hours = card["core_hours"]
     assert hours["tasks"] == 24 and hours["predicted"] > 0 and hours["measured"] > 0
     assert all(other["core_hours"] == hours and other["provenance"] == card["provenance"] for other in cards.values())
+    # tasks submitted to SLURM: the prediction recorded at their submission (status's), not planned again
+    submitted = manifest_ids(sweep_copy)[:6]
+    record_submission(sweep_copy, "77", 60, ["77_0"], [submitted], [[600.0] * 6])
+    launch_config, results = OmegaConf.load(sweep_copy / "launch.yaml"), pq.read_table(sweep_copy / "results.parquet")
+    again = core_hours(sweep_copy, launch_config, results)
+    others = results.filter(pc.invert(pc.is_in(results["task_id"], value_set=pa.array(submitted))))
+    unsubmitted = core_hours(sweep_copy, launch_config, others)
+    assert again["predicted"] == pytest.approx(1.0 + unsubmitted["predicted"], rel=1e-9)  # 6 x 600 s
+    (sweep_copy / "submissions" / "77.json").unlink()
     assert nsl("fit", f"sweep_dir={sweep_copy}", "metrics=[nmae]", "nsl.bootstrap=0").returncode == 0
     assert sorted(path.name for path in (sweep_copy / "law_cards").glob("*.json")) == sorted(
         name for name in cards if "__nmae" in name)  # the cards of laws no longer fitted are gone

@@ -23,6 +23,7 @@ from nsl_hpc.seeding import stable_hash
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.manifest import read_manifest
 from nsl_hpc.sweep.plan import packing_for, sweep_groups
+from nsl_hpc.sweep.submissions import predicted_shares, read_submissions
 
 INTERVALS = ("last_slope", "L_at_max", "L_at_10x", "alpha")  # and sigma_1.. as the law has breaks
 
@@ -107,14 +108,19 @@ def why_b(row: Mapping[str, Any], nsl: Mapping[str, Any]) -> str:
 
 
 def core_hours(sweep_dir: Path, launch: DictConfig, results: pa.Table) -> dict[str, Any]:
-    """Core-hours of the merged tasks: predicted (the planner's lockstep groups of them, as launch plans) and
-    measured (their rows' wall seconds, a group's shared among its tasks)."""
+    """Core-hours of the merged tasks: predicted (each task's share as recorded when it was submitted last, as
+    status reads it; a task never submitted to SLURM: the planner's lockstep groups of those, as launch plans)
+    and measured (their rows' wall seconds, a group's shared among its tasks)."""
     merged = set(results["task_id"].to_pylist())
+    recorded = predicted_shares(read_submissions(sweep_dir))
     tasks = [task for task in read_manifest(sweep_dir).to_pylist() if task["task_id"] in merged]
-    groups = sweep_groups(tasks, launch, packing_for(launch.packing, launch.launcher), [])
+    unrecorded = [task for task in tasks if task["task_id"] not in recorded]
+    groups = sweep_groups(unrecorded, launch, packing_for(launch.packing, launch.launcher), []) if unrecorded else []
+    predicted = sum(recorded[task["task_id"]] for task in tasks if task["task_id"] in recorded)
     measured = (float(np.nansum(results["wall_seconds"].to_numpy(zero_copy_only=False).astype(float))) / 3600
                 if "wall_seconds" in results.column_names else None)
-    return {"tasks": len(tasks), "predicted": sum(group.seconds for group in groups) / 3600, "measured": measured}
+    return {"tasks": len(tasks), "predicted": (predicted + sum(group.seconds for group in groups)) / 3600,
+            "measured": measured}
 
 
 def strict_json(value: Any) -> Any:
