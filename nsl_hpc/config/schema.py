@@ -90,6 +90,11 @@ def checked(key: str, value: Any, kind: Any, spec: Mapping[str, Any]) -> Any:
         if not isinstance(value, Mapping) or (spec["nonempty"] and not value):
             raise ConfigError(f"{key}={value!r} must map names to values, e.g. {{narx: 1, subnet: 2}}")
         return {name: checked(f"{key}.{name}", item, arguments[1], spec) for name, item in value.items()}
+    return checked_scalar(key, value, kind, spec)
+
+
+def checked_scalar(key: str, value: Any, kind: type, spec: Mapping[str, Any]) -> Any:
+    """``value`` as a bool, a string (within ``spec``'s choices) or a number (within its range)."""
     if kind is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"{key}={value!r} must be true or false")

@@ -200,36 +200,43 @@ class JobRunner:
                 break
             self.started.add(group)
             self.current = group
-            todo = []
-            for task_id, state in row_states(sweep, group.task_ids).items():
-                if state == "done":
-                    counts["skipped"] += 1
-                    continue
-                if state == "corrupt":
-                    set_aside(row_path(sweep, task_id))
-                todo.append(by_id[task_id])
-            if not todo:  # a job stopped between its rows and removing its checkpoint leaves one behind
-                remove_checkpoint(checkpoint_path(sweep, list(group.task_ids)))
-                continue
-            ids = [task["task_id"] for task in todo]
-            lock, name = GroupLock(sweep, ids), group_name(ids)
-            holder = lock.acquire()
-            if holder is not None:
-                LOG.info("%s is trained by %s: left to it", name, holder)
-                counts["busy"] += len(todo)
-                continue
-            try:
-                outcome = self.run_watched(sweep, todo, group, launch, lock)
-            finally:
-                lock.release()
-            LOG.info("%s: %s", name, outcome)
-            counts[outcome] += len(todo)
-            if launch.rehearsal:  # the rehearsal's lost node, after the group it was planted behind
-                die_if_planted(sweep, group.task_ids[0])
-            if outcome == "stopped":
+            if self.train_group(sweep, group, [by_id[task_id] for task_id in group.task_ids], launch,
+                                counts) == "stopped":
                 break
         self.current = None
         return dict(counts)
+
+    def train_group(self, sweep: Path, group: Group, tasks: Sequence[Mapping[str, Any]], launch: DictConfig,
+                    counts: Counter[str]) -> str | None:
+        """Train the ``tasks`` (manifest rows) of ``group`` that have no valid row yet (a corrupt one set aside)
+        while holding its lock, adding to ``counts``; returns the outcome (ok, failed, frozen, stopped), None
+        where nothing trained (every row there, or another job holds the group)."""
+        states = row_states(sweep, group.task_ids)
+        if done := sum(state == "done" for state in states.values()):
+            counts["skipped"] += done
+        for task_id, state in states.items():
+            if state == "corrupt":
+                set_aside(row_path(sweep, task_id))
+        todo = [task for task in tasks if states[task["task_id"]] != "done"]
+        if not todo:  # a job stopped between its rows and removing its checkpoint leaves one behind
+            remove_checkpoint(checkpoint_path(sweep, list(group.task_ids)))
+            return None
+        ids = [task["task_id"] for task in todo]
+        lock, name = GroupLock(sweep, ids), group_name(ids)
+        holder = lock.acquire()
+        if holder is not None:
+            LOG.info("%s is trained by %s: left to it", name, holder)
+            counts["busy"] += len(todo)
+            return None
+        try:
+            outcome = self.run_watched(sweep, todo, group, launch, lock)
+        finally:
+            lock.release()
+        LOG.info("%s: %s", name, outcome)
+        counts[outcome] += len(todo)
+        if launch.rehearsal:  # the rehearsal's lost node, after the group it was planted behind
+            die_if_planted(sweep, group.task_ids[0])
+        return outcome
 
     @staticmethod
     def refuse(sweep: Path, groups: Sequence[Group], reason: str) -> dict[str, int]:
