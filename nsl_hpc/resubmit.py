@@ -16,6 +16,7 @@ group again and continues from the checkpoint.
 
 import sys
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import pyarrow as pa
@@ -24,7 +25,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.config import plain
-from nsl_hpc.errors import ConfigError, require_number
+from nsl_hpc.config.schema import field_names, setting, typed
+from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock
 from nsl_hpc.sweep.executors import run_jobs
@@ -39,7 +41,19 @@ from nsl_hpc.sweep.storage import read_storage
 from nsl_hpc.sweep.task_states import read_sweep_state
 
 RESUBMITTABLE = ("failed", "frozen", "timeout", "missing", "corrupt")
-OWN_KEYS = ("sweep_dir", "states", "time_factor", "allow_shared_sweep_dir")  # resubmit's own keys (conf/resubmit.yaml)
+
+
+@dataclass(frozen=True)
+class ResubmitSettings:
+    """resubmit's own keys (conf/resubmit.yaml; the rest of its config is the sweep's run settings)."""
+
+    sweep_dir: str = setting("the sweep directory (holds manifest.parquet)")
+    states: list[str] = setting("which tasks without a valid row to run again", choices=RESUBMITTABLE, nonempty=True)
+    time_factor: float = setting("multiply the time limits (e.g. 2 after timeouts)", 1, 1000)
+    allow_shared_sweep_dir: bool = setting("true: run although others can write the sweep's control files")
+
+
+OWN_KEYS = field_names(ResubmitSettings)
 
 
 def refuse_task_overrides(overrides: Sequence[str]) -> None:
@@ -68,15 +82,12 @@ def with_named_settings(launch: DictConfig, cfg: DictConfig, overrides: Sequence
     return launch
 
 
-def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
+def main(config: DictConfig, overrides: Sequence[str]) -> int:
     refuse_task_overrides(overrides)
+    cfg = typed(ResubmitSettings, OmegaConf.masked_copy(config, OWN_KEYS), "")
     sweep_dir = require_sweep(cfg.sweep_dir)
-    bad = sorted(set(cfg.states) - set(RESUBMITTABLE))
-    if bad:
-        raise ConfigError(f"states={list(cfg.states)} has {bad[0]!r}; choose from {', '.join(RESUBMITTABLE)}")
-    require_number("time_factor", cfg.time_factor, 1.0, 1000.0)
     with private_umask(), sweep_lock(sweep_dir, "resubmit"):
-        launch = with_named_settings(read_launch_config(sweep_dir), cfg, overrides)
+        launch = with_named_settings(read_launch_config(sweep_dir), config, overrides)
         check_control_files(sweep_dir, {**plain(launch), "allow_shared_sweep_dir": cfg.allow_shared_sweep_dir})
         check_run_settings(launch)
         state = read_sweep_state(sweep_dir)

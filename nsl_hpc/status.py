@@ -16,11 +16,13 @@ a preemption, a requeue, a resubmit after a crash): `running (resumed 2 times)`.
 
 import time
 from collections import Counter
+from dataclasses import dataclass
 
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.widths import describe_law_records, law_records
+from nsl_hpc.config.schema import setting, typed
 from nsl_hpc.sweep.budget import stop_when_of
 from nsl_hpc.sweep.decisions import describe_rounds, read_decisions, round_job_queued
 from nsl_hpc.sweep.groups import held_locks, saved_groups
@@ -29,6 +31,19 @@ from nsl_hpc.sweep.plan import packing_for, sweep_groups
 from nsl_hpc.sweep.task_states import STATES, SweepState, read_sweep_state
 
 LOG_LINES = 5  # log lines shown per failed task
+
+
+@dataclass(frozen=True)
+class StatusSettings:
+    """status's own keys (conf/status.yaml)."""
+
+    sweep_dir: str = setting("the sweep directory (holds manifest.parquet)")
+    wait: bool = setting("keep watching until no task is running or pending")
+    interval_s: float = setting("first interval between looks when waiting (then x1.5, up to max_interval_s)", 0,
+                                86400, low_open=True)
+    max_interval_s: float = setting("the longest interval between looks", 0, 86400, low_open=True)
+    settle_s: float = setting("when waiting ends with tasks missing or waiting, look once more after this", 0, 86400)
+    show_failures: int = setting("failed / frozen / timeout tasks listed with the end of their logs", 0)
 
 
 def remaining_seconds(sweep_dir, state: SweepState, launch: DictConfig) -> float:
@@ -98,23 +113,24 @@ def failure_report(state: SweepState, limit: int) -> str:
     return "\n".join(lines)
 
 
-def main(cfg: DictConfig) -> int:
-    require_sweep(cfg.sweep_dir)
-    launch = read_launch_config(cfg.sweep_dir)
+def main(config: DictConfig) -> int:
+    cfg = typed(StatusSettings, config, "")
+    sweep_dir = require_sweep(cfg.sweep_dir)
+    launch = read_launch_config(sweep_dir)
     interval, confirming = cfg.interval_s, False
     while True:
-        state = read_sweep_state(cfg.sweep_dir)
-        print(summary(state, remaining_seconds(cfg.sweep_dir, state, launch), running_cores(cfg.sweep_dir, state)),
+        state = read_sweep_state(sweep_dir)
+        print(summary(state, remaining_seconds(sweep_dir, state, launch), running_cores(sweep_dir, state)),
               flush=True)
         if note := state.accounting_note():
             print(note, flush=True)
-        if decisions := read_decisions(cfg.sweep_dir):
+        if decisions := read_decisions(sweep_dir):
             print(f"budget: {describe_rounds(decisions)}", flush=True)
             stop_when = stop_when_of(OmegaConf.select(launch, "budget.stop_when", default=None))
-            for line in describe_law_records(law_records(cfg.sweep_dir), stop_when):
+            for line in describe_law_records(law_records(sweep_dir), stop_when):
                 print(line, flush=True)
         active = state.counts()["running"] + state.counts()["pending"] + (
-            state.counts()["waiting"] if round_job_queued(cfg.sweep_dir) else 0)  # the next round comes
+            state.counts()["waiting"] if round_job_queued(sweep_dir) else 0)  # the next round comes
         unsettled = state.counts()["missing"] + state.counts()["waiting"]
         if not cfg.wait or (not active and (confirming or not unsettled)):
             break
@@ -126,7 +142,7 @@ def main(cfg: DictConfig) -> int:
         confirming = False
         time.sleep(interval)
         interval = min(interval * 1.5, cfg.max_interval_s)  # back off: sites rate-limit sacct
-    for report in (checkpoint_report(cfg.sweep_dir, state, cfg.show_failures),
+    for report in (checkpoint_report(sweep_dir, state, cfg.show_failures),
                    failure_report(state, cfg.show_failures)):
         if report:
             print(report)

@@ -218,6 +218,11 @@ def test_post_processing_bad_input_is_a_one_line_error(tmp_path, finished_sweep)
     assert merged.returncode == 0 and "24 of 24 tasks (100.0%) dropped: 0 frozen, 0 failed, 24 missing" in merged.stdout
     empty = nsl("fit", f"sweep_dir={sweep_dir}")
     assert empty.returncode == 2 and "holds no outcomes" in empty.stderr
+    for verb, bad, message in (("status", "interval_s=abc", "interval_s='abc' must be a finite number in (0, 86400]"),
+                               ("status", "show_failures=-1", "show_failures=-1 must be a non-negative integer"),
+                               ("resubmit", "states=[done]", "states value='done' is unknown; choose one of: failed")):
+        refused = nsl(verb, f"sweep_dir={sweep_dir}", bad)
+        assert refused.returncode == 2 and refused.stderr.strip().startswith(f"error: {message}"), refused.stderr
     assert len(row_files(finished_sweep)) == 24  # the module's sweep is untouched
 
 

@@ -31,26 +31,31 @@ def setting(doc: str, low: float | None = None, high: float | None = None, *, lo
 
 
 def typed(schema: type[T], values: Any, key: str) -> T:
-    """The group ``key`` (e.g. ``watchdog``) of plain or DictConfig ``values`` as an instance of ``schema``, or a
-    one-line ConfigError; then the schema's own ``check()`` (rules between its fields), if it has one."""
+    """The group ``key`` (e.g. ``watchdog``; "": a command's own top-level keys) of plain or DictConfig ``values``
+    as an instance of ``schema``, or a one-line ConfigError; then the schema's own ``check()`` (rules between its
+    fields), if it has one."""
     names = field_names(schema)
     if not isinstance(values, Mapping):
         raise ConfigError(f"{key}={values!r} must be a group of keys: {', '.join(names)}")
     given = plain(values)
     for name in given:
         if name not in names:
-            raise ConfigError(f"{key}.{name} is unknown; {key} has: {', '.join(names)}")
+            raise ConfigError(f"{dotted(key, name)} is unknown; {key or 'the command'} has: {', '.join(names)}")
     hints = typing.get_type_hints(schema)
     built = {}
     for item in dataclasses.fields(schema):  # type: ignore[arg-type]
         if item.name in given:
-            built[item.name] = checked(f"{key}.{item.name}", given[item.name], hints[item.name], item.metadata)
+            built[item.name] = checked(dotted(key, item.name), given[item.name], hints[item.name], item.metadata)
         elif item.default is dataclasses.MISSING:
-            raise ConfigError(f"{key}.{item.name} is missing ({item.metadata['doc']})")
+            raise ConfigError(f"{dotted(key, item.name)} is missing ({item.metadata['doc']})")
     instance = schema(**built)
     if hasattr(instance, "check"):
         instance.check()
     return instance
+
+
+def dotted(key: str, name: str) -> str:
+    return f"{key}.{name}" if key else name
 
 
 def field_names(schema: type) -> list[str]:
