@@ -16,6 +16,7 @@ import nsl_hpc
 from nsl_hpc.cli import usage
 from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
+from tests.sweeps import TINY_GRID, nsl
 
 # verb, its config, keys its help must name (its own ones, not every key of every config)
 COMMANDS = [
@@ -124,3 +125,16 @@ def test_a_users_own_sweep_and_site_settings_run_from_outside_an_installed_packa
     assert without.returncode == 2 and "unknown sweep 'my_grid'" in without.stderr
     missing = run("-m", "nsl_hpc.status", "--config-dir", str(tmp_path / "nowhere"), "sweep_dir=mine")
     assert missing.returncode == 2 and len(missing.stderr.splitlines()) == 1 and "is no directory" in missing.stderr
+
+
+# A reader that goes away (| head -1) ends a command quietly, not with a BrokenPipeError traceback.
+@pytest.mark.e2e
+def test_a_closed_pipe_ends_status_quietly(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    assert nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0
+    read, write = os.pipe()
+    os.close(read)
+    result = subprocess.run([sys.executable, "-m", "nsl_hpc.status", f"sweep_dir={sweep_dir}"], stdout=write,
+                            stderr=subprocess.PIPE, text=True)
+    os.close(write)
+    assert result.returncode == 1 and result.stderr == ""

@@ -3,6 +3,7 @@ figures, report and MLflow runs that are updated, not duplicated."""
 
 import json
 import shutil
+import time
 
 import matplotlib.image
 import pyarrow as pa
@@ -22,7 +23,7 @@ from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.merge import Vanished, read_shards
 from nsl_hpc.sweep.rows import read_row, read_task_rows, row_states, write_row_atomically
 from nsl_hpc.sweep.submissions import record_submission
-from tests.sweeps import manifest_ids, nsl, row_files
+from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
 
 pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
 
@@ -331,3 +332,19 @@ def test_a_row_file_gone_while_merge_reads_is_no_corrupt_row(finished_sweep, tmp
         read_shards([*paths, str(sweep_dir / "rows" / "00" / "gone.parquet")])
     rows, corrupt = read_shards(paths)
     assert rows.num_rows == 24 and corrupt == []
+
+
+# Report with a tracking server that does not answer: one line within mlflow.timeout_s, nothing replaced.
+@pytest.mark.e2e
+@pytest.mark.parametrize("uri", ["http://127.0.0.1:9", "http://10.255.255.1:5000"])  # refused; unroutable
+def test_report_with_a_tracking_server_that_does_not_answer_stops_before_writing(uri, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    assert nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0
+    fits = sweep_dir / "nsl_fits.parquet"
+    fits.write_bytes(b"the fits of an earlier report")
+    started = time.monotonic()
+    result = nsl("report", f"sweep_dir={sweep_dir}", f"mlflow.tracking_uri={uri}", "mlflow.timeout_s=2")
+    assert time.monotonic() - started < 60
+    assert result.returncode == 1 and len(result.stderr.splitlines()) == 1, result.stderr
+    assert result.stderr.startswith(f"error: no MLflow tracking server answers at {uri} (mlflow.timeout_s=2; ")
+    assert fits.read_bytes() == b"the fits of an earlier report" and not (sweep_dir / "results.parquet").exists()

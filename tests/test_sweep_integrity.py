@@ -1,9 +1,10 @@
 """A sweep directory that cannot be destroyed, hijacked, run twice or silently lose a task: one test per way a
-hostile but fair user lost a sweep before (the SLURM case is in tests/cluster/test_hardening_slurm.py)."""
+hostile but fair user lost a sweep before (the SLURM case is in tests/cluster/test_sweep_integrity_slurm.py)."""
 
 import getpass
 import multiprocessing
 import os
+import re
 import shutil
 import signal
 import stat
@@ -17,8 +18,11 @@ from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.mlflow_runs import sweep_run, tracking_uri
 from nsl_hpc.sweep.directory import unsafe_refusal
+from nsl_hpc.sweep.failures import read_failures
+from nsl_hpc.sweep.groups import held_locks
 from nsl_hpc.sweep.job import leave_warnings_to_the_runner
-from nsl_hpc.sweep.rows import read_row, read_task_rows
+from nsl_hpc.sweep.layout import row_path
+from nsl_hpc.sweep.rows import read_row, read_task_rows, row_state, write_row_atomically
 from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
 
 pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
@@ -50,7 +54,7 @@ def copy_of(sweep_dir: Path, target: Path) -> Path:
     return target
 
 
-# 1. clean never removes rows, the manifest, configs or failure records, whatever the paths.
+# Clean never removes rows, the manifest, configs or failure records, whatever the paths.
 @pytest.mark.parametrize("cache", ["sweep_dir", "rows"])
 def test_clean_keeps_everything_computed_whatever_cache_dir_is_and_its_dry_run_lists_what_goes(cache, tmp_path):
     sweep_dir = tmp_path / "sweep"
@@ -71,7 +75,7 @@ def test_clean_keeps_everything_computed_whatever_cache_dir_is_and_its_dry_run_l
     assert not [path for path in removed if path.suffix == ".parquet"]
 
 
-# 2. A corrupt or truncated row is no row: status says so, launch and resubmit run it again, the file is kept aside.
+# A corrupt or truncated row is no row: status says so, launch and resubmit run it again, the file is kept aside.
 def test_a_truncated_row_is_reported_rerun_and_kept_aside(tiny_sweep, tmp_path):
     sweep_dir = copy_of(tiny_sweep, tmp_path / "sweep")
     first, second = row_files(sweep_dir)[:2]
@@ -92,7 +96,7 @@ def test_a_truncated_row_is_reported_rerun_and_kept_aside(tiny_sweep, tmp_path):
     assert len(list((sweep_dir / "corrupt").iterdir())) == 2
 
 
-# 3. A sweep directory is self-contained and relocatable.
+# A sweep directory is self-contained and relocatable.
 def test_a_moved_sweep_is_resubmitted_from_elsewhere_into_its_new_place(tmp_path):
     first_home, elsewhere = tmp_path / "first", tmp_path / "elsewhere"
     first_home.mkdir()
@@ -110,7 +114,7 @@ def test_a_moved_sweep_is_resubmitted_from_elsewhere_into_its_new_place(tmp_path
     assert "failed 0" in nsl("status", f"sweep_dir={moved}").stdout
 
 
-# 4. One launch, resubmit or clean at a time per sweep; the manifest is created once.
+# One launch, resubmit or clean at a time per sweep; the manifest is created once.
 def test_concurrent_launches_of_different_grids_into_one_new_directory_accept_one(tmp_path):
     for trial in range(2):
         sweep_dir = tmp_path / f"race{trial}"
@@ -143,7 +147,7 @@ def test_a_second_command_is_refused_naming_the_running_one(tmp_path):
         first.wait()
 
 
-# 6. Workers die with their launcher.
+# Workers die with their launcher.
 def sweep_processes(sweep_dir: Path) -> list[int]:
     """Processes (other than this one) whose command line or whose submitit folder names the sweep."""
     found = []
@@ -178,7 +182,7 @@ def test_killing_the_local_launcher_stops_its_workers_and_a_relaunch_runs_the_re
     assert f"{4 - finished} to run" in again.stdout and len(row_files(sweep_dir)) == 4
 
 
-# 7. resubmit uses the launcher the user names (default: the last one used) and new watchdog and time settings.
+# Resubmit uses the launcher the user names (default: the last one used) and new watchdog and time settings.
 def test_resubmit_runs_on_the_last_launcher_with_the_settings_it_is_given(tmp_path):
     # tasks of 13 heartbeats slowed to >= 1.3 s on any machine: longer than a watchdog poll (0.2 s), every attempt
     sweep_dir, longer = tmp_path / "sweep", ["sweep.grid.epochs=[400]", "fault.kind=slow", "fault.heartbeat_s=0.1",
@@ -200,7 +204,7 @@ def test_resubmit_runs_on_the_last_launcher_with_the_settings_it_is_given(tmp_pa
     assert "name: local" in (sweep_dir / "run.yaml").read_text()
 
 
-# 8. Nobody else can change what a sweep's jobs run.
+# Nobody else can change what a sweep's jobs run.
 @pytest.mark.skipif(os.geteuid() != 0, reason="giving a file to another user needs root")
 def test_a_control_file_another_user_owns_is_refused_with_advice_that_fixes_ownership(tmp_path):
     owned = tmp_path / "launch.yaml"
@@ -234,54 +238,6 @@ def test_control_files_others_can_write_are_refused_and_written_private(tmp_path
     for verb, args in (("launch", LOCAL), ("resubmit", [])):
         refused = nsl(verb, *args, f"sweep_dir={sweep_dir}")
         assert refused.returncode == 2 and f"{planted} is not safe: group and others can write it" in refused.stderr
-
-
-# 9. Bad input: one line, a non-zero exit, before any work, nothing computed touched.
-@pytest.mark.parametrize(("override", "message"), [
-    ("sweep.grid.epochs=4", "sweep.grid.epochs=4 must be a list of values"),
-    ("sweep.grid.epochs=null", "sweep.grid.epochs=None must be a list of values"),
-    ("sweep.grid=[]", "Error merging override sweep.grid=[]"),
-    ("launcher.workers=-1", "launcher.workers=-1 must be an integer from 1 to"),
-    ("launcher.workers=abc", "launcher.workers=abc: Value 'abc' of type 'str' could not be converted to Integer"),
-    ("train.lr=-1", "train.lr=-1 must be a finite number in (0, inf)"),
-    ("watchdog.heartbeat_timeout_s=-1", "watchdog.heartbeat_timeout_s=-1 must be a finite number in (0, 86400]"),
-    ("watchdog.overrun_factor=nan", "watchdog.overrun_factor=nan must be a finite number in [1, 1000]"),
-])
-def test_bad_launch_settings_are_one_line_before_anything_is_written(override, message, tmp_path):
-    sweep_dir = tmp_path / "sweep"
-    result = nsl("launch", *LOCAL, f"sweep_dir={sweep_dir}", override)
-    assert result.returncode == 2 and result.stderr.splitlines() == [f"error: {result.stderr[7:].strip()}"]
-    assert message in result.stderr
-    assert not sweep_dir.exists()
-
-
-@pytest.mark.parametrize(("override", "message"), [
-    ("launcher.partition='cpu\nexit'", "launcher.partition='cpu\\nexit' holds '\\n' at position 3: it would break the "
-                                        "job's batch script (no whitespace or control characters)"),
-    ("+launcher.extra_sbatch.constraint='a\rb'", "launcher.extra_sbatch.constraint='a\\rb' holds '\\r' at position 1"),
-    ("+launcher.extra_sbatch.comment='two words'", "launcher.extra_sbatch.comment='two words' holds ' ' at position 3"),
-    ("+launcher.extra_sbatch.x=[1,2]", "launcher.extra_sbatch.x=[1, 2] must be one value (a string or a number)"),
-    ("+launcher.extra_sbatch.hold=true", "launcher.extra_sbatch.hold is set by the launcher itself (it plans --hold "
-                                         "for every job): use launcher.hold"),
-    ("+launcher.extra_sbatch.time=1", "launcher.extra_sbatch.time is set by the launcher itself (it plans --time for "
-                                      "every job): use launcher.max_time_minutes (the plan gives each array the time "
-                                      "its tasks need, up to that cap)"),
-    ("+launcher.extra_sbatch.nodes=2", "launcher.extra_sbatch.nodes is set by the launcher itself (it plans --nodes "
-                                       "for every job): each task is a single-CPU job element on one node"),
-    ("+launcher.extra_sbatch.cpus_per_task=2", "launcher.extra_sbatch.cpus_per_task is set by the launcher itself"),
-    ("launcher.extra_sbatch={x: 1}", "launcher.extra_sbatch takes its flags one at a time: +launcher.extra_sbatch."
-                                     "<flag>=<value> (e.g. +launcher.extra_sbatch.constraint=cpu)"),
-    ("launcher.setup=['module load python\nrm -rf x']", "launcher.setup line='module load python\\nrm -rf x' holds "
-                                                        "'\\n' at position 18: it would break the job's batch script "
-                                                        "(no control characters)"),
-    ("sweep.name='a\tb'", "sweep.name='a\\tb' holds '\\t' at position 1"),
-])
-def test_text_that_would_break_a_batch_script_is_one_line_before_anything_is_written(override, message, tmp_path):
-    sweep_dir = tmp_path / "sweep"
-    result = nsl("launch", *LOCAL, "launcher=slurm", f"sweep_dir={sweep_dir}", "dry_run=true", override)
-    assert result.returncode == 2 and len(result.stderr.splitlines()) == 1, result.stderr
-    assert message in result.stderr
-    assert not sweep_dir.exists()
 
 
 @pytest.fixture
@@ -409,3 +365,53 @@ def test_a_task_process_leaves_slurms_warning_to_the_job_runner(leave, tmp_path)
         signal.signal(signal.SIGUSR2, previous)
     assert (child.exitcode, marker.exists()) == ((0, False) if leave else (3, True))
 
+
+# A row copied over another task's path is no row of that task: status and resubmit call it corrupt.
+def test_a_row_copied_over_another_tasks_path_is_corrupt_not_done(tmp_path):
+    mine, other = "0123456789abcdef", "fedcba9876543210"
+    write_row_atomically({"task_id": mine, "nmae": 0.1}, row_path(tmp_path, mine))
+    assert row_state(row_path(tmp_path, mine)) == "done"
+    assert row_state(row_path(tmp_path, other)) == "missing"
+    row_path(tmp_path, other).parent.mkdir(parents=True)
+    shutil.copy(row_path(tmp_path, mine), row_path(tmp_path, other))
+    assert row_state(row_path(tmp_path, other)) == "corrupt"
+
+
+# A local worker killed or stopped: its group recorded, the other workers finish, the launch says what happened.
+@pytest.mark.e2e
+@pytest.mark.parametrize(("sent", "state", "reason"), [
+    (signal.SIGKILL, "failed", "died while training it (kill -9, the OOM killer?)"),
+    (signal.SIGSTOP, "frozen", "stopped answering: its group's lock was not renewed for"),
+])
+def test_a_local_worker_killed_or_stopped_is_recorded_and_the_others_finish(sent, state, reason, tmp_path):
+    """4 tasks on 2 workers, a task each at a time: the worker of the first group to take its lock gets ``sent``
+    (SIGSTOP, to it and its training process: noticed after watchdog.worker_silence_s=30); its group is recorded,
+    its other task is not run, the other worker's two tasks finish."""
+    sweep_dir = tmp_path / "sweep"
+    launch = subprocess.Popen([sys.executable, "-m", "nsl_hpc.launch", *TINY_GRID, "sweep.grid.epochs=[4000]",
+                               "launcher=local", "launcher.workers=2", "lockstep.enabled=false",
+                               "watchdog.worker_silence_s=30", f"sweep_dir={sweep_dir}"],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    locks = []
+    while not locks:
+        assert launch.poll() is None, launch.stderr.read()
+        time.sleep(0.2)
+        locks = [lock for lock in held_locks(sweep_dir) if lock.task_ids]
+    if sent == signal.SIGSTOP:  # the worker and its training process: a stopped or stuck process tree
+        children = Path(f"/proc/{locks[0].pid}/task/{locks[0].pid}/children")
+        while not children.read_text().split():  # the lock is taken just before the training process starts
+            time.sleep(0.05)
+        for child in children.read_text().split():
+            os.kill(int(child), sent)
+    os.kill(locks[0].pid, sent)
+    if sent == signal.SIGSTOP:  # 30 s before it is noticed: the sweep runs, and status and merge say so
+        status, merged = nsl("status", f"sweep_dir={sweep_dir}").stdout, nsl("merge", f"sweep_dir={sweep_dir}").stdout
+        assert re.search(r"running [12] \|", status) and "missing 0 |" in status, status
+        assert "0 of 4 tasks (0.0%) dropped" in merged and "still running or queued in a running launch" in merged
+    out, _ = launch.communicate(timeout=300)
+    assert launch.returncode == 1
+    assert f"finished: 1 {state}, 1 not run, 2 ok" in out and "the other workers go on" in out, out
+    failure = read_failures(sweep_dir)[locks[0].task_ids[0]]
+    assert failure["status"] == state and reason in failure["reason"]
+    status = nsl("status", f"sweep_dir={sweep_dir}").stdout
+    assert "done 2 |" in status and f"{state} 1 |" in status and "missing 1 |" in status
