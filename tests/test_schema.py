@@ -5,11 +5,12 @@ import pytest
 from omegaconf import OmegaConf
 
 from nsl_hpc.cli import schema_docs
-from nsl_hpc.config import compose_config
-from nsl_hpc.config.arch import arch_settings
+from nsl_hpc.config import compose_config, config_dir
+from nsl_hpc.config.arch import STUDIES, arch_settings
 from nsl_hpc.config.schema import typed
 from nsl_hpc.config.system import InputOutputSystem, InputStateSystem
 from nsl_hpc.errors import ConfigError
+from nsl_hpc.studies import studies
 from nsl_hpc.studies.settings import InputOutputTrain, InputStateTrain, RolloutSegment
 from nsl_hpc.sweep.run_settings import SCHEMAS, Checkpoint, Cost, Watchdog, run_settings
 from nsl_hpc.sweep.task import check_settings
@@ -108,3 +109,11 @@ def test_a_launch_refuses_a_bad_rehearsal_setting_in_one_line(tmp_path):
               f"sweep_dir={tmp_path / 'sweep'}")
     assert bad.returncode == 2 and bad.stderr.startswith("error: rehearse.killed_jobs=-1 must be a non-negative")
     assert not (tmp_path / "sweep").exists()
+
+
+def test_the_study_names_agree_wherever_they_are_named():
+    """config.arch.STUDIES (what a system or arch may belong to), the studies the code runs and conf/study/."""
+    assert set(STUDIES) == set(studies()) == {path.stem for path in (config_dir() / "study").glob("*.yaml")}
+    for name in STUDIES:
+        assert compose_config([f"study={name}"] + (["system=silverbox", "arch=narx"] if name == "input_output"
+                                                   else []), "one_task").study.name == name
