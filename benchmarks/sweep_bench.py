@@ -31,7 +31,7 @@ from nsl_hpc.sweep.task_states import read_sweep_state
 INPUT_STATE = ["+sweep=input_state"]
 # 9 (system, arch) x 8 seeds x 9 data tiers x 4 width tiers x 2 depth tiers at 2 epochs = 5,184 tasks.
 SUBMISSION_GRID = [*INPUT_STATE, "sweep.grid.seed=[0,1,2,3,4,5,6,7]", "sweep.grid.epochs=[2]", "launcher=slurm",
-                   "+launcher.extra_sbatch.hold=true"]
+                   "launcher.hold=true"]
 
 
 def bench_expansion(root: Path) -> Path:
