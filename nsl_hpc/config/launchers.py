@@ -108,7 +108,6 @@ class SlurmLauncher:
         for line in self.setup:
             check_batch_text("launcher.setup line", line, flag=False)
 
-
     def sbatch_flags(self) -> dict[str, Any]:
         """The extra_sbatch flags sbatch gets: those not set to null."""
         return {flag: value for flag, value in self.extra_sbatch.items() if value is not None}
