@@ -23,6 +23,7 @@ from omegaconf import DictConfig
 from nsl_hpc import cli
 from nsl_hpc.analysis.fitted import fit_and_record
 from nsl_hpc.analysis.fitting import fits_path
+from nsl_hpc.analysis.learning import learning_lines
 from nsl_hpc.analysis.nsl_settings import nsl_settings
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
@@ -31,7 +32,9 @@ from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 def main(cfg: DictConfig) -> int:
     nsl_settings(cfg.nsl)
     sweep_dir = require_sweep(cfg.sweep_dir)
-    rows = fit_and_record(sweep_dir, cfg.nsl, cfg.metrics, cfg.workers, read_launch_config(sweep_dir)).rows
+    fitted = fit_and_record(sweep_dir, cfg.nsl, cfg.metrics, cfg.workers, read_launch_config(sweep_dir))
+    print("\n".join(learning_lines(fitted.learning)))
+    rows = fitted.rows
     failed = sum(row["error"] is not None for row in rows)
     print(f"{len(rows) - failed} NSLs fitted ({failed} not fittable) -> {fits_path(sweep_dir)}, "
           f"{Path(sweep_dir) / layout.FITS_TEXT}, a card per law in {Path(sweep_dir) / layout.LAW_CARDS}")

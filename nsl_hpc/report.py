@@ -18,6 +18,7 @@ from nsl_hpc import cli
 from nsl_hpc.analysis.figures import draw_figures, figure_stem
 from nsl_hpc.analysis.fitted import fit_and_record
 from nsl_hpc.analysis.fitting import fit_note, fits_path, nsl_key
+from nsl_hpc.analysis.learning import learning_lines
 from nsl_hpc.analysis.mlflow_runs import log_to_mlflow, require_server, tracking_uri
 from nsl_hpc.analysis.nsl_settings import MlflowSettings, figure_settings, nsl_settings
 from nsl_hpc.analysis.prediction import what_it_takes
@@ -43,6 +44,7 @@ def main(cfg: DictConfig) -> int:
     fitted = fit_and_record(sweep_dir, cfg.nsl, cfg.metrics, cfg.workers, launch_config)
     results, rows, nsl = fitted.results, fitted.rows, fitted.nsl
     print(f"{sum(row['error'] is None for row in rows)} of {len(rows)} NSLs fitted -> {fits_path(sweep_dir)}")
+    print("\n".join(learning_lines(fitted.learning)))
     figures = draw_figures(sweep_dir, results, rows, nsl, plain(cfg.figures, resolve=False))
     wanted = nsl["predict"]["report"]
     entries = what_it_takes(results, rows, wanted["resource"], wanted["metric"],

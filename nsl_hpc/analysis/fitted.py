@@ -19,7 +19,7 @@ from nsl_hpc.analysis.fitting import (
     require_some_fit,
     write_fits,
 )
-from nsl_hpc.analysis.learning import PairLearning, learning_lines, sweep_learning
+from nsl_hpc.analysis.learning import PairLearning, sweep_learning
 from nsl_hpc.config import plain
 
 
@@ -36,7 +36,7 @@ def fit_and_record(sweep_dir: Path, nsl: DictConfig, metrics: Sequence[str] | No
                    launch: DictConfig) -> FittedSweep:
     """Fit the laws of ``metrics`` (None: the nsl group's) on the sweep's merged results with ``workers``
     processes, write them (nsl_fits.parquet, fits.txt) and their cards once one law could be fitted (else raise,
-    replacing nothing), and print whether each pair's models learned. ``launch``: the sweep's launch config."""
+    replacing nothing), and say whether each pair's models learned. ``launch``: the sweep's launch config."""
     results = read_results(sweep_dir)
     chosen = choose_metrics(nsl, metrics, results)
     rows = fit_sweep(results, chosen, workers, rehearsal_of(launch))
@@ -44,6 +44,4 @@ def fit_and_record(sweep_dir: Path, nsl: DictConfig, metrics: Sequence[str] | No
     write_fits(sweep_dir, rows)
     settings = plain(chosen)
     cards = write_law_cards(sweep_dir, launch, settings, results, rows)
-    learning = sweep_learning(results, settings)
-    print("\n".join(learning_lines(learning)))
-    return FittedSweep(results, settings, rows, cards, learning)
+    return FittedSweep(results, settings, rows, cards, sweep_learning(results, settings))
