@@ -7,13 +7,13 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from nsl_hpc.config import compose_config
+from nsl_hpc.config import compose_config, plain
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import mlp, parameter_count
 from nsl_hpc.models.tensor_layout import BATCH_MAJOR, FEATURE_MAJOR
 from nsl_hpc.studies.input_state.stacked import StackedModels
-from nsl_hpc.systems import SYSTEMS
+from nsl_hpc.studies.input_state.study import system_dimensions
 from tests.helpers import ARCH_NAMES, SYSTEM_NAMES, mlp_parameter_count
 
 # Variants of each architecture besides the study's (conf/arch): today's choices stay buildable.
@@ -48,7 +48,7 @@ def study_parameter_count(arch: str, n: int, m: int, n_h: int, n_d: int) -> int:
 @pytest.mark.parametrize("system", SYSTEM_NAMES)
 @pytest.mark.parametrize(("n_h", "n_d"), [(1, 1), (5, 2), (16, 4)])
 def test_parameter_count_is_the_closed_form(arch, system, n_h, n_d):
-    n, m = SYSTEMS[system].state_dim, SYSTEMS[system].input_dim
+    n, m = system_dimensions(plain(compose_config([f"system={system}"]).system))
     model = build_model(arch_config(arch), n, m, width=n_h, depth=n_d)
     assert parameter_count(model) == study_parameter_count(arch, n, m, n_h, n_d)
 

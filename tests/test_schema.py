@@ -79,13 +79,13 @@ def test_system_and_arch_groups_are_checked_by_their_kind():
     ball = OmegaConf.to_container(compose_config(["system=ball"], "one_task").system)
     with pytest.raises(ConfigError, match=r"^system.initial_box\[0\]=\[2.0, -0.5\] must be \[low, high\]"):
         typed(InputStateSystem, {**ball, "initial_box": [[2.0, -0.5], *ball["initial_box"][1:]]}, "system")
-    assert arch_settings({"name": "narx", "study": "input_output", "block": "tanh", "past_outputs": 50,
-                          "past_inputs": 50}).past_inputs == 50
+    assert arch_settings({"name": "narx", "_target_": "nsl_hpc.models.narx.NARX", "study": "input_output",
+                          "block": "tanh", "past_outputs": 50, "past_inputs": 50}).past_inputs == 50
     with pytest.raises(ConfigError, match=r"^arch.hamiltonian='square' is unknown; choose one of: abs, plain"):
-        arch_settings({"name": "port_hamiltonian", "study": "input_state", "block": "tanh",
-                       "hamiltonian": "square", "dissipation": "square"})
-    with pytest.raises(ConfigError, match=r"^unknown arch 'mlp'"):
-        arch_settings({"name": "mlp"})
+        arch_settings({"name": "port_hamiltonian", "_target_": "nsl_hpc.models.port_hamiltonian.PortHamiltonian",
+                       "study": "input_state", "block": "tanh", "hamiltonian": "square", "dissipation": "square"})
+    with pytest.raises(ConfigError, match=r"^arch._target_ is missing"):
+        arch_settings({"name": "mlp", "study": "input_state", "block": "tanh"})
 
 
 def test_a_tasks_fault_and_rehearsal_groups_are_checked_before_any_work():

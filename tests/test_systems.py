@@ -19,7 +19,7 @@ VARIANT_IDS = [*SYSTEM_NAMES, "spring-authors"]
 @pytest.mark.parametrize(("name", "overrides"), VARIANTS, ids=VARIANT_IDS)
 def test_structure_matrices(name, overrides):
     cfg = system_config(name, *overrides)
-    system = build_system(name, cfg["params"])
+    system = build_system(cfg)
     x = np.random.default_rng(0).normal(size=(50, system.state_dim))
     J, R = system.interconnection(x), system.dissipation(x)
     np.testing.assert_allclose(J, -np.swapaxes(J, 1, 2), atol=0)
@@ -32,7 +32,7 @@ def test_structure_matrices(name, overrides):
 def test_power_balance_along_trajectories(name, overrides):
     """dH/dt = -grad H^T R grad H + y^T u pointwise, and integrated along a simulated trajectory."""
     cfg = system_config(name, *overrides)
-    system = build_system(name, cfg["params"])
+    system = build_system(cfg)
     (trajectory,) = simulate_experiments(cfg, seed=7, count=1)
     pointwise = np.sum(system.grad_hamiltonian(trajectory.x) * trajectory.dx, axis=1)
     balance = power_balance(system, trajectory.x, trajectory.u)
@@ -68,8 +68,8 @@ def test_trajectories_finite_and_bounded(name, overrides):
 
 def test_the_springs_inputs_drive_the_momenta_in_the_paper_and_the_positions_in_the_authors_code():
     x = np.zeros((1, 4))
-    paper = build_system("spring", system_config("spring")["params"]).input_matrix(x)[0]
-    authors = build_system("spring", system_config("spring", "system.constants=authors")["params"]).input_matrix(x)[0]
+    paper = build_system(system_config("spring")).input_matrix(x)[0]
+    authors = build_system(system_config("spring", "system.constants=authors")).input_matrix(x)[0]
     np.testing.assert_array_equal(paper, [[0, 0], [1, 0], [0, 0], [0, 1]])  # x = (q1, p1, q2, p2)
     np.testing.assert_array_equal(authors, [[1, 0], [0, 0], [0, 1], [0, 0]])
 
@@ -95,7 +95,7 @@ def test_multisine_has_the_configured_harmonics():
 def test_experiments_simulated_together_match_each_simulated_alone(name):
     """The test set's 100 experiments are one odeint call; each agrees with its own integration."""
     cfg = system_config(name)
-    system = build_system(name, cfg["params"])
+    system = build_system(cfg)
     rng = np.random.default_rng(11)
     box = np.asarray(cfg["initial_box"])
     x0 = rng.uniform(box[:, 0], box[:, 1], size=(6, len(box)))

@@ -22,10 +22,10 @@ from nsl_hpc.studies.input_state.lockstep import (
     train_lockstep,
 )
 from nsl_hpc.studies.input_state.scaling import Scaling
+from nsl_hpc.studies.input_state.study import system_dimensions
 from nsl_hpc.studies.metrics import normalized_errors
 from nsl_hpc.studies.settings import InputStateTrain, batch_bounds, batch_count, warmup_cosine
 from nsl_hpc.studies.training import Adam, StepCompiler, stack_rows
-from nsl_hpc.systems import SYSTEMS
 from tests.helpers import ARCH_NAMES, SYSTEM_NAMES, scores_both_ways
 
 # A trained model must reach at most this fraction of an untrained model's nMAE. Measured with the
@@ -91,7 +91,7 @@ def test_short_training_beats_untrained_model(system, arch, compose, cache):
     train = build_training_set(system_cfg, 0, 4.0, cache)
     test = build_test_set(system_cfg, cache)
     torch.manual_seed(0)
-    model = build_model(cfg.arch, SYSTEMS[system].state_dim, SYSTEMS[system].input_dim, width=16, depth=1)
+    model = build_model(cfg.arch, *system_dimensions(system_cfg), width=16, depth=1)
     member = Member(model, train, Scaling.fit(train, rescale_targets=False), epochs=50, shuffle_seed=0)
     untrained_stack, _ = train_lockstep([Member(model, train, member.scaling, 0, 0)], cfg.train)
     untrained = normalized_errors(test.dx, *predict_derivatives(untrained_stack, test, [member.scaling],

@@ -13,8 +13,8 @@ from nsl_hpc.analysis.learning import PairLearning
 from nsl_hpc.analysis.mlflow_runs import flatten
 from nsl_hpc.analysis.prediction import format_need
 from nsl_hpc.config import compose_config, plain
+from nsl_hpc.config.targets import outcome_values
 from nsl_hpc.studies import study_named
-from nsl_hpc.studies.base import without_paths
 from nsl_hpc.sweep.grid import sub_grids
 from nsl_hpc.sweep.manifest import read_base_config
 from nsl_hpc.sweep.merge import MergeSummary
@@ -204,8 +204,8 @@ def science_settings(sweep_dir: Path, launch: Mapping[str, Any]) -> dict[tuple[s
                 used = plain(read_base_config(sweep_dir, system, arch))
                 default = plain(compose_config(
                     [f"study={study.name}", f"system={system}", f"arch={arch}"]))
-                flat_used = flatten(without_paths({key: used[key] for key in study.shared_keys}))
-                flat_default = flatten(without_paths({key: default[key] for key in study.shared_keys}))
+                flat_used = flatten(outcome_values({key: used[key] for key in study.shared_keys}))
+                flat_default = flatten(outcome_values({key: default[key] for key in study.shared_keys}))
                 settings[system, arch] = {key: (value, flat_default.get(key, "(none)"))
                                           for key, value in flat_used.items()}
     return settings

@@ -46,8 +46,8 @@ from nsl_hpc.studies.input_output.training import SignalScaling
 from nsl_hpc.studies.input_state import lockstep
 from nsl_hpc.studies.input_state.data import build_training_set
 from nsl_hpc.studies.input_state.scaling import Scaling
+from nsl_hpc.studies.input_state.study import system_dimensions
 from nsl_hpc.studies.training import StepCompiler
-from nsl_hpc.systems import SYSTEMS
 
 INPUT_OUTPUT = ("narx", "subnet")
 MATMULS = ("aten::bmm", "aten::baddbmm", "aten::mm", "aten::addmm")
@@ -59,14 +59,13 @@ Train = Callable[[StepCompiler, Callable[[], None]], object]
 def input_state_run(spec: Mapping[str, Any]) -> tuple[Train, int, float]:
     """``train(compiler, on_progress)`` of K input-state models, the steps of a block and the flops of a step."""
     cfg = compose_config([f"system={spec['system']}", f"arch={spec['arch']}"])
-    system = SYSTEMS[spec["system"]]
     data = build_training_set(plain(cfg.system), 0, spec["n_traj"], ArrayCache(spec["data_cache"]))
     train = plain(cfg.train, resolve=False)
     batches = math.ceil(len(data) / train["batch_size"])
     members = []
     for k in range(spec["models"]):
         torch.manual_seed(k)
-        model = build_model(cfg.arch, system.state_dim, system.input_dim, spec["width"], spec["depth"])
+        model = build_model(cfg.arch, *system_dimensions(plain(cfg.system)), spec["width"], spec["depth"])
         members.append(lockstep.Member(model, data, Scaling.fit(data, False),
                                        math.ceil(spec["blocks"] * lockstep.BLOCK_STEPS / batches), k))
     flops = 6.0 * parameter_count(members[0].model) * train["batch_size"] * spec["models"]

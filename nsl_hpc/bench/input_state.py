@@ -46,11 +46,11 @@ from nsl_hpc.models.state_space import StateSpaceModel
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, predict_derivatives, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
+from nsl_hpc.studies.input_state.study import system_dimensions
 from nsl_hpc.studies.metrics import normalized_errors
 from nsl_hpc.studies.settings import batch_count, warmup_cosine
 from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments, with_compile
 from nsl_hpc.sweep.rows import write_row_atomically
-from nsl_hpc.systems import SYSTEMS
 
 
 def normalised_mse(predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -116,9 +116,8 @@ class Bench:
                           for arch in {*cfg.archs, cfg.typical_task.arch}}  # composed once, not per model
 
     def model(self, arch: str, width: int, depth: int, seed: int) -> StateSpaceModel:
-        system = SYSTEMS[self.system_cfg["name"]]
         torch.manual_seed(seed)
-        return build_model(self.arch_cfgs[arch], system.state_dim, system.input_dim, width, depth)
+        return build_model(self.arch_cfgs[arch], *system_dimensions(self.system_cfg), width, depth)
 
     def members(self, arch: str, width: int, depth: int, count: int, steps: int) -> list[Member]:
         epochs = max(1, math.ceil(steps / self.batches))

@@ -6,7 +6,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from nsl_hpc.config.schema import setting, typed
+from nsl_hpc.config.mapping import plain
+from nsl_hpc.config.schema import field_names, setting, typed
+from nsl_hpc.config.targets import PACKAGE_PREFIX, TARGET
 from nsl_hpc.errors import ConfigError
 
 BLOCKS = ("layernorm_silu", "tanh")  # an MLP's hidden layer: Linear -> LayerNorm -> SiLU, or Linear -> tanh
@@ -20,7 +22,11 @@ SUBNET_NETWORKS = ("encoder", "f", "h")  # SUBNET's MLPs: the encoder, the state
 
 @dataclass(frozen=True)
 class Arch:
+    """An architecture; its other keys are its options (keyword arguments of ``_target_``)."""
+
     name: str = setting("the architecture")
+    _target_: str = setting("the class that builds it (input-state: a StateSpaceArchitecture of n, m, n_h and the "
+                            "options)")
     study: str = setting("the study it belongs to", choices=STUDIES)
     block: str = setting("hidden layer: Linear -> LayerNorm -> SiLU, or Linear -> tanh", choices=BLOCKS)
 
@@ -77,15 +83,21 @@ ARCH_SCHEMAS: dict[str, type[Arch]] = {"unstructured": Unstructured, "input_affi
                                        "port_hamiltonian": PortHamiltonian, "narx": Narx, "subnet": Subnet}
 
 
+BASE_KEYS = tuple(field_names(Arch))
+
+
 def arch_settings(arch_cfg: Mapping[str, Any]) -> Arch:
-    """An ``arch`` group, typed and checked by its architecture's schema."""
-    name = arch_cfg.get("name") if isinstance(arch_cfg, Mapping) else None
-    if name not in ARCH_SCHEMAS:
-        raise ConfigError(f"unknown arch {name!r}; choose one of: {', '.join(sorted(ARCH_SCHEMAS))}")
-    return typed(ARCH_SCHEMAS[name], arch_cfg, "arch")
+    """An ``arch`` group, typed and checked by its architecture's schema (a package architecture: one of
+    ``ARCH_SCHEMAS``, built by the package's class), or, for one of the user's, its common keys (``Arch``)."""
+    if not isinstance(arch_cfg, Mapping):
+        raise ConfigError(f"arch={arch_cfg!r} must be a group of keys: {', '.join(BASE_KEYS)}")
+    schema = ARCH_SCHEMAS.get(arch_cfg.get("name", ""))
+    if schema is not None and str(arch_cfg.get(TARGET, "")).startswith(PACKAGE_PREFIX):
+        return typed(schema, arch_cfg, "arch")
+    return typed(Arch, {key: value for key, value in arch_cfg.items() if key in BASE_KEYS}, "arch")
 
 
 def architecture_options(arch_cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """The options an architecture's constructor takes: its config without name, study and block."""
-    settings = arch_settings(arch_cfg)
-    return {key: value for key, value in vars(settings).items() if key not in ("name", "study", "block")}
+    """The options an architecture's ``_target_`` takes: its config without name, _target_, study and block."""
+    arch_settings(arch_cfg)
+    return {key: value for key, value in plain(arch_cfg).items() if key not in BASE_KEYS}

@@ -1,7 +1,7 @@
-"""The typed owners of the ``system`` group (conf/system/<name>.yaml): an input-state system (a simulated
-port-Hamiltonian ODE: its constants, initial states, multisine input, simulation and test set) or an input-output
-one (measured records or their simulated stand-ins: the training pool, its data tiers, the test records, SUBNET's
-state and horizon). ``config.schema`` checks them."""
+"""The typed owners of the ``system`` group (conf/system/<name>.yaml): an input-state system (a simulated ODE
+built by its ``_target_``: its constants, initial states, multisine input, simulation and test set) or an
+input-output one (measured records or their simulated stand-ins: the training pool, its data tiers, the test
+records, SUBNET's state and horizon). ``config.schema`` checks them."""
 
 from dataclasses import dataclass
 from typing import Any
@@ -45,11 +45,12 @@ class TestSet:
 
 @dataclass(frozen=True)
 class InputStateSystem:
-    """A port-Hamiltonian system of the input-state study."""
+    """A simulated system of the input-state study (the package's port-Hamiltonian ones, or one of yours)."""
 
     name: str = setting("the system")
+    _target_: str = setting("the class or function that builds it from params (nsl_hpc.systems.System)")
     study: str = setting("its study", choices=STUDIES)
-    params: dict[str, Any] = setting("the constants the simulation uses", nonempty=True)
+    params: dict[str, Any] = setting("the constants (keyword arguments of _target_)")
     initial_box: list[list[float]] = setting("uniform initial state: [low, high] per state", nonempty=True)
     input: Multisine = setting("the input signal")
     simulation: Simulation = setting("the simulation")

@@ -10,6 +10,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from nsl_hpc.checkpoint import Checkpointer
+from nsl_hpc.config.targets import outcome_values
 from nsl_hpc.errors import ConfigError, require_positive_int
 from nsl_hpc.seeding import stable_hash, stable_seed
 
@@ -70,10 +71,11 @@ class Study:
         return stable_seed(purpose, *(task[key] for key in self.draw_keys(draws)))
 
     def shared_identity(self, values: Mapping[str, Any]) -> str:
-        """Hash of the shared outcome-changing groups of a plain config dict (paths left out, and the settings of
-        ``neutral`` at their neutral value: a sweep made before such a setting existed keeps its task ids; the
-        ``rounding_only`` ones at any value), with a rehearsal's settings in a rehearsal."""
-        shared = {key: without_paths(values[key]) for key in self.shared_keys}
+        """Hash of the shared outcome-changing groups of a plain config dict (``outcome_values``: paths and the
+        package's own ``_target_`` left out, and the settings of ``neutral`` at their neutral value: a sweep made
+        before such a setting existed keeps its task ids; the ``rounding_only`` ones at any value), with a
+        rehearsal's settings in a rehearsal."""
+        shared = {key: outcome_values(values[key]) for key in self.shared_keys}
         if values.get("rehearsal"):  # a rehearsal's synthetic outcomes: never a real sweep's tasks
             shared["rehearsal"] = values["rehearse"]
         for group, key, value in self.neutral:
@@ -150,9 +152,3 @@ def model_of(task: Mapping[str, Any], model_keys: Sequence[str]) -> tuple:
     are one model. ``model_keys``: ``Study.model_keys``; none means one model per task."""
     return tuple(task[key] for key in model_keys) if model_keys else (task["task_id"],)
 
-
-def without_paths(value: Any) -> Any:
-    """``value`` without its ``data_dir`` entries (where data lies does not change an outcome)."""
-    if isinstance(value, Mapping):
-        return {k: without_paths(v) for k, v in value.items() if k != "data_dir"}
-    return value

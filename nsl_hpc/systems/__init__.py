@@ -1,19 +1,66 @@
-"""The simulated benchmark systems, by name; ``build_system`` turns a ``system`` config into one."""
+"""The simulated systems of the input-state study: ``build_system`` turns a ``system`` config into one through its
+``_target_`` (the package's ``spring``, ``ball``, ``motor``, or a class or function of the user's), and
+``check_system`` tries one on its initial box before any work."""
 
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
+import numpy as np
+
+from nsl_hpc.config.targets import called, located, where
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.systems.ball import Ball
-from nsl_hpc.systems.motor import Motor
-from nsl_hpc.systems.port_hamiltonian import PortHamiltonianSystem
-from nsl_hpc.systems.spring import Spring
-
-SYSTEMS: dict[str, type[PortHamiltonianSystem]] = {"spring": Spring, "ball": Ball, "motor": Motor}
 
 
-def build_system(name: str, params: Mapping[str, Any]) -> PortHamiltonianSystem:
-    """The system called ``name`` with physical constants ``params``."""
-    if name not in SYSTEMS:
-        raise ConfigError(f"unknown system {name!r}; choose one of: {', '.join(sorted(SYSTEMS))}")
-    return SYSTEMS[name](**params)
+@runtime_checkable
+class System(Protocol):
+    """What a simulated system gives: its sizes and right-hand side, vectorised over a batch (x (N, n), u (N, m)).
+    A port-Hamiltonian one (``PortHamiltonianSystem``) derives both from H, J, R and B."""
+
+    state_dim: int
+    input_dim: int
+
+    def derivative(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """dx/dt = f(x, u), (N, n)."""
+        ...
+
+    def output(self, x: np.ndarray) -> np.ndarray:
+        """y = g(x), (N, m)."""
+        ...
+
+
+def build_system(system_cfg: Mapping[str, Any]) -> System:
+    """The system ``system_cfg._target_`` builds from its constants ``system_cfg.params`` (keyword arguments)."""
+    system = called("system", system_cfg, located("system", system_cfg), **system_cfg["params"])
+    if not isinstance(system, System):
+        missing = [name for name in ("state_dim", "input_dim", "derivative", "output") if not hasattr(system, name)]
+        raise ConfigError(f"{where('system', system_cfg)}: system._target_={system_cfg['_target_']!r} built a "
+                          f"{type(system).__name__} without {', '.join(missing)} (nsl_hpc.systems.System)")
+    return system
+
+
+def check_system(system_cfg: Mapping[str, Any], samples: int = 256) -> System:
+    """The system, refused in one line unless its sizes agree with the initial box and f and g give finite values
+    of the right shapes at ``samples`` states drawn from the box (its corners among them) and inputs up to three
+    times the multisine's RMS."""
+    system = build_system(system_cfg)
+    label = f"{where('system', system_cfg)}: system._target_={system_cfg['_target_']!r}"
+    box = np.asarray(system_cfg["initial_box"], dtype=float)
+    if len(box) != system.state_dim:
+        raise ConfigError(f"{label} has state_dim={system.state_dim}, system.initial_box has {len(box)} states")
+    rng = np.random.default_rng(0)
+    corners = np.stack(np.meshgrid(*box, indexing="ij"), axis=-1).reshape(-1, len(box))[:samples]
+    x = np.concatenate([corners, rng.uniform(box[:, 0], box[:, 1], size=(samples, len(box)))])
+    peak = 3 * system_cfg["input"]["amplitude"] * np.sqrt(system_cfg["input"]["harmonics"] / 2)  # 3 x its RMS
+    u = rng.uniform(-peak, peak, size=(len(x), system.input_dim))
+    for name, value, shape in (("derivative(x, u)", lambda: system.derivative(x, u), (len(x), system.state_dim)),
+                               ("output(x)", lambda: system.output(x), (len(x), system.input_dim))):
+        try:
+            result = np.asarray(value(), dtype=float)
+        except Exception as error:
+            raise ConfigError(f"{label}: {name} raises {type(error).__name__}: {error}") from None
+        if result.shape != shape:
+            raise ConfigError(f"{label}: {name} gives shape {result.shape} for {len(x)} states, expected {shape}")
+        if not np.isfinite(result).all():
+            raise ConfigError(f"{label}: {name} is not finite at {int((~np.isfinite(result)).any(axis=1).sum())} of "
+                              f"{len(x)} states drawn from system.initial_box (inputs up to {peak:g})")
+    return system

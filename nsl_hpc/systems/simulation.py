@@ -1,10 +1,12 @@
 """Multisine excitation and trajectory simulation with ``scipy.integrate.odeint``."""
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from nsl_hpc.systems.port_hamiltonian import PortHamiltonianSystem
+if TYPE_CHECKING:
+    from nsl_hpc.systems import System
 
 
 @dataclass(frozen=True)
@@ -46,7 +48,7 @@ def draw_multisine(rng: np.random.Generator, experiments: int, channels: int, am
                      first_harmonic)
 
 
-def simulate(system: PortHamiltonianSystem, x0: np.ndarray, excitation: Multisine, duration_s: float,
+def simulate(system: "System", x0: np.ndarray, excitation: Multisine, duration_s: float,
              dt_s: float, rtol: float, atol: float) -> list[Trajectory]:
     """Integrate E experiments from x0 (E, n), experiment e driven by channel block e of ``excitation``, and
     sample every dt_s for duration_s: T = round(duration_s / dt_s) points each. The experiments are one

@@ -27,6 +27,7 @@ from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
 from nsl_hpc.config import plain
 from nsl_hpc.config.arch import IO_ARCHITECTURES, Narx, Subnet, arch_settings
 from nsl_hpc.config.system import MEASURED_KINDS, InputOutputSystem
+from nsl_hpc.config.targets import located, where
 from nsl_hpc.errors import ConfigError, require_member
 from nsl_hpc.studies.base import Study, draw_tier
 from nsl_hpc.studies.input_output.data import Benchmark, load_benchmark, require_files
@@ -40,17 +41,20 @@ if TYPE_CHECKING:
 
 def build_io_model(arch_cfg: Mapping[str, Any], system_cfg: Mapping[str, Any], width: int, depth: int
                    ) -> "NARX | SUBNET":
-    """The architecture ``arch_cfg.name`` (narx or subnet) with n_h = width, n_d = depth."""
+    """The architecture ``arch_cfg._target_`` builds (NARX or SUBNET: the models the input-output lockstep
+    training stacks) with n_h = width, n_d = depth."""
     from nsl_hpc.models.narx import NARX
     from nsl_hpc.models.subnet import SUBNET
 
-    arch = arch_settings(arch_cfg)
-    if isinstance(arch, Narx):
+    arch, builder = arch_settings(arch_cfg), located("arch", arch_cfg)
+    if isinstance(arch, Narx) and builder is NARX:
         return NARX(arch.past_outputs, arch.past_inputs, width, depth, arch.block)
-    if isinstance(arch, Subnet):
+    if isinstance(arch, Subnet) and builder is SUBNET:
         return SUBNET(subnet_state_dim(arch_cfg, system_cfg), arch.past, width, depth, arch.block, tuple(arch.bypass),
                       arch.residual, arch.zero_bias, arch.zero_f_output)
-    raise ConfigError(f"unknown arch {arch_cfg['name']!r} for the input_output study; choose one of: narx, subnet")
+    raise ConfigError(f"{where('arch', arch_cfg)}: arch._target_={arch_cfg.get('_target_')!r}: the input_output "
+                      "study trains the package's narx and subnet (its lockstep paths); a model of your own is an "
+                      "input-state architecture (docs/own_study.md)")
 
 
 def subnet_state_dim(arch_cfg: Mapping[str, Any], system_cfg: Mapping[str, Any]) -> int:

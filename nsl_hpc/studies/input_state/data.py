@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from nsl_hpc.cache import ArrayCache
+from nsl_hpc.config.targets import TARGET, outcome_values
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.systems import build_system
 from nsl_hpc.systems.simulation import Trajectory, draw_multisine, simulate
@@ -63,7 +64,8 @@ FIELDS = ("t", "x", "u", "dx", "y")
 def simulation_key(system_cfg: Mapping[str, Any], **where: Any) -> dict[str, Any]:
     """Cache key of simulated data: everything the simulation depends on, and ``where`` in which pool."""
     return {"version": SIMULATION_VERSION,
-            "system": {k: system_cfg[k] for k in ("name", "params", "initial_box", "input", "simulation")}, **where}
+            "system": outcome_values({k: system_cfg[k] for k in ("name", TARGET, "params", "initial_box", "input",
+                                                        "simulation")}), **where}
 
 
 def load_trajectory(system_cfg: Mapping[str, Any], split: str, seed: int, index: int,
@@ -81,7 +83,7 @@ def load_trajectory(system_cfg: Mapping[str, Any], split: str, seed: int, index:
 def simulate_experiments(system_cfg: Mapping[str, Any], seed: int, count: int) -> list[Trajectory]:
     """``count`` experiments simulated together: x0 uniform in the initial box, a fresh multisine per
     experiment and input channel."""
-    system = build_system(system_cfg["name"], system_cfg["params"])
+    system = build_system(system_cfg)
     rng = np.random.default_rng(seed)
     box = np.asarray(system_cfg["initial_box"], dtype=float)  # (n, 2)
     x0 = rng.uniform(box[:, 0], box[:, 1], size=(count, len(box)))

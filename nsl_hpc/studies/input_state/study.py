@@ -10,6 +10,7 @@ The models and the training code (torch: ~1.5 s to import) are imported by the f
 model, so that the commands that only read or check a sweep (status, merge, clean, resubmit) start without them.
 """
 
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from functools import cache
@@ -26,7 +27,7 @@ from nsl_hpc.errors import ConfigError, require_member
 from nsl_hpc.studies.base import Study, draw_tier, model_of
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set, points_per_trajectory, training_points
 from nsl_hpc.studies.settings import InputStateTrain, Metric, batch_count, passes
-from nsl_hpc.systems import SYSTEMS
+from nsl_hpc.systems import build_system, check_system
 
 if TYPE_CHECKING:
     from nsl_hpc.studies.input_state.lockstep import Member
@@ -34,15 +35,25 @@ if TYPE_CHECKING:
 TIER_OF = {"data_tier": "data", "width_tier": "width", "depth_tier": "depth"}
 
 
+DIMENSIONS: dict[str, tuple[int, int]] = {}  # a system's target and constants -> (n, m), each built once
+
+
+def system_dimensions(system_cfg: Mapping[str, Any]) -> tuple[int, int]:
+    """(n, m): the state and input sizes of the system ``system_cfg`` builds."""
+    identity = f"{system_cfg['_target_']}{system_cfg['params']!r}"
+    if identity not in DIMENSIONS:
+        system = build_system(system_cfg)
+        DIMENSIONS[identity] = (system.state_dim, system.input_dim)
+    return DIMENSIONS[identity]
+
+
 @cache
-def model_parameters(arch_items: tuple, system: str, width: int, depth: int) -> int:
-    """Parameter count of one architecture, built once per distinct shape."""
+def model_parameters(arch_items: tuple, dimensions: tuple[int, int], width: int, depth: int) -> int:
+    """Parameter count of one architecture for a system of sizes (n, m), built once per distinct shape."""
     from nsl_hpc.models import build_model
     from nsl_hpc.models.blocks import parameter_count
 
-    system_class = SYSTEMS[system]
-    model = build_model(dict(arch_items), system_class.state_dim, system_class.input_dim, width, depth)
-    return parameter_count(model)
+    return parameter_count(build_model(dict(arch_items), *dimensions, width, depth))
 
 
 class InputState(Study):
@@ -69,6 +80,16 @@ class InputState(Study):
                                       f"{train['schedule_epochs']}, the epochs of the milestone runs; raise it "
                                       "to the largest epoch count or set it to null")
 
+    def check_pair(self, base: Mapping[str, Any]) -> None:
+        """The system builds and is finite on its initial box; the architecture builds for it and gives dx/dt and
+        y of the right shapes on a sample batch, alone and stacked (``check_system``, ``check_architecture``)."""
+        from nsl_hpc.models import check_architecture
+
+        system = check_system(base["system"])
+        tiers = base["tiers"]
+        check_architecture(base["arch"], system.state_dim, system.input_dim, math.ceil(min(tiers["width"]) / 2),
+                           math.ceil(min(tiers["depth"]) / 2))
+
     def prepare_data(self, base: Mapping[str, Any]) -> None:
         build_test_set(base["system"], ArrayCache(base["cache_dir"]))
 
@@ -78,7 +99,7 @@ class InputState(Study):
         width, depth = draw_tier(rng, task["width_tier"]), draw_tier(rng, task["depth_tier"])
         n_traj = data_size / base["data_per_trajectory"]
         points = training_points(n_traj, points_per_trajectory(base["system"]))
-        params = model_parameters(tuple(base["arch"].items()), task["system"], width, depth)
+        params = model_parameters(tuple(base["arch"].items()), system_dimensions(base["system"]), width, depth)
         return {"data_size": data_size, "n_traj": n_traj, "width": width, "depth": depth, "train_points": points,
                 "params": params}
 
@@ -156,10 +177,9 @@ class InputState(Study):
         from nsl_hpc.studies.input_state.lockstep import Member
         from nsl_hpc.studies.input_state.scaling import Scaling
 
-        system_class = SYSTEMS[task["system"]]
-        torch.manual_seed(self.seed_for("init", task, cfg.draws))
-        model = build_model(cfg.arch, system_class.state_dim, system_class.input_dim, sizes["width"], sizes["depth"])
         system_cfg = plain(cfg.system)
+        torch.manual_seed(self.seed_for("init", task, cfg.draws))
+        model = build_model(cfg.arch, *system_dimensions(system_cfg), sizes["width"], sizes["depth"])
         data = build_training_set(system_cfg, task["seed"], sizes["n_traj"], ArrayCache(cfg.cache_dir))
         train = typed(InputStateTrain, cfg.train, "train")
         return Member(model, data, Scaling.fit(data, train.rescale_targets), max(epochs),

@@ -1,0 +1,81 @@
+"""Hydra's ``_target_`` convention: a config group names the class or function that builds its object (a system,
+an architecture) by its import path, the package's own as ``nsl_hpc.systems.spring.Spring`` and a user's as
+``tanks.TwoTank`` (a module on PYTHONPATH). ``located`` imports it and ``called`` builds with it, each refusing
+in one line that names the config file and key; ``outcome_values`` is what of a group changes an outcome."""
+
+import importlib
+import inspect
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from nsl_hpc.errors import ConfigError
+
+TARGET = "_target_"
+PACKAGE_PREFIX = "nsl_hpc."  # a target inside the package: identified by the package's version, as before targets
+
+
+def where(group: str, values: Mapping[str, Any]) -> str:
+    """'system/two_tank.yaml': the config file of a group option (its ``name`` is the file's stem)."""
+    return f"{group}/{values.get('name')}.yaml"
+
+
+def located(group: str, values: Mapping[str, Any]) -> Callable[..., Any]:
+    """The object ``values._target_`` names (a dotted path: module, then attributes), or a one-line ConfigError."""
+    path = values.get(TARGET)
+    if not isinstance(path, str) or "." not in path:
+        raise ConfigError(f"{where(group, values)}: {group}.{TARGET}={path!r} must name a class or function by its "
+                          "import path, e.g. my_module.MySystem")
+    parts = path.split(".")
+    for cut in range(len(parts) - 1, 0, -1):
+        module_name = ".".join(parts[:cut])
+        try:
+            found: Any = importlib.import_module(module_name)
+        except ModuleNotFoundError as error:
+            if error.name is not None and module_name.startswith(error.name) and cut > 1:
+                continue  # a shorter path may be the module (Class.method)
+            raise ConfigError(f"{where(group, values)}: {group}.{TARGET}={path!r} does not import "
+                              f"(ModuleNotFoundError: {error}); put its folder on PYTHONPATH") from None
+        except Exception as error:  # the user's module itself fails as it imports
+            raise ConfigError(f"{where(group, values)}: {group}.{TARGET}={path!r}: importing {module_name} raises "
+                              f"{type(error).__name__}: {one_line(error)}") from None
+        try:
+            for attribute in parts[cut:]:
+                found = getattr(found, attribute)
+        except AttributeError:
+            raise ConfigError(f"{where(group, values)}: {group}.{TARGET}={path!r}: module {module_name} has no "
+                              f"{'.'.join(parts[cut:])}") from None
+        if not callable(found):
+            raise ConfigError(f"{where(group, values)}: {group}.{TARGET}={path!r} is no class or function")
+        return found
+    raise ConfigError(f"{where(group, values)}: {group}.{TARGET}={path!r} does not import")
+
+
+def called(group: str, values: Mapping[str, Any], builder: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    """``builder(*args, **kwargs)``, refused in one line where its signature does not take them (``what`` it was
+    given is named) or where it raises."""
+    label = f"{where(group, values)}: {group}.{TARGET}={values.get(TARGET)!r}"
+    try:
+        inspect.signature(builder).bind(*args, **kwargs)
+    except TypeError as error:
+        given = ", ".join([*(f"<{type(arg).__name__}>" for arg in args), *kwargs])
+        raise ConfigError(f"{label} does not take ({given}): {error}") from None
+    except ValueError:  # no signature to read (a builtin): calling it tells
+        pass
+    try:
+        return builder(*args, **kwargs)
+    except Exception as error:
+        raise ConfigError(f"{label} raised {type(error).__name__}: {one_line(error)}") from None
+
+
+def one_line(error: BaseException) -> str:
+    return " ".join(str(error).split())[:200]
+
+
+def outcome_values(value: Any) -> Any:
+    """``value`` without what cannot change an outcome: ``data_dir`` entries (where data lies) and a ``_target_``
+    inside the package (its code is the package's version, as the group's name was before targets). A user's
+    ``_target_`` stays: two of them are two systems or models."""
+    if isinstance(value, Mapping):
+        return {key: outcome_values(item) for key, item in value.items()
+                if key != "data_dir" and not (key == TARGET and str(item).startswith(PACKAGE_PREFIX))}
+    return value
