@@ -7,10 +7,11 @@ from dataclasses import dataclass
 from typing import Any
 
 from nsl_hpc.config.arch import STUDIES
-from nsl_hpc.config.schema import setting
+from nsl_hpc.config.schema import setting, typed
 from nsl_hpc.errors import ConfigError, require_choice
 
-MEASURED_KINDS = ("benchmark", "records")  # read from files: a nonlinear_benchmarks loader, .npz records
+MEASURED_KINDS = ("benchmark", "records", "files")  # read from files: a nonlinear_benchmarks loader, .npz records of
+#   realisations, records of your own (.csv, .npz, .mat columns: FileRecords)
 SIMULATED_KINDS = ("duffing", "wiener_hammerstein")  # the measured systems' simulated stand-ins
 
 
@@ -68,6 +69,20 @@ class InputStateSystem:
 
 
 @dataclass(frozen=True)
+class FileRecords:
+    """Measured records of your own (``source.kind: files``): one input and one output column per file."""
+
+    kind: str = setting("files", choices=("files",))
+    data_dir: str = setting("the folder the files lie in (relative: to the working directory)")
+    train: str = setting("the training record's file: its first train_samples train, the rest validates")
+    test: dict[str, str] = setting("the test records' files, by name (the names of system.tests)", nonempty=True)
+    u: str = setting("the input column: a .csv header name, or an .npz / .mat variable")
+    y: str = setting("the output column")
+    sample_time_s: float = setting("the sample time (s)", 0, low_open=True)
+    time: str | None = setting("a column of sample times, checked to step by sample_time_s", default=None)
+
+
+@dataclass(frozen=True)
 class SubnetShape:
     """SUBNET on this system."""
 
@@ -83,8 +98,8 @@ class InputOutputSystem:
     study: str = setting("its study", choices=STUDIES)
     init_samples: int = setting("the first test samples initialise a simulation; the error counts the rest", 0)
     mv_per_unit: float = setting("RMSE is also reported in mV", 0, low_open=True)
-    source: dict[str, Any] = setting("where the records come from (kind: benchmark, records, duffing, "
-                                     "wiener_hammerstein)", nonempty=True)
+    source: dict[str, Any] = setting("where the records come from (kind: benchmark, records, files, "
+                                     "duffing, wiener_hammerstein)", nonempty=True)
     tests: list[str] = setting("the test records, each scored", nonempty=True)
     score_on: str = setting("the record of the row's nmae, nmse and rmse_mv")
     train_samples: int = setting("the training pool: the first this many samples", 1)
@@ -98,6 +113,11 @@ class InputOutputSystem:
     def check(self) -> None:
         require_choice("system.source.kind", self.source.get("kind"), [*MEASURED_KINDS, *SIMULATED_KINDS])
         require_choice("system.score_on", self.score_on, self.tests)
+        if self.source["kind"] == "files":
+            records = typed(FileRecords, self.source, "system.source")
+            if sorted(records.test) != sorted(self.tests):
+                raise ConfigError(f"system.tests names {', '.join(self.tests)}; system.source.test holds "
+                                  f"{', '.join(records.test)}")
         if self.source["kind"] in SIMULATED_KINDS:
             for key in ("fs_hz", "excitation", "output_noise_std", "samples"):
                 if getattr(self, key) is None:

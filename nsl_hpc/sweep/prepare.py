@@ -105,6 +105,7 @@ def pair_configs(cfg: DictConfig, overrides: Sequence[str], study: Study) -> dic
         used.update(applicable)
         configs[system, arch] = plain(compose_config([*applicable, *selection], "launch"))
         study_of(configs[system, arch]).check_pair(configs[system, arch])
+        require_costs(configs[system, arch])
     for override in scoped:
         if override not in used:
             first = sorted(pairs)[0]
@@ -112,6 +113,19 @@ def pair_configs(cfg: DictConfig, overrides: Sequence[str], study: Study) -> dic
                                                                    f"arch={first[1]}"], "launch")
                               + "; no (system, arch) of the grid has it")
     return configs
+
+
+PRICED_BY_ARCH = ("step_seconds", "params_per_overhead", "lockstep_extra")  # cost.* the planner needs per arch
+
+
+def require_costs(base: Mapping[str, Any]) -> None:
+    """Refuse an architecture the planner cannot price: each of ``PRICED_BY_ARCH`` needs an entry of its name."""
+    arch = base["arch"]["name"]
+    for key in PRICED_BY_ARCH:
+        if arch not in base["cost"][key]:
+            raise ConfigError(f"cost.{key} has no entry for arch {arch}: add cost.{key}.{arch} to your sweep "
+                              f"(unstructured's is {base['cost'][key].get('unstructured')}; python -m nsl_hpc.bench "
+                              "measures a package architecture's; docs/own_study.md)")
 
 
 @dataclass(frozen=True)

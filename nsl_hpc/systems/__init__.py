@@ -55,7 +55,8 @@ def check_system(system_cfg: Mapping[str, Any], samples: int = 256) -> System:
     for name, value, shape in (("derivative(x, u)", lambda: system.derivative(x, u), (len(x), system.state_dim)),
                                ("output(x)", lambda: system.output(x), (len(x), system.input_dim))):
         try:
-            result = np.asarray(value(), dtype=float)
+            with np.errstate(all="ignore"):  # what is not finite is the one line below, not a warning
+                result = np.asarray(value(), dtype=float)
         except Exception as error:
             raise ConfigError(f"{label}: {name} raises {type(error).__name__}: {error}") from None
         if result.shape != shape:

@@ -1,7 +1,8 @@
 """Input-output signals of the input-output study: the measured benchmarks (Silverbox, Wiener-Hammerstein 2009),
 read with the standard ``nonlinear_benchmarks`` loaders from ``data_dir`` (``system.source.data_dir``), the
-Wiener-Hammerstein benchmark with process noise, read from its records (.npz, one column per realisation), or
-simulated stand-ins, and their split into training pool, validation and test records.
+Wiener-Hammerstein benchmark with process noise, read from its records (.npz, one column per realisation), records
+of your own (``source.kind: files``: a column each of .csv, .npz or .mat files), or simulated stand-ins, and their
+split into training pool, validation and test records.
 
 A task trains on the prefix u_1..u_{n_l}, y_1..y_{n_l} of the training pool (the first ``train_samples``
 samples of the benchmark's training record); the rest of that record is the validation split, kept out of
@@ -58,6 +59,9 @@ def load_benchmark(system_cfg: Mapping[str, Any], cache: ArrayCache) -> Benchmar
     elif source["kind"] == "records":
         train, tests = read_records(system_cfg["name"], source, system_cfg["tests"])
         origin = f" of {Path(source['data_dir']) / source['train']['file']}"
+    elif source["kind"] == "files":
+        train, tests = read_files(system_cfg)
+        origin = f" of {Path(source['data_dir']) / source['train']}"
     else:
         train, tests = simulated_signals(system_cfg, cache)
         origin = ""
@@ -124,14 +128,76 @@ def record_columns(name: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
     return u, y
 
 
+def read_files(system_cfg: Mapping[str, Any]) -> tuple[Signals, dict[str, Signals]]:
+    """Training record and test records of ``source.kind: files`` (``config.system.FileRecords``): the columns
+    ``source.u`` and ``source.y`` of each file, refused in one line where a file, a column or a length is wrong or
+    the time column does not step by ``source.sample_time_s``."""
+    name, source = system_cfg["name"], system_cfg["source"]
+    require_files(name, source)
+    files = {"training": source["train"], **{f"{test} test": file for test, file in source["test"].items()}}
+    records = {part: file_record(name, source, Path(source["data_dir"]) / file, part) for part, file in files.items()}
+    for test in source["test"]:
+        if len(records[f"{test} test"]) <= system_cfg["init_samples"]:
+            raise ConfigError(f"{name}: the {test} test record ({source['test'][test]}) has "
+                              f"{len(records[f'{test} test'])} samples, not more than the system.init_samples="
+                              f"{system_cfg['init_samples']} that initialise its simulation")
+    return records.pop("training"), {test: records[f"{test} test"] for test in system_cfg["tests"]}
+
+
+def file_record(name: str, source: Mapping[str, Any], path: Path, part: str) -> Signals:
+    """The u and y columns of one file (.csv with a header line, .npz, .mat), checked."""
+    columns = file_columns(name, path)
+    wanted = [source["u"], source["y"], *([source["time"]] if source.get("time") else [])]
+    for column in wanted:
+        if column not in columns:
+            raise ConfigError(f"{name}: {path} has no column {column!r} (system.source.u, .y, .time); it has: "
+                              f"{', '.join(columns)}")
+    if source.get("time"):
+        steps = np.diff(np.ravel(columns[source["time"]]))
+        if len(steps) and not np.allclose(steps, source["sample_time_s"], rtol=1e-6, atol=0):
+            raise ConfigError(f"{name}: {path} column {source['time']!r} steps by {np.min(steps):g}..{np.max(steps):g}"
+                              f" s, not system.source.sample_time_s={source['sample_time_s']:g}")
+    return checked_signals(name, path, part, np.ravel(columns[source["u"]]), np.ravel(columns[source["y"]]))
+
+
+def file_columns(name: str, path: Path) -> dict[str, np.ndarray]:
+    """Every column of a .csv (its header names them), .npz or .mat file (its variables), by name."""
+    try:
+        if path.suffix == ".csv":
+            table = np.genfromtxt(path, delimiter=",", names=True, dtype=float, encoding="utf-8")
+            return {column: np.asarray(table[column]) for column in table.dtype.names or ()}
+        if path.suffix == ".npz":
+            with np.load(path) as arrays:
+                return {key: np.asarray(arrays[key], dtype=float) for key in arrays.files}
+        if path.suffix == ".mat":
+            from scipy.io import loadmat
+
+            return {key: np.asarray(value, dtype=float) for key, value in loadmat(path).items()
+                    if not key.startswith("__")}
+    except (OSError, ValueError, TypeError) as error:
+        raise ConfigError(f"{name}: cannot read {path} ({type(error).__name__}: "
+                          f"{' '.join(str(error).split())[:160]}); replace it with an intact copy") from None
+    raise ConfigError(f"{name}: {path} is no .csv, .npz or .mat file")
+
+
+def data_files(source: Mapping[str, Any]) -> list[str]:
+    """The files of a measured source, relative to its data_dir."""
+    if source["kind"] == "files":
+        return [source["train"], *source["test"].values()]
+    return list(source["files"])
+
+
 def require_files(name: str, source: Mapping[str, Any]) -> None:
-    """Raise ConfigError naming the first of ``source.files`` missing under ``source.data_dir``."""
+    """Raise ConfigError naming the first of a source's files (``data_files``) missing under ``source.data_dir``."""
     data_dir = Path(source["data_dir"])
-    for relative in source["files"]:
+    files = data_files(source)
+    for relative in files:
         if not (data_dir / relative).is_file():
-            raise ConfigError(f"{name}: data file {data_dir / relative} is missing; place the benchmark's files "
-                              f"under data_dir={str(data_dir)!r} as {', '.join(source['files'])} "
-                              "(python -m nsl_hpc.place_data; docs/science.md, 'The input-output study')")
+            where = (f"place the benchmark's files under data_dir={str(data_dir)!r} as {', '.join(files)} (python -m "
+                     "nsl_hpc.place_data; docs/science.md, 'The input-output study')" if source["kind"] != "files"
+                     else f"system.source.data_dir={str(data_dir)!r} holds no {relative} (relative: to the working "
+                     "directory)")
+            raise ConfigError(f"{name}: data file {data_dir / relative} is missing; {where}")
 
 
 def measured_file(source: Mapping[str, Any]) -> Path:

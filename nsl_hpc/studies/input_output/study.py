@@ -30,7 +30,7 @@ from nsl_hpc.config.system import MEASURED_KINDS, InputOutputSystem
 from nsl_hpc.config.targets import located, where
 from nsl_hpc.errors import ConfigError, require_member
 from nsl_hpc.studies.base import Study, draw_tier
-from nsl_hpc.studies.input_output.data import Benchmark, load_benchmark, require_files
+from nsl_hpc.studies.input_output.data import Benchmark, load_benchmark, read_files, require_files
 from nsl_hpc.studies.settings import InputOutputTrain
 
 if TYPE_CHECKING:
@@ -141,7 +141,9 @@ class InputOutput(Study):
             require_member(label, value, list(allowed[key]))
 
     def check_pair(self, base: Mapping[str, Any]) -> None:
-        if base["system"]["source"]["kind"] in MEASURED_KINDS:
+        if base["system"]["source"]["kind"] == "files":
+            read_files(base["system"])  # your own records: every file, column and length checked before any work
+        elif base["system"]["source"]["kind"] in MEASURED_KINDS:
             require_files(base["system"]["name"], base["system"]["source"])
 
     def check_task(self, task: Mapping[str, Any], sizes: Mapping[str, Any], base: Mapping[str, Any]) -> None:

@@ -1,0 +1,131 @@
+"""A researcher's own study without a fork: examples/own_study (their system, model and measured records, named
+by `_target_` and `source.kind: files` in their config dir) runs from a copy outside the checkout on nsl_hpc
+installed as a wheel, and each broken system, model or record is one line, exit 2, before anything is written."""
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+
+import nsl_hpc
+
+EXAMPLE = Path(nsl_hpc.__file__).parents[1] / "examples" / "own_study"
+SMALL_STUDY = ["sweep.grid.seed=[0]", "sweep.grid.epochs=[64]", "sweep.grid.data_tier=[8,32]",
+               "sweep.grid.width_tier=[16]"]  # 4 tasks
+SMALL_DATA = ["sweep.grid.seed=[0]", "sweep.grid.iter_multiplier=[1]", "sweep.grid.data_tier=[800,1600]",
+              "sweep.grid.width_tier=[4]"]  # 2 tasks
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory) -> Path:
+    """nsl_hpc installed as a wheel into a folder of its own (not this checkout)."""
+    folder = tmp_path_factory.mktemp("site")
+    subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--disable-pip-version-check", "--no-deps",
+                    "--no-build-isolation", "--target", str(folder), str(EXAMPLE.parents[1])],
+                   check=True, capture_output=True, timeout=300)
+    return folder
+
+
+@pytest.fixture
+def study(tmp_path) -> Path:
+    """A copy of examples/own_study outside the checkout."""
+    return Path(shutil.copytree(EXAMPLE, tmp_path / "own_study", ignore=shutil.ignore_patterns("__pycache__")))
+
+
+def run(study: Path, site: Path, verb: str, *args: str) -> subprocess.CompletedProcess:
+    """``python -m nsl_hpc.<verb> --config-dir conf args`` in ``study`` with PYTHONPATH=.:<site>, as the docs say."""
+    env = {**os.environ, "PYTHONPATH": f".{os.pathsep}{site}"}
+    return subprocess.run([sys.executable, "-m", f"nsl_hpc.{verb}", "--config-dir", "conf", *args],
+                          capture_output=True, text=True, cwd=study, env=env, timeout=600)
+
+
+@pytest.mark.e2e
+def test_your_own_system_model_and_records_train_fit_and_report_from_a_wheel(study, site):
+    assert run(study, site, "launch", "--help").stdout  # the wheel answers, from outside the checkout
+    launched = run(study, site, "launch", "+sweep=own_study", *SMALL_STUDY, "sweep_dir=runs/own_study")
+    assert launched.returncode == 0, launched.stderr
+    assert "finished: 4 ok" in launched.stdout
+    reported = run(study, site, "report", "sweep_dir=runs/own_study")  # merge, fit, figures, MLflow, report.html
+    assert reported.returncode == 0, reported.stderr
+    assert (study / "runs/own_study/report.html").stat().st_size > 0
+    results = pq.read_table(study / "runs/own_study/results.parquet").to_pandas()
+    assert sorted(set(results["arch"])) == ["cascade_net", "unstructured"] and set(results["system"]) == {"two_tank"}
+    best = results.groupby("arch")["nmae"].min()
+    assert (best < 0.5 * results.groupby("arch")["mean_predictor_nmae"].median()).all(), best  # both learn
+    predicted = run(study, site, "predict", "sweep_dir=runs/own_study", "target=0.2")
+    assert predicted.returncode == 0, predicted.stderr
+
+    data = run(study, site, "launch", "+sweep=own_data", *SMALL_DATA, "sweep_dir=runs/own_data")
+    assert data.returncode == 0, data.stderr
+    assert run(study, site, "report", "sweep_dir=runs/own_data").returncode == 0
+    rows = pq.read_table(study / "runs/own_data/results.parquet").to_pandas()
+    assert len(rows) == 2 and set(rows["system"]) == {"tank_rig"} and rows["free_run_finite"].all()
+
+
+BAD_MODULE = '''
+import numpy as np
+from tanks import CascadeNet
+
+
+class Leaky:
+    state_dim, input_dim = 2, 1
+
+    def __init__(self, **params):
+        self.params = params
+
+    def derivative(self, x, u):
+        return np.log(x - 0.5)  # not finite where a level is 0.5 or below
+
+    def output(self, x):
+        return x[:, 1:]
+
+
+class WrongShape(CascadeNet):
+    def assemble(self, outputs, v, grad_energy, layout=None):
+        return outputs["f"], outputs["f"]  # y of n columns, not m
+'''
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize(("override", "message"), [
+    ("system._target_=nowhere.Tank", "system/two_tank.yaml: system._target_='nowhere.Tank' does not import "
+                                     "(ModuleNotFoundError: No module named 'nowhere'); put its folder on PYTHONPATH"),
+    ("arch._target_=tanks.TwoTank", "arch/cascade_net.yaml: arch._target_='tanks.TwoTank' does not take (<int>, "
+                                    "<int>, <int>, output_width)"),
+    ("arch._target_=bad.WrongShape", "arch/cascade_net.yaml: arch._target_='bad.WrongShape': its model gives y of "
+                                     "shape (8, 2) for a batch of 8, expected (8, 1)"),
+    ("system._target_=bad.Leaky", "system/two_tank.yaml: system._target_='bad.Leaky': derivative(x, u) is not "
+                                  "finite at"),
+    ("system.params.area=0.0", "system/two_tank.yaml: system._target_='tanks.TwoTank': derivative(x, u) is not "
+                               "finite at"),
+])
+def test_a_broken_system_or_model_is_one_line_at_launch_before_anything_is_written(study, site, override, message):
+    (study / "bad.py").write_text(BAD_MODULE)
+    refused = run(study, site, "launch", "+sweep=own_study", "dry_run=true", "sweep_dir=runs/refused", override)
+    assert refused.returncode == 2, refused.stdout
+    assert refused.stderr.startswith(f"error: {message}"), refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1
+    assert not (study / "runs/refused").exists()
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize(("change", "message"), [
+    (lambda data: (data / "tanks_test.csv").unlink(), "tank_rig: data file data/tanks_test.csv is missing"),
+    (lambda data: (data / "tanks_train.csv").write_text("t,u,level\n0,0,0\n"),
+     "tank_rig: data/tanks_train.csv has no column 'y' (system.source.u, .y, .time); it has: t, u, level"),
+    (lambda data: (data / "tanks_test.csv").write_text("t,u,y\n" + "".join(f"{t},0,1\n" for t in range(30))),
+     "tank_rig: the test test record (tanks_test.csv) has 30 samples, not more than the system.init_samples=50"),
+    (lambda data: (data / "tanks_train.csv").write_text("t,u,y\n" + "".join(f"{2 * t},0,1\n" for t in range(9))),
+     "tank_rig: data/tanks_train.csv column 't' steps by 2..2 s, not system.source.sample_time_s=1"),
+])
+def test_a_broken_record_is_one_line_at_launch_before_anything_is_written(study, site, change, message):
+    change(study / "data")
+    refused = run(study, site, "launch", "+sweep=own_data", "dry_run=true", "sweep_dir=runs/refused")
+    assert refused.returncode == 2, refused.stdout
+    assert refused.stderr.startswith(f"error: {message}"), refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1
+    assert not (study / "runs/refused").exists()
