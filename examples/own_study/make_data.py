@@ -5,7 +5,6 @@ from pathlib import Path
 
 import numpy as np
 from scipy.integrate import solve_ivp
-
 from tanks import TwoTank
 
 SAMPLE_TIME_S = 1.0

@@ -8,6 +8,8 @@ import inspect
 from collections.abc import Callable, Mapping
 from typing import Any
 
+import yaml
+
 from nsl_hpc.errors import ConfigError
 
 TARGET = "_target_"
@@ -69,6 +71,15 @@ def called(group: str, values: Mapping[str, Any], builder: Callable[..., Any], *
 
 def one_line(error: BaseException) -> str:
     return " ".join(str(error).split())[:200]
+
+
+def package_target(group: str, name: str) -> str | None:
+    """The ``_target_`` of the package's config ``conf/<group>/<name>.yaml`` (None: the package has none, or that
+    option builds nothing): what a config stored before targets existed was built by."""
+    from nsl_hpc.config import config_dir
+
+    path = config_dir() / group / f"{name}.yaml"
+    return yaml.safe_load(path.read_text()).get(TARGET) if path.is_file() else None
 
 
 def outcome_values(value: Any) -> Any:

@@ -10,7 +10,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from nsl_hpc.checkpoint import Checkpointer
-from nsl_hpc.config.targets import outcome_values
+from nsl_hpc.config.targets import TARGET, outcome_values, package_target
 from nsl_hpc.errors import ConfigError, require_positive_int
 from nsl_hpc.seeding import stable_hash, stable_seed
 
@@ -87,10 +87,15 @@ class Study:
 
     def with_neutral_settings(self, cfg: DictConfig) -> DictConfig:
         """``cfg``, a pair's stored config, with the ``neutral`` and ``rounding_only`` settings it lacks (it was
-        stored before they existed) at their stated value."""
+        stored before they existed) at their stated value, and a system or arch stored before targets with the
+        package's ``_target_`` of its name (``package_target``)."""
         for group, key, value in (*self.neutral, *self.rounding_only):
             if key not in cfg[group]:
                 cfg[group][key] = value
+        for group in ("system", "arch"):
+            target = package_target(group, cfg[group]["name"])
+            if TARGET not in cfg[group] and target is not None:
+                cfg[group][TARGET] = target
         return cfg
 
     def check_coordinate(self, label: str, key: str, value: Any, base: Mapping[str, Any]) -> None:
