@@ -42,9 +42,12 @@ def describe_lockstep(tasks: Sequence[Mapping[str, Any]], packs: Sequence[Pack],
     """How the tasks to run train: as how many models, in how many lockstep groups."""
     models = len({model_of(task, lockstep["model_keys"]) for task in tasks})
     groups = sum(len(pack.groups) for pack in packs)
+    alone = sorted({task["arch"] for task in tasks if not task.get("stackable", True)})
     return (f"  lockstep: {len(tasks):,} tasks as {models:,} models in {groups:,} group{'s' * (groups != 1)} of up to "
             f"{lockstep['size']} models" + (" (epoch milestones: a row per task after its epochs)"
-                                            if lockstep["model_keys"] else ""))
+                                            if lockstep["model_keys"] else "")
+            + (f"; {', '.join(alone)}: one model per group, priced alone (a torch.nn.Module the lockstep training "
+               "cannot batch)" if alone else ""))
 
 
 def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str) -> str:

@@ -10,12 +10,17 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
+import torch
 
 import nsl_hpc
+from nsl_hpc.models import build_model, stackable
+from nsl_hpc.studies.input_state.data import build_test_set, build_training_set
+from nsl_hpc.studies.input_state.lockstep import Member, predict_derivatives, train_lockstep
+from nsl_hpc.studies.input_state.scaling import Scaling
 
 EXAMPLE = Path(nsl_hpc.__file__).parents[1] / "examples" / "own_study"
 SMALL_STUDY = ["sweep.grid.seed=[0]", "sweep.grid.epochs=[64]", "sweep.grid.data_tier=[8,32]",
-               "sweep.grid.width_tier=[16]"]  # 4 tasks
+               "sweep.grid.width_tier=[16]"]  # 6 tasks: 3 archs
 SMALL_DATA = ["sweep.grid.seed=[0]", "sweep.grid.iter_multiplier=[1]", "sweep.grid.data_tier=[800,1600]",
               "sweep.grid.width_tier=[4]"]  # 2 tasks
 
@@ -48,14 +53,17 @@ def test_your_own_system_model_and_records_train_fit_and_report_from_a_wheel(stu
     assert run(study, site, "launch", "--help").stdout  # the wheel answers, from outside the checkout
     launched = run(study, site, "launch", "+sweep=own_study", *SMALL_STUDY, "sweep_dir=runs/own_study")
     assert launched.returncode == 0, launched.stderr
-    assert "finished: 4 ok" in launched.stdout
+    assert "finished: 6 ok" in launched.stdout
+    assert "tank_mlp: one model per group, priced alone" in launched.stdout  # a plain module trains alone
+    manifest = pq.read_table(study / "runs/own_study/manifest.parquet").to_pandas()
+    assert (manifest["stackable"] == (manifest["arch"] != "tank_mlp")).all()
     reported = run(study, site, "report", "sweep_dir=runs/own_study")  # merge, fit, figures, MLflow, report.html
     assert reported.returncode == 0, reported.stderr
     assert (study / "runs/own_study/report.html").stat().st_size > 0
     results = pq.read_table(study / "runs/own_study/results.parquet").to_pandas()
-    assert sorted(set(results["arch"])) == ["cascade_net", "unstructured"] and set(results["system"]) == {"two_tank"}
+    assert sorted(set(results["arch"])) == ["cascade_net", "tank_mlp", "unstructured"]
     best = results.groupby("arch")["nmae"].min()
-    assert (best < 0.5 * results.groupby("arch")["mean_predictor_nmae"].median()).all(), best  # both learn
+    assert (best < 0.5 * results.groupby("arch")["mean_predictor_nmae"].median()).all(), best  # each learns
     predicted = run(study, site, "predict", "sweep_dir=runs/own_study", "target=0.2")
     assert predicted.returncode == 0, predicted.stderr
 
@@ -66,9 +74,33 @@ def test_your_own_system_model_and_records_train_fit_and_report_from_a_wheel(stu
     assert len(rows) == 2 and set(rows["system"]) == {"tank_rig"} and rows["free_run_finite"].all()
 
 
+def test_a_plain_module_trains_as_the_package_trains_the_same_model(compose, cache, monkeypatch):
+    """tanks.TankMLP (one MLP from (x, u) to (dx/dt, y), a plain torch.nn.Module) trained through the module stack
+    gives what the package's unstructured model of that width (the same MLP, batched heads) gives: the same
+    initial weights, batches, loss and Adam steps, to float32 rounding."""
+    monkeypatch.syspath_prepend(str(EXAMPLE))
+    monkeypatch.setenv("NSL_HPC_CONFIG_DIR", str(EXAMPLE / "conf"))
+    trained = {}
+    for arch, overrides in (("tank_mlp", ()), ("unstructured", ("arch.width_factor=1.0",))):
+        cfg = compose("system=two_tank", f"arch={arch}", *overrides)
+        system = dict(cfg.system)
+        data, test = build_training_set(system, 0, 2.0, cache), build_test_set(system, cache)
+        torch.manual_seed(0)
+        model = build_model(cfg.arch, 2, 1, width=8, depth=2)
+        scaling = Scaling.fit(data, rescale_targets=False)
+        stack, ((snapshot,),) = train_lockstep([Member(model, data, scaling, epochs=5, shuffle_seed=3)], cfg.train)
+        predicted = predict_derivatives(stack, test, [scaling], torch.float32, snapshot.theta[None], [0])
+        trained[arch] = (stackable(model), snapshot.outcome, predicted)
+    (plain, plain_outcome, plain_predicted), (batched, outcome, predicted) = trained["tank_mlp"], trained["unstructured"]
+    assert (plain, batched) == (False, True) and plain_outcome.steps == outcome.steps == 5 * 8  # 2,000 samples, batches of 256
+    assert abs(plain_outcome.final_loss - outcome.final_loss) <= 1e-4 * outcome.final_loss
+    for mine, theirs in zip(plain_predicted, predicted, strict=True):
+        torch.testing.assert_close(torch.as_tensor(mine), torch.as_tensor(theirs), rtol=1e-3, atol=1e-4)
+
+
 BAD_MODULE = '''
 import numpy as np
-from tanks import CascadeNet
+from tanks import CascadeNet, TankMLP
 
 
 class Leaky:
@@ -87,6 +119,15 @@ class Leaky:
 class WrongShape(CascadeNet):
     def assemble(self, outputs, v, grad_energy, layout=None):
         return outputs["f"], outputs["f"]  # y of n columns, not m
+
+
+class NotFinite(TankMLP):
+    def __init__(self, n, m, width, depth, block, **options):  # whatever else a pair's config gives
+        super().__init__(n, m, width, depth, block)
+
+    def forward(self, z, v):
+        dz, y = super().forward(z, v)
+        return dz / 0.0, y
 '''
 
 
@@ -94,10 +135,12 @@ class WrongShape(CascadeNet):
 @pytest.mark.parametrize(("override", "message"), [
     ("system._target_=nowhere.Tank", "system/two_tank.yaml: system._target_='nowhere.Tank' does not import "
                                      "(ModuleNotFoundError: No module named 'nowhere'); put its folder on PYTHONPATH"),
-    ("arch._target_=tanks.TwoTank", "arch/cascade_net.yaml: arch._target_='tanks.TwoTank' does not take (<int>, "
-                                    "<int>, <int>, output_width)"),
+    ("arch._target_=tanks.TwoTank", "arch/cascade_net.yaml: arch._target_='tanks.TwoTank' does not take (n, m, n_h, "
+                                    "n_d, block, output_width): got an unexpected keyword argument 'block'"),
     ("arch._target_=bad.WrongShape", "arch/cascade_net.yaml: arch._target_='bad.WrongShape': its model gives y of "
                                      "shape (8, 2) for a batch of 8, expected (8, 1)"),
+    ("arch._target_=bad.NotFinite", "arch/cascade_net.yaml: arch._target_='bad.NotFinite': its model gives a dx/dt "
+                                    "that is not finite on a sample batch"),
     ("system._target_=bad.Leaky", "system/two_tank.yaml: system._target_='bad.Leaky': derivative(x, u) is not "
                                   "finite at"),
     ("system.params.area=0.0", "system/two_tank.yaml: system._target_='tanks.TwoTank': derivative(x, u) is not "

@@ -6,7 +6,7 @@ Nothing here is part of nsl_hpc; the package imports it from PYTHONPATH when a c
 import numpy as np
 import torch
 
-from nsl_hpc.models.blocks import Head
+from nsl_hpc.models.blocks import Head, mlp
 from nsl_hpc.models.state_space import StateSpaceArchitecture
 from nsl_hpc.models.tensor_layout import BATCH_MAJOR, Layout
 
@@ -50,3 +50,17 @@ class CascadeNet(StateSpaceArchitecture):
 
     def assemble(self, outputs, v: torch.Tensor, grad_energy, layout: Layout = BATCH_MAJOR):
         return outputs["f"] + outputs["b"] * v, outputs["g"]  # v: one feature, broadcast in either layout
+
+
+class TankMLP(torch.nn.Module):
+    """Any torch.nn.Module of yours: z (B, n), v (B, m) -> dz/dt (B, n), y (B, m), built with (n, m, n_h, n_d, block)
+    and the config's options. The lockstep training cannot batch it with others: each trains in a group of its own."""
+
+    def __init__(self, state_dim: int, input_dim: int, width: int, depth: int, block: str):
+        super().__init__()
+        self.state_dim = state_dim
+        self.net = mlp(state_dim + input_dim, state_dim + input_dim, width, depth, block)
+
+    def forward(self, z: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.net(torch.cat([z, v], dim=-1))
+        return out[:, :self.state_dim], out[:, self.state_dim:]

@@ -5,7 +5,7 @@ in one line that names the config file and key; ``outcome_values`` is what of a 
 
 import importlib
 import inspect
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import yaml
@@ -52,14 +52,15 @@ def located(group: str, values: Mapping[str, Any]) -> Callable[..., Any]:
     raise ConfigError(f"{where(group, values)}: {group}.{TARGET}={path!r} does not import")
 
 
-def called(group: str, values: Mapping[str, Any], builder: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
-    """``builder(*args, **kwargs)``, refused in one line where its signature does not take them (``what`` it was
-    given is named) or where it raises."""
+def called(group: str, values: Mapping[str, Any], builder: Callable[..., Any], *args: Any,
+           arg_names: Sequence[str] = (), **kwargs: Any) -> Any:
+    """``builder(*args, **kwargs)``, refused in one line where its signature does not take them (named by
+    ``arg_names`` and the keywords) or where it raises."""
     label = f"{where(group, values)}: {group}.{TARGET}={values.get(TARGET)!r}"
     try:
         inspect.signature(builder).bind(*args, **kwargs)
     except TypeError as error:
-        given = ", ".join([*(f"<{type(arg).__name__}>" for arg in args), *kwargs])
+        given = ", ".join([*(arg_names or [f"<{type(arg).__name__}>" for arg in args]), *kwargs])
         raise ConfigError(f"{label} does not take ({given}): {error}") from None
     except ValueError:  # no signature to read (a builtin): calling it tells
         pass

@@ -1,6 +1,6 @@
-"""The input-state architectures: ``build_model`` turns an ``arch`` config into a module through its ``_target_``
-(the package's ``unstructured``, ``input_affine``, ``port_hamiltonian``, or a ``StateSpaceArchitecture`` of the
-user's), and ``check_architecture`` tries one on a sample batch before any work.
+"""The input-state models: ``build_model`` turns an ``arch`` config into a module through its ``_target_`` (the
+package's ``unstructured``, ``input_affine``, ``port_hamiltonian``; a user's ``StateSpaceArchitecture``, or a
+user's ``torch.nn.Module``), and ``check_architecture`` tries one on a sample batch before any work.
 
 The input-output models (NARX, SUBNET) are built by ``nsl_hpc.studies.input_output.study``.
 """
@@ -9,6 +9,7 @@ from collections.abc import Mapping
 from typing import Any
 
 import torch
+from torch import nn
 
 from nsl_hpc.config.arch import architecture_options
 from nsl_hpc.config.targets import called, located, where
@@ -16,29 +17,35 @@ from nsl_hpc.errors import ConfigError
 from nsl_hpc.models.state_space import StateSpaceArchitecture, StateSpaceModel
 
 
-def build_architecture(arch_cfg: Mapping[str, Any], state_dim: int, input_dim: int, width: int
-                       ) -> StateSpaceArchitecture:
-    """The architecture ``arch_cfg._target_`` builds for n = state_dim, m = input_dim, n_h = width and the
-    config's options (checked by ``config.arch``)."""
-    options = architecture_options(arch_cfg)
-    built = called("arch", arch_cfg, located("arch", arch_cfg), state_dim, input_dim, width, **options)
-    if not isinstance(built, StateSpaceArchitecture):
+def build_model(arch_cfg: Mapping[str, Any], state_dim: int, input_dim: int, width: int, depth: int) -> nn.Module:
+    """The model ``arch_cfg._target_`` builds for n = state_dim, m = input_dim, n_h = width, n_d = depth and the
+    config's options (checked by ``config.arch``): a ``StateSpaceArchitecture`` class is built with (n, m, n_h,
+    options) and made a ``StateSpaceModel`` (MLP heads of n_d hidden layers of ``block``: the lockstep training
+    batches them); anything else is called with (n, m, n_h, n_d, block, options) and gives a ``torch.nn.Module``
+    whose forward maps z (B, n), v (B, m) to dz/dt (B, n), y (B, m) (trained one per process)."""
+    builder, options = located("arch", arch_cfg), architecture_options(arch_cfg)
+    if isinstance(builder, type) and issubclass(builder, StateSpaceArchitecture):
+        architecture = called("arch", arch_cfg, builder, state_dim, input_dim, width, arg_names=("n", "m", "n_h"),
+                              **options)
+        return StateSpaceModel(architecture, depth, arch_cfg["block"])
+    module = called("arch", arch_cfg, builder, state_dim, input_dim, width, depth, arg_names=("n", "m", "n_h", "n_d"),
+                    block=arch_cfg["block"], **options)
+    if not isinstance(module, nn.Module):
         raise ConfigError(f"{where('arch', arch_cfg)}: arch._target_={arch_cfg['_target_']!r} built a "
-                          f"{type(built).__name__}, not a StateSpaceArchitecture (nsl_hpc.models.state_space: its MLP "
-                          "heads and how dx/dt and y follow from them, which the lockstep training stacks)")
-    return built
+                          f"{type(module).__name__}, not a torch.nn.Module or StateSpaceArchitecture")
+    return module
 
 
-def build_model(arch_cfg: Mapping[str, Any], state_dim: int, input_dim: int, width: int,
-                depth: int) -> StateSpaceModel:
-    """The model of architecture ``arch_cfg`` with n_h = width, n_d = depth hidden layers per MLP."""
-    return StateSpaceModel(build_architecture(arch_cfg, state_dim, input_dim, width), depth, arch_cfg["block"])
+def stackable(model: nn.Module) -> bool:
+    """Whether the lockstep training batches ``model`` with others (a ``StateSpaceModel``), or trains it alone."""
+    return isinstance(model, StateSpaceModel)
 
 
 def check_architecture(arch_cfg: Mapping[str, Any], state_dim: int, input_dim: int, width: int, depth: int,
                        batch: int = 8) -> None:
     """Refuse in one line an architecture whose module does not give dx/dt (B, n) and y (B, m), finite, on a sample
     batch, or whose stacked form (two models, as the lockstep training runs them) computes something else."""
+    from nsl_hpc.studies.input_state.module_stack import ModuleStack
     from nsl_hpc.studies.input_state.stacked import StackedModels
 
     label = f"{where('arch', arch_cfg)}: arch._target_={arch_cfg['_target_']!r}"
@@ -51,7 +58,9 @@ def check_architecture(arch_cfg: Mapping[str, Any], state_dim: int, input_dim: i
         models.append(build_model(arch_cfg, state_dim, input_dim, width, depth).double())
     try:
         outputs = [models[k](z[k], v[k]) for k in range(2)]
-        stacked = StackedModels(models, torch.float64).forward(torch.cat([z, v], dim=-1).transpose(1, 2))
+        stack = StackedModels(models, torch.float64) if stackable(models[0]) else \
+            ModuleStack(models, torch.float64, state_dim, input_dim)
+        stacked = stack.forward(torch.cat([z, v], dim=-1).transpose(1, 2))
     except Exception as error:
         raise ConfigError(f"{label}: its model fails on a batch of {batch} samples ({type(error).__name__}: "
                           f"{' '.join(str(error).split())[:160]})") from None

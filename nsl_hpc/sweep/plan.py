@@ -32,8 +32,10 @@ def padded_width(width: int, buckets: Sequence[int]) -> int:
 
 
 def lockstep_key(task: Mapping[str, Any], buckets: Sequence[int]) -> tuple:
-    """Tasks with equal keys can train in lockstep: one system, architecture and depth, widths in one bucket."""
-    return task["system"], task["arch"], task["depth"], padded_width(task["width"], buckets)
+    """Tasks with equal keys can train in lockstep: one system, architecture and depth, widths in one bucket; a
+    model the lockstep training cannot batch (``stackable`` false: a user's torch.nn.Module) has a key of its own."""
+    alone = () if task.get("stackable", True) else (task["task_id"],)
+    return task["system"], task["arch"], task["depth"], padded_width(task["width"], buckets), *alone
 
 
 def lockstep_groups(tasks: Sequence[Mapping[str, Any]], lockstep: Mapping[str, Any]) -> list[list[Mapping[str, Any]]]:

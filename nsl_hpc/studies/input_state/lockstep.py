@@ -17,7 +17,7 @@ then the forward pass, a four-operation loss, the backward pass and the optimize
 import math
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -28,6 +28,7 @@ from nsl_hpc.config.schema import typed
 from nsl_hpc.models.state_space import StateSpaceModel
 from nsl_hpc.studies.input_state.data import Dataset
 from nsl_hpc.studies.input_state.scaling import Scaling
+from nsl_hpc.studies.input_state.module_stack import ModuleStack
 from nsl_hpc.studies.input_state.stacked import StackedModels
 from nsl_hpc.studies.metrics import ErrorSums, spreads
 from nsl_hpc.studies.settings import InputStateTrain, batch_bounds, learning_rate_at
@@ -50,7 +51,7 @@ class Member:
     schedule ``schedule_epochs`` long (0: ``epochs``), each epoch ``repeat`` passes over ``data``
     (``InputStateTrain.passes``), kept (``Snapshot``) after each of ``milestones`` epochs (and after ``epochs``)."""
 
-    model: StateSpaceModel
+    model: nn.Module  # a StateSpaceModel, or a user's module (``ModuleStack``)
     data: Dataset
     scaling: Scaling
     epochs: int
@@ -140,6 +141,18 @@ def stacked_data(members: Sequence[Member], dtype: torch.dtype) -> torch.Tensor:
     return torch.stack([nn.functional.pad(part, (0, 0, 0, rows - len(part))) for part in parts])
 
 
+Stack = StackedModels | ModuleStack
+
+
+def stack_of(members: Sequence[Member], dtype: torch.dtype) -> Stack:
+    """The members' models as one stack: batched MLP heads (``StackedModels``) for architectures the package can
+    stack, else a ``ModuleStack`` of a user's modules."""
+    models = [member.model for member in members]
+    if all(isinstance(model, StateSpaceModel) for model in models):
+        return StackedModels(cast(list[StateSpaceModel], models), dtype)
+    return ModuleStack(models, dtype, members[0].data.x.shape[1], members[0].data.u.shape[1])
+
+
 class Lockstep(LockstepRun):
     """The models still training: their rows of the stack and of Adam's moments, their data and batch plans
     (``member`` maps a row to its member's index), and what each member has so far: its snapshots, its
@@ -152,7 +165,7 @@ class Lockstep(LockstepRun):
         self.dtype = getattr(torch, train.dtype)
         self.compiler = compiler or StepCompiler(False)
         self.compiled_losses = self.compiler.wrap(self.losses)
-        self.stack = StackedModels([member.model for member in members], self.dtype)
+        self.stack = stack_of(members, self.dtype)
         self.optimizer = Adam(self.stack.theta, train.grad_clip_norm, train.weight_decay)
         self.data = stacked_data(members, self.dtype)
         self.pad = self.data.shape[1] - 1
@@ -285,7 +298,7 @@ class Lockstep(LockstepRun):
 
 def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progress: Callable[[], None] = lambda: None,
                    checkpoint: Checkpointer | None = None, compiler: StepCompiler | None = None
-                   ) -> tuple[StackedModels, list[list[Snapshot]]]:
+                   ) -> tuple[Stack, list[list[Snapshot]]]:
     """Train every member as if alone (``cfg`` is the ``train`` group); returns the stack and each member's
     snapshots, by epochs (the last after its ``epochs``). Models that have finished leave the stack at the
     end of a block, so the stack holds the models that trained longest. ``on_progress``, ``checkpoint``: as
@@ -317,7 +330,7 @@ def settle(plan: BatchPlan, losses: torch.Tensor, start: int) -> TrainingOutcome
     return None
 
 
-def derivative_chunks(stack: StackedModels, data: Dataset, scalings: Sequence[Scaling], dtype: torch.dtype,
+def derivative_chunks(stack: Stack, data: Dataset, scalings: Sequence[Scaling], dtype: torch.dtype,
                       theta: torch.Tensor | None = None, models: Sequence[int] | None = None,
                       on_progress: Callable[[], None] = lambda: None, chunk: int = 4096
                       ) -> Iterator[tuple[slice, np.ndarray]]:
@@ -337,14 +350,14 @@ def derivative_chunks(stack: StackedModels, data: Dataset, scalings: Sequence[Sc
         yield slice(start, start + len(part)), predicted * units
 
 
-def predict_derivatives(stack: StackedModels, data: Dataset, scalings: Sequence[Scaling], dtype: torch.dtype,
+def predict_derivatives(stack: Stack, data: Dataset, scalings: Sequence[Scaling], dtype: torch.dtype,
                         theta: torch.Tensor | None = None, models: Sequence[int] | None = None) -> list[np.ndarray]:
     """Every prediction of ``derivative_chunks`` at once: a (N, n) array per model."""
     parts = [predicted for _, predicted in derivative_chunks(stack, data, scalings, dtype, theta, models)]
     return list(np.concatenate(parts, axis=1))
 
 
-def score_derivatives(stack: StackedModels, data: Dataset, scalings: Sequence[Scaling], dtype: torch.dtype,
+def score_derivatives(stack: Stack, data: Dataset, scalings: Sequence[Scaling], dtype: torch.dtype,
                       theta: torch.Tensor, models: Sequence[int], normalization: str,
                       on_progress: Callable[[], None] = lambda: None) -> list[dict[str, float]]:
     """The row scores (``ErrorSums.both_ways``) of the ``models`` with parameters ``theta`` on ``data``, chunk by

@@ -48,12 +48,14 @@ def system_dimensions(system_cfg: Mapping[str, Any]) -> tuple[int, int]:
 
 
 @cache
-def model_parameters(arch_items: tuple, dimensions: tuple[int, int], width: int, depth: int) -> int:
-    """Parameter count of one architecture for a system of sizes (n, m), built once per distinct shape."""
-    from nsl_hpc.models import build_model
+def model_shape(arch_items: tuple, dimensions: tuple[int, int], width: int, depth: int) -> tuple[int, bool]:
+    """(parameter count, whether the lockstep training batches it: ``models.stackable``) of one architecture for a
+    system of sizes (n, m), built once per distinct shape."""
+    from nsl_hpc.models import build_model, stackable
     from nsl_hpc.models.blocks import parameter_count
 
-    return parameter_count(build_model(dict(arch_items), *dimensions, width, depth))
+    model = build_model(dict(arch_items), *dimensions, width, depth)
+    return parameter_count(model), stackable(model)
 
 
 class InputState(Study):
@@ -99,9 +101,9 @@ class InputState(Study):
         width, depth = draw_tier(rng, task["width_tier"]), draw_tier(rng, task["depth_tier"])
         n_traj = data_size / base["data_per_trajectory"]
         points = training_points(n_traj, points_per_trajectory(base["system"]))
-        params = model_parameters(tuple(base["arch"].items()), system_dimensions(base["system"]), width, depth)
+        params, batched = model_shape(tuple(base["arch"].items()), system_dimensions(base["system"]), width, depth)
         return {"data_size": data_size, "n_traj": n_traj, "width": width, "depth": depth, "train_points": points,
-                "params": params}
+                "params": params, "stackable": batched}
 
     def training_length(self, task: Mapping[str, Any], drawn: Mapping[str, Any],
                         base: Mapping[str, Any]) -> dict[str, Any]:
@@ -138,7 +140,8 @@ class InputState(Study):
         members = [self.member(*items[run[0]], epochs=[items[i][1]["epochs"] for i in run]) for run in runs.values()]
         cfg = items[0][0]
         started = time.perf_counter()
-        compiler = StepCompiler(cfg.get("compile") == "always")  # auto is resolved by a sweep's planner
+        # auto is resolved by a sweep's planner; a user's modules (not stackable) run eagerly
+        compiler = StepCompiler(cfg.get("compile") == "always" and items[0][2].get("stackable", True))
         stack, snapshots = train_lockstep(members, plain(cfg.train, resolve=False), on_progress, checkpoint, compiler)
         train_seconds = (time.perf_counter() - started + trained_before(checkpoint)) / len(items)
         kept_at: dict[int, tuple[int, Snapshot]] = {}  # per item: its run's member index, its snapshot
