@@ -91,8 +91,10 @@ def test_a_plain_module_trains_as_the_package_trains_the_same_model(compose, cac
         stack, ((snapshot,),) = train_lockstep([Member(model, data, scaling, epochs=5, shuffle_seed=3)], cfg.train)
         predicted = predict_derivatives(stack, test, [scaling], torch.float32, snapshot.theta[None], [0])
         trained[arch] = (stackable(model), snapshot.outcome, predicted)
-    (plain, plain_outcome, plain_predicted), (batched, outcome, predicted) = trained["tank_mlp"], trained["unstructured"]
-    assert (plain, batched) == (False, True) and plain_outcome.steps == outcome.steps == 5 * 8  # 2,000 samples, batches of 256
+    (plain, plain_outcome, plain_predicted), (batched, outcome, predicted) = trained["tank_mlp"], \
+        trained["unstructured"]
+    assert (plain, batched) == (False, True)
+    assert plain_outcome.steps == outcome.steps == 5 * 8  # 2,000 samples in batches of 256
     assert abs(plain_outcome.final_loss - outcome.final_loss) <= 1e-4 * outcome.final_loss
     for mine, theirs in zip(plain_predicted, predicted, strict=True):
         torch.testing.assert_close(torch.as_tensor(mine), torch.as_tensor(theirs), rtol=1e-3, atol=1e-4)

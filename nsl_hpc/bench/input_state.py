@@ -42,7 +42,6 @@ from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config, plain
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
-from nsl_hpc.models.state_space import StateSpaceModel
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, predict_derivatives, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
@@ -115,7 +114,7 @@ class Bench:
         self.arch_cfgs = {arch: plain(compose_config([f"arch={arch}"]).arch, resolve=False)
                           for arch in {*cfg.archs, cfg.typical_task.arch}}  # composed once, not per model
 
-    def model(self, arch: str, width: int, depth: int, seed: int) -> StateSpaceModel:
+    def model(self, arch: str, width: int, depth: int, seed: int) -> nn.Module:
         torch.manual_seed(seed)
         return build_model(self.arch_cfgs[arch], *system_dimensions(self.system_cfg), width, depth)
 

@@ -1,6 +1,6 @@
 """The input-state models: ``build_model`` turns an ``arch`` config into a module through its ``_target_`` (the
 package's ``unstructured``, ``input_affine``, ``port_hamiltonian``; a user's ``StateSpaceArchitecture``, or a
-user's ``torch.nn.Module``), and ``check_architecture`` tries one on a sample batch before any work.
+user's ``torch.nn.Module``); ``studies.input_state.lockstep.check_architecture`` tries one before any work.
 
 The input-output models (NARX, SUBNET) are built by ``nsl_hpc.studies.input_output.study``.
 """
@@ -8,7 +8,6 @@ The input-output models (NARX, SUBNET) are built by ``nsl_hpc.studies.input_outp
 from collections.abc import Mapping
 from typing import Any
 
-import torch
 from torch import nn
 
 from nsl_hpc.config.arch import architecture_options
@@ -39,38 +38,3 @@ def build_model(arch_cfg: Mapping[str, Any], state_dim: int, input_dim: int, wid
 def stackable(model: nn.Module) -> bool:
     """Whether the lockstep training batches ``model`` with others (a ``StateSpaceModel``), or trains it alone."""
     return isinstance(model, StateSpaceModel)
-
-
-def check_architecture(arch_cfg: Mapping[str, Any], state_dim: int, input_dim: int, width: int, depth: int,
-                       batch: int = 8) -> None:
-    """Refuse in one line an architecture whose module does not give dx/dt (B, n) and y (B, m), finite, on a sample
-    batch, or whose stacked form (two models, as the lockstep training runs them) computes something else."""
-    from nsl_hpc.studies.input_state.module_stack import ModuleStack
-    from nsl_hpc.studies.input_state.stacked import StackedModels
-
-    label = f"{where('arch', arch_cfg)}: arch._target_={arch_cfg['_target_']!r}"
-    generator = torch.Generator().manual_seed(0)
-    z = torch.randn(2, batch, state_dim, generator=generator, dtype=torch.float64)
-    v = torch.randn(2, batch, input_dim, generator=generator, dtype=torch.float64)
-    models = []
-    for k in range(2):
-        torch.manual_seed(k)
-        models.append(build_model(arch_cfg, state_dim, input_dim, width, depth).double())
-    try:
-        outputs = [models[k](z[k], v[k]) for k in range(2)]
-        stack = StackedModels(models, torch.float64) if stackable(models[0]) else \
-            ModuleStack(models, torch.float64, state_dim, input_dim)
-        stacked = stack.forward(torch.cat([z, v], dim=-1).transpose(1, 2))
-    except Exception as error:
-        raise ConfigError(f"{label}: its model fails on a batch of {batch} samples ({type(error).__name__}: "
-                          f"{' '.join(str(error).split())[:160]})") from None
-    for name, index, size in (("dx/dt", 0, state_dim), ("y", 1, input_dim)):
-        shape = tuple(outputs[0][index].shape)
-        if shape != (batch, size):
-            raise ConfigError(f"{label}: its model gives {name} of shape {shape} for a batch of {batch}, expected "
-                              f"({batch}, {size})")
-        if not all(torch.isfinite(output[index]).all() for output in outputs):
-            raise ConfigError(f"{label}: its model gives a {name} that is not finite on a sample batch")
-        if not all(torch.allclose(stacked[index][k].T, outputs[k][index], rtol=1e-9, atol=1e-9) for k in range(2)):
-            raise ConfigError(f"{label}: its stacked form computes another {name} than its module (assemble must "
-                              "take every tensor through its layout argument)")

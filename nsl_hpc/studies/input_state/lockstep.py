@@ -17,7 +17,7 @@ then the forward pass, a four-operation loss, the backward pass and the optimize
 import math
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 import torch
@@ -25,10 +25,13 @@ from torch import nn
 
 from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.config.schema import typed
+from nsl_hpc.config.targets import where
+from nsl_hpc.errors import ConfigError
+from nsl_hpc.models import build_model
 from nsl_hpc.models.state_space import StateSpaceModel
 from nsl_hpc.studies.input_state.data import Dataset
-from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.input_state.module_stack import ModuleStack
+from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.input_state.stacked import StackedModels
 from nsl_hpc.studies.metrics import ErrorSums, spreads
 from nsl_hpc.studies.settings import InputStateTrain, batch_bounds, learning_rate_at
@@ -144,13 +147,13 @@ def stacked_data(members: Sequence[Member], dtype: torch.dtype) -> torch.Tensor:
 Stack = StackedModels | ModuleStack
 
 
-def stack_of(members: Sequence[Member], dtype: torch.dtype) -> Stack:
-    """The members' models as one stack: batched MLP heads (``StackedModels``) for architectures the package can
-    stack, else a ``ModuleStack`` of a user's modules."""
-    models = [member.model for member in members]
-    if all(isinstance(model, StateSpaceModel) for model in models):
-        return StackedModels(cast(list[StateSpaceModel], models), dtype)
-    return ModuleStack(models, dtype, members[0].data.x.shape[1], members[0].data.u.shape[1])
+def stack_of(models: Sequence[nn.Module], dtype: torch.dtype, state_dim: int, input_dim: int) -> Stack:
+    """``models`` (of systems of n = state_dim, m = input_dim) as one stack: batched MLP heads (``StackedModels``)
+    for architectures the package can stack, else a ``ModuleStack`` of a user's modules."""
+    heads = [model for model in models if isinstance(model, StateSpaceModel)]
+    if len(heads) == len(models):
+        return StackedModels(heads, dtype)
+    return ModuleStack(list(models), dtype, state_dim, input_dim)
 
 
 class Lockstep(LockstepRun):
@@ -165,7 +168,8 @@ class Lockstep(LockstepRun):
         self.dtype = getattr(torch, train.dtype)
         self.compiler = compiler or StepCompiler(False)
         self.compiled_losses = self.compiler.wrap(self.losses)
-        self.stack = stack_of(members, self.dtype)
+        self.stack = stack_of([member.model for member in members], self.dtype, members[0].data.x.shape[1],
+                              members[0].data.u.shape[1])
         self.optimizer = Adam(self.stack.theta, train.grad_clip_norm, train.weight_decay)
         self.data = stacked_data(members, self.dtype)
         self.pad = self.data.shape[1] - 1
@@ -376,3 +380,34 @@ def score_mean_predictor(data: Dataset, mean: np.ndarray, normalization: str) ->
     sums = ErrorSums(spreads(data.dx))
     sums.add(mean[None, :] - data.dx)
     return sums.both_ways(normalization)
+
+
+def check_architecture(arch_cfg: Mapping[str, Any], state_dim: int, input_dim: int, width: int, depth: int,
+                       batch: int = 8) -> None:
+    """Refuse in one line an architecture whose module does not give dx/dt (B, n) and y (B, m), finite, on a sample
+    batch, or whose stacked form (two models, as the lockstep training runs them) computes something else."""
+    label = f"{where('arch', arch_cfg)}: arch._target_={arch_cfg['_target_']!r}"
+    generator = torch.Generator().manual_seed(0)
+    z = torch.randn(2, batch, state_dim, generator=generator, dtype=torch.float64)
+    v = torch.randn(2, batch, input_dim, generator=generator, dtype=torch.float64)
+    models = []
+    for k in range(2):
+        torch.manual_seed(k)
+        models.append(build_model(arch_cfg, state_dim, input_dim, width, depth).double())
+    try:
+        outputs = [models[k](z[k], v[k]) for k in range(2)]
+        stack = stack_of(models, torch.float64, state_dim, input_dim)
+        stacked = stack.forward(torch.cat([z, v], dim=-1).transpose(1, 2))
+    except Exception as error:
+        raise ConfigError(f"{label}: its model fails on a batch of {batch} samples ({type(error).__name__}: "
+                          f"{' '.join(str(error).split())[:160]})") from None
+    for name, index, size in (("dx/dt", 0, state_dim), ("y", 1, input_dim)):
+        shape = tuple(outputs[0][index].shape)
+        if shape != (batch, size):
+            raise ConfigError(f"{label}: its model gives {name} of shape {shape} for a batch of {batch}, expected "
+                              f"({batch}, {size})")
+        if not all(torch.isfinite(output[index]).all() for output in outputs):
+            raise ConfigError(f"{label}: its model gives a {name} that is not finite on a sample batch")
+        if not all(torch.allclose(stacked[index][k].T, outputs[k][index], rtol=1e-9, atol=1e-9) for k in range(2)):
+            raise ConfigError(f"{label}: its stacked form computes another {name} than its module (assemble must "
+                              "take every tensor through its layout argument)")

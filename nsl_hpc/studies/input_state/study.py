@@ -85,7 +85,7 @@ class InputState(Study):
     def check_pair(self, base: Mapping[str, Any]) -> None:
         """The system builds and is finite on its initial box; the architecture builds for it and gives dx/dt and
         y of the right shapes on a sample batch, alone and stacked (``check_system``, ``check_architecture``)."""
-        from nsl_hpc.models import check_architecture
+        from nsl_hpc.studies.input_state.lockstep import check_architecture
 
         system = check_system(base["system"])
         tiers = base["tiers"]
