@@ -24,13 +24,13 @@ def run(study: Path, verb: str, *args: str) -> subprocess.CompletedProcess:
 def test_your_own_system_model_and_records_run_on_slurm(slurm_cluster, tmp_path):
     study = Path(shutil.copytree(EXAMPLE, tmp_path / "own_study", ignore=shutil.ignore_patterns("__pycache__")))
     sweeps = {"own_study": ["sweep.grid.seed=[0]", "sweep.grid.epochs=[16]", "sweep.grid.data_tier=[8]",
-                            "sweep.grid.width_tier=[4]"],  # unstructured and cascade_net: 2 tasks
+                            "sweep.grid.width_tier=[4]"],  # unstructured, cascade_net, tank_mlp: 3 tasks
               "own_data": ["sweep.grid.seed=[0]", "sweep.grid.iter_multiplier=[1]", "sweep.grid.data_tier=[800]",
                            "sweep.grid.width_tier=[4]"]}  # 1 task
     for name, grid in sweeps.items():  # both queued before either is waited for
         launched = run(study, "launch", f"+sweep={name}", *grid, "launcher=slurm", f"sweep_dir=runs/{name}")
         assert launched.returncode == 0 and "submitted" in launched.stdout, launched.stderr
-    for name, tasks in (("own_study", 2), ("own_data", 1)):
+    for name, tasks in (("own_study", 3), ("own_data", 1)):
         waited = run(study, "status", f"sweep_dir=runs/{name}", "wait=true", "interval_s=1", "max_interval_s=2")
         assert waited.returncode == 0, waited.stderr
         merged = run(study, "merge", f"sweep_dir=runs/{name}")  # (fit and report: the local test's, on more tasks)
