@@ -96,8 +96,8 @@ def run(main: Callable[..., int | None], doc: str, argv: Sequence[str] | None = 
     sweep's (system, arch) pairs each compose their own) are left out of this config and reach only ``main``;
     ``composed_with``: overrides applied before the user's in the config only (``main`` sees the user's)."""
     args = list(sys.argv[1:] if argv is None else argv)
-    log_command(sys.stderr)
     try:
+        log_command(sys.stdout, sys.stderr)
         args = take_config_dir(args)
         flags = {a for a in args if a.startswith("-")}
         overrides = [a for a in args if not a.startswith("-")]

@@ -1,14 +1,21 @@
-"""Where diagnostics go: the records of every ``nsl_hpc.*`` logger. A command prints its own output plainly and
-shows a diagnostic as ``warning: ...`` on stderr; a job writes each one with its time, level and where it arose
-(the job, or a lockstep group and its tasks), to its log."""
+"""Where diagnostics go: the records of every ``nsl_hpc.*`` logger. In a command, the library's progress (INFO:
+"submitted 4 jobs in 1 arrays", "finished: 6 ok") is a plain line on stdout and a diagnostic (WARNING and worse) a
+``warning: ...`` line on stderr; $NSL_HPC_LOG_LEVEL (as submitit's $SUBMITIT_LOG_LEVEL: DEBUG, INFO, WARNING, ERROR)
+sets how much shows. A job writes each record with its time, level and where it arose (the job, or a lockstep group
+and its tasks), to its log."""
 
 import contextlib
 import logging
+import os
 from collections.abc import Iterator
 from typing import TextIO
 
+from nsl_hpc.errors import ConfigError
+
 LOGGER = logging.getLogger("nsl_hpc")
 JOB_FORMAT = "%(asctime)s %(levelname)s [%(where)s] %(message)s"
+LEVEL_VARIABLE = "NSL_HPC_LOG_LEVEL"
+LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
 
 
 class CommandFormatter(logging.Formatter):
@@ -32,9 +39,26 @@ def send_records(stream: TextIO, formatter: logging.Formatter, level: int, where
     LOGGER.propagate = False
 
 
-def log_command(stream: TextIO) -> None:
-    """A command's diagnostics: warnings and worse, as ``warning: ...`` lines."""
-    send_records(stream, CommandFormatter(), logging.WARNING)
+def command_level() -> int:
+    """The level $NSL_HPC_LOG_LEVEL names (INFO when unset), or a one-line ConfigError."""
+    name = os.environ.get(LEVEL_VARIABLE, "INFO").upper()
+    if name not in LEVELS:
+        raise ConfigError(f"${LEVEL_VARIABLE}={os.environ[LEVEL_VARIABLE]!r} is unknown; choose one of: "
+                          f"{', '.join(LEVELS)}")
+    return logging.getLevelNamesMapping()[name]
+
+
+def log_command(out: TextIO, err: TextIO) -> None:
+    """A command's records from ``command_level`` on: progress (below WARNING) as plain lines on ``out``,
+    diagnostics as ``warning: ...`` lines on ``err``."""
+    progress = logging.StreamHandler(out)
+    progress.addFilter(lambda record: record.levelno < logging.WARNING)
+    diagnostics = logging.StreamHandler(err)
+    diagnostics.setLevel(logging.WARNING)
+    diagnostics.setFormatter(CommandFormatter())
+    LOGGER.handlers[:] = [progress, diagnostics]
+    LOGGER.propagate = False
+    LOGGER.setLevel(command_level())
 
 
 def log_job(stream: TextIO, where: str) -> None:

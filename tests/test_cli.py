@@ -138,3 +138,19 @@ def test_a_closed_pipe_ends_status_quietly(tmp_path):
                             stderr=subprocess.PIPE, text=True)
     os.close(write)
     assert result.returncode == 1 and result.stderr == ""
+
+
+@pytest.mark.e2e
+def test_the_librarys_progress_lines_follow_the_log_level(tmp_path, monkeypatch):
+    """What the sweep machinery reports (``finished: 4 ok``) goes through logging: a plain line at INFO (the
+    default), none at $NSL_HPC_LOG_LEVEL=WARNING; an unknown level is one line, exit 2, before any work."""
+    launched = nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={tmp_path / 'info'}")
+    assert launched.returncode == 0 and "finished: 4 ok" in launched.stdout, launched.stderr
+    monkeypatch.setenv("NSL_HPC_LOG_LEVEL", "warning")
+    quiet = nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={tmp_path / 'quiet'}")
+    assert quiet.returncode == 0 and "finished" not in quiet.stdout and "4 tasks" in quiet.stdout, quiet.stdout
+    monkeypatch.setenv("NSL_HPC_LOG_LEVEL", "loud")
+    refused = nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={tmp_path / 'refused'}")
+    assert refused.returncode == 2 and not (tmp_path / "refused").exists()
+    assert refused.stderr == ("error: $NSL_HPC_LOG_LEVEL='loud' is unknown; choose one of: DEBUG, INFO, WARNING, "
+                              "ERROR\n")

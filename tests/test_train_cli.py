@@ -18,8 +18,8 @@ ROW_COLUMNS = {
     "task_id", "system", "arch", "seed", "sweep_seed", "epochs", "data_tier", "data_size", "n_traj",
     "train_points", "width_tier", "width", "depth_tier", "depth", "batch_size", "lr", "nmae", "nmse",
     "nmae_per_column", "nmse_per_column", "nmae_scalar", "nmse_scalar", "compiled",
-    "params", "stackable", "flops", "flops_paper", "test_points", "steps", "final_loss", "train_nmae", "mean_predictor_nmae",
-    "status", "milestone", "repeat",
+    "params", "stackable", "flops", "flops_paper", "test_points", "steps", "final_loss", "train_nmae",
+    "mean_predictor_nmae", "status", "milestone", "repeat",
     "package_version", "torch_version", "python_version", "host", *TIMING_COLUMNS,
 }
 

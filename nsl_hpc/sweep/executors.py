@@ -4,6 +4,7 @@ submitted), or local / in-process executors in the foreground with a progress ba
 import contextlib
 import io
 import itertools
+import logging
 import os
 import shutil
 import signal
@@ -35,6 +36,8 @@ from nsl_hpc.sweep.prepare import prepare_shared_data
 from nsl_hpc.sweep.rows import row_states
 from nsl_hpc.sweep.slurm import held_arrays, queued_jobs, refused_setting
 from nsl_hpc.sweep.submissions import read_submissions, record_submission
+
+LOG = logging.getLogger(__name__)
 
 FULL_DISK_BYTES = 64 * 2**20  # a local job that ended without its result with less free than this: the disk is full
 
@@ -285,18 +288,18 @@ def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Launcher, name: s
         submission = submit_to_slurm(sweep_dir, packs, launcher, name, limits)
         elements = sum(submission.arrays.values())
         if submission.unaccounted:
-            print(f"the user's job limits are unknown ({submission.unaccounted[:160]}): submitted without them (set "
+            LOG.info(f"the user's job limits are unknown ({submission.unaccounted[:160]}): submitted without them (set "
                   "launcher.max_submit_jobs to stay within a submit limit)")
         if submission.refusal:
             refuse_for_setting(sweep_dir, submission)
-        print(f"submitted {elements:,} jobs in {len(submission.arrays)} arrays: {', '.join(submission.arrays)}")
+        LOG.info(f"submitted {elements:,} jobs in {len(submission.arrays)} arrays: {', '.join(submission.arrays)}")
         if submission.refusal:
-            print(f"sbatch refused the next array: {submission.refusal}")
+            LOG.info(f"sbatch refused the next array: {submission.refusal}")
         if submission.left:
-            print(held_back_line(sweep_dir, submission, launcher, name, limits))
+            LOG.info(held_back_line(sweep_dir, submission, launcher, name, limits))
         return 0
     counts = run_locally(sweep_dir, packs, launcher, silence_s)
-    print("finished: " + ", ".join(f"{n:,} {outcome}" for outcome, n in sorted(counts.items())))
+    LOG.info("finished: " + ", ".join(f"{n:,} {outcome}" for outcome, n in sorted(counts.items())))
     return 0 if set(counts) <= {"ok", "skipped"} else 1
 
 

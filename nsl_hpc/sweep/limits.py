@@ -8,6 +8,7 @@ one may run (MaxWall). Each limit keeps where it comes from; the smallest of eac
 
 import copy
 import getpass
+import logging
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -19,6 +20,8 @@ from nsl_hpc.errors import ConfigError, SlurmError
 from nsl_hpc.sweep.plan import Pack
 from nsl_hpc.sweep.slurm import SlurmMissing, slurm_command
 from nsl_hpc.sweep.storage import Storage, predicted_files
+
+LOG = logging.getLogger(__name__)
 
 UNLIMITED = ("", "UNLIMITED", "INFINITE", "NONE", "N/A", "(null)")
 
@@ -199,7 +202,7 @@ def cluster_limits(launch: DictConfig, dry_run: bool = False) -> ClusterLimits |
     except SlurmMissing as error:
         if not dry_run:
             raise
-        print(f"  {error}: the cluster's limits were not read")
+        LOG.info(f"  {error}: the cluster's limits were not read")
         return None
 
 

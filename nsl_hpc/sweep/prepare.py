@@ -3,6 +3,7 @@ writing nothing), then write the manifest and find which tasks still need to run
 sweep's lock). Nothing is submitted here."""
 
 import itertools
+import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +34,8 @@ from nsl_hpc.sweep.plan import check_run_settings
 from nsl_hpc.sweep.rows import row_states, set_aside
 from nsl_hpc.sweep.task import check_settings
 from nsl_hpc.sweep.task_states import read_sweep_state
+
+LOG = logging.getLogger(__name__)
 
 MISSING = object()
 
@@ -255,7 +258,7 @@ def prepare_shared_data(tasks: Sequence[Mapping[str, Any]], configs: Mapping[tup
     systems = sorted({system for system, _ in pairs})
     if not systems:
         return
-    print(f"preparing the shared data of {', '.join(systems)} in {configs[pairs[0]]['cache_dir']}", flush=True)
+    LOG.info(f"preparing the shared data of {', '.join(systems)} in {configs[pairs[0]]['cache_dir']}")
     done = set()
     for pair in pairs:
         if pair[0] not in done:

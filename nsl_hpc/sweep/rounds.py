@@ -4,6 +4,7 @@ nsl_hpc/sweep/decisions.py), and the loop that runs them: round after round with
 one round and, behind it, the job that launches the next."""
 
 import dataclasses
+import logging
 import time
 from collections import defaultdict
 from collections.abc import Callable, Collection, Mapping, Sequence
@@ -41,6 +42,8 @@ from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.prepare import BuiltSweep, PreparedSweep, prepare_sweep, queued_tasks
 from nsl_hpc.sweep.rows import read_task_rows
 from nsl_hpc.sweep.submissions import read_submissions
+
+LOG = logging.getLogger(__name__)
 
 
 def round_of_level(level: int, first_levels: int, levels_per_round: int) -> int:
@@ -219,9 +222,9 @@ def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, o
         decisions = read_decisions(sweep_dir)
         chosen = {d["task_id"] for d in decisions if d["run"]}
         decided = max((d["round"] for d in decisions), default=0)
-        print(describe_budget(budget, decisions, rounds.count))
+        LOG.info(describe_budget(budget, decisions, rounds.count))
         if not decided:
-            print(describe_first_round(budget, rounds, planned_s))
+            LOG.info(describe_first_round(budget, rounds, planned_s))
         if cfg.dry_run:  # the round that runs next, as far as it is decided (round 1 always is)
             return run_tasks(cfg, built, only(prepared, chosen if decisions else set(rounds.tasks_of(1))))
         this_round = only(prepared, chosen - attempted)
@@ -230,13 +233,13 @@ def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, o
             worst = max(worst, run_tasks(cfg, built, this_round))
             if prepared.queued or isinstance(launcher_from(cfg.launcher), SlurmLauncher):
                 if decided < rounds.count:
-                    print(next_round_line(cfg, sweep_dir, overrides, chosen, started, decided))
+                    LOG.info(next_round_line(cfg, sweep_dir, overrides, chosen, started, decided))
                 return worst
             attempted |= set(this_round.todo["task_id"].to_pylist())
             prepared = prepare_sweep(cfg, built, sweep_dir)
             continue
         if decided == rounds.count:
-            print("budget: every round has run")
+            LOG.info("budget: every round has run")
             if not layout.law_state_path(sweep_dir, decided).exists():
                 track_round_laws(sweep_dir, decided, manifest, cfg, budget, track_laws)
             return worst
