@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
@@ -174,3 +175,32 @@ def test_a_broken_record_is_one_line_at_launch_before_anything_is_written(study,
     assert refused.stderr.startswith(f"error: {message}"), refused.stderr
     assert len(refused.stderr.strip().splitlines()) == 1
     assert not (study / "runs/refused").exists()
+
+
+def test_records_in_npz_and_mat_files_read_as_the_same_columns_in_csv(tmp_path, monkeypatch):
+    """``source.kind: files`` reads a .csv header's columns, an .npz file's arrays and a .mat file's variables
+    alike: the same records, the same split."""
+    from scipy.io import savemat
+
+    from nsl_hpc.config import compose_config, plain
+    from nsl_hpc.studies.input_output.data import read_files
+
+    monkeypatch.setenv("NSL_HPC_CONFIG_DIR", str(EXAMPLE / "conf"))
+    system = plain(compose_config(["study=input_output", "system=tank_rig"], "one_task").system)
+    system["source"]["data_dir"] = str(EXAMPLE / "data")
+    csv_train, csv_tests = read_files(system)
+    for suffix in ("npz", "mat"):
+        files = {}
+        for name in ("tanks_train", "tanks_test"):
+            columns = np.genfromtxt(EXAMPLE / "data" / f"{name}.csv", delimiter=",", names=True)
+            arrays = {column: columns[column] for column in ("t", "u", "y")}
+            files[name] = tmp_path / f"{name}.{suffix}"
+            if suffix == "npz":
+                np.savez(files[name], **arrays)
+            else:
+                savemat(files[name], arrays)
+        source = {**system["source"], "data_dir": str(tmp_path), "train": files["tanks_train"].name,
+                  "test": {"test": files["tanks_test"].name}}
+        train, tests = read_files({**system, "source": source})
+        np.testing.assert_array_equal(train.y, csv_train.y)
+        np.testing.assert_array_equal(tests["test"].u, csv_tests["test"].u)
