@@ -26,23 +26,12 @@ from nsl_hpc.errors import ConfigError, RunError
 
 
 def schema_docs() -> dict[str, str]:
-    """Every key of a typed group -> its field's documentation (``config.schema.field_docs``)."""
-    from nsl_hpc.analysis.nsl_settings import Figures, MlflowSettings, Nsl
-    from nsl_hpc.config.system import InputOutputSystem, InputStateSystem
-    from nsl_hpc.studies.settings import InputOutputTrain, InputStateTrain, Metric
-    from nsl_hpc.sweep.budget import BudgetSettings
-    from nsl_hpc.sweep.prepare import SweepSettings
-    from nsl_hpc.sweep.rehearsal import Rehearse
-    from nsl_hpc.sweep.run_settings import SCHEMAS, Fault
+    """Every key of a typed group -> its field's documentation (``config.schema.field_docs``), from the registry of
+    config groups."""
+    from nsl_hpc.registry import groups
 
-    docs = {**field_docs(InputOutputTrain, "train"), **field_docs(InputStateTrain, "train"),
-            **field_docs(Nsl, "nsl"), **field_docs(Figures, "figures"), **field_docs(BudgetSettings, "budget"),
-            **field_docs(InputOutputSystem, "system"), **field_docs(InputStateSystem, "system"),
-            **field_docs(Metric, "metric"), **field_docs(SweepSettings, "sweep"), **field_docs(Fault, "fault"),
-            **field_docs(Rehearse, "rehearse"), **field_docs(MlflowSettings, "mlflow")}
-    for name, schema in SCHEMAS.items():
-        docs.update(field_docs(schema, name))
-    return docs
+    return {key: doc for group in groups() for owner in group.owners
+            for key, doc in field_docs(owner, group.name).items()}
 
 
 def usage(doc: str, config_name: str) -> str:

@@ -33,10 +33,11 @@ from nsl_hpc.sweep.executors import run_jobs
 from nsl_hpc.sweep.groups import saved_groups
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.limits import cluster_limits, describe_fit, within_limits
-from nsl_hpc.sweep.manifest import RUN_SETTINGS, read_base_config, read_launch_config, read_manifest, require_sweep
+from nsl_hpc.sweep.manifest import read_base_config, read_launch_config, read_manifest, require_sweep
 from nsl_hpc.sweep.plan import check_run_settings, plan_jobs
 from nsl_hpc.sweep.prepare import describe_infeasible, override_key, split_runnable
 from nsl_hpc.sweep.rows import set_aside
+from nsl_hpc.sweep.run_settings import RUN_KEYS
 from nsl_hpc.sweep.storage import read_storage
 from nsl_hpc.sweep.task_states import read_sweep_state
 
@@ -61,9 +62,9 @@ def refuse_task_overrides(overrides: Sequence[str]) -> None:
     train.lr would be other tasks); only run settings and resubmit's own keys may be named."""
     for override in overrides:
         key = override_key(override)
-        if key.split(".")[0] not in (*RUN_SETTINGS, *OWN_KEYS):
+        if key.split(".")[0] not in (*RUN_KEYS, *OWN_KEYS):
             raise ConfigError(f"{override} would change the tasks: resubmit runs them as launched and changes only "
-                              f"run settings ({', '.join(RUN_SETTINGS)}); launch other tasks as a new sweep "
+                              f"run settings ({', '.join(RUN_KEYS)}); launch other tasks as a new sweep "
                               "(python -m nsl_hpc.launch ... sweep_dir=<new dir>)")
 
 
@@ -77,7 +78,7 @@ def with_named_settings(launch: DictConfig, cfg: DictConfig, overrides: Sequence
         group = key.split(".")[0]
         if key == "compile":  # the one run setting that is a value, not a group
             launch.compile = cfg.compile
-        elif "." in key and group in RUN_SETTINGS and not (group == "launcher" and "launcher" in keys):
+        elif "." in key and group in RUN_KEYS and not (group == "launcher" and "launcher" in keys):
             OmegaConf.update(launch, key, OmegaConf.select(cfg, key), force_add=True)
     return launch
 

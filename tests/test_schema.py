@@ -7,12 +7,12 @@ from omegaconf import OmegaConf
 from nsl_hpc.cli import schema_docs
 from nsl_hpc.config import compose_config, config_dir
 from nsl_hpc.config.arch import STUDIES, arch_settings
-from nsl_hpc.config.schema import typed
+from nsl_hpc.config.schema import field_names, typed
 from nsl_hpc.config.system import InputOutputSystem, InputStateSystem
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies import studies
 from nsl_hpc.studies.settings import InputOutputTrain, InputStateTrain, RolloutSegment
-from nsl_hpc.sweep.run_settings import SCHEMAS, Checkpoint, Cost, Watchdog, run_settings
+from nsl_hpc.sweep.run_settings import RUN_GROUPS, Checkpoint, Cost, Watchdog, run_settings
 from nsl_hpc.sweep.task import check_settings
 from tests.sweeps import nsl
 
@@ -63,7 +63,7 @@ def test_missing_keys_nested_groups_and_rules_between_fields(launch):
 @pytest.mark.e2e
 def test_help_gives_each_typed_key_its_fields_documentation():
     docs = schema_docs()
-    assert set(SCHEMAS) <= set(docs) and "train.rollout_segment.batch_major" in docs
+    assert set(RUN_GROUPS) <= set(docs) and "train.rollout_segment.batch_major" in docs
     shown = nsl("launch", "--help").stdout
     for key in ("watchdog.overrun_factor", "lockstep.size", "cost.compile_s"):
         assert docs[key] in shown.replace("\n", " "), key
@@ -117,3 +117,20 @@ def test_the_study_names_agree_wherever_they_are_named():
     for name in STUDIES:
         assert compose_config([f"study={name}"] + (["system=silverbox", "arch=narx"] if name == "input_output"
                                                    else []), "one_task").study.name == name
+
+
+def test_the_registry_of_config_groups_agrees_with_what_the_code_does_with_them():
+    """One registry (nsl_hpc.registry): its RUN groups are run.yaml's (what a resubmit may change), the groups of
+    every study's task ids are OUTCOME groups, and each owner documents its keys for --help."""
+    from nsl_hpc.registry import OUTCOME, RUN, groups
+    from nsl_hpc.studies import studies
+    from nsl_hpc.sweep.run_settings import RUN_KEYS
+
+    kinds = {group.name: group.kind for group in groups()}
+    assert [name for name, kind in kinds.items() if kind == RUN and name] == [key for key in RUN_KEYS
+                                                                                if key != "compile"]
+    assert "compile" in [key for group in groups() if not group.name for key in field_names(group.owners[0])]
+    for study in studies().values():
+        assert all(kinds[group] == OUTCOME for group in study.shared_keys if group in kinds), study.name
+        assert all(owner in registered for group, owner in study.settings_schemas
+                   for registered in [next(g.owners for g in groups() if g.name == group)])

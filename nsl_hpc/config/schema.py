@@ -65,12 +65,14 @@ def field_names(schema: type) -> list[str]:
 def field_docs(schema: type, prefix: str) -> dict[str, str]:
     """``prefix`` -> the group's documentation (its docstring's first line), ``prefix.field`` -> each field's,
     nested groups included."""
-    docs = {prefix: " ".join((schema.__doc__ or "").split("\n\n")[0].split())}
+    docs = {prefix: " ".join((schema.__doc__ or "").split("\n\n")[0].split())} if prefix else {}
     hints = typing.get_type_hints(schema)
     for item in dataclasses.fields(schema):
-        docs[f"{prefix}.{item.name}"] = item.metadata["doc"]
+        if "doc" not in item.metadata:  # a plain dataclass field (the launchers'): documented in conf/
+            continue
+        docs[dotted(prefix, item.name)] = item.metadata["doc"]
         if dataclasses.is_dataclass(hints[item.name]):
-            docs.update(field_docs(hints[item.name], f"{prefix}.{item.name}"))
+            docs.update(field_docs(hints[item.name], dotted(prefix, item.name)))
     return docs
 
 

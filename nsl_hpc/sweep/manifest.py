@@ -30,9 +30,7 @@ from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.directory import portable_paths
 from nsl_hpc.sweep.formats import FORMAT, upgrade_launch
 from nsl_hpc.sweep.layout import base_config_path
-
-# what a resubmit may change
-RUN_SETTINGS = ("launcher", "packing", "cost", "watchdog", "lockstep", "checkpoint", "compile")
+from nsl_hpc.sweep.run_settings import RUN_KEYS
 
 
 def manifest_path(sweep_dir: str | Path) -> Path:
@@ -100,7 +98,7 @@ def read_launch_config(sweep_dir: Path) -> DictConfig:
     run_file = Path(sweep_dir) / layout.RUN_SETTINGS
     if run_file.exists():
         run = read_yaml(run_file, sweep_dir)
-        for key in RUN_SETTINGS:  # each group replaced whole: a slurm launcher is no local one plus keys
+        for key in RUN_KEYS:  # each group replaced whole: a slurm launcher is no local one plus keys
             if key in run:  # one a format-1 sweep's run.yaml lacks is upgraded below
                 launch[key] = run[key]
     return upgrade_launch(launch, str(Path(sweep_dir) / layout.LAUNCH_CONFIG))
@@ -109,4 +107,4 @@ def read_launch_config(sweep_dir: Path) -> DictConfig:
 def write_run_settings(sweep_dir: Path, cfg: Mapping[str, Any]) -> None:
     """Record the run settings of ``cfg`` (a launch config) as the ones jobs and the next resubmit use."""
     values = plain(cfg)
-    write_yaml({key: values[key] for key in RUN_SETTINGS}, Path(sweep_dir) / layout.RUN_SETTINGS, sweep_dir)
+    write_yaml({key: values[key] for key in RUN_KEYS}, Path(sweep_dir) / layout.RUN_SETTINGS, sweep_dir)

@@ -11,10 +11,10 @@ from omegaconf import DictConfig
 from nsl_hpc.config import plain
 from nsl_hpc.config.launchers import LocalLauncher, SlurmLauncher, check_batch_text, launcher_from
 from nsl_hpc.config.schema import typed
-from nsl_hpc.errors import ConfigError, require_choice
+from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import model_of
-from nsl_hpc.studies.settings import COMPILE_MODES
+from nsl_hpc.studies.settings import Runtime
 from nsl_hpc.sweep.run_settings import Lockstep, run_settings
 
 
@@ -204,11 +204,9 @@ def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
     milestones (train.schedule_epochs, shared draws) the study's draw keys, else none (a model per task), and
     ``compile``."""
     settings, study = typed(Lockstep, launch["lockstep"], "lockstep"), study_named(launch["study"]["name"])
-    compile_mode = launch["compile"]
-    require_choice("compile", compile_mode, COMPILE_MODES)
     return {"size": settings.size if settings.enabled and study.lockstep else 1,
             "width_buckets": list(settings.width_buckets), "memory_mb": settings.memory_mb,
-            "model_keys": list(study.model_keys(launch)), "compile": compile_mode}
+            "model_keys": list(study.model_keys(launch)), "compile": Runtime.of(launch).compile}
 
 
 def check_run_settings(launch: Mapping[str, Any]) -> None:

@@ -5,6 +5,7 @@ changes an outcome. ``run_settings`` checks them all and returns them typed; eac
 the watchdog, 1e-9-minute checkpoints would write at every block).
 """
 
+import typing
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -101,6 +102,8 @@ class Watchdog:
 
 @dataclass(frozen=True)
 class RunSettings:
+    """The run-setting groups of a launch config (the launcher's aside: ``config.launchers``)."""
+
     lockstep: Lockstep
     packing: Packing
     cost: Cost
@@ -108,10 +111,11 @@ class RunSettings:
     watchdog: Watchdog
 
 
-SCHEMAS: dict[str, type] = {"lockstep": Lockstep, "packing": Packing, "cost": Cost, "checkpoint": Checkpoint,
-                            "watchdog": Watchdog}
+RUN_GROUPS: dict[str, type] = typing.get_type_hints(RunSettings)  # name -> owner
+# what a resubmit may change (run.yaml holds them): the launcher, the run groups, the top-level compile
+RUN_KEYS = ("launcher", *RUN_GROUPS, "compile")
 
 
 def run_settings(launch: Mapping[str, Any]) -> RunSettings:
     """The launch config's run-setting groups, typed and checked (one-line ConfigError)."""
-    return RunSettings(**{name: typed(schema, launch[name], name) for name, schema in SCHEMAS.items()})
+    return RunSettings(**{name: typed(schema, launch[name], name) for name, schema in RUN_GROUPS.items()})

@@ -21,11 +21,11 @@ from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.config import plain
 from nsl_hpc.config.arch import arch_settings
 from nsl_hpc.config.schema import typed
-from nsl_hpc.errors import ConfigError, require_choice, require_non_negative_int, require_positive_int
+from nsl_hpc.errors import ConfigError, require_non_negative_int
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_of
 from nsl_hpc.studies.base import Study
-from nsl_hpc.studies.settings import COMPILE_MODES
+from nsl_hpc.studies.settings import Runtime
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.rehearsal import Rehearse, rehearsed_group
 from nsl_hpc.sweep.rows import write_row_atomically
@@ -65,8 +65,7 @@ def check_settings(values: Mapping[str, Any]) -> None:
     for group, schema in (*study_of(values).settings_schemas, ("fault", Fault), ("rehearse", Rehearse)):
         typed(schema, values[group], group)
     arch_settings(values["arch"])
-    require_positive_int("threads", values["threads"])
-    require_choice("compile", values["compile"], COMPILE_MODES)
+    Runtime.of(values)
 
 
 def task_id_from(study: Study, shared: str, values: Mapping[str, Any]) -> str:
