@@ -13,7 +13,6 @@ model, so that the commands that only read or check a sweep (status, merge, clea
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from functools import cache
 from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig
@@ -47,15 +46,20 @@ def system_dimensions(system_cfg: Mapping[str, Any]) -> tuple[int, int]:
     return DIMENSIONS[identity]
 
 
-@cache
-def model_shape(arch_items: tuple, dimensions: tuple[int, int], width: int, depth: int) -> tuple[int, bool]:
-    """(parameter count, whether the lockstep training batches it: ``models.stackable``) of one architecture for a
-    system of sizes (n, m), built once per distinct shape."""
-    from nsl_hpc.models import build_model, stackable
-    from nsl_hpc.models.blocks import parameter_count
+SHAPES: dict[tuple, tuple[int, bool]] = {}  # (arch, n, m, n_h, n_d) -> model_shape's answer, each built once
 
-    model = build_model(dict(arch_items), *dimensions, width, depth)
-    return parameter_count(model), stackable(model)
+
+def model_shape(arch: Mapping[str, Any], dimensions: tuple[int, int], width: int, depth: int) -> tuple[int, bool]:
+    """(parameter count, whether the lockstep training batches it: ``models.stackable``) of the architecture ``arch``
+    (a plain config; a user's options may hold lists and mappings) for a system of sizes (n, m)."""
+    key = (repr(arch), dimensions, width, depth)
+    if key not in SHAPES:
+        from nsl_hpc.models import build_model, stackable
+        from nsl_hpc.models.blocks import parameter_count
+
+        model = build_model(arch, *dimensions, width, depth)
+        SHAPES[key] = parameter_count(model), stackable(model)
+    return SHAPES[key]
 
 
 class InputState(Study):
@@ -101,7 +105,7 @@ class InputState(Study):
         width, depth = draw_tier(rng, task["width_tier"]), draw_tier(rng, task["depth_tier"])
         n_traj = data_size / base["data_per_trajectory"]
         points = training_points(n_traj, points_per_trajectory(base["system"]))
-        params, batched = model_shape(tuple(base["arch"].items()), system_dimensions(base["system"]), width, depth)
+        params, batched = model_shape(base["arch"], system_dimensions(base["system"]), width, depth)
         return {"data_size": data_size, "n_traj": n_traj, "width": width, "depth": depth, "train_points": points,
                 "params": params, "stackable": batched}
 
