@@ -37,7 +37,7 @@ LOCAL = [*TINY_GRID, "launcher=local"]
     (["cost.compile_speedup.unstructured=0"], "cost.compile_speedup.unstructured=0 must be a finite number in (0, "),
     (["cost.compile_s.subnet=null"], "cost.compile_speedup.subnet needs cost.compile_s.subnet"),
     (["cost.compile_s.unstructured=-1"], "cost.compile_s.unstructured=-1 must be a finite number in [0, 86400]"),
-    (["compile=sometimes"], "compile='sometimes'; choose one of: auto, always, never"),
+    (["compile=sometimes"], "compile='sometimes' is unknown; choose one of: auto, always, never"),
 ])
 def test_settings_that_would_switch_a_protection_off_are_refused_in_one_line(overrides, message):
     launch = compose_config(["+sweep=demo", *overrides], "launch")

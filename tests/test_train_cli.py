@@ -139,7 +139,7 @@ def test_compiled_tasks_agree_with_eager_share_their_kernels_and_fall_back_witho
     ("depth_tier=8", "depth_tier=8 is outside the grid"),
     ("arch.width_factor=0.1", None),  # only unstructured has the key: an unknown key for pH
     ("learning_rate=0.1", "learning_rate"),
-    ("compile=sometimes", "compile='sometimes'; choose one of: auto, always, never"),
+    ("compile=sometimes", "compile='sometimes' is unknown; choose one of: auto, always, never"),
 ])
 def test_bad_input_fails_fast_with_one_line(override, message, tmp_path, cache_dir):
     out_dir = tmp_path / "out"
