@@ -43,6 +43,14 @@ install_packages() {
 
 # Zombies of daemons stopped by down.sh do not count.
 running() { pgrep -x "$1" --runstates D,R,S >/dev/null; }
+# This cluster's SLURM daemon $1 (slurmctld, slurmd, slurmdbd) by its pid file: the slurmctld and slurmds of another
+# cluster on this host (cluster/nodes.sh) are not this one's, and a restart leaves them alone.
+daemon_pid() {
+  local file=$STATE/$1.pid pid
+  [[ -s $file ]] || return 1
+  pid=$(cat "$file")
+  [[ $(ps -o stat= -p "$pid" 2>/dev/null) != Z* && $(ps -o comm= -p "$pid" 2>/dev/null) == "$1" ]] && echo "$pid"
+}
 
 wait_for() {  # wait_for SECONDS DESCRIPTION COMMAND...
   local seconds=$1 what=$2; shift 2
@@ -79,10 +87,11 @@ render() {  # render TEMPLATE DESTINATION MODE: returns 0 when the destination c
 }
 
 restart() {  # restart DAEMON: stop it if running (a busy controller saves its state first), start it
-  if running "$1"; then
-    pkill -x "$1"
-    for _ in $(seq 120); do running "$1" || break; sleep 0.5; done
-    running "$1" && die "$1 did not stop within 60 s; see $STATE/log/"
+  local pid
+  if pid=$(daemon_pid "$1"); then
+    kill "$pid"
+    for _ in $(seq 120); do daemon_pid "$1" >/dev/null || break; sleep 0.5; done
+    daemon_pid "$1" >/dev/null && die "$1 did not stop within 60 s; see $STATE/log/"
   fi
   "/usr/sbin/$1"
 }
@@ -104,13 +113,13 @@ dbd_changed=0; ctl_changed=0
 render "$HERE/slurmdbd.conf.template" /etc/slurm/slurmdbd.conf 600 && dbd_changed=1
 render "$HERE/slurm.conf.template" /etc/slurm/slurm.conf 644 && ctl_changed=1
 
-if [[ $dbd_changed == 1 ]] || ! running slurmdbd; then restart slurmdbd; fi
+if [[ $dbd_changed == 1 ]] || ! daemon_pid slurmdbd >/dev/null; then restart slurmdbd; fi
 wait_for 60 slurmdbd sacctmgr -n show cluster
 if ! sacctmgr -n -P show cluster format=cluster | grep -qx "$CLUSTER_NAME"; then
   sacctmgr -i add cluster "$CLUSTER_NAME" >/dev/null
 fi
-if [[ $ctl_changed == 1 ]] || ! running slurmctld; then restart slurmctld; fi
-if [[ $ctl_changed == 1 ]] || ! running slurmd; then restart slurmd; fi
+if [[ $ctl_changed == 1 ]] || ! daemon_pid slurmctld >/dev/null; then restart slurmctld; fi
+if [[ $ctl_changed == 1 ]] || ! daemon_pid slurmd >/dev/null; then restart slurmd; fi
 wait_for 60 "the node $HOST" bash -c "sinfo -h -N -o %T | grep -Eq '^(idle|mixed|allocated)'"
 wait_for 60 "MaxArraySize=$MAX_ARRAY_SIZE in the controller" bash -c \
   "scontrol show config | grep -Eq '^MaxArraySize +=  *$MAX_ARRAY_SIZE\$'"

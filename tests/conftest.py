@@ -41,14 +41,18 @@ def compose(cache_dir, tmp_path):
     return make
 
 
+OWN_CLUSTER = ("tests/cluster/test_node_loss.py",)  # SLURM tests on a cluster of their own (cluster/nodes.sh)
+
+
 class FileOrCluster(LoadScopeScheduling):
     """pytest-xdist's scheduling for ``make test`` (``-n 3``): the tests of one file run on one worker, in order,
     sharing their module fixtures, and the SLURM tests (tests/cluster/) one after another on one worker: they share
-    the cluster's queue and CPUs, and one restarts it. (xdist's loadgroup would do this with marks, but does not
-    group anything under pytest 9.)"""
+    the cluster's queue and CPUs, and one restarts it. A file of ``OWN_CLUSTER`` runs on another worker, beside
+    them. (xdist's loadgroup would do this with marks, but does not group anything under pytest 9.)"""
 
     def _split_scope(self, nodeid: str) -> str:
-        return "tests/cluster" if nodeid.startswith("tests/cluster/") else nodeid.split("::", 1)[0]
+        path = nodeid.split("::", 1)[0]
+        return "tests/cluster" if nodeid.startswith("tests/cluster/") and path not in OWN_CLUSTER else path
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

@@ -5,11 +5,14 @@ import getpass
 import os
 import shutil
 import subprocess
+import sys
 import tempfile
 from datetime import datetime
 from pathlib import Path
 
 import pytest
+
+from tests.cluster.long_jobs import GROUP, outcome_rows
 
 
 def cluster_answers() -> bool:
@@ -46,3 +49,20 @@ def slurm_cluster() -> None:
         pytest.fail(message)
     pytest.skip(message)
 
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """The group trained uninterrupted by the local launcher, started at once (it runs beside the cluster's
+    job on the other core); call it for its rows."""
+    sweep_dir = tmp_path_factory.mktemp("uninterrupted") / "sweep"
+    process = subprocess.Popen([sys.executable, "-m", "nsl_hpc.launch", *GROUP, "launcher=local", "launcher.workers=1",
+                                f"sweep_dir={sweep_dir}"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                               text=True)
+
+    def rows() -> dict[str, tuple]:
+        output, _ = process.communicate(timeout=600)
+        assert process.returncode == 0 and "finished: 2 ok" in output, output
+        return outcome_rows(sweep_dir)
+
+    yield rows
+    process.kill()
