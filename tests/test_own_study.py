@@ -12,15 +12,17 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
+import yaml
 
 import nsl_hpc
+from nsl_hpc.errors import ConfigError
 from nsl_hpc.models import build_model, stackable
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, predict_derivatives, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
 
 EXAMPLE = Path(nsl_hpc.__file__).parents[1] / "examples" / "own_study"
-SMALL_STUDY = ["sweep.grid.seed=[0]", "sweep.grid.epochs=[64]", "sweep.grid.data_tier=[8,32]",
+SMALL_STUDY = ["sweep.grid.seed=[0]", "sweep.grid.epochs=[16,64]", "sweep.grid.data_tier=[8]",
                "sweep.grid.width_tier=[16]"]  # 6 tasks: 3 archs
 SMALL_DATA = ["sweep.grid.iter_multiplier=[1]", "sweep.grid.data_tier=[800]", "sweep.grid.width_tier=[4]"]  # 1 task
 
@@ -46,6 +48,41 @@ def run(study: Path, site: Path, verb: str, *args: str) -> subprocess.CompletedP
     env = {**os.environ, "PYTHONPATH": f".{os.pathsep}{site}"}
     return subprocess.run([sys.executable, "-m", f"nsl_hpc.{verb}", "--config-dir", "conf", *args],
                           capture_output=True, text=True, cwd=study, env=env, timeout=600)
+
+
+@pytest.mark.e2e
+def test_a_users_own_sweep_and_site_settings_run_from_outside_an_installed_package(site, tmp_path):
+    """nsl_hpc installed as a wheel (not this checkout), run from elsewhere: `--config-dir` (or
+    $NSL_HPC_CONFIG_DIR) adds the user's sweep/<name>.yaml and local/default.yaml to the package's configs."""
+    mine = tmp_path / "my conf"
+    (mine / "sweep").mkdir(parents=True)
+    (mine / "local").mkdir()
+    (mine / "sweep" / "my_grid.yaml").write_text(  # the package's demo grid, narrowed
+        "# @package _global_\ndefaults:\n  - demo\nsweep:\n  name: my_grid\n  grid:\n    system: [spring]\n"
+        "    arch: [input_affine]\n")
+    (mine / "local" / "default.yaml").write_text("# @package _global_\nsweep_seed: 7\n")  # site settings, last
+    env = {**os.environ, "PYTHONPATH": str(site)}
+
+    def run(*args: str, **extra: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, *args], capture_output=True, text=True, cwd=tmp_path,
+                              env={**env, **extra}, timeout=300)
+
+    assert run("-c", "import nsl_hpc; print(nsl_hpc.__file__)").stdout.startswith(str(site))
+    launched = run("-m", "nsl_hpc.launch", "--config-dir", str(mine), "+sweep=my_grid", "launcher=debug",
+                   "dry_run=true", "sweep_dir=mine")
+    assert launched.returncode == 0, launched.stderr
+    launch = yaml.safe_load((tmp_path / "mine" / "launch.yaml").read_text())
+    assert (launch["sweep"]["name"], launch["sweep_seed"]) == ("my_grid", 7)
+    assert pq.read_metadata(tmp_path / "mine" / "manifest.parquet").num_rows == 36  # 2 seeds x 3 x 3 x 2
+    by_variable = run("-m", "nsl_hpc.launch", "+sweep=my_grid", "launcher=debug", "dry_run=true", "sweep_dir=env",
+                      NSL_HPC_CONFIG_DIR=str(mine))
+    assert by_variable.returncode == 0, by_variable.stderr
+    assert "name: my_grid" in run("-m", "nsl_hpc.launch", f"--config-dir={mine}", "+sweep=my_grid", "--cfg").stdout
+    without = run("-m", "nsl_hpc.launch", "+sweep=my_grid", "launcher=debug", "dry_run=true")
+    assert without.returncode == 2 and "unknown sweep 'my_grid'" in without.stderr
+    missing = run("-m", "nsl_hpc.status", "--config-dir", str(tmp_path / "nowhere"), "sweep_dir=mine")
+    assert missing.returncode == 2 and len(missing.stderr.splitlines()) == 1 and "is no directory" in missing.stderr
+
 
 
 @pytest.mark.e2e
@@ -134,8 +171,7 @@ class NotFinite(TankMLP):
 '''
 
 
-@pytest.mark.e2e
-@pytest.mark.parametrize(("override", "message"), [
+MODEL_CASES = [  # (override of the own_study pair two_tank / cascade_net, the line that refuses it)
     ("system._target_=nowhere.Tank", "system/two_tank.yaml: system._target_='nowhere.Tank' does not import "
                                      "(ModuleNotFoundError: No module named 'nowhere'); put its folder on PYTHONPATH"),
     ("arch._target_=tanks.TwoTank", "arch/cascade_net.yaml: arch._target_='tanks.TwoTank' does not take (n, m, n_h, "
@@ -148,18 +184,8 @@ class NotFinite(TankMLP):
                                   "finite at"),
     ("system.params.area=0.0", "system/two_tank.yaml: system._target_='tanks.TwoTank': derivative(x, u) is not "
                                "finite at"),
-])
-def test_a_broken_system_or_model_is_one_line_at_launch_before_anything_is_written(study, site, override, message):
-    (study / "bad.py").write_text(BAD_MODULE)
-    refused = run(study, site, "launch", "+sweep=own_study", "dry_run=true", "sweep_dir=runs/refused", override)
-    assert refused.returncode == 2, refused.stdout
-    assert refused.stderr.startswith(f"error: {message}"), refused.stderr
-    assert len(refused.stderr.strip().splitlines()) == 1
-    assert not (study / "runs/refused").exists()
-
-
-@pytest.mark.e2e
-@pytest.mark.parametrize(("change", "message"), [
+]
+RECORD_CASES = [  # (what breaks the tank_rig records, the line that refuses them)
     (lambda data: (data / "tanks_test.csv").unlink(), "tank_rig: data file data/tanks_test.csv is missing"),
     (lambda data: (data / "tanks_train.csv").write_text("t,u,level\n0,0,0\n"),
      "tank_rig: data/tanks_train.csv has no column 'y' (system.source.u, .y, .time); it has: t, u, level"),
@@ -167,10 +193,48 @@ def test_a_broken_system_or_model_is_one_line_at_launch_before_anything_is_writt
      "tank_rig: the test test record (tanks_test.csv) has 30 samples, not more than the system.init_samples=50"),
     (lambda data: (data / "tanks_train.csv").write_text("t,u,y\n" + "".join(f"{2 * t},0,1\n" for t in range(9))),
      "tank_rig: data/tanks_train.csv column 't' steps by 2..2 s, not system.source.sample_time_s=1"),
-])
-def test_a_broken_record_is_one_line_at_launch_before_anything_is_written(study, site, change, message):
+]
+
+
+def pair_check(study: Path, monkeypatch, *selection: str) -> None:
+    """The check launch runs on a (system, arch) of the user's config dir before anything is written."""
+    from nsl_hpc.config import compose_config, plain
+    from nsl_hpc.studies import study_of
+
+    monkeypatch.chdir(study)
+    monkeypatch.syspath_prepend(str(study))
+    monkeypatch.setenv("NSL_HPC_CONFIG_DIR", str(study / "conf"))
+    for module in ("tanks", "bad"):  # the copy's, not an earlier test's
+        monkeypatch.delitem(sys.modules, module, raising=False)
+    base = plain(compose_config(list(selection), "launch"))
+    study_of(base).check_pair(base)
+
+
+@pytest.mark.parametrize(("override", "message"), MODEL_CASES)
+def test_a_broken_system_or_model_is_refused_in_one_line_by_the_pair_check(study, monkeypatch, override, message):
+    (study / "bad.py").write_text(BAD_MODULE)
+    with pytest.raises(ConfigError) as refused:
+        pair_check(study, monkeypatch, override, "system=two_tank", "arch=cascade_net")
+    assert str(refused.value).startswith(message) and "\n" not in str(refused.value)
+
+
+@pytest.mark.parametrize(("change", "message"), RECORD_CASES)
+def test_a_broken_record_is_refused_in_one_line_by_the_pair_check(study, monkeypatch, change, message):
     change(study / "data")
-    refused = run(study, site, "launch", "+sweep=own_data", "dry_run=true", "sweep_dir=runs/refused")
+    with pytest.raises(ConfigError) as refused:
+        pair_check(study, monkeypatch, "study=input_output", "system=tank_rig", "arch=subnet")
+    assert str(refused.value).startswith(message) and "\n" not in str(refused.value)
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize(("sweep", "override", "change", "message"), [
+    ("own_study", MODEL_CASES[0][0], None, MODEL_CASES[0][1]),
+    ("own_data", "dry_run=true", RECORD_CASES[1][0], RECORD_CASES[1][1]),
+])
+def test_launch_refuses_them_with_exit_2_before_anything_is_written(study, site, sweep, override, change, message):
+    if change is not None:
+        change(study / "data")
+    refused = run(study, site, "launch", f"+sweep={sweep}", "dry_run=true", "sweep_dir=runs/refused", override)
     assert refused.returncode == 2, refused.stdout
     assert refused.stderr.startswith(f"error: {message}"), refused.stderr
     assert len(refused.stderr.strip().splitlines()) == 1
