@@ -19,9 +19,14 @@ class SlurmError(RunError):
     """A SLURM command failed (after its retries): the cluster's trouble, not a mistake in the config."""
 
 
+def one_line(message: object) -> str:
+    """``message`` (an error, or its text) on one line: its whitespace runs, newlines too, as single spaces."""
+    return " ".join(str(message).split())
+
+
 def damaged_file(path: object, error: Exception) -> ConfigError:
     """The one-line error for a sweep file that cannot be read."""
-    return ConfigError(f"{path} cannot be read ({type(error).__name__}: {' '.join(str(error).split())[:120]}); the "
+    return ConfigError(f"{path} cannot be read ({type(error).__name__}: {one_line(error)[:120]}); the "
                        "sweep directory is damaged: restore that file, or launch the sweep into a new sweep_dir")
 
 

@@ -23,7 +23,7 @@ from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.fitting import interval_columns, nsl_key
 from nsl_hpc.analysis.nsl_settings import MlflowSettings
-from nsl_hpc.errors import RunError
+from nsl_hpc.errors import RunError, one_line
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import layout
@@ -61,7 +61,7 @@ def require_server(settings: MlflowSettings) -> None:
     try:
         MlflowClient(uri).search_experiments(max_results=1)
     except Exception as error:  # requests' connection errors, MLflow's on an answer that is no MLflow's
-        reason = " ".join(str(error).split())[:160]
+        reason = one_line(error)[:160]
         raise RunError(f"no MLflow tracking server answers at {uri} (mlflow.timeout_s={settings.timeout_s:g}; "
                        f"{type(error).__name__}: {reason}); nothing was written: start it, fix "
                        "mlflow.tracking_uri, or set mlflow.enabled=false") from None
@@ -155,7 +155,7 @@ def log_to_mlflow(sweep_dir: Path, settings: MlflowSettings, launch_config: Mapp
         return logged(sweep_dir, settings, launch_config, summary, rows, figures, artifacts)
     except (MlflowException, OSError) as error:
         raise RunError(f"logging to MLflow at {tracking_uri(sweep_dir, settings.tracking_uri)} failed "
-                       f"({type(error).__name__}: {' '.join(str(error).split())[:160]}); the results, fits, figures "
+                       f"({type(error).__name__}: {one_line(error)[:160]}); the results, fits, figures "
                        "and report on disk are complete: run the report again to log them") from None
 
 

@@ -13,7 +13,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from nsl_hpc.config.launchers import LAUNCHERS, register_launchers
 from nsl_hpc.config.mapping import plain
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.errors import ConfigError, one_line
 
 if TYPE_CHECKING:
     from hydra.errors import MissingConfigException
@@ -137,10 +137,6 @@ def describe_missing_config(error: "MissingConfigException") -> str:
         group, name = missing.rsplit("/", 1)
         return f"unknown {group} {name!r}; choose one of: {', '.join(error.options)}"
     return one_line(str(error))
-
-
-def one_line(message: str) -> str:
-    return " ".join(message.split())
 
 
 def config_groups() -> dict[str, list[str]]:

@@ -11,7 +11,7 @@ from typing import Any, cast
 from omegaconf import OmegaConf
 
 from nsl_hpc.config.mapping import plain
-from nsl_hpc.errors import ConfigError, require_int, require_positive_int
+from nsl_hpc.errors import ConfigError, one_line, require_int, require_positive_int
 
 SBATCH_MEMORY = re.compile(r"[1-9][0-9]*[KMGT]?")  # sbatch --mem: megabytes, or with a unit
 SBATCH_FLAG = re.compile(r"[A-Za-z][A-Za-z0-9_-]*")  # a long option's name (submitit writes _ as -)
@@ -148,5 +148,5 @@ def launcher_from(values: Mapping[str, Any]) -> Launcher:
     try:
         return cast(Launcher, OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema), given)))
     except Exception as error:  # OmegaConf's validation errors: a key the schema lacks, a value of another type
-        raise ConfigError(f"launcher: {' '.join(str(error).split())[:200]}") from None
+        raise ConfigError(f"launcher: {one_line(error)[:200]}") from None
 

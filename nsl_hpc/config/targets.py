@@ -10,7 +10,7 @@ from typing import Any
 
 import yaml
 
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.errors import ConfigError, one_line
 
 TARGET = "_target_"
 PACKAGE_PREFIX = "nsl_hpc."  # a target inside the package: identified by the package's version, as before targets
@@ -39,7 +39,7 @@ def located(group: str, values: Mapping[str, Any]) -> Callable[..., Any]:
                               f"(ModuleNotFoundError: {error}); put its folder on PYTHONPATH") from None
         except Exception as error:  # the user's module itself fails as it imports
             raise ConfigError(f"{where(group, values)}: {group}.{TARGET}={path!r}: importing {module_name} raises "
-                              f"{type(error).__name__}: {one_line(error)}") from None
+                              f"{type(error).__name__}: {one_line(error)[:200]}") from None
         try:
             for attribute in parts[cut:]:
                 found = getattr(found, attribute)
@@ -67,11 +67,7 @@ def called(group: str, values: Mapping[str, Any], builder: Callable[..., Any], *
     try:
         return builder(*args, **kwargs)
     except Exception as error:
-        raise ConfigError(f"{label} raised {type(error).__name__}: {one_line(error)}") from None
-
-
-def one_line(error: BaseException) -> str:
-    return " ".join(str(error).split())[:200]
+        raise ConfigError(f"{label} raised {type(error).__name__}: {one_line(error)[:200]}") from None
 
 
 def package_target(group: str, name: str) -> str | None:

@@ -22,7 +22,7 @@ from omegaconf import DictConfig
 from tqdm import tqdm
 
 from nsl_hpc.config.launchers import DebugLauncher, Launcher, LocalLauncher, SlurmLauncher, launcher_from
-from nsl_hpc.errors import ConfigError, RunError
+from nsl_hpc.errors import ConfigError, RunError, one_line
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.directory import process_alive
@@ -72,7 +72,7 @@ def submit_to_slurm(sweep_dir: Path, packs: Sequence[Pack], launcher: SlurmLaunc
             arrays[array_id] = len(chunk)
         except submitit.core.utils.FailedJobError as error:  # e.g. the controller is full: keep what went in
             refused = [pack for later in chunks[index:] for pack in later]
-            return Submission(arrays, refused + left, " ".join(str(error).split())[-300:], limits.unaccounted)
+            return Submission(arrays, refused + left, one_line(error)[-300:], limits.unaccounted)
         if launcher.max_running is not None:  # one array at a time: the sweep never runs more than max_running
             after = [array_id]
     return Submission(arrays, left, unaccounted=limits.unaccounted)
@@ -250,7 +250,7 @@ def job_result(job: submitit.Job, sweep_dir: Path, share: Sequence[Group]) -> di
     except (submitit.core.utils.UncompletedJobError, submitit.core.utils.FailedJobError) as error:
         free = shutil.disk_usage(job.paths.folder).free
         if free < FULL_DISK_BYTES:
-            raise RunError(f"a local job ended without its result ({' '.join(str(error).split())[:160]}); "
+            raise RunError(f"a local job ended without its result ({one_line(error)[:160]}); "
                            f"{free / 2**20:.0f} MiB free where it writes: free space, then launch again (finished "
                            "rows are kept)") from None
         reason = ("it died without a result: kill -9, the OOM killer?"
@@ -316,7 +316,7 @@ def held_back_line(sweep_dir: Path, submission: Submission, launcher: SlurmLaunc
     try:
         feeder = submit_feeder(sweep_dir, launcher, name, first, minutes)
     except submitit.core.utils.FailedJobError as error:
-        return (f"{held}, nor the job that would submit them ({' '.join(str(error).split())[-160:]}); launch "
+        return (f"{held}, nor the job that would submit them ({one_line(error)[-160:]}); launch "
                 "again (or resubmit) once the queue has room")
     return f"{held}: job {feeder} submits them once array {first} has ended, and so on until all are in"
 

@@ -7,8 +7,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from nsl_hpc.config.targets import called, located, one_line, where
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.config.targets import called, located, where
+from nsl_hpc.errors import ConfigError, one_line
 
 
 @runtime_checkable
@@ -58,7 +58,7 @@ def check_system(system_cfg: Mapping[str, Any], samples: int = 256) -> System:
             with np.errstate(all="ignore"):  # what is not finite is the one line below, not a warning
                 result = np.asarray(value(), dtype=float)
         except Exception as error:
-            raise ConfigError(f"{label}: {name} raises {type(error).__name__}: {one_line(error)}") from None
+            raise ConfigError(f"{label}: {name} raises {type(error).__name__}: {one_line(error)[:200]}") from None
         if result.shape != shape:
             raise ConfigError(f"{label}: {name} gives shape {result.shape} for {len(x)} states, expected {shape}")
         if not np.isfinite(result).all():

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.errors import ConfigError, one_line
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.systems.duffing import simulate_duffing
 from nsl_hpc.systems.wiener_hammerstein import simulate_wiener_hammerstein
@@ -176,7 +176,7 @@ def file_columns(name: str, path: Path) -> dict[str, np.ndarray]:
                     if not key.startswith("__")}
     except (OSError, ValueError, TypeError) as error:
         raise ConfigError(f"{name}: cannot read {path} ({type(error).__name__}: "
-                          f"{' '.join(str(error).split())[:160]}); replace it with an intact copy") from None
+                          f"{one_line(error)[:160]}); replace it with an intact copy") from None
     raise ConfigError(f"{name}: {path} is no .csv, .npz or .mat file")
 
 

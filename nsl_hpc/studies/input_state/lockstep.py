@@ -25,8 +25,8 @@ from torch import nn
 
 from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.config.schema import typed
-from nsl_hpc.config.targets import one_line, where
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.config.targets import where
+from nsl_hpc.errors import ConfigError, one_line
 from nsl_hpc.models import build_model
 from nsl_hpc.models.state_space import StateSpaceModel
 from nsl_hpc.studies.input_state.data import Dataset
@@ -400,7 +400,7 @@ def check_architecture(arch_cfg: Mapping[str, Any], state_dim: int, input_dim: i
         stacked = stack.forward(torch.cat([z, v], dim=-1).transpose(1, 2))
     except Exception as error:
         raise ConfigError(f"{label}: its model fails on a batch of {batch} samples ({type(error).__name__}: "
-                          f"{one_line(error)})") from None
+                          f"{one_line(error)[:200]})") from None
     for name, index, size in (("dx/dt", 0, state_dim), ("y", 1, input_dim)):
         shape = tuple(outputs[0][index].shape)
         if shape != (batch, size):

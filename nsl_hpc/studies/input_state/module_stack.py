@@ -20,7 +20,6 @@ class ModuleStack:
         rows = [torch.cat([p.detach().reshape(-1) for p in model.parameters()]) for model in models]
         self.use_theta(torch.stack(rows).to(dtype))
         self.gradient_mask = torch.ones_like(self.theta)  # no padding
-        self.models = torch.arange(len(models))
 
     def use_theta(self, theta: torch.Tensor) -> None:
         """Hold the parameters in ``theta`` (K, P); ``leaf`` shares its storage and carries the gradient."""
@@ -31,7 +30,6 @@ class ModuleStack:
         """Keep only the models of ``rows`` (K',)."""
         self.use_theta(self.theta.detach()[rows])
         self.gradient_mask = self.gradient_mask[rows]
-        self.models = self.models[rows]
 
     @property
     def count(self) -> int:
