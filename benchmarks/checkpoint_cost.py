@@ -14,12 +14,12 @@ import time
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
 
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.checkpoint import Checkpointer, read_info
 from nsl_hpc.config import compose_config
 from nsl_hpc.models import build_model
+from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.input_state.data import build_training_set
 from nsl_hpc.studies.input_state.lockstep import BLOCK_STEPS, Member, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
@@ -37,20 +37,20 @@ def main() -> None:
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as folder:
         cfg = compose_config(["system=spring", "arch=port_hamiltonian", f"cache_dir={folder}/cache"])
-        system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+        system_cfg = pair_of(cfg).system
         data = build_training_set(system_cfg, 0, args.trajectories, ArrayCache(Path(folder) / "cache"))
         epochs = -(-args.blocks * BLOCK_STEPS // batch_count(len(data), cfg.train.batch_size))
         members = []
         for seed in range(args.models):
             torch.manual_seed(seed)
-            model = build_model(cfg.arch, 4, 2, width=args.width, depth=args.depth)
+            model = build_model(pair_of(cfg).arch, 4, 2, width=args.width, depth=args.depth)
             members.append(Member(model, data, Scaling.fit(data, rescale_targets=False), epochs, seed,
                                   milestones=(max(epochs // 2, 1),)))
         ids = [str(k) for k in range(len(members))]
         checkpoint = Checkpointer(Path(folder) / "group.pt", every_s=1e-9, task_ids=ids)
         blocks = []
         started = time.perf_counter()
-        train_lockstep(members, OmegaConf.to_container(cfg.train), lambda: blocks.append(time.perf_counter()),
+        train_lockstep(members, pair_of(cfg).train, lambda: blocks.append(time.perf_counter()),
                        checkpoint)
         total = time.perf_counter() - started
         info = read_info(checkpoint.path)

@@ -6,6 +6,7 @@ the tables to ``output`` and prints them.
     python benchmarks/nmse_tail.py [sweep_dir=runs/repro/input_state] [near=1.5]
 """
 
+import dataclasses
 import itertools
 import sys
 from collections.abc import Mapping, Sequence
@@ -22,6 +23,8 @@ from nsl_hpc.analysis.reproduction import factor_text, resource_text
 from nsl_hpc.atomic import write_text
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config, config_dir, plain
+from nsl_hpc.config.schema import typed
+from nsl_hpc.config.system import InputStateSystem, TestSet
 from nsl_hpc.studies.input_state.data import Dataset, build_test_set
 from nsl_hpc.studies.input_state.lockstep import predict_derivatives, train_lockstep
 from nsl_hpc.studies.input_state.study import InputState
@@ -52,10 +55,9 @@ def near_envelope(rows: Sequence[Mapping[str, Any]], cfg: Mapping[str, Any]) -> 
 
 def trained_again(sweep_dir: Path, task: Mapping[str, Any]) -> tuple[Any, Any, Any]:
     """(stack, theta (1, P), scaling) of the manifest row ``task`` trained again, alone."""
-    cfg = TaskConfigs(sweep_dir).of(task)
-    study = InputState()
-    member = study.member(OmegaConf.create(cfg), task, study.sizes_in(task), [task["epochs"]])
-    stack, snapshots = train_lockstep([member], cfg["train"])
+    resolved = TaskConfigs(sweep_dir).of(task).task
+    member = InputState().member(resolved, [task["epochs"]])
+    stack, snapshots = train_lockstep([member], resolved.pair.train)
     return stack, snapshots[0][-1].theta[None], member.scaling
 
 
@@ -91,9 +93,9 @@ def main() -> None:
     chosen = near_envelope(rows, cfg)
     manifest = {task["task_id"]: task for task in read_manifest(sweep_dir).to_pylist()}
     torch.set_num_threads(1)
-    system_cfg = plain(TaskConfigs(sweep_dir).of(manifest[chosen[0]["task_id"]])["system"])
-    cfg["dt_s"] = system_cfg["simulation"]["dt_s"]
-    tests = test_sets(system_cfg, cfg, ArrayCache(sweep_dir / "cache"))
+    system = TaskConfigs(sweep_dir).of(manifest[chosen[0]["task_id"]]).task.pair.system
+    cfg["dt_s"] = system.simulation.dt_s
+    tests = test_sets(system, cfg, ArrayCache(sweep_dir / "cache"))
     measured = []
     for row in chosen:
         stack, theta, scaling = trained_again(sweep_dir, manifest[row["task_id"]])
@@ -113,14 +115,15 @@ def main() -> None:
     print(text)
 
 
-def test_sets(system_cfg: Mapping[str, Any], cfg: Mapping[str, Any], cache: ArrayCache
+def test_sets(system: InputStateSystem, cfg: Mapping[str, Any], cache: ArrayCache
               ) -> dict[str, tuple[Dataset, int]]:
     """The system's test set ('default') and each of ``test_sets``, with their samples per trajectory."""
-    specs = {"default": system_cfg["test_set"]}
+    specs = {"default": system.test_set}
     for name in cfg["test_sets"]:
-        specs[name] = plain(compose_config([f"system={cfg['system']}", f"test_set={name}"]).system.test_set)
-    return {name: (build_test_set({**system_cfg, "test_set": spec}, cache),
-                   round(spec["duration_s"] / cfg["dt_s"])) for name, spec in specs.items()}
+        specs[name] = typed(TestSet, compose_config([f"system={cfg['system']}", f"test_set={name}"]).system.test_set,
+                            "system.test_set")
+    return {name: (build_test_set(dataclasses.replace(system, test_set=spec), cache),
+                   round(spec.duration_s / cfg["dt_s"])) for name, spec in specs.items()}
 
 
 def spread_text(values: Sequence[float], form: str) -> str:

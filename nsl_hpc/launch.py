@@ -19,6 +19,7 @@ from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.widths import track_laws
+from nsl_hpc.config.schema import typed
 from nsl_hpc.studies.base import model_of
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 from nsl_hpc.sweep.executors import run_jobs
@@ -33,7 +34,7 @@ from nsl_hpc.sweep.prepare import (
     describe_infeasible,
     prepare_sweep,
 )
-from nsl_hpc.sweep.rehearsal import plant_job_deaths
+from nsl_hpc.sweep.rehearsal import Rehearse, plant_job_deaths
 from nsl_hpc.sweep.rounds import Budgeted, budgeted_rounds, launch_rounds
 from nsl_hpc.sweep.storage import read_storage
 
@@ -119,7 +120,7 @@ def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> in
               + (" or is queued" if prepared.queued else ""))
         return 0
     if cfg.rehearsal:  # the jobs this launch's lost nodes kill
-        plant_job_deaths(prepared.sweep_dir, cfg.rehearse, packs)
+        plant_job_deaths(prepared.sweep_dir, typed(Rehearse, cfg.rehearse, "rehearse"), packs)
     return run_jobs(prepared.sweep_dir, cfg, packs, tasks, prepared.configs, limits)
 
 

@@ -3,7 +3,7 @@
 group is in the task ids, a RUN group is what a resubmit may change (``sweep.run_settings.RUN_KEYS``: run.yaml).
 
     OUTCOME  changes a task's outcome (part of its id): train, system, arch, metric, rehearse
-    GRID     which tasks a sweep runs and in what rounds: sweep, budget
+    GRID     which tasks a sweep runs and in what rounds: sweep, budget, tiers (the values a grid may use)
     RUN      how a sweep's jobs run: launcher, lockstep, packing, cost, checkpoint, watchdog (run.yaml, with
              compile) and the top-level threads and compile (``studies.settings.Runtime``)
     POST     post-processing: nsl, figures, mlflow
@@ -33,6 +33,8 @@ def groups() -> tuple[Group, ...]:
     from nsl_hpc.config.arch import ARCH_SCHEMAS, Arch
     from nsl_hpc.config.launchers import LAUNCHERS
     from nsl_hpc.config.system import InputOutputSystem, InputStateSystem
+    from nsl_hpc.studies.input_output.study import InputOutputTiers
+    from nsl_hpc.studies.input_state.study import InputStateTiers
     from nsl_hpc.studies.settings import InputOutputTrain, InputStateTrain, Metric, Runtime
     from nsl_hpc.sweep.budget import BudgetSettings
     from nsl_hpc.sweep.prepare import SweepSettings
@@ -46,6 +48,7 @@ def groups() -> tuple[Group, ...]:
             Group("rehearse", OUTCOME, (Rehearse,)),
             Group("sweep", GRID, (SweepSettings,)),
             Group("budget", GRID, (BudgetSettings,)),
+            Group("tiers", GRID, (InputStateTiers, InputOutputTiers)),
             Group("launcher", RUN, tuple(LAUNCHERS.values())),
             *(Group(name, RUN, (owner,)) for name, owner in RUN_GROUPS.items()),
             Group("", RUN, (Runtime,)),

@@ -33,7 +33,7 @@ from nsl_hpc.sweep.executors import run_jobs
 from nsl_hpc.sweep.groups import saved_groups
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.limits import cluster_limits, describe_fit, within_limits
-from nsl_hpc.sweep.manifest import read_base_config, read_launch_config, read_manifest, require_sweep
+from nsl_hpc.sweep.manifest import read_launch_config, read_manifest, read_pair, require_sweep
 from nsl_hpc.sweep.plan import check_run_settings, plan_jobs
 from nsl_hpc.sweep.prepare import describe_infeasible, override_key, split_runnable
 from nsl_hpc.sweep.rows import set_aside
@@ -97,7 +97,7 @@ def main(config: DictConfig, overrides: Sequence[str]) -> int:
         wanted = [task["task_id"] for task in state.manifest if state.states[task["task_id"]] in cfg.states]
         manifest = read_manifest(sweep_dir)
         selected = manifest.filter(pc.is_in(manifest["task_id"], value_set=pa.array(wanted, type=pa.string())))
-        configs = {pair: plain(read_base_config(sweep_dir, *pair))
+        configs = {pair: read_pair(sweep_dir, *pair)
                    for pair in set(zip(selected["system"].to_pylist(), selected["arch"].to_pylist(), strict=True))}
         runnable, infeasible = split_runnable(selected, study_named(launch.study.name), configs)
         if infeasible:

@@ -1,10 +1,12 @@
 """Names, configs and closed forms (the oracles the package's results are checked against) shared by several test
 modules."""
 
+from typing import Any
+
 import numpy as np
-from omegaconf import OmegaConf
 
 from nsl_hpc.config import compose_config
+from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.metrics import ErrorSums, spreads
 from nsl_hpc.systems.port_hamiltonian import PortHamiltonianSystem
 
@@ -12,9 +14,10 @@ SYSTEM_NAMES = ["spring", "ball", "motor"]
 ARCH_NAMES = ["unstructured", "input_affine", "port_hamiltonian"]
 
 
-def system_config(name: str, *overrides: str) -> dict:
-    """The plain-dict ``system`` config group of system ``name``."""
-    return OmegaConf.to_container(compose_config([*overrides, f"system={name}"]).system, resolve=True)
+def system_settings(name: str, *overrides: str) -> Any:
+    """The typed ``system`` group of system ``name`` (an input-state or, with study=input_output, an input-output
+    one)."""
+    return pair_of(compose_config([*overrides, f"system={name}"])).system
 
 
 def mlp_parameter_count(in_dim: int, out_dim: int, width: int, depth: int, block: str) -> int:

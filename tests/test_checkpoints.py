@@ -15,12 +15,12 @@ import time
 
 import pytest
 import torch
-from omegaconf import OmegaConf
 
 from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info, scoring_progress
 from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models import build_model
+from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.input_output import lockstep as io_lockstep
 from nsl_hpc.studies.input_state.data import build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, train_lockstep
@@ -62,14 +62,14 @@ def ph_members(compose, cache, specs, arch: str = "port_hamiltonian") -> tuple[l
     """Spring lockstep members (port-Hamiltonian by default) of (epochs, width, milestones) each, and the train
     config."""
     cfg = compose("system=spring", f"arch={arch}")
-    system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+    system_cfg = pair_of(cfg).system
     members = []
     for seed, (epochs, width, milestones) in enumerate(specs):
         data = build_training_set(system_cfg, seed, 1.3, cache)
         torch.manual_seed(seed)
-        model = build_model(cfg.arch, 4, 2, width=width, depth=2)
+        model = build_model(pair_of(cfg).arch, 4, 2, width=width, depth=2)
         members.append(Member(model, data, Scaling.fit(data, rescale_targets=False), epochs, 10 + seed, milestones))
-    return members, OmegaConf.to_container(cfg.train)
+    return members, pair_of(cfg).train
 
 
 def lockstep_trainer(members, train_cfg, compiled: bool = False):
@@ -145,7 +145,7 @@ def test_a_stop_while_scoring_keeps_the_trained_models_and_the_resumed_run_only_
     io_members = members_of(cfg, cache, [(700, 40, 4, 0), (400, 20, 3, 1)])
 
     def io_train(on_progress, checkpoint=None):
-        return io_lockstep.train_lockstep(copy.deepcopy(io_members), OmegaConf.to_container(cfg.train), on_progress,
+        return io_lockstep.train_lockstep(copy.deepcopy(io_members), pair_of(cfg).train, on_progress,
                                           checkpoint)[1:]
 
     (final, outcomes), beats = stopped_while_scoring(io_train, tmp_path / "io.pt")
@@ -200,7 +200,7 @@ def test_a_packed_input_output_group_stopped_and_resumed_gives_its_models_bit_fo
     the loop and its state, and compiles for minutes)."""
     cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}")
     members = members_of(cfg, cache, [(700, 40, 4, 0), (400, 20, 3, 1), (1300, 35, 5, 2)])
-    train_cfg = OmegaConf.to_container(cfg.train)
+    train_cfg = pair_of(cfg).train
 
     def train(on_progress, checkpoint=None):
         compiler = StepCompiler(compiled)

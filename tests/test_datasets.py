@@ -1,11 +1,13 @@
 """Training sets from fractional trajectory counts, the shared test set, and the concurrent cache."""
 
+import dataclasses
 import multiprocessing
 
 import numpy as np
 import pytest
 
 from nsl_hpc.cache import ArrayCache
+from nsl_hpc.config.system import TestSet
 from nsl_hpc.studies.input_state.data import (
     build_test_set,
     build_training_set,
@@ -13,7 +15,7 @@ from nsl_hpc.studies.input_state.data import (
     split_trajectory_count,
     training_points,
 )
-from tests.helpers import system_config
+from tests.helpers import system_settings
 
 
 @pytest.mark.parametrize(("n_traj", "whole", "partial", "points"), [
@@ -30,7 +32,7 @@ def test_fractional_trajectory_counts(n_traj, whole, partial, points):
 
 
 def test_training_set_is_a_prefix_of_the_seed_pool(cache):
-    cfg = system_config("spring")
+    cfg = system_settings("spring")
     small = build_training_set(cfg, seed=1, n_traj=1.25, cache=cache)
     large = build_training_set(cfg, seed=1, n_traj=2.0, cache=cache)
     other_seed = build_training_set(cfg, seed=2, n_traj=1.25, cache=cache)
@@ -41,19 +43,19 @@ def test_training_set_is_a_prefix_of_the_seed_pool(cache):
 
 
 def test_test_set_is_fixed_and_sized_by_config(cache, tmp_path):
-    cfg = system_config("ball")
+    cfg = system_settings("ball")
     first = build_test_set(cfg, cache)
     again = build_test_set(cfg, ArrayCache(tmp_path / "fresh"))  # recomputed from scratch
-    assert len(first) == cfg["test_set"]["trajectories"] * 1000  # 10 s at 0.01 s
+    assert len(first) == cfg.test_set.trajectories * 1000  # 10 s at 0.01 s
     np.testing.assert_array_equal(first.x, again.x)
-    train = build_training_set(cfg, seed=cfg["test_set"]["seed"], n_traj=1.0, cache=cache)
+    train = build_training_set(cfg, seed=cfg.test_set.seed, n_traj=1.0, cache=cache)
     assert not np.allclose(train.x, first.x[:1000])  # test and train pools never coincide
 
 
 def test_the_test_set_length_is_a_setting(cache):
-    cfg = system_config("ball")
-    short = build_test_set({**cfg, "test_set": {"trajectories": 2, "duration_s": 10.0, "seed": 5}}, cache)
-    long = build_test_set({**cfg, "test_set": {"trajectories": 2, "duration_s": 100.0, "seed": 5}}, cache)
+    cfg = system_settings("ball")
+    short = build_test_set(dataclasses.replace(cfg, test_set=TestSet(trajectories=2, duration_s=10.0, seed=5)), cache)
+    long = build_test_set(dataclasses.replace(cfg, test_set=TestSet(trajectories=2, duration_s=100.0, seed=5)), cache)
     assert (len(short), len(long)) == (2 * 1000, 2 * 10_000)
     assert np.all(np.isfinite(long.dx)) and not np.allclose(long.x[:1000], short.x[:1000])  # a test set of its own
 
@@ -83,7 +85,7 @@ def test_corrupt_cache_entry_is_recomputed(tmp_path):
 
 
 def load_in_subprocess(root: str) -> bytes:
-    cfg = system_config("motor")
+    cfg = system_settings("motor")
     return load_trajectory(cfg, "train", 5, 0, ArrayCache(root)).x.tobytes()
 
 

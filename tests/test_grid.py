@@ -269,8 +269,8 @@ def test_an_arch_option_applies_to_the_pairs_that_have_it_and_a_relaunch_with_it
     grid = ["+sweep=demo", "sweep.grid.system=[ball]", "sweep.grid.arch=[input_affine,port_hamiltonian]"]
     cfg = compose_config(grid, "launch")
     built = build_sweep(cfg, [*grid, "arch.feedthrough=true"])
-    assert built.configs["ball", "input_affine"]["arch"]["feedthrough"] is True
-    assert "feedthrough" not in built.configs["ball", "port_hamiltonian"]["arch"]
+    assert built.configs["ball", "input_affine"].arch.feedthrough is True
+    assert not hasattr(built.configs["ball", "port_hamiltonian"].arch, "feedthrough")
     with pytest.raises(ConfigError, match=r"unknown key 'arch.feedthruogh' \(did you mean 'arch.feedthrough'\?\); "
                                           r"no \(system, arch\) of the grid has it"):
         build_sweep(cfg, [*grid, "arch.feedthruogh=true"])

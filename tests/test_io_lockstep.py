@@ -7,8 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from omegaconf import OmegaConf
 
+from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.input_output.data import Signals, load_benchmark
 from nsl_hpc.studies.input_output.lockstep import IOMember, Windows, step_gradient, train_lockstep
 from nsl_hpc.studies.input_output.stacked import StackedMLPs
@@ -29,14 +29,14 @@ MEMBERS = [(400, 7, 6, 0), (1300, 12, 3, 6), (300, 9, 5, 2), (700, 4, 6, 3)]
 def members_of(cfg, cache, specs, record=None, steps=None) -> list[IOMember]:
     """Members of (n_l, iterations, n_h, seed) ``specs``, a SUBNET simulating ``steps`` per window (None: its horizon
     as a task's)."""
-    system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
-    train = load_benchmark(system_cfg, cache).train if record is None else record
+    pair = pair_of(cfg)
+    train = load_benchmark(pair.system, cache).train if record is None else record
     members = []
     for points, iterations, width, seed in specs:
         torch.manual_seed(seed)
-        model = build_io_model(cfg.arch, system_cfg, width, depth=2)
+        model = build_io_model(pair.arch, pair.system, width, depth=2)
         prefix = train.head(points)
-        own = horizon({"system": system_cfg, "arch": cfg.arch}, points)
+        own = horizon(pair, points)
         members.append(IOMember(model, prefix, SignalScaling.fit(prefix), iterations, 10 + seed,
                                 steps if steps and cfg.arch.name == "subnet" else own))
     return members
@@ -85,11 +85,11 @@ def assert_packed_equal_alone(members, cfg, compiled=False, layout="batch_major"
     """Each of ``members`` trained in lockstep ends where the plain loop takes it alone."""
     alone = [copy.deepcopy(member.model) for member in members]
     compiler = StepCompiler(compiled)
-    nets, theta, outcomes = train_lockstep(members, OmegaConf.to_container(cfg.train), compiler=compiler)
+    nets, theta, outcomes = train_lockstep(members, pair_of(cfg).train, compiler=compiler)
     assert compiler.enabled == compiled and nets.feature_major == (layout == "feature_major")
     for k, (member, model) in enumerate(zip(members, alone, strict=True)):
-        single = train_io_model(model, member.record, member.scaling, cfg.train, member.iterations, member.horizon,
-                                member.shuffle_seed)
+        single = train_io_model(model, member.record, member.scaling, pair_of(cfg).train, member.iterations,
+                                member.horizon, member.shuffle_seed)
         assert outcomes[k].steps == single.steps == member.iterations and outcomes[k].finite
         assert outcomes[k].final_loss == pytest.approx(single.final_loss, rel=PACKED_RTOL)
         trained_alone = StackedMLPs([model], torch.float32)
@@ -109,8 +109,7 @@ def test_a_prefix_shorter_than_one_window_trains_on_its_one_window_beside_full_w
     assert [member.horizon for member in members] == [130, 150, 70]
     assert_packed_equal_alone(members, cfg, layout=layout)
     refused = compose("study=input_output", "system=silverbox_sim", "arch=subnet", "arch.shorten_horizon=false")
-    base = {"system": OmegaConf.to_container(refused.system, resolve=True), "arch": refused.arch}
-    assert horizon(base, 180) == 150
+    assert horizon(pair_of(refused), 180) == 150
 
 
 @pytest.mark.parametrize(("layout", "options", "horizons"), [
@@ -167,14 +166,14 @@ def test_a_diverging_model_leaves_the_others_of_its_pack_as_they_are_alone(compo
     """A NARX whose record holds a NaN has a NaN loss at the end of its first pass and stops there (as in the
     plain loop); the model packed with it trains as it does alone."""
     cfg = compose("study=input_output", "system=silverbox_sim", "arch=narx")
-    train = load_benchmark(OmegaConf.to_container(cfg.system, resolve=True), cache).train.head(1300)
+    train = load_benchmark(pair_of(cfg).system, cache).train.head(1300)
     poisoned = Signals(train.u, np.where(np.arange(len(train)) == 600, np.nan, train.y))
     bad = members_of(cfg, cache, [(1300, 20, 4, 0)], record=poisoned)[0]
     bad = dataclasses.replace(bad, scaling=SignalScaling.fit(train))
     good = members_of(cfg, cache, [(1300, 20, 6, 1)])[0]
     model = copy.deepcopy(good.model)
-    _, _, (bad_outcome, good_outcome) = train_lockstep([bad, good], OmegaConf.to_container(cfg.train))
+    _, _, (bad_outcome, good_outcome) = train_lockstep([bad, good], pair_of(cfg).train)
     per_pass = (1300 - 50) // 256
     assert not bad_outcome.finite and bad_outcome.steps == per_pass
-    single = train_io_model(model, good.record, good.scaling, cfg.train, 20, 1, good.shuffle_seed)
+    single = train_io_model(model, good.record, good.scaling, pair_of(cfg).train, 20, 1, good.shuffle_seed)
     assert good_outcome.finite and good_outcome.final_loss == pytest.approx(single.final_loss, rel=PACKED_RTOL)

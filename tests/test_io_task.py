@@ -8,9 +8,9 @@ import re
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
-from omegaconf import OmegaConf
 
 from nsl_hpc.errors import ConfigError
+from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.input_output.data import load_benchmark
 from nsl_hpc.sweep.rows import read_row
 from nsl_hpc.sweep.task import resolve_task, run_task
@@ -42,7 +42,7 @@ def test_a_subnet_task_counts_compute_over_its_horizon_and_reports_rmse_in_mv(co
     row = run_task(cfg).row
     assert row["status"] == "ok" and row["steps"] == row["train_points"]
     assert row["flops"] == row["params"] * row["steps"] * 256 * 150  # c = p n_i B T, T = 150 on Silverbox
-    measured = load_benchmark(OmegaConf.to_container(cfg.system, resolve=True), cache).tests["test"].y[50:]
+    measured = load_benchmark(pair_of(cfg).system, cache).tests["test"].y[50:]
     assert row["rmse_mv"] == pytest.approx(1000 * np.sqrt(row["nmse"]) * measured.std(ddof=1), rel=1e-9)
     assert (row["nmae"], row["nmse"], row["rmse_mv"]) == (
         row["nmae_free_run_test"], row["nmse_free_run_test"], row["rmse_mv_free_run_test"])

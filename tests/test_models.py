@@ -5,16 +5,16 @@ import math
 
 import pytest
 import torch
-from omegaconf import OmegaConf
 
-from nsl_hpc.config import compose_config, plain
+from nsl_hpc.config import compose_config
+from nsl_hpc.config.arch import Arch, arch_settings
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import mlp, parameter_count
 from nsl_hpc.models.tensor_layout import BATCH_MAJOR, FEATURE_MAJOR
 from nsl_hpc.studies.input_state.stacked import StackedModels
 from nsl_hpc.studies.input_state.study import system_dimensions
-from tests.helpers import ARCH_NAMES, SYSTEM_NAMES, mlp_parameter_count
+from tests.helpers import ARCH_NAMES, SYSTEM_NAMES, mlp_parameter_count, system_settings
 
 # Variants of each architecture besides the study's (conf/arch): today's choices stay buildable.
 VARIANTS = {
@@ -25,8 +25,9 @@ VARIANTS = {
 }
 
 
-def arch_config(arch: str, *overrides: str) -> dict:
-    return OmegaConf.to_container(compose_config([f"arch={arch}", *overrides]).arch)
+def arch_config(arch: str, *overrides: str) -> Arch:
+    """The typed ``arch`` group of ``arch`` with ``overrides``."""
+    return arch_settings(compose_config([f"arch={arch}", *overrides]).arch)
 
 
 def closed_form_count(in_dim: int, out_dim: int, w: int, n_d: int) -> int:
@@ -48,7 +49,7 @@ def study_parameter_count(arch: str, n: int, m: int, n_h: int, n_d: int) -> int:
 @pytest.mark.parametrize("system", SYSTEM_NAMES)
 @pytest.mark.parametrize(("n_h", "n_d"), [(1, 1), (5, 2), (16, 4)])
 def test_parameter_count_is_the_closed_form(arch, system, n_h, n_d):
-    n, m = system_dimensions(plain(compose_config([f"system={system}"]).system))
+    n, m = system_dimensions(system_settings(system))
     model = build_model(arch_config(arch), n, m, width=n_h, depth=n_d)
     assert parameter_count(model) == study_parameter_count(arch, n, m, n_h, n_d)
 

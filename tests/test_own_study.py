@@ -2,6 +2,7 @@
 by `_target_` and `source.kind: files` in their config dir) runs from a copy outside the checkout on nsl_hpc
 installed as a wheel, and each broken system, model or record is one line, exit 2, before anything is written."""
 
+import dataclasses
 import os
 import shutil
 import subprocess
@@ -17,6 +18,7 @@ import yaml
 import nsl_hpc
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models import build_model, stackable
+from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, predict_derivatives, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
@@ -121,12 +123,13 @@ def test_a_plain_module_trains_as_the_package_trains_the_same_model(compose, cac
     trained = {}
     for arch, overrides in (("tank_mlp", ()), ("unstructured", ("arch.width_factor=1.0",))):
         cfg = compose("system=two_tank", f"arch={arch}", *overrides)
-        system = dict(cfg.system)
+        system = pair_of(cfg).system
         data, test = build_training_set(system, 0, 2.0, cache), build_test_set(system, cache)
         torch.manual_seed(0)
-        model = build_model(cfg.arch, 2, 1, width=8, depth=2)
+        model = build_model(pair_of(cfg).arch, 2, 1, width=8, depth=2)
         scaling = Scaling.fit(data, rescale_targets=False)
-        stack, ((snapshot,),) = train_lockstep([Member(model, data, scaling, epochs=5, shuffle_seed=3)], cfg.train)
+        member = Member(model, data, scaling, epochs=5, shuffle_seed=3)
+        stack, ((snapshot,),) = train_lockstep([member], pair_of(cfg).train)
         predicted = predict_derivatives(stack, test, [scaling], torch.float32, snapshot.theta[None], [0])
         trained[arch] = (stackable(model), snapshot.outcome, predicted)
     (plain, plain_outcome, plain_predicted), (batched, outcome, predicted) = trained["tank_mlp"], \
@@ -206,8 +209,8 @@ def pair_check(study: Path, monkeypatch, *selection: str) -> None:
     monkeypatch.setenv("NSL_HPC_CONFIG_DIR", str(study / "conf"))
     for module in ("tanks", "bad"):  # the copy's, not an earlier test's
         monkeypatch.delitem(sys.modules, module, raising=False)
-    base = plain(compose_config(list(selection), "launch"))
-    study_of(base).check_pair(base)
+    values = plain(compose_config(list(selection), "launch"))
+    study_of(values).check_pair(pair_of(values))
 
 
 @pytest.mark.parametrize(("override", "message"), MODEL_CASES)
@@ -246,12 +249,12 @@ def test_records_in_npz_and_mat_files_read_as_the_same_columns_in_csv(tmp_path, 
     alike: the same records, the same split."""
     from scipy.io import savemat
 
-    from nsl_hpc.config import compose_config, plain
+    from nsl_hpc.config import compose_config
     from nsl_hpc.studies.input_output.data import read_files
 
     monkeypatch.setenv("NSL_HPC_CONFIG_DIR", str(EXAMPLE / "conf"))
-    system = plain(compose_config(["study=input_output", "system=tank_rig"], "one_task").system)
-    system["source"]["data_dir"] = str(EXAMPLE / "data")
+    system = pair_of(compose_config(["study=input_output", "system=tank_rig"], "one_task")).system
+    system = dataclasses.replace(system, source=dataclasses.replace(system.source, data_dir=str(EXAMPLE / "data")))
     csv_train, csv_tests = read_files(system)
     for suffix in ("npz", "mat"):
         files = {}
@@ -263,8 +266,8 @@ def test_records_in_npz_and_mat_files_read_as_the_same_columns_in_csv(tmp_path, 
                 np.savez(files[name], **arrays)
             else:
                 savemat(files[name], arrays)
-        source = {**system["source"], "data_dir": str(tmp_path), "train": files["tanks_train"].name,
-                  "test": {"test": files["tanks_test"].name}}
-        train, tests = read_files({**system, "source": source})
+        source = dataclasses.replace(system.source, data_dir=str(tmp_path), train=files["tanks_train"].name,
+                                     test={"test": files["tanks_test"].name})
+        train, tests = read_files(dataclasses.replace(system, source=source))
         np.testing.assert_array_equal(train.y, csv_train.y)
         np.testing.assert_array_equal(tests["test"].u, csv_tests["test"].u)

@@ -1,6 +1,7 @@
 """Input-output records: the stand-ins' shapes and determinism, the measured files through the real
 nonlinear_benchmarks loader path (when ../shared/data holds them), and bad data files."""
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -9,20 +10,21 @@ import scipy.io
 
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config
+from nsl_hpc.config.system import InputOutputSystem
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.place_data import main as place_data
 from nsl_hpc.studies.input_output.data import load_benchmark
-from tests.helpers import system_config
+from tests.helpers import system_settings
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 MEASURED = pytest.mark.skipif(not (SHARED_DATA / "silverbox" / "SNLS80mV.mat").is_file(),
                               reason="no measured copies in ../shared/data")
 
 
-def io_system(name: str, **source) -> dict:
-    cfg = system_config(name, "study=input_output")
-    cfg["source"].update(source)
-    return cfg
+def io_system(name: str, **source) -> InputOutputSystem:
+    """The typed input-output system ``name``, its source's ``data_dir`` (...) replaced."""
+    system = system_settings(name, "study=input_output")
+    return dataclasses.replace(system, source=dataclasses.replace(system.source, **source))
 
 
 @pytest.mark.parametrize(("name", "train", "validation", "test"), [
@@ -116,7 +118,7 @@ def test_malformed_files_are_refused_with_the_file_named(content, message, tmp_p
 
 
 def test_a_training_record_shorter_than_the_pool_is_refused(cache):
-    cfg = io_system("wiener_hammerstein_sim")
-    cfg["samples"]["train"] = 50_000
+    system = io_system("wiener_hammerstein_sim")
+    cfg = dataclasses.replace(system, samples={**(system.samples or {}), "train": 50_000})
     with pytest.raises(ConfigError, match=r"training record has 50,000 samples, fewer than system\.train_samples"):
         load_benchmark(cfg, cache)

@@ -12,6 +12,7 @@ from nsl_hpc.config import config_dir
 from nsl_hpc.config.schema import typed
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models import build_model
+from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.input_state.data import Dataset, build_test_set, build_training_set
 from nsl_hpc.studies.input_state.lockstep import (
     BatchPlan,
@@ -87,16 +88,16 @@ def test_normalised_mse_divides_by_one_std_of_the_whole_target_of_the_unmasked_b
 @pytest.mark.parametrize("arch", ARCH_NAMES)
 def test_short_training_beats_untrained_model(system, arch, compose, cache):
     cfg = compose(f"system={system}", f"arch={arch}")
-    system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+    system_cfg = pair_of(cfg).system
     train = build_training_set(system_cfg, 0, 4.0, cache)
     test = build_test_set(system_cfg, cache)
     torch.manual_seed(0)
-    model = build_model(cfg.arch, *system_dimensions(system_cfg), width=16, depth=1)
+    model = build_model(pair_of(cfg).arch, *system_dimensions(system_cfg), width=16, depth=1)
     member = Member(model, train, Scaling.fit(train, rescale_targets=False), epochs=50, shuffle_seed=0)
-    untrained_stack, _ = train_lockstep([Member(model, train, member.scaling, 0, 0)], cfg.train)
+    untrained_stack, _ = train_lockstep([Member(model, train, member.scaling, 0, 0)], pair_of(cfg).train)
     untrained = normalized_errors(test.dx, *predict_derivatives(untrained_stack, test, [member.scaling],
                                                                 torch.float32))["nmae"]
-    stack, ((*_, last),) = train_lockstep([member], cfg.train)
+    stack, ((*_, last),) = train_lockstep([member], pair_of(cfg).train)
     outcome = last.outcome
     trained = normalized_errors(test.dx, *predict_derivatives(stack, test, [member.scaling], torch.float32))["nmae"]
     assert outcome.finite and outcome.steps == 50 * 16
@@ -112,22 +113,22 @@ PACKED_RTOL = 1e-4
 @pytest.mark.parametrize("arch", ARCH_NAMES)
 def test_a_model_trained_in_a_pack_matches_it_trained_alone(arch, compose, cache):
     cfg = compose("system=spring", f"arch={arch}")
-    system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+    system_cfg = pair_of(cfg).system
     test = build_test_set(system_cfg, cache)
     members = []
     for seed, (n_traj, epochs, width) in enumerate([(0.7, 7, 6), (1.3, 4, 3), (2.05, 6, 6)]):
         data = build_training_set(system_cfg, seed, n_traj, cache)
         torch.manual_seed(seed)
-        model = build_model(cfg.arch, 4, 2, width=width, depth=2)  # the narrower one is zero-padded
+        model = build_model(pair_of(cfg).arch, 4, 2, width=width, depth=2)  # the narrower one is zero-padded
         members.append(Member(model, data, Scaling.fit(data, rescale_targets=False), epochs, shuffle_seed=10 + seed))
-    stack, snapshots = train_lockstep(members, cfg.train)
+    stack, snapshots = train_lockstep(members, pair_of(cfg).train)
     assert stack.count == 1  # the models that finished sooner left the stack
     outcomes = [member_snapshots[-1].outcome for member_snapshots in snapshots]
     packed = predict_derivatives(stack, test, [m.scaling for m in members], torch.float32,
                                  torch.stack([member_snapshots[-1].theta for member_snapshots in snapshots]),
                                  range(len(members)))
     for member, outcome, predicted in zip(members, outcomes, packed, strict=True):
-        alone, ((*_, last),) = train_lockstep([member], cfg.train)
+        alone, ((*_, last),) = train_lockstep([member], pair_of(cfg).train)
         single = last.outcome
         assert outcome.steps == single.steps == member.epochs * batch_count(len(member.data), 256)
         assert outcome.final_loss == pytest.approx(single.final_loss, rel=PACKED_RTOL)
@@ -137,12 +138,12 @@ def test_a_model_trained_in_a_pack_matches_it_trained_alone(arch, compose, cache
 
 def compiled_members(cfg, cache, epochs: list[int]) -> list[Member]:
     """Spring models of widths 6, 3, 6, ... (the narrow ones zero-padded), n_d 1, 1.3 trajectories each."""
-    system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+    system_cfg = pair_of(cfg).system
     members = []
     for seed, count in enumerate(epochs):
         data = build_training_set(system_cfg, seed, 1.3, cache)
         torch.manual_seed(seed)
-        model = build_model(cfg.arch, 4, 2, width=3 if seed % 2 else 6, depth=1)
+        model = build_model(pair_of(cfg).arch, 4, 2, width=3 if seed % 2 else 6, depth=1)
         members.append(Member(model, data, Scaling.fit(data, rescale_targets=False), count, shuffle_seed=10 + seed))
     return members
 
@@ -174,10 +175,10 @@ def test_a_compiled_pack_trains_each_model_as_the_eager_loop_alone(arch, compose
     cfg = compose("system=spring", f"arch={arch}")
     members = compiled_members(cfg, cache, [3, 3])
     compiler = StepCompiler(True)
-    packed = train_lockstep(members, cfg.train, compiler=compiler)
+    packed = train_lockstep(members, pair_of(cfg).train, compiler=compiler)
     assert compiler.enabled
     for k, member in enumerate(members):
-        assert_trained_alike(packed, train_lockstep([member], cfg.train), [member], [k])
+        assert_trained_alike(packed, train_lockstep([member], pair_of(cfg).train), [member], [k])
 
 
 @pytest.mark.slow
@@ -187,9 +188,9 @@ def test_a_compiled_pack_keeps_static_shapes_as_models_finish(compose, cache):
     after the third; every model ends as the eager pack trains it."""
     cfg = compose("system=spring", "arch=unstructured")
     members = compiled_members(cfg, cache, [20, 14, 10, 4])  # 5 batches an epoch
-    compiled = train_lockstep(members, cfg.train, compiler=StepCompiler(True))
+    compiled = train_lockstep(members, pair_of(cfg).train, compiler=StepCompiler(True))
     assert compiled[0].count == 1
-    assert_trained_alike(compiled, train_lockstep(members, cfg.train), members, [0, 1, 2, 3])
+    assert_trained_alike(compiled, train_lockstep(members, pair_of(cfg).train), members, [0, 1, 2, 3])
 
 
 def test_static_stacks_shrink_by_powers_of_two_topped_up_with_finished_rows():
@@ -217,12 +218,12 @@ def milestone_run(compose, cache, schedule: str, epochs: int, milestones=(), sch
     """Snapshots of one spring / input-affine model trained for ``epochs`` (1.3 trajectories: 1,300 samples, 6
     batches per epoch of one pass)."""
     cfg = compose("system=spring", "arch=input_affine", f"train.schedule={schedule}", *overrides)
-    data = build_training_set(OmegaConf.to_container(cfg.system, resolve=True), 0, 1.3, cache)
+    data = build_training_set(pair_of(cfg).system, 0, 1.3, cache)
     torch.manual_seed(0)
-    model = build_model(cfg.arch, 4, 2, width=6, depth=2)
+    model = build_model(pair_of(cfg).arch, 4, 2, width=6, depth=2)
     member = Member(model, data, Scaling.fit(data, rescale_targets=False), epochs, 7, milestones, schedule_epochs,
                     repeat=cfg.train.repeat)
-    return train_lockstep([member], OmegaConf.to_container(cfg.train))[1][0]
+    return train_lockstep([member], pair_of(cfg).train)[1][0]
 
 
 @pytest.mark.parametrize(("clip", "decay", "reference"), [(0.0, 0.0, torch.optim.Adam),
@@ -287,18 +288,18 @@ def test_a_diverging_model_leaves_the_others_of_its_pack_as_they_are_alone(compo
     """A model whose data hold a NaN diverges at its first batch (outcome not finite, snapshots of its later
     milestones not finite either); the other models of its pack train as they do alone."""
     cfg = compose("system=spring", "arch=port_hamiltonian")
-    data = build_training_set(OmegaConf.to_container(cfg.system, resolve=True), 0, 1.3, cache)
+    data = build_training_set(pair_of(cfg).system, 0, 1.3, cache)
     poisoned = dataclasses.replace(data, dx=np.where(np.arange(len(data))[:, None] == 5, np.nan, data.dx))
 
     def member(dataset, epochs, milestones=()):
         torch.manual_seed(0)
-        model = build_model(cfg.arch, 4, 2, width=4, depth=1)
+        model = build_model(pair_of(cfg).arch, 4, 2, width=4, depth=1)
         return Member(model, dataset, Scaling.fit(data, rescale_targets=False), epochs, 3, milestones)
 
-    _, (bad, good) = train_lockstep([member(poisoned, 8, (2,)), member(data, 10)], cfg.train)
+    _, (bad, good) = train_lockstep([member(poisoned, 8, (2,)), member(data, 10)], pair_of(cfg).train)
     assert [snapshot.epochs for snapshot in bad] == [2, 8]
     assert all(not snapshot.outcome.finite and snapshot.outcome.steps <= 6 for snapshot in bad)
-    _, (alone,) = train_lockstep([member(data, 10)], cfg.train)
+    _, (alone,) = train_lockstep([member(data, 10)], pair_of(cfg).train)
     assert good[-1].outcome.finite and good[-1].outcome.final_loss == pytest.approx(alone[-1].outcome.final_loss,
                                                                                     rel=PACKED_RTOL)
 
@@ -308,7 +309,7 @@ def test_a_group_scores_on_a_large_test_set_in_the_memory_of_a_chunk(compose, ca
     200 x 200 s test set once reached 20 GB), and gives the scores of the whole predictions at once. NumPy's
     allocations are traced: the spreads of the test set take one temporary (N, n) array, whatever R."""
     cfg = compose("system=ball", "arch=input_affine")
-    system_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+    system_cfg = pair_of(cfg).system
     train = build_training_set(system_cfg, 0, 1.0, cache)
     rng = np.random.default_rng(0)
     samples = 100_000
@@ -316,9 +317,9 @@ def test_a_group_scores_on_a_large_test_set_in_the_memory_of_a_chunk(compose, ca
     members = []
     for seed in range(8):
         torch.manual_seed(seed)
-        model = build_model(cfg.arch, 3, 1, width=8, depth=1)
+        model = build_model(pair_of(cfg).arch, 3, 1, width=8, depth=1)
         members.append(Member(model, train, Scaling.fit(train, rescale_targets=False), 0, seed))
-    stack, _ = train_lockstep(members, cfg.train)
+    stack, _ = train_lockstep(members, pair_of(cfg).train)
     theta, models, scalings = stack.theta.detach(), range(len(members)), [m.scaling for m in members]
     one_model_bytes = samples * 3 * 8
 

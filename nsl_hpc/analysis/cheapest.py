@@ -31,8 +31,8 @@ from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.studies import study_named
-from nsl_hpc.studies.base import Study
-from nsl_hpc.sweep.manifest import read_base_config, read_manifest
+from nsl_hpc.studies.base import Pair, Study
+from nsl_hpc.sweep.manifest import read_manifest, read_pair
 from nsl_hpc.sweep.plan import lockstep_settings, planned_group
 
 SIZE_COLUMNS = {"model": "params", "data": "train_points"}  # the length variable: the study's length axis
@@ -75,17 +75,17 @@ def configurations_of(rows: Sequence[Mapping[str, Any]], study: Study, launch: M
                           np.array([planned_group([row], cost, lockstep).seconds for row in rows]))
 
 
-def candidate_configurations(study: Study, base: Mapping[str, Any], template: Mapping[str, Any],
+def candidate_configurations(study: Study, pair: Pair, template: Mapping[str, Any],
                              values: Mapping[str, Sequence[Any]], launch: Mapping[str, Any]) -> Configurations:
     """Every combination of ``values`` (size axis -> values) as a task like ``template`` (a manifest row), drawn
     and checked as the study does, with the planner's seconds of it trained alone."""
     rows = []
     for combination in itertools.product(*values.values()):
         task = {**template, **dict(zip(values, combination, strict=True))}
-        drawn = study.draw(task, base)
-        sizes = {**drawn, **study.training_length(task, drawn, base)}
+        drawn = study.draw(task, pair)
+        sizes = {**drawn, **study.training_length(task, drawn, pair)}
         try:
-            study.check_task(task, sizes, base)
+            study.check_task(task, sizes, pair)
         except ConfigError:
             continue
         rows.append({**task, **sizes})
@@ -187,16 +187,17 @@ def cost_interval(refits: Sequence[JointLaw], candidates: Configurations, hours:
     return float(low), float(high)
 
 
-def cheapest_for(pair: pa.Table, metric: str, target: float, study: Study, base: Mapping[str, Any],
+def cheapest_for(outcomes: pa.Table, metric: str, target: float, study: Study, pair: Pair,
                  template: Mapping[str, Any], launch: Mapping[str, Any], calibration: float,
                  settings: Mapping[str, Any], level: float) -> Cheapest:
-    """The Cheapest of one (system, arch)'s outcomes ``pair`` (raises JointLawError with too few configurations);
-    ``calibration``: measured over predicted core-hours of the sweep; ``settings``: nsl.joint."""
-    rows = pair.to_pylist()
-    configurations, errors = best_per_configuration(pair, rows, metric, study, launch)
+    """The Cheapest of one (system, arch)'s ``outcomes`` (its typed settings ``pair``; raises JointLawError with
+    too few configurations); ``calibration``: measured over predicted core-hours of the sweep; ``settings``:
+    nsl.joint."""
+    rows = outcomes.to_pylist()
+    configurations, errors = best_per_configuration(outcomes, rows, metric, study, launch)
     law = fit_joint_law(configurations.sizes, errors, settings)
     axes = axis_values(rows, study.size_axes, settings["beyond_doublings"])
-    candidates = candidate_configurations(study, base, template, axes, launch)
+    candidates = candidate_configurations(study, pair, template, axes, launch)
     runs = len({row["seed"] for row in rows})
     hours = candidates.seconds * calibration * runs / 3600  # (candidates,)
     refits = bootstrap_joint_laws(law, configurations.sizes, errors, settings["bootstrap"],
@@ -242,10 +243,10 @@ def cheapest_configurations(sweep_dir: Path, results: pa.Table, launch: Mapping[
     pairs = dict.fromkeys(zip(results["system"].to_pylist(), results["arch"].to_pylist(), strict=True))
     for system, arch in tqdm(pairs, desc="joint laws", unit="pair", disable=None):
         template = next(task for task in manifest if task["system"] == system and task["arch"] == arch)
-        base = plain(read_base_config(sweep_dir, system, arch))
         try:
-            found.append(cheapest_for(pair_outcomes(results, system, arch), metric, target, study, base, template,
-                                      launch, calibration, settings, level))
+            found.append(cheapest_for(pair_outcomes(results, system, arch), metric, target, study,
+                                      read_pair(sweep_dir, system, arch), template, launch, calibration, settings,
+                                      level))
         except JointLawError as error:
             found.append(f"{system} / {arch}: no joint law ({error})")
     return found

@@ -26,12 +26,13 @@ from nsl_hpc.analysis.broken_law import (
 from nsl_hpc.analysis.published import comparison
 from nsl_hpc.atomic import read_parquet, write_parquet, write_text
 from nsl_hpc.config import plain
+from nsl_hpc.config.schema import typed
 from nsl_hpc.errors import ConfigError, RunError
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.studies.metrics import NORMALIZATIONS
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.merge import results_path
-from nsl_hpc.sweep.rehearsal import planted_law
+from nsl_hpc.sweep.rehearsal import Rehearse, planted_law
 
 KEY_COLUMNS = ("system", "arch", "resource", "metric")
 
@@ -87,9 +88,9 @@ def require_some_fit(rows: Sequence[Mapping[str, Any]], path: Path) -> None:
                        f"{path.name} is left as it was")
 
 
-def rehearsal_of(launch: Mapping[str, Any]) -> dict[str, Any] | None:
+def rehearsal_of(launch: Mapping[str, Any]) -> Rehearse | None:
     """A launch config's rehearsal settings (``rehearse``: its planted laws) when it is a rehearsal, else None."""
-    return plain(launch["rehearse"]) if launch.get("rehearsal") else None
+    return typed(Rehearse, launch["rehearse"], "rehearse") if launch.get("rehearsal") else None
 
 
 def read_results(sweep_dir: Path) -> pa.Table:
@@ -117,7 +118,7 @@ def pair_outcomes(results: pa.Table, system: str, arch: str) -> pa.Table:
 
 
 def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, nsl: dict[str, Any], symbol: str,
-            rehearse: Mapping[str, Any] | None = None, backtest: bool = True) -> dict[str, Any]:
+            rehearse: Rehearse | None = None, backtest: bool = True) -> dict[str, Any]:
     """One NSL's row (KEY_COLUMNS, outcomes, excluded, b, parameters, margin, formula, backtest, bootstrap
     intervals and thetas, the published law's paper_* columns, a rehearsal's planted_* ones; error on failure).
     ``excluded``: merged tasks left out (not ok, or non-finite / non-positive values); ``rehearse``: a
@@ -163,14 +164,14 @@ def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, ns
     return row
 
 
-def planted_comparison(rehearse: Mapping[str, Any], key: Mapping[str, str], row: Mapping[str, Any], r: np.ndarray,
+def planted_comparison(rehearse: Rehearse, key: Mapping[str, str], row: Mapping[str, Any], r: np.ndarray,
                        e: np.ndarray, K: int) -> dict[str, Any]:
     """A rehearsal's planted law beside the fitted one (a compute law of a planted metric): its formula, parameters,
     slope and value at the largest resource (``planted_last_slope``, ``planted_L_at_max``: what the fitted last
     slope and L_at_max estimate), the envelope there over it (``planted_envelope_excess``: an envelope of finite
     draws lies above the law it bounds) and its margin on our envelope; recovered when both planted values lie
     inside the fit's 90% intervals (last_slope, L_at_max)."""
-    if key["resource"] != "compute" or key["metric"] not in rehearse["laws"]:
+    if key["resource"] != "compute" or key["metric"] not in rehearse.laws:
         return {}
     law = planted_law(rehearse, key["metric"])
     grid_r, grid_e = lower_envelope(r, e, K)
@@ -208,7 +209,7 @@ def fit_from_row(row: Mapping[str, Any]) -> NSLFit:
 
 
 def fit_sweep(results: pa.Table, nsl: DictConfig | Mapping[str, Any], workers: int | None,
-              rehearse: Mapping[str, Any] | None = None, backtest: bool = True) -> list[dict[str, Any]]:
+              rehearse: Rehearse | None = None, backtest: bool = True) -> list[dict[str, Any]]:
     """Every NSL of the sweep, fitted in parallel processes, in (system, arch, resource, metric) order
     (``rehearse``: a rehearsal's settings, whose planted laws are set beside the fitted ones; ``backtest``: see
     ``fit_one``)."""

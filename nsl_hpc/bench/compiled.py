@@ -36,12 +36,13 @@ from torch.profiler import ProfilerActivity, profile
 
 from nsl_hpc.bench.measure import matmul_peak_flops
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.config import compose_config, plain
+from nsl_hpc.config import compose_config
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
+from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.input_output import lockstep as io_lockstep
 from nsl_hpc.studies.input_output.data import load_benchmark
-from nsl_hpc.studies.input_output.study import build_io_model, horizon
+from nsl_hpc.studies.input_output.study import InputOutputPair, build_io_model, horizon
 from nsl_hpc.studies.input_output.training import SignalScaling
 from nsl_hpc.studies.input_state import lockstep
 from nsl_hpc.studies.input_state.data import build_training_set
@@ -58,35 +59,35 @@ Train = Callable[[StepCompiler, Callable[[], None]], object]
 
 def input_state_run(spec: Mapping[str, Any]) -> tuple[Train, int, float]:
     """``train(compiler, on_progress)`` of K input-state models, the steps of a block and the flops of a step."""
-    cfg = compose_config([f"system={spec['system']}", f"arch={spec['arch']}"])
-    data = build_training_set(plain(cfg.system), 0, spec["n_traj"], ArrayCache(spec["data_cache"]))
-    train = plain(cfg.train, resolve=False)
-    batches = math.ceil(len(data) / train["batch_size"])
+    pair = pair_of(compose_config([f"system={spec['system']}", f"arch={spec['arch']}"]))
+    data = build_training_set(pair.system, 0, spec["n_traj"], ArrayCache(spec["data_cache"]))
+    train = pair.train
+    batches = math.ceil(len(data) / train.batch_size)
     members = []
     for k in range(spec["models"]):
         torch.manual_seed(k)
-        model = build_model(cfg.arch, *system_dimensions(plain(cfg.system)), spec["width"], spec["depth"])
+        model = build_model(pair.arch, *system_dimensions(pair.system), spec["width"], spec["depth"])
         members.append(lockstep.Member(model, data, Scaling.fit(data, False),
                                        math.ceil(spec["blocks"] * lockstep.BLOCK_STEPS / batches), k))
-    flops = 6.0 * parameter_count(members[0].model) * train["batch_size"] * spec["models"]
+    flops = 6.0 * parameter_count(members[0].model) * train.batch_size * spec["models"]
     return (lambda compiler, on_progress: lockstep.train_lockstep(members, train, on_progress, None, compiler),
             lockstep.BLOCK_STEPS, flops)
 
 
 def input_output_run(spec: Mapping[str, Any]) -> tuple[Train, int, float]:
     """``train(compiler, on_progress)`` of K input-output models, the iterations of a block and the flops of one."""
-    cfg = compose_config(["study=input_output", f"system={spec['io_system']}", f"arch={spec['arch']}",
-                          f"data_dir={spec['data_dir']}"])
-    system, arch = plain(cfg.system), plain(cfg.arch, resolve=False)
-    record = load_benchmark(system, ArrayCache(spec["data_cache"])).train.head(spec["io_points"])
-    scaling, steps = SignalScaling.fit(record), horizon({"system": system, "arch": arch})
+    pair = pair_of(compose_config(["study=input_output", f"system={spec['io_system']}", f"arch={spec['arch']}",
+                                   f"data_dir={spec['data_dir']}"]))
+    assert isinstance(pair, InputOutputPair)
+    record = load_benchmark(pair.system, ArrayCache(spec["data_cache"])).train.head(spec["io_points"])
+    scaling, steps = SignalScaling.fit(record), horizon(pair)
     members = []
     for k in range(spec["models"]):
         torch.manual_seed(k)
-        members.append(io_lockstep.IOMember(build_io_model(arch, system, spec["width"], spec["depth"]), record,
-                                            scaling, spec["blocks"] * io_lockstep.BLOCK_STEPS, k, steps))
-    train = plain(cfg.train, resolve=False)
-    flops = 6.0 * members[0].model.counted_parameters() * train["batch_size"] * steps * spec["models"]
+        members.append(io_lockstep.IOMember(build_io_model(pair.arch, pair.system, spec["width"], spec["depth"]),
+                                            record, scaling, spec["blocks"] * io_lockstep.BLOCK_STEPS, k, steps))
+    train = pair.train
+    flops = 6.0 * members[0].model.counted_parameters() * train.batch_size * steps * spec["models"]
     return (lambda compiler, on_progress: io_lockstep.train_lockstep(members, train, on_progress, None, compiler),
             io_lockstep.BLOCK_STEPS, flops)
 

@@ -28,11 +28,13 @@ from omegaconf import DictConfig
 from nsl_hpc.bench.measure import TASK_IMPORTS, interpolate, planner_core_hours, study_manifest, timed
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config, plain
+from nsl_hpc.config.schema import typed
+from nsl_hpc.config.system import InputOutputSystem
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies.input_output.data import load_benchmark
 from nsl_hpc.studies.input_output.lockstep import IOMember, train_lockstep
 from nsl_hpc.studies.input_output.scoring import numpy_mlps, score_records
-from nsl_hpc.studies.input_output.study import build_io_model, horizon, training_memory_mb
+from nsl_hpc.studies.input_output.study import InputOutput, build_io_model, horizon, training_memory_mb
 from nsl_hpc.studies.input_output.training import SignalScaling, train_io_model
 from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments, with_compile
 
@@ -43,12 +45,9 @@ class IOBench:
     def __init__(self, cfg: DictConfig, cache: ArrayCache):
         self.io = cfg.io
         self.launch = compose_config(["+sweep=input_output", f"data_dir={cfg.io.data_dir}"], "launch")
-        self.bases = {}
-        for arch in self.io.archs:
-            task = compose_config(["study=input_output", f"system={self.io.system}", f"arch={arch}"], "one_task")
-            self.bases[arch] = {"system": plain(task.system),
-                                "arch": plain(task.arch, resolve=False), "train": plain(task.train, resolve=False)}
-        self.benchmark = load_benchmark(self.bases[self.io.archs[0]]["system"], cache)
+        self.bases = {arch: InputOutput().pair(plain(compose_config(
+            ["study=input_output", f"system={self.io.system}", f"arch={arch}"], "one_task"))) for arch in self.io.archs}
+        self.benchmark = load_benchmark(self.bases[self.io.archs[0]].system, cache)
         self.record = self.benchmark.train.head(self.io.train_points)
 
     def pack_size(self, arch: str, width: int, depth: int) -> int:
@@ -62,7 +61,7 @@ class IOBench:
         members = []
         for k in range(count):
             torch.manual_seed(k)
-            members.append(IOMember(build_io_model(base["arch"], base["system"], width, depth), self.record, scaling,
+            members.append(IOMember(build_io_model(base.arch, base.system, width, depth), self.record, scaling,
                                     iterations, k, horizon(base)))
         return members
 
@@ -72,26 +71,26 @@ class IOBench:
         member = self.members(arch, width, depth, 1, iterations)[0]
         reference = copy.deepcopy(member.model)
         steps = horizon(base)
-        _, reference_s = timed(lambda: train_io_model(reference, member.record, member.scaling, base["train"],
+        _, reference_s = timed(lambda: train_io_model(reference, member.record, member.scaling, base.train,
                                                       iterations, steps, 0))
-        _, single_s = timed(lambda: train_lockstep([member], base["train"]))
+        _, single_s = timed(lambda: train_lockstep([member], base.train))
         pack = self.pack_size(arch, width, depth)
         packed = self.members(arch, width, depth, pack, iterations)
-        _, packed_s = timed(lambda: train_lockstep(packed, base["train"]))
+        _, packed_s = timed(lambda: train_lockstep(packed, base.train))
         return {"reference": reference_s / iterations, "single": single_s / iterations,
                 "packed": packed_s / iterations, "pack": pack, "params": member.model.counted_parameters()}
 
     def scoring_seconds(self, arch: str, pack: int) -> dict[str, float]:
         """Seconds per model and test sample of scoring (n_h 8, n_d 2), alone and in a pack of ``pack``."""
         base = self.bases[arch]
-        test = {"test": self.benchmark.tests[base["system"]["score_on"]]}
+        test = {"test": self.benchmark.tests[base.system.score_on]}
         seconds = {}
         for name, count in (("alone", 1), ("packed", pack)):
             members = self.members(arch, 8, 2, count, 0)
-            nets, theta, _ = train_lockstep(members, base["train"])
+            nets, theta, _ = train_lockstep(members, base.train)
             _, elapsed = timed(lambda: score_records(members[0].model, numpy_mlps(nets, theta),  # noqa: B023
                                                      [m.scaling for m in members], test,  # noqa: B023
-                                                     base["system"]["init_samples"], 1.0))
+                                                     base.system.init_samples, 1.0))
             seconds[name] = elapsed / count / len(test["test"])
         return seconds
 
@@ -116,10 +115,10 @@ def study_systems(launch: DictConfig, systems: set[str]) -> dict[str, tuple[int,
     """Per system of the study: the samples scored per model (all its test records) and SUBNET's T."""
     facts = {}
     for system in sorted(systems):
-        system_cfg = plain(compose_config([f"data_dir={launch.data_dir}", "study=input_output",
-                                                            f"system={system}"], "one_task").system)
-        records = load_benchmark(system_cfg, ArrayCache(launch.cache_dir)).tests.values()
-        facts[system] = sum(len(record) for record in records), system_cfg["subnet"]["horizon"]
+        settings = typed(InputOutputSystem, compose_config([f"data_dir={launch.data_dir}", "study=input_output",
+                                                            f"system={system}"], "one_task").system, "system")
+        records = load_benchmark(settings, ArrayCache(launch.cache_dir)).tests.values()
+        facts[system] = sum(len(record) for record in records), settings.subnet.horizon
     return facts
 
 

@@ -40,6 +40,9 @@ from nsl_hpc.bench.measure import (
 )
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config, plain
+from nsl_hpc.config.arch import arch_settings
+from nsl_hpc.config.schema import typed
+from nsl_hpc.config.system import InputStateSystem
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set
@@ -47,7 +50,7 @@ from nsl_hpc.studies.input_state.lockstep import Member, predict_derivatives, tr
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.input_state.study import system_dimensions
 from nsl_hpc.studies.metrics import normalized_errors
-from nsl_hpc.studies.settings import batch_count, warmup_cosine
+from nsl_hpc.studies.settings import InputStateTrain, batch_count, warmup_cosine
 from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments, with_compile
 from nsl_hpc.sweep.rows import write_row_atomically
 
@@ -57,42 +60,42 @@ def normalised_mse(predicted: torch.Tensor, target: torch.Tensor) -> torch.Tenso
     return ((predicted - target) / (target.std() + 1e-6)).square().mean()
 
 
-def reference_loop(model: nn.Module, member: Member, steps: int, train: Mapping[str, Any]) -> None:
+def reference_loop(model: nn.Module, member: Member, steps: int, train: InputStateTrain) -> None:
     """The plain loop a user writes: random mini-batch gather, forward, the study's loss, backward, Adam,
     zero_grad."""
-    dtype = getattr(torch, train["dtype"])
+    dtype = getattr(torch, train.dtype)
     z, v = member.scaling.model_inputs(member.data, dtype)
     dz, y = member.scaling.model_targets(member.data, dtype)
-    optimizer = torch.optim.Adam(model.parameters(), lr=train["lr"])
+    optimizer = torch.optim.Adam(model.parameters(), lr=train.lr)
     generator = torch.Generator().manual_seed(member.shuffle_seed)
     for _ in range(steps):
-        index = torch.randint(len(z), (train["batch_size"],), generator=generator)
+        index = torch.randint(len(z), (train.batch_size,), generator=generator)
         predicted_dz, predicted_y = model(z[index], v[index])
-        loss = normalised_mse(predicted_dz, dz[index]) + train["output_weight"] * normalised_mse(predicted_y, y[index])
+        loss = normalised_mse(predicted_dz, dz[index]) + train.output_weight * normalised_mse(predicted_y, y[index])
         loss.backward()
         optimizer.step()
         optimizer.zero_grad()
 
 
-def authors_loop(model: nn.Module, member: Member, steps: int, train: Mapping[str, Any]) -> None:
+def authors_loop(model: nn.Module, member: Member, steps: int, train: InputStateTrain) -> None:
     """The authors' training loop without Lightning: a shuffling DataLoader over (x, u, dx/dt, y) samples,
     forward, loss, backward, clip_grad_norm_, Adam, LambdaLR (warm-up + cosine), zero_grad."""
-    dtype = getattr(torch, train["dtype"])
+    dtype = getattr(torch, train.dtype)
     z, v = member.scaling.model_inputs(member.data, dtype)
     dz, y = member.scaling.model_targets(member.data, dtype)
-    loader = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(z, v, dz, y), batch_size=train["batch_size"],
+    loader = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(z, v, dz, y), batch_size=train.batch_size,
                                          shuffle=True, generator=torch.Generator().manual_seed(member.shuffle_seed))
-    optimizer = torch.optim.Adam(model.parameters(), lr=train["lr"])
-    factors = warmup_cosine(steps, train["warmup_fraction"], 1.0)
+    optimizer = torch.optim.Adam(model.parameters(), lr=train.lr)
+    factors = warmup_cosine(steps, train.warmup_fraction, 1.0)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: float(factors[min(step, steps - 1)]))
     taken = 0
     while taken < steps:
         for batch_z, batch_v, batch_dz, batch_y in loader:
             predicted_dz, predicted_y = model(batch_z, batch_v)
             loss = (normalised_mse(predicted_dz, batch_dz)
-                    + train["output_weight"] * normalised_mse(predicted_y, batch_y))
+                    + train.output_weight * normalised_mse(predicted_y, batch_y))
             loss.backward()
-            nn.utils.clip_grad_norm_(model.parameters(), train["grad_clip_norm"])
+            nn.utils.clip_grad_norm_(model.parameters(), train.grad_clip_norm)
             optimizer.step()
             scheduler.step()
             optimizer.zero_grad()
@@ -106,17 +109,17 @@ class Bench:
 
     def __init__(self, cfg: DictConfig, cache: ArrayCache):
         self.cfg = cfg
-        self.train = plain(cfg.train, resolve=False)
-        self.system_cfg = plain(cfg.system)
-        self.data = build_training_set(self.system_cfg, 0, cfg.n_traj, cache)
-        self.scaling = Scaling.fit(self.data, self.train["rescale_targets"])
-        self.batches = batch_count(len(self.data), self.train["batch_size"])
-        self.arch_cfgs = {arch: plain(compose_config([f"arch={arch}"]).arch, resolve=False)
-                          for arch in {*cfg.archs, cfg.typical_task.arch}}  # composed once, not per model
+        self.train = typed(InputStateTrain, cfg.train, "train")
+        self.system = typed(InputStateSystem, cfg.system, "system")
+        self.data = build_training_set(self.system, 0, cfg.n_traj, cache)
+        self.scaling = Scaling.fit(self.data, self.train.rescale_targets)
+        self.batches = batch_count(len(self.data), self.train.batch_size)
+        self.archs = {arch: arch_settings(compose_config([f"arch={arch}"]).arch)
+                      for arch in {*cfg.archs, cfg.typical_task.arch}}  # composed once, not per model
 
     def model(self, arch: str, width: int, depth: int, seed: int) -> nn.Module:
         torch.manual_seed(seed)
-        return build_model(self.arch_cfgs[arch], *system_dimensions(self.system_cfg), width, depth)
+        return build_model(self.archs[arch], *system_dimensions(self.system), width, depth)
 
     def members(self, arch: str, width: int, depth: int, count: int, steps: int) -> list[Member]:
         epochs = max(1, math.ceil(steps / self.batches))
@@ -161,14 +164,14 @@ def task_breakdown(bench: Bench, cfg: DictConfig, root: Path) -> dict[str, float
     _, interpreter_s = timed(lambda: subprocess.run([*python, "pass"], check=True))
     _, imports_s = timed(lambda: subprocess.run([*python, TASK_IMPORTS], check=True))
     miss_cache = ArrayCache(root / "miss")
-    (data, _), miss_s = timed(lambda: (build_training_set(bench.system_cfg, 1, task.n_traj, miss_cache),
-                                       build_test_set(bench.system_cfg, miss_cache)))
-    (_, test), hit_s = timed(lambda: (build_training_set(bench.system_cfg, 1, task.n_traj, miss_cache),
-                                      build_test_set(bench.system_cfg, miss_cache)))
+    (data, _), miss_s = timed(lambda: (build_training_set(bench.system, 1, task.n_traj, miss_cache),
+                                       build_test_set(bench.system, miss_cache)))
+    (_, test), hit_s = timed(lambda: (build_training_set(bench.system, 1, task.n_traj, miss_cache),
+                                      build_test_set(bench.system, miss_cache)))
     model = bench.model(task.arch, task.width, task.depth, 0)
-    member = Member(model, data, Scaling.fit(data, bench.train["rescale_targets"]), task.epochs, 0)
+    member = Member(model, data, Scaling.fit(data, bench.train.rescale_targets), task.epochs, 0)
     (stack, _), train_s = timed(lambda: train_lockstep([member], bench.train))
-    dtype = getattr(torch, bench.train["dtype"])
+    dtype = getattr(torch, bench.train.dtype)
     metrics, score_s = timed(lambda: normalized_errors(test.dx, predict_derivatives(stack, test, [member.scaling],
                                                                                      dtype)[0]))
     _, write_s = timed(lambda: write_row_atomically({"task_id": "bench", **metrics}, root / "row.parquet"))

@@ -1,13 +1,13 @@
 """The typed owners of the ``arch`` group (conf/arch/<name>.yaml): one schema per architecture, its options
-with their types and choices (``config.schema``). ``arch_settings`` checks an arch config; the models build from
-it (``nsl_hpc.models``, ``studies.input_output.study.build_io_model``)."""
+with their types and choices (``config.schema``). ``arch_settings`` types an arch config (a user's architecture:
+``OwnArch``); the models build from the instance (``nsl_hpc.models``, ``studies.input_output.study.build_io_model``)."""
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 from nsl_hpc.config.mapping import plain
-from nsl_hpc.config.schema import field_names, setting, typed
+from nsl_hpc.config.schema import setting, typed
 from nsl_hpc.config.targets import PACKAGE_PREFIX, TARGET
 from nsl_hpc.errors import ConfigError
 
@@ -29,6 +29,26 @@ class Arch:
                             "options)")
     study: str = setting("the study it belongs to", choices=STUDIES)
     block: str = setting("hidden layer: Linear -> LayerNorm -> SiLU, or Linear -> tanh", choices=BLOCKS)
+
+    @classmethod
+    def from_values(cls, values: Any, key: str) -> "Arch":
+        """The ``arch`` group ``key`` typed by its architecture's schema (``arch_settings``)."""
+        return arch_settings(values, key)
+
+    def keywords(self) -> dict[str, Any]:
+        """The options ``_target_`` takes: every setting but name, _target_, study and block."""
+        return {item.name: getattr(self, item.name) for item in fields(self) if item.name not in BASE_KEYS}
+
+
+@dataclass(frozen=True)
+class OwnArch(Arch):
+    """An architecture of yours: its options are its ``_target_``'s to check (a signature that does not take them
+    is refused before any work)."""
+
+    options: dict[str, Any] = field(default_factory=dict)  # the config's other keys
+
+    def keywords(self) -> dict[str, Any]:
+        return dict(self.options)
 
 
 @dataclass(frozen=True)
@@ -83,21 +103,19 @@ ARCH_SCHEMAS: dict[str, type[Arch]] = {"unstructured": Unstructured, "input_affi
                                        "port_hamiltonian": PortHamiltonian, "narx": Narx, "subnet": Subnet}
 
 
-BASE_KEYS = tuple(field_names(Arch))
+BASE_KEYS = ("name", TARGET, "study", "block")  # the keys every architecture has; the others are its options
 
 
-def arch_settings(arch_cfg: Mapping[str, Any]) -> Arch:
+def arch_settings(arch_cfg: Mapping[str, Any], key: str = "arch") -> Arch:
     """An ``arch`` group, typed and checked by its architecture's schema (a package architecture: one of
-    ``ARCH_SCHEMAS``, built by the package's class), or, for one of the user's, its common keys (``Arch``)."""
+    ``ARCH_SCHEMAS``, built by the package's class), or, for one of the user's, its common keys with the rest as
+    its options (``OwnArch``)."""
     if not isinstance(arch_cfg, Mapping):
-        raise ConfigError(f"arch={arch_cfg!r} must be a group of keys: {', '.join(BASE_KEYS)}")
+        raise ConfigError(f"{key}={arch_cfg!r} must be a group of keys: {', '.join(BASE_KEYS)}")
     schema = ARCH_SCHEMAS.get(arch_cfg.get("name", ""))
     if schema is not None and str(arch_cfg.get(TARGET, "")).startswith(PACKAGE_PREFIX):
-        return typed(schema, arch_cfg, "arch")
-    return typed(Arch, {key: value for key, value in arch_cfg.items() if key in BASE_KEYS}, "arch")
-
-
-def architecture_options(arch_cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """The options an architecture's ``_target_`` takes: its config without name, _target_, study and block."""
-    arch_settings(arch_cfg)
-    return {key: value for key, value in plain(arch_cfg).items() if key not in BASE_KEYS}
+        return typed(schema, arch_cfg, key)
+    values = plain(arch_cfg)
+    common = typed(Arch, {name: value for name, value in values.items() if name in BASE_KEYS}, key)
+    return OwnArch(**{name: getattr(common, name) for name in BASE_KEYS},
+                   options={name: value for name, value in values.items() if name not in BASE_KEYS})

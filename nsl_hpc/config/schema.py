@@ -46,7 +46,7 @@ def typed(schema: type[T], values: Any, key: str) -> T:
     for item in dataclasses.fields(schema):  # type: ignore[arg-type]
         if item.name in given:
             built[item.name] = checked(dotted(key, item.name), given[item.name], hints[item.name], item.metadata)
-        elif item.default is dataclasses.MISSING:
+        elif item.default is dataclasses.MISSING and item.default_factory is dataclasses.MISSING:
             raise ConfigError(f"{dotted(key, item.name)} is missing ({item.metadata['doc']})")
     instance = schema(**built)
     if hasattr(instance, "check"):
@@ -86,8 +86,9 @@ def checked(key: str, value: Any, kind: Any, spec: Mapping[str, Any]) -> Any:
             return None
         (kind,) = [argument for argument in arguments if argument is not type(None)]
         return checked(key, value, kind, spec)
-    if dataclasses.is_dataclass(kind):
-        return typed(typing.cast(type, kind), value, key)
+    if dataclasses.is_dataclass(kind):  # a group whose owner types it its own way (the arch) says so: from_values
+        builder = getattr(kind, "from_values", None)
+        return builder(value, key) if builder else typed(typing.cast(type, kind), value, key)
     if origin is list:
         if not isinstance(value, list) or (spec["nonempty"] and not value):
             raise ConfigError(f"{key}={value!r} must be a list" + (" of at least one value" if spec["nonempty"]

@@ -1,12 +1,14 @@
 """Hydra's ``_target_`` convention: a config group names the class or function that builds its object (a system,
 an architecture) by its import path, the package's own as ``nsl_hpc.systems.spring.Spring`` and a user's as
 ``tanks.TwoTank`` (a module on PYTHONPATH). ``located`` imports it and ``called`` builds with it, each refusing
-in one line that names the config file and key; ``outcome_values`` is what of a group changes an outcome."""
+in one line that names the config file and key; both take the group's typed settings (anything with a ``name``
+and a ``_target_``: ``config.system.InputStateSystem``, ``config.arch.Arch``). ``outcome_values`` is what of a
+group's plain values changes an outcome."""
 
 import importlib
 import inspect
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from typing import Any, Protocol
 
 import yaml
 
@@ -16,16 +18,26 @@ TARGET = "_target_"
 PACKAGE_PREFIX = "nsl_hpc."  # a target inside the package: identified by the package's version, as before targets
 
 
-def where(group: str, values: Mapping[str, Any]) -> str:
+class Built(Protocol):
+    """A group's typed settings that name what builds it."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def _target_(self) -> str: ...
+
+
+def where(group: str, spec: Built) -> str:
     """'system/two_tank.yaml': the config file of a group option (its ``name`` is the file's stem)."""
-    return f"{group}/{values.get('name')}.yaml"
+    return f"{group}/{spec.name}.yaml"
 
 
-def located(group: str, values: Mapping[str, Any]) -> Callable[..., Any]:
-    """The object ``values._target_`` names (a dotted path: module, then attributes), or a one-line ConfigError."""
-    path = values.get(TARGET)
+def located(group: str, spec: Built) -> Callable[..., Any]:
+    """The object ``spec._target_`` names (a dotted path: module, then attributes), or a one-line ConfigError."""
+    path = spec._target_
     if not isinstance(path, str) or "." not in path:
-        raise ConfigError(f"{where(group, values)}: {group}.{TARGET}={path!r} must name a class or function by its "
+        raise ConfigError(f"{labelled(group, spec)} must name a class or function by its "
                           "import path, e.g. my_module.MySystem")
     parts = path.split(".")
     for cut in range(len(parts) - 1, 0, -1):
@@ -35,28 +47,28 @@ def located(group: str, values: Mapping[str, Any]) -> Callable[..., Any]:
         except ModuleNotFoundError as error:
             if error.name is not None and module_name.startswith(error.name) and cut > 1:
                 continue  # a shorter path may be the module (Class.method)
-            raise ConfigError(f"{where(group, values)}: {group}.{TARGET}={path!r} does not import "
+            raise ConfigError(f"{labelled(group, spec)} does not import "
                               f"(ModuleNotFoundError: {error}); put its folder on PYTHONPATH") from None
         except Exception as error:  # the user's module itself fails as it imports
-            raise ConfigError(f"{where(group, values)}: {group}.{TARGET}={path!r}: importing {module_name} raises "
+            raise ConfigError(f"{labelled(group, spec)}: importing {module_name} raises "
                               f"{type(error).__name__}: {one_line(error)[:200]}") from None
         try:
             for attribute in parts[cut:]:
                 found = getattr(found, attribute)
         except AttributeError:
-            raise ConfigError(f"{where(group, values)}: {group}.{TARGET}={path!r}: module {module_name} has no "
+            raise ConfigError(f"{labelled(group, spec)}: module {module_name} has no "
                               f"{'.'.join(parts[cut:])}") from None
         if not callable(found):
-            raise ConfigError(f"{where(group, values)}: {group}.{TARGET}={path!r} is no class or function")
+            raise ConfigError(f"{labelled(group, spec)} is no class or function")
         return found
-    raise ConfigError(f"{where(group, values)}: {group}.{TARGET}={path!r} does not import")
+    raise ConfigError(f"{labelled(group, spec)} does not import")
 
 
-def called(group: str, values: Mapping[str, Any], builder: Callable[..., Any], *args: Any,
-           arg_names: Sequence[str] = (), **kwargs: Any) -> Any:
+def called(group: str, spec: Built, builder: Callable[..., Any], *args: Any, arg_names: Sequence[str] = (),
+           **kwargs: Any) -> Any:
     """``builder(*args, **kwargs)``, refused in one line where its signature does not take them (named by
     ``arg_names`` and the keywords) or where it raises."""
-    label = f"{where(group, values)}: {group}.{TARGET}={values.get(TARGET)!r}"
+    label = labelled(group, spec)
     try:
         inspect.signature(builder).bind(*args, **kwargs)
     except TypeError as error:
@@ -68,6 +80,11 @@ def called(group: str, values: Mapping[str, Any], builder: Callable[..., Any], *
         return builder(*args, **kwargs)
     except Exception as error:
         raise ConfigError(f"{label} raised {type(error).__name__}: {one_line(error)[:200]}") from None
+
+
+def labelled(group: str, spec: Built) -> str:
+    """'system/two_tank.yaml: system._target_='tanks.TwoTank'': what a one-line refusal of a build starts with."""
+    return f"{where(group, spec)}: {group}.{TARGET}={spec._target_!r}"
 
 
 def package_target(group: str, name: str) -> str | None:

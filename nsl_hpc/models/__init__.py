@@ -1,37 +1,34 @@
-"""The input-state models: ``build_model`` turns an ``arch`` config into a module through its ``_target_`` (the
+"""The input-state models: ``build_model`` turns a typed ``arch`` group into a module through its ``_target_`` (the
 package's ``unstructured``, ``input_affine``, ``port_hamiltonian``; a user's ``StateSpaceArchitecture``, or a
 user's ``torch.nn.Module``); ``studies.input_state.lockstep.check_architecture`` tries one before any work.
 
 The input-output models (NARX, SUBNET) are built by ``nsl_hpc.studies.input_output.study``.
 """
 
-from collections.abc import Mapping
-from typing import Any
-
 from torch import nn
 
-from nsl_hpc.config.arch import architecture_options
-from nsl_hpc.config.targets import called, located, where
+from nsl_hpc.config.arch import Arch
+from nsl_hpc.config.targets import called, labelled, located
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.models.state_space import StateSpaceArchitecture, StateSpaceModel
 
 
-def build_model(arch_cfg: Mapping[str, Any], state_dim: int, input_dim: int, width: int, depth: int) -> nn.Module:
-    """The model ``arch_cfg._target_`` builds for n = state_dim, m = input_dim, n_h = width, n_d = depth and the
-    config's options (checked by ``config.arch``): a ``StateSpaceArchitecture`` class is built with (n, m, n_h,
+def build_model(arch: Arch, state_dim: int, input_dim: int, width: int, depth: int) -> nn.Module:
+    """The model ``arch._target_`` builds for n = state_dim, m = input_dim, n_h = width, n_d = depth and the
+    architecture's options (``Arch.keywords``): a ``StateSpaceArchitecture`` class is built with (n, m, n_h,
     options) and made a ``StateSpaceModel`` (MLP heads of n_d hidden layers of ``block``: the lockstep training
     batches them); anything else is called with (n, m, n_h, n_d, block, options) and gives a ``torch.nn.Module``
     whose forward maps z (B, n), v (B, m) to dz/dt (B, n), y (B, m) (trained one per process)."""
-    builder, options = located("arch", arch_cfg), architecture_options(arch_cfg)
+    builder, options = located("arch", arch), arch.keywords()
     if isinstance(builder, type) and issubclass(builder, StateSpaceArchitecture):
-        architecture = called("arch", arch_cfg, builder, state_dim, input_dim, width, arg_names=("n", "m", "n_h"),
+        architecture = called("arch", arch, builder, state_dim, input_dim, width, arg_names=("n", "m", "n_h"),
                               **options)
-        return StateSpaceModel(architecture, depth, arch_cfg["block"])
-    module = called("arch", arch_cfg, builder, state_dim, input_dim, width, depth, arg_names=("n", "m", "n_h", "n_d"),
-                    block=arch_cfg["block"], **options)
+        return StateSpaceModel(architecture, depth, arch.block)
+    module = called("arch", arch, builder, state_dim, input_dim, width, depth, arg_names=("n", "m", "n_h", "n_d"),
+                    block=arch.block, **options)
     if not isinstance(module, nn.Module):
-        raise ConfigError(f"{where('arch', arch_cfg)}: arch._target_={arch_cfg['_target_']!r} built a "
-                          f"{type(module).__name__}, not a torch.nn.Module or StateSpaceArchitecture")
+        raise ConfigError(f"{labelled('arch', arch)} built a {type(module).__name__}, not a torch.nn.Module or "
+                          "StateSpaceArchitecture")
     return module
 
 

@@ -10,8 +10,9 @@ import importlib
 from collections.abc import Mapping
 from typing import Any
 
+from nsl_hpc.config.mapping import plain
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.studies.base import Study
+from nsl_hpc.studies.base import Pair, Study
 from nsl_hpc.studies.input_output.study import InputOutput
 from nsl_hpc.studies.input_state.study import InputState
 
@@ -48,3 +49,9 @@ def study_of(cfg: Mapping[str, Any]) -> Study:
             raise ConfigError(f"{group}={cfg[group]['name']} belongs to the {member} study, not {study.name}; "
                               f"add study={member} (or pick a {group} of the {study.name} study)")
     return study
+
+
+def pair_of(cfg: Mapping[str, Any]) -> Pair:
+    """The typed settings of a composed task config's (system, arch) (``Study.pair`` of its study)."""
+    values = plain(cfg)
+    return study_of(values).pair(values)

@@ -24,6 +24,7 @@ from tqdm import tqdm
 from nsl_hpc.config.launchers import DebugLauncher, Launcher, LocalLauncher, SlurmLauncher, launcher_from
 from nsl_hpc.errors import ConfigError, RunError, one_line
 from nsl_hpc.studies import study_named
+from nsl_hpc.studies.base import Pair
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.directory import process_alive
 from nsl_hpc.sweep.failures import read_failures
@@ -346,7 +347,7 @@ def limit_threads(threads: int) -> None:
 
 
 def run_jobs(sweep_dir: Path, launch: DictConfig, packs: Sequence[Pack], tasks: Sequence[Mapping[str, Any]],
-             configs: Mapping[tuple[str, str], Mapping[str, Any]], limits: ClusterLimits | None = None) -> int:
+             configs: Mapping[tuple[str, str], Pair], limits: ClusterLimits | None = None) -> int:
     """Run the planned ``packs`` of ``tasks`` (manifest rows) with the run settings ``launch`` (within the cluster's
     ``limits``): the data they share first (none in a rehearsal), the settings recorded in run.yaml, then
     ``dispatch``; returns its exit status."""

@@ -12,7 +12,7 @@ from typing import Any
 import pyarrow as pa
 
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.studies.base import Study
+from nsl_hpc.studies.base import Pair, Study
 from nsl_hpc.sweep.task import task_id_from
 
 Grid = Mapping[str, Sequence[Any]] | Sequence[Mapping[str, Sequence[Any]]]
@@ -72,20 +72,19 @@ def expand_grid(grid: Grid, study: Study) -> Iterator[dict[str, Any]]:
             yield dict(zip(study.axes, values, strict=True))
 
 
-def build_manifest(grid: Grid, study: Study, base_configs: Mapping[tuple[str, str], Mapping[str, Any]],
-                   sweep_seed: int) -> pa.Table:
-    """Expand ``grid`` into the manifest; ``base_configs[(system, arch)]`` is that pair's plain config.
-    Refuses a grid with a repeated task (overlapping sub-grids)."""
-    identities = {pair: study.shared_identity(values) for pair, values in base_configs.items()}
+def build_manifest(grid: Grid, study: Study, pairs: Mapping[tuple[str, str], Pair], sweep_seed: int) -> pa.Table:
+    """Expand ``grid`` into the manifest; ``pairs[(system, arch)]`` is that pair's typed settings. Refuses a grid
+    with a repeated task (overlapping sub-grids)."""
+    identities = {key: study.shared_identity(pair.values) for key, pair in pairs.items()}
     columns: dict[str, list] = {"task_id": []}
     sizes: dict[tuple, dict[str, Any]] = {}  # tasks of equal draw keys (shared draws) draw alike: reuse
     for task in expand_grid(grid, study):
         task["sweep_seed"] = sweep_seed
-        base = base_configs[task["system"], task["arch"]]
-        key = tuple(task[axis] for axis in study.draw_keys(base["draws"]))
+        pair = pairs[task["system"], task["arch"]]
+        key = tuple(task[axis] for axis in study.draw_keys(pair.draws))
         if key not in sizes:
-            sizes[key] = study.draw(task, base)
-        drawn = {**sizes[key], **study.training_length(task, sizes[key], base)}
+            sizes[key] = study.draw(task, pair)
+        drawn = {**sizes[key], **study.training_length(task, sizes[key], pair)}
         values = {"task_id": task_id_from(study, identities[task["system"], task["arch"]], task), **task, **drawn}
         for name, value in values.items():
             columns.setdefault(name, []).append(value)

@@ -23,7 +23,6 @@ one) leaves a group that a live job trains to it.
 """
 
 import contextlib
-import copy
 import ctypes
 import logging
 import multiprocessing
@@ -34,6 +33,7 @@ import sys
 import time
 from collections import Counter
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from multiprocessing.process import BaseProcess
 from pathlib import Path
 from typing import Any
@@ -44,7 +44,8 @@ from omegaconf import DictConfig
 from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info, remove_checkpoint
 from nsl_hpc.config import plain
 from nsl_hpc.diagnostics import job_records, log_job
-from nsl_hpc.studies import import_training_code, study_named
+from nsl_hpc.studies import import_training_code, study_of
+from nsl_hpc.studies.base import Pair, Study
 from nsl_hpc.sweep.directory import compile_cache, process_alive, tree, unsafe_refusal
 from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.groups import GroupLock, checkpoint_path, this_job
@@ -53,7 +54,7 @@ from nsl_hpc.sweep.manifest import read_base_config, read_launch_config, read_ma
 from nsl_hpc.sweep.plan import Group
 from nsl_hpc.sweep.rehearsal import die_if_planted
 from nsl_hpc.sweep.rows import all_done, prepare_row_writes, row_states, set_aside
-from nsl_hpc.sweep.task import describe, run_tasks
+from nsl_hpc.sweep.task import ResolvedTask, describe, resolve_task, run_tasks, with_run
 
 LOG = logging.getLogger(__name__)
 POLL_SECONDS = 0.2
@@ -69,27 +70,37 @@ def manifest_rows(sweep_dir: Path, task_ids: Sequence[str]) -> list[dict[str, An
 
 
 class TaskConfigs:
-    """The full configs of a sweep's manifest rows as plain dicts, each (system, arch)'s shared config read from
-    ``configs/`` once (a config read and resolved takes 40-80 ms: a rehearsal's whole job)."""
+    """The tasks of a sweep's manifest rows, each (system, arch)'s shared config read from ``configs/`` and its
+    settings typed once (a config read and resolved takes 40-80 ms: a rehearsal's whole job)."""
 
     def __init__(self, sweep_dir: Path) -> None:
         self.sweep_dir = sweep_dir
-        self.shared: dict[tuple[str, str], dict[str, Any]] = {}
+        self.shared: dict[tuple[str, str], tuple[dict[str, Any], Study, Pair]] = {}
 
-    def of(self, task: Mapping[str, Any]) -> dict[str, Any]:
-        """The config of the manifest row ``task`` (a dict with the manifest's columns)."""
-        pair = (task["system"], task["arch"])
-        if pair not in self.shared:
-            self.shared[pair] = plain(read_base_config(self.sweep_dir, *pair))
-        cfg = copy.deepcopy(self.shared[pair])
-        for key in (*study_named(cfg["study"]["name"]).task_keys, "task_id"):  # system, arch: the shared groups
-            cfg[key] = task[key]
-        return cfg
+    def load(self, task: Mapping[str, Any]) -> tuple[dict[str, Any], Study, Pair]:
+        """The shared config of the manifest row ``task``'s (system, arch), its study and typed settings."""
+        key = (task["system"], task["arch"])
+        if key not in self.shared:
+            values = plain(read_base_config(self.sweep_dir, *key))
+            study = study_of(values)
+            self.shared[key] = (values, study, study.pair(values))
+        return self.shared[key]
+
+    def of(self, task: Mapping[str, Any]) -> ResolvedTask:
+        """The task of the manifest row ``task`` (a dict with the manifest's columns), with its drawn sizes (the
+        manifest is the truth: they are not drawn again)."""
+        values, study, pair = self.load(task)
+        own = {key: task[key] for key in (*study.task_keys, "task_id")}  # system, arch: the shared groups
+        return resolve_task({**values, **own}, study.sizes_in(task), pair)
 
 
-def task_sizes(cfg: Mapping[str, Any], task: Mapping[str, Any]) -> dict[str, Any]:
-    """The sizes drawn for a manifest row ``task`` (the manifest is the truth: they are not drawn again)."""
-    return study_named(cfg["study"]["name"]).sizes_in(task)
+def as_planned(sweep: Path, task: ResolvedTask, compiled: bool) -> ResolvedTask:
+    """``task`` compiled or not as its group was planned (compile=auto resolved), its test-only fault cleared where
+    it struck once already (``fault.once``)."""
+    fault = task.run.fault
+    if fault.once and failure_path(sweep, task.task.task_id).exists():
+        fault = replace(fault, kind=None)
+    return with_run(task, compile="always" if compiled else "never", fault=fault)
 
 
 def checkpoint_seconds(launch: DictConfig) -> float:
@@ -120,16 +131,16 @@ def leave_warnings_to_the_runner(checkpoint: Checkpointer | None) -> None:
     signal.signal(signal.SIGUSR1, signal.SIG_IGN if checkpoint is None else stop)
 
 
-def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], cfgs: Sequence[Mapping[str, Any]], heartbeat,
+def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], configs: TaskConfigs, compiled: bool, heartbeat,
               every_s: float) -> None:
-    """Child process body: output to the first task's log, train the group (manifest rows ``group`` with their
-    configs ``cfgs``) from its checkpoint, writing one every ``every_s`` seconds (0: none); exit status 1 on an
-    exception, EXIT_STOPPED once stopped as asked."""
+    """Child process body: output to the first task's log, train the group (manifest rows ``group``, their
+    configs from ``configs``, compiled as planned) from its checkpoint, writing one every ``every_s`` seconds (0:
+    none); exit status 1 on an exception, EXIT_STOPPED once stopped as asked."""
     ids = [task["task_id"] for task in group]
     checkpoint = Checkpointer(checkpoint_path(sweep_dir, ids), every_s, ids) if every_s > 0 else None
     leave_warnings_to_the_runner(checkpoint)
     die_with_parent()
-    log = task_log_path(sweep_dir, cfgs[0]["task_id"])
+    log = task_log_path(sweep_dir, ids[0])
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "w") as handle:
         os.dup2(handle.fileno(), 1)
@@ -138,8 +149,8 @@ def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], cfgs: Sequenc
     sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
     log_job(sys.stderr, group_name(ids))
     try:
-        sizes = [task_sizes(cfg, task) for cfg, task in zip(cfgs, group, strict=True)]
-        for result in run_tasks(cfgs, lambda: setattr(heartbeat, "value", time.time()), sizes, checkpoint):
+        tasks = [as_planned(sweep_dir, configs.of(task), compiled) for task in group]
+        for result in run_tasks(tasks, lambda: setattr(heartbeat, "value", time.time()), checkpoint):
             LOG.info(describe(result.row) if result.row else f"skipped: {result.path} exists")
     except TrainingStopped:
         LOG.info("stopped as asked; checkpoint written (%s)", checkpoint.path.name if checkpoint else "none")
@@ -255,12 +266,9 @@ class JobRunner:
         or not) in a child process under the watchdog (``launch.watchdog``), renewing ``lock``; returns ok,
         failed, frozen (the outcome of each of its tasks) or stopped."""
         assert self.configs is not None
-        cfgs = [self.configs.of(task) for task in group]
+        for task in group:  # read once in this process: the children of its later groups inherit them
+            self.configs.load(task)
         predicted = launch.cost.startup_s + planned.seconds  # the job's start-up: a floor for short groups
-        for cfg in cfgs:
-            cfg["compile"] = "always" if planned.compiled else "never"  # as planned (auto resolved)
-            if cfg["fault"]["once"] and failure_path(sweep, cfg["task_id"]).exists():
-                cfg["fault"]["kind"] = None  # test-only faults strike a task's first attempt only
         watchdog = launch.watchdog
         silence_s = watchdog.heartbeat_timeout_s + (compile_allowance(launch, group[0]["arch"]) if planned.compiled
                                                     else 0.0)  # no heartbeat while the first block compiles
@@ -270,7 +278,8 @@ class JobRunner:
         context = multiprocessing.get_context("fork")
         heartbeat = context.Value("d", time.time(), lock=False)
         every_s = checkpoint_seconds(launch)
-        child = context.Process(target=run_child, args=(sweep, group, cfgs, heartbeat, every_s), daemon=True)
+        child = context.Process(target=run_child, args=(sweep, group, self.configs, planned.compiled, heartbeat,
+                                                        every_s), daemon=True)
         started = time.time()
         child.start()
         self.running = (sweep, ids, child)

@@ -26,6 +26,7 @@ from nsl_hpc.atomic import create_parquet, read_parquet, write_text
 from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError, damaged_file
 from nsl_hpc.studies import study_named
+from nsl_hpc.studies.base import Pair
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.directory import portable_paths
 from nsl_hpc.sweep.formats import FORMAT, upgrade_launch
@@ -90,6 +91,12 @@ def read_base_config(sweep_dir: Path, system: str, arch: str) -> DictConfig:
     their neutral value (``Study.neutral``)."""
     cfg = read_yaml(base_config_path(sweep_dir, system, arch), sweep_dir)
     return study_named(cfg.study.name).with_neutral_settings(cfg)
+
+
+def read_pair(sweep_dir: Path, system: str, arch: str) -> Pair:
+    """The typed settings of the tasks of (system, arch) (``Study.pair`` of ``read_base_config``)."""
+    values = plain(read_base_config(sweep_dir, system, arch))
+    return study_named(values["study"]["name"]).pair(values)
 
 
 def read_launch_config(sweep_dir: Path) -> DictConfig:

@@ -206,7 +206,8 @@ def lockstep_settings(launch: Mapping[str, Any]) -> dict[str, Any]:
     settings, study = typed(Lockstep, launch["lockstep"], "lockstep"), study_named(launch["study"]["name"])
     return {"size": settings.size if settings.enabled and study.lockstep else 1,
             "width_buckets": list(settings.width_buckets), "memory_mb": settings.memory_mb,
-            "model_keys": list(study.model_keys(launch)), "compile": Runtime.of(launch).compile}
+            "model_keys": list(study.model_keys(launch["train"].get("schedule_epochs"), launch["draws"])),
+            "compile": Runtime.of(launch).compile}
 
 
 def check_run_settings(launch: Mapping[str, Any]) -> None:

@@ -16,8 +16,8 @@ from omegaconf import DictConfig, OmegaConf
 from nsl_hpc.config import compose_config, plain, unknown_key
 from nsl_hpc.config.schema import setting, typed
 from nsl_hpc.errors import ConfigError, require_non_negative_int, require_positive_int
-from nsl_hpc.studies import study_named, study_of
-from nsl_hpc.studies.base import Study
+from nsl_hpc.studies import study_named
+from nsl_hpc.studies.base import Pair, Study
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.grid import Grid, build_manifest, grid_size, sub_grids, validate_grid
@@ -77,7 +77,7 @@ def sweep_grid(cfg: DictConfig) -> Grid:
     return cast(Grid, OmegaConf.to_container(cfg.sweep.grid, resolve=True))
 
 
-def validate_grid_values(grid: Grid, study: Study, configs: Mapping[tuple[str, str], Mapping[str, Any]]) -> None:
+def validate_grid_values(grid: Grid, study: Study, pairs: Mapping[tuple[str, str], Pair]) -> None:
     """Check every coordinate value of every sub-grid as a task would, for each of its (system, arch)."""
     for part in sub_grids(grid):
         for seed in part["seed"]:
@@ -85,7 +85,7 @@ def validate_grid_values(grid: Grid, study: Study, configs: Mapping[tuple[str, s
         for system, arch in itertools.product(part["system"], part["arch"]):
             for axis in study.size_axes:
                 for value in part[axis]:
-                    study.check_coordinate(f"sweep.grid.{axis} value", axis, value, configs[system, arch])
+                    study.check_coordinate(f"sweep.grid.{axis} value", axis, value, pairs[system, arch])
 
 
 # Keys whose overrides apply to the grid's (system, arch) pairs that have them: arch.feedthrough=true sets the
@@ -93,9 +93,10 @@ def validate_grid_values(grid: Grid, study: Study, configs: Mapping[tuple[str, s
 PAIR_KEYS = ("arch.", "system.")
 
 
-def pair_configs(cfg: DictConfig, overrides: Sequence[str], study: Study) -> dict[tuple[str, str], dict]:
-    """The resolved plain config of every (system, arch) of the grid, with the launch's overrides (those of
-    ``PAIR_KEYS`` where the pair has the key)."""
+def pair_configs(cfg: DictConfig, overrides: Sequence[str], study: Study) -> dict[tuple[str, str], Pair]:
+    """The typed settings of every (system, arch) of the grid (``Study.pair``: its resolved plain config beside
+    them), with the launch's overrides (those of ``PAIR_KEYS`` where the pair has the key), each checked by its
+    study (``Study.check_pair``) and priced (``require_costs``)."""
     pairs = {(system, arch) for part in sub_grids(sweep_grid(cfg))
              for system in part["system"] for arch in part["arch"]}
     scoped = [o for o in overrides if o.lstrip("+~").startswith(PAIR_KEYS)]
@@ -106,9 +107,10 @@ def pair_configs(cfg: DictConfig, overrides: Sequence[str], study: Study) -> dic
         selected = compose_config(selection, "launch")
         applicable = [o for o in scoped if OmegaConf.select(selected, override_key(o), default=MISSING) is not MISSING]
         used.update(applicable)
-        configs[system, arch] = plain(compose_config([*applicable, *selection], "launch"))
-        study_of(configs[system, arch]).check_pair(configs[system, arch])
-        require_costs(configs[system, arch])
+        values = plain(compose_config([*applicable, *selection], "launch"))
+        configs[system, arch] = check_settings(values)
+        study.check_pair(configs[system, arch])
+        require_costs(values)
     for override in scoped:
         if override not in used:
             first = sorted(pairs)[0]
@@ -136,7 +138,7 @@ class BuiltSweep:
     """A launch's grid, validated and expanded, before anything is written."""
 
     manifest: pa.Table
-    configs: dict[tuple[str, str], dict]  # the plain config of each (system, arch)
+    configs: dict[tuple[str, str], Pair]  # the typed settings of each (system, arch)
     study: Study
     sweep: SweepSettings
     above_max_flops: int = 0  # tasks of the grid left out by sweep.max_flops
@@ -148,7 +150,7 @@ class PreparedSweep:
     manifest: pa.Table
     todo: pa.Table  # manifest rows of runnable tasks without a row, none of them queued in SLURM
     infeasible: dict[str, str]  # task id -> why it cannot run as configured (e.g. a window longer than its data)
-    configs: dict[tuple[str, str], dict]  # the plain config of each (system, arch)
+    configs: dict[tuple[str, str], Pair]  # the typed settings of each (system, arch)
     queued: int  # tasks without a row that are pending or running in SLURM (left alone)
     set_aside: int  # corrupt rows moved to corrupt/ (their tasks run again)
     done: int  # tasks with a valid row
@@ -169,8 +171,6 @@ def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
     grid = sweep_grid(cfg)
     require_tasks_at_most(grid_size(grid, study), cfg.max_tasks)
     configs = pair_configs(cfg, overrides, study)
-    for values in configs.values():
-        check_settings(values)
     validate_grid_values(grid, study, configs)
     check_run_settings(cfg)
     max_flops, column = sweep.max_flops, sweep.max_flops_column
@@ -198,16 +198,16 @@ def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Prepar
             stored = {pair: read_yaml(base_config_path(sweep_dir, *pair), sweep_dir) for pair in built.configs
                       if base_config_path(sweep_dir, *pair).exists()}
             changed = changed_settings(read_yaml(sweep_dir / layout.LAUNCH_CONFIG, sweep_dir), cfg, built.study,
-                                       {pair: (stored[pair], built.configs[pair]) for pair in stored})
+                                       {pair: (stored[pair], built.configs[pair].values) for pair in stored})
             raise ConfigError(f"sweep_dir={str(sweep_dir)!r} holds a different grid ({len(existing):,} tasks, "
                               f"this one has {len(manifest):,}; {'; '.join(changed) or 'other draws'}): choose "
                               "another sweep_dir or launch with the same sweep and overrides")
-        for (system, arch), values in built.configs.items():  # a deleted one is restored: it is the same
+        for (system, arch), pair in built.configs.items():  # a deleted one is restored: it is the same
             if not base_config_path(sweep_dir, system, arch).exists():
-                write_yaml(values, base_config_path(sweep_dir, system, arch), sweep_dir)
+                write_yaml(pair.values, base_config_path(sweep_dir, system, arch), sweep_dir)
         read_launch_config(sweep_dir)  # a damaged one is refused here, before any work
     else:
-        write_sweep(sweep_dir, manifest, built.configs, plain(cfg))
+        write_sweep(sweep_dir, manifest, {key: pair.values for key, pair in built.configs.items()}, plain(cfg))
     without_row, aside = tasks_without_row(sweep_dir, manifest)
     queued = queued_tasks(sweep_dir)
     queued_ids = pa.array(sorted(queued), type=pa.string())
@@ -250,7 +250,7 @@ def queued_tasks(sweep_dir: Path) -> set[str]:
     return {task_id for task_id, state in read_sweep_state(sweep_dir).states.items() if state in ("pending", "running")}
 
 
-def prepare_shared_data(tasks: Sequence[Mapping[str, Any]], configs: Mapping[tuple[str, str], Mapping[str, Any]],
+def prepare_shared_data(tasks: Sequence[Mapping[str, Any]], configs: Mapping[tuple[str, str], Pair],
                         study: Study) -> None:
     """Simulate (or read) into the cache the data the (system, arch) pairs of ``tasks`` share (the test sets),
     before any job starts: jobs then read it instead of all simulating it at once."""
@@ -258,7 +258,7 @@ def prepare_shared_data(tasks: Sequence[Mapping[str, Any]], configs: Mapping[tup
     systems = sorted({system for system, _ in pairs})
     if not systems:
         return
-    LOG.info(f"preparing the shared data of {', '.join(systems)} in {configs[pairs[0]]['cache_dir']}")
+    LOG.info(f"preparing the shared data of {', '.join(systems)} in {configs[pairs[0]].cache_dir}")
     done = set()
     for pair in pairs:
         if pair[0] not in done:
@@ -266,8 +266,7 @@ def prepare_shared_data(tasks: Sequence[Mapping[str, Any]], configs: Mapping[tup
             done.add(pair[0])
 
 
-def infeasible_tasks(tasks: pa.Table, study: Study,
-                     configs: Mapping[tuple[str, str], Mapping[str, Any]]) -> dict[str, str]:
+def infeasible_tasks(tasks: pa.Table, study: Study, configs: Mapping[tuple[str, str], Pair]) -> dict[str, str]:
     """Task id -> reason, for the manifest rows ``tasks`` whose drawn sizes cannot run (``Study.check_task``)."""
     reasons = {}
     for task in tasks.to_pylist():
@@ -278,7 +277,7 @@ def infeasible_tasks(tasks: pa.Table, study: Study,
     return reasons
 
 
-def split_runnable(tasks: pa.Table, study: Study, configs: Mapping[tuple[str, str], Mapping[str, Any]]
+def split_runnable(tasks: pa.Table, study: Study, configs: Mapping[tuple[str, str], Pair]
                    ) -> tuple[pa.Table, dict[str, str]]:
     """The manifest rows of ``tasks`` that can run as configured, and task id -> why for those that cannot:
     the one filter launch and resubmit share (a task that cannot run would take its lockstep group down)."""

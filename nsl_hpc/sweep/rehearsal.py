@@ -77,12 +77,11 @@ class Rehearse:
                               f"{self.frozen_share + self.failed_share:g}: at most 1 (a share of the groups)")
 
 
-def planted_law(rehearse: Mapping[str, Any], metric: str) -> NSLFit:
+def planted_law(rehearse: Rehearse, metric: str) -> NSLFit:
     """The planted compute law of ``metric`` (``rehearse.laws``)."""
-    law = rehearse["laws"][metric]
-    breaks = [(float(sigma), float(phi), float(delta)) for sigma, phi, delta in law["breaks"]]
-    return NSLFit(float(law["alpha"]), float(law["beta"]), float(law["delta0"]), breaks, 0.0, np.empty(0),
-                  np.empty(0))
+    law = rehearse.laws[metric]
+    breaks = [(float(sigma), float(phi), float(delta)) for sigma, phi, delta in law.breaks]
+    return NSLFit(float(law.alpha), float(law.beta), float(law.delta0), breaks, 0.0, np.empty(0), np.empty(0))
 
 
 def share_drawn(purpose: str, key: str) -> float:
@@ -90,13 +89,13 @@ def share_drawn(purpose: str, key: str) -> float:
     return stable_seed("rehearsal", purpose, key) / 2**63
 
 
-def rehearsed_outcome(rehearse: Mapping[str, Any], task_id: str, sizes: Mapping[str, Any]) -> dict[str, Any]:
+def rehearsed_outcome(rehearse: Rehearse, task_id: str, sizes: Mapping[str, Any]) -> dict[str, Any]:
     """The outcome of one task of a rehearsal: its scores drawn at its compute (``sizes['flops']``), the study's
     training length (``sizes['steps']``), nothing trained."""
     rng = np.random.default_rng(stable_seed("rehearsal", "outcome", task_id))
-    spread = abs(rng.normal(0.0, rehearse["near_sd"]))
-    if rng.random() >= rehearse["near_share"]:
-        spread += rng.exponential(rehearse["far_mean"])
+    spread = abs(rng.normal(0.0, rehearse.near_sd))
+    if rng.random() >= rehearse.near_share:
+        spread += rng.exponential(rehearse.far_mean)
     flops = float(sizes["flops"])
     scores = {metric: float(planted_law(rehearse, metric).predict(flops)) * math.exp(spread * (1 + (metric == "nmse")))
               for metric in METRICS}
@@ -104,19 +103,19 @@ def rehearsed_outcome(rehearse: Mapping[str, Any], task_id: str, sizes: Mapping[
             "finite": True, "compiled": False, "rehearsal": True}
 
 
-def strike_group(rehearse: Mapping[str, Any], task_ids: Sequence[str], on_progress: Any) -> None:
+def strike_group(rehearse: Rehearse, task_ids: Sequence[str], on_progress: Any) -> None:
     """The fault a rehearsal's lockstep group meets at every attempt: none, or it freezes (one heartbeat, then
     none) or fails (raises)."""
     drawn = share_drawn("group", task_ids[0])
-    if drawn < rehearse["frozen_share"]:
+    if drawn < rehearse.frozen_share:
         on_progress()
         while True:
             time.sleep(3600)
-    if drawn < rehearse["frozen_share"] + rehearse["failed_share"]:
+    if drawn < rehearse.frozen_share + rehearse.failed_share:
         raise RuntimeError(f"rehearsal: a failure planted in the group of {len(task_ids)} tasks of {task_ids[0]}")
 
 
-def rehearsed_group(rehearse: Mapping[str, Any], items: Sequence[tuple[str, Mapping[str, Any]]], on_progress: Any
+def rehearsed_group(rehearse: Rehearse, items: Sequence[tuple[str, Mapping[str, Any]]], on_progress: Any
                     ) -> list[dict[str, Any]]:
     """The outcomes of a rehearsal's lockstep group of (task id, sizes) ``items``, or its planted fault."""
     strike_group(rehearse, [task_id for task_id, _ in items], on_progress)
@@ -124,13 +123,13 @@ def rehearsed_group(rehearse: Mapping[str, Any], items: Sequence[tuple[str, Mapp
     return [rehearsed_outcome(rehearse, task_id, sizes) for task_id, sizes in items]
 
 
-def plant_job_deaths(sweep_dir: Path, rehearse: Mapping[str, Any], packs: Sequence[Pack]) -> None:
+def plant_job_deaths(sweep_dir: Path, rehearse: Rehearse, packs: Sequence[Pack]) -> None:
     """Choose the ``rehearse.killed_jobs`` jobs of a launch that will be killed after their first group (of those
     with more groups, if any: their others are left unrun; in the order of a hash of their first task id): a file
     ``<sweep_dir>/rehearsal/kill-<first task id>`` each (a local worker dies after that group)."""
     candidates = [pack for pack in packs if len(pack.groups) > 1] or list(packs)
     chosen = sorted((pack.task_ids[0] for pack in candidates),
-                    key=lambda task_id: share_drawn("job", task_id))[:rehearse["killed_jobs"]]
+                    key=lambda task_id: share_drawn("job", task_id))[:rehearse.killed_jobs]
     for task_id in chosen:
         marker = Path(sweep_dir) / layout.REHEARSAL / f"kill-{task_id}"
         marker.parent.mkdir(parents=True, exist_ok=True)

@@ -1,13 +1,13 @@
-"""The simulated systems of the input-state study: ``build_system`` turns a ``system`` config into one through its
-``_target_`` (the package's ``spring``, ``ball``, ``motor``, or a class or function of the user's), and
+"""The simulated systems of the input-state study: ``build_system`` turns a typed ``system`` group into one through
+its ``_target_`` (the package's ``spring``, ``ball``, ``motor``, or a class or function of the user's), and
 ``check_system`` tries one on its initial box before any work."""
 
-from collections.abc import Mapping
-from typing import Any, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from nsl_hpc.config.targets import called, located, where
+from nsl_hpc.config.system import InputStateSystem
+from nsl_hpc.config.targets import called, labelled, located
 from nsl_hpc.errors import ConfigError, one_line
 
 
@@ -28,29 +28,29 @@ class System(Protocol):
         ...
 
 
-def build_system(system_cfg: Mapping[str, Any]) -> System:
-    """The system ``system_cfg._target_`` builds from its constants ``system_cfg.params`` (keyword arguments)."""
-    system = called("system", system_cfg, located("system", system_cfg), **system_cfg["params"])
+def build_system(settings: InputStateSystem) -> System:
+    """The system ``settings._target_`` builds from its constants ``settings.params`` (keyword arguments)."""
+    system = called("system", settings, located("system", settings), **settings.params)
     if not isinstance(system, System):
         missing = [name for name in ("state_dim", "input_dim", "derivative", "output") if not hasattr(system, name)]
-        raise ConfigError(f"{where('system', system_cfg)}: system._target_={system_cfg['_target_']!r} built a "
-                          f"{type(system).__name__} without {', '.join(missing)} (nsl_hpc.systems.System)")
+        raise ConfigError(f"{labelled('system', settings)} built a {type(system).__name__} without "
+                          f"{', '.join(missing)} (nsl_hpc.systems.System)")
     return system
 
 
-def check_system(system_cfg: Mapping[str, Any], samples: int = 256) -> System:
+def check_system(settings: InputStateSystem, samples: int = 256) -> System:
     """The system, refused in one line unless its sizes agree with the initial box and f and g give finite values
     of the right shapes at ``samples`` states drawn from the box (its corners among them) and inputs up to three
     times the multisine's RMS."""
-    system = build_system(system_cfg)
-    label = f"{where('system', system_cfg)}: system._target_={system_cfg['_target_']!r}"
-    box = np.asarray(system_cfg["initial_box"], dtype=float)
+    system = build_system(settings)
+    label = labelled("system", settings)
+    box = np.asarray(settings.initial_box, dtype=float)
     if len(box) != system.state_dim:
         raise ConfigError(f"{label} has state_dim={system.state_dim}, system.initial_box has {len(box)} states")
     rng = np.random.default_rng(0)
     corners = np.stack(np.meshgrid(*box, indexing="ij"), axis=-1).reshape(-1, len(box))[:samples]
     x = np.concatenate([corners, rng.uniform(box[:, 0], box[:, 1], size=(samples, len(box)))])
-    peak = 3 * system_cfg["input"]["amplitude"] * np.sqrt(system_cfg["input"]["harmonics"] / 2)  # 3 x its RMS
+    peak = 3 * settings.input.amplitude * np.sqrt(settings.input.harmonics / 2)  # 3 x its RMS
     u = rng.uniform(-peak, peak, size=(len(x), system.input_dim))
     for name, value, shape in (("derivative(x, u)", lambda: system.derivative(x, u), (len(x), system.state_dim)),
                                ("output(x)", lambda: system.output(x), (len(x), system.input_dim))):

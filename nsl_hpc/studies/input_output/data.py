@@ -10,9 +10,10 @@ training and not used for selection. Every test record of the benchmark (``syste
 """
 
 import contextlib
+import dataclasses
 import io
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,14 @@ from typing import Any
 import numpy as np
 
 from nsl_hpc.cache import ArrayCache
+from nsl_hpc.config.system import (
+    BenchmarkSource,
+    FileRecords,
+    InputOutputSystem,
+    MeasuredSource,
+    RecordsSource,
+    SimulatedSource,
+)
 from nsl_hpc.errors import ConfigError, one_line
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.systems.duffing import simulate_duffing
@@ -50,37 +59,37 @@ class Benchmark:
     tests: dict[str, Signals]  # the test records by name (system.tests); scored after their first init_samples
 
 
-def load_benchmark(system_cfg: Mapping[str, Any], cache: ArrayCache) -> Benchmark:
+def load_benchmark(system: InputOutputSystem, cache: ArrayCache) -> Benchmark:
     """The records of an input-output system (measured or simulated), split as configured."""
-    source = system_cfg["source"]
-    if source["kind"] == "benchmark":
-        train, tests = read_measured(system_cfg["name"], source, system_cfg["tests"])
+    source = system.source
+    if isinstance(source, BenchmarkSource):
+        train, tests = read_measured(system.name, source, system.tests)
         origin = f" of {measured_file(source)}"
-    elif source["kind"] == "records":
-        train, tests = read_records(system_cfg["name"], source, system_cfg["tests"])
-        origin = f" of {Path(source['data_dir']) / source['train']['file']}"
-    elif source["kind"] == "files":
-        train, tests = read_files(system_cfg)
-        origin = f" of {Path(source['data_dir']) / source['train']}"
+    elif isinstance(source, RecordsSource):
+        train, tests = read_records(system.name, source, system.tests)
+        origin = f" of {Path(source.data_dir) / source.train.file}"
+    elif isinstance(source, FileRecords):
+        train, tests = read_files(system)
+        origin = f" of {Path(source.data_dir) / source.train}"
     else:
-        train, tests = simulated_signals(system_cfg, cache)
+        train, tests = simulated_signals(system, cache)
         origin = ""
-    pool = system_cfg["train_samples"]
+    pool = system.train_samples
     if len(train) < pool:
-        raise ConfigError(f"{system_cfg['name']}: the training record{origin} has {len(train):,} samples, fewer "
+        raise ConfigError(f"{system.name}: the training record{origin} has {len(train):,} samples, fewer "
                           f"than system.train_samples={pool:,} (the largest data tier)")
     return Benchmark(train.head(pool), Signals(train.u[pool:], train.y[pool:]), tests)
 
 
-def read_measured(name: str, source: Mapping[str, Any], names: list[str]) -> tuple[Signals, dict[str, Signals]]:
+def read_measured(name: str, source: BenchmarkSource, names: list[str]) -> tuple[Signals, dict[str, Signals]]:
     """Training record and test records (named ``names``, in the loader's order) read by
     ``nonlinear_benchmarks.<loader>(dir_placement=data_dir)``; the files are checked first, so a missing copy
     is our one-line error, never a download attempt."""
     import nonlinear_benchmarks  # imported here: only tasks on measured data need it
 
     require_files(name, source)
-    data_dir = Path(source["data_dir"])
-    loader = getattr(nonlinear_benchmarks, source["loader"])
+    data_dir = Path(source.data_dir)
+    loader = getattr(nonlinear_benchmarks, source.loader)
     data_file = measured_file(source)
     try:
         with contextlib.redirect_stdout(io.StringIO()):
@@ -96,22 +105,22 @@ def read_measured(name: str, source: Mapping[str, Any], names: list[str]) -> tup
              for test_name, test in zip(names, tests, strict=True)})
 
 
-def read_records(name: str, source: Mapping[str, Any], names: list[str]) -> tuple[Signals, dict[str, Signals]]:
+def read_records(name: str, source: RecordsSource, names: list[str]) -> tuple[Signals, dict[str, Signals]]:
     """Training record and test records (``names``) from .npz files of u and y arrays, (samples, realisations):
     the training record is ``source.train``'s realisations (``columns``) one after another; each test record one
     column of ``source.test.file`` (``source.test.columns``: name -> column)."""
     require_files(name, source)
-    if sorted(names) != sorted(source["test"]["columns"]):
+    if sorted(names) != sorted(source.test.columns):
         raise ConfigError(f"{name}: system.tests names {', '.join(names)}; source.test.columns holds "
-                          f"{', '.join(source['test']['columns'])}")
-    train_file = Path(source["data_dir"]) / source["train"]["file"]
+                          f"{', '.join(source.test.columns)}")
+    train_file = Path(source.data_dir) / source.train.file
     u, y = record_columns(name, train_file)
-    train = checked_signals(name, train_file, "training", u[:, source["train"]["columns"]].T.ravel(),
-                            y[:, source["train"]["columns"]].T.ravel())
-    test_file = Path(source["data_dir"]) / source["test"]["file"]
+    train = checked_signals(name, train_file, "training", u[:, source.train.columns].T.ravel(),
+                            y[:, source.train.columns].T.ravel())
+    test_file = Path(source.data_dir) / source.test.file
     u, y = record_columns(name, test_file)
-    return train, {test: checked_signals(name, test_file, f"{test} test", u[:, source["test"]["columns"][test]],
-                                         y[:, source["test"]["columns"][test]]) for test in names}
+    return train, {test: checked_signals(name, test_file, f"{test} test", u[:, source.test.columns[test]],
+                                         y[:, source.test.columns[test]]) for test in names}
 
 
 def record_columns(name: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -128,36 +137,37 @@ def record_columns(name: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
     return u, y
 
 
-def read_files(system_cfg: Mapping[str, Any]) -> tuple[Signals, dict[str, Signals]]:
+def read_files(system: InputOutputSystem) -> tuple[Signals, dict[str, Signals]]:
     """Training record and test records of ``source.kind: files`` (``config.system.FileRecords``): the columns
     ``source.u`` and ``source.y`` of each file, refused in one line where a file, a column or a length is wrong or
     the time column does not step by ``source.sample_time_s``."""
-    name, source = system_cfg["name"], system_cfg["source"]
+    name, source = system.name, system.source
+    assert isinstance(source, FileRecords)
     require_files(name, source)
-    files = {"training": source["train"], **{f"{test} test": file for test, file in source["test"].items()}}
-    records = {part: file_record(name, source, Path(source["data_dir"]) / file, part) for part, file in files.items()}
-    for test in source["test"]:
-        if len(records[f"{test} test"]) <= system_cfg["init_samples"]:
-            raise ConfigError(f"{name}: the {test} test record ({source['test'][test]}) has "
+    files = {"training": source.train, **{f"{test} test": file for test, file in source.test.items()}}
+    records = {part: file_record(name, source, Path(source.data_dir) / file, part) for part, file in files.items()}
+    for test in source.test:
+        if len(records[f"{test} test"]) <= system.init_samples:
+            raise ConfigError(f"{name}: the {test} test record ({source.test[test]}) has "
                               f"{len(records[f'{test} test'])} samples, not more than the system.init_samples="
-                              f"{system_cfg['init_samples']} that initialise its simulation")
-    return records.pop("training"), {test: records[f"{test} test"] for test in system_cfg["tests"]}
+                              f"{system.init_samples} that initialise its simulation")
+    return records.pop("training"), {test: records[f"{test} test"] for test in system.tests}
 
 
-def file_record(name: str, source: Mapping[str, Any], path: Path, part: str) -> Signals:
+def file_record(name: str, source: FileRecords, path: Path, part: str) -> Signals:
     """The u and y columns of one file (.csv with a header line, .npz, .mat), checked."""
     columns = file_columns(name, path)
-    wanted = [source["u"], source["y"], *([source["time"]] if source.get("time") else [])]
+    wanted = [source.u, source.y, *([source.time] if source.time else [])]
     for column in wanted:
         if column not in columns:
             raise ConfigError(f"{name}: {path} has no column {column!r} (system.source.u, .y, .time); it has: "
                               f"{', '.join(columns)}")
-    if source.get("time"):
-        steps = np.diff(np.ravel(columns[source["time"]]))
-        if len(steps) and not np.allclose(steps, source["sample_time_s"], rtol=1e-6, atol=0):
-            raise ConfigError(f"{name}: {path} column {source['time']!r} steps by {np.min(steps):g}..{np.max(steps):g}"
-                              f" s, not system.source.sample_time_s={source['sample_time_s']:g}")
-    return checked_signals(name, path, part, np.ravel(columns[source["u"]]), np.ravel(columns[source["y"]]))
+    if source.time:
+        steps = np.diff(np.ravel(columns[source.time]))
+        if len(steps) and not np.allclose(steps, source.sample_time_s, rtol=1e-6, atol=0):
+            raise ConfigError(f"{name}: {path} column {source.time!r} steps by {np.min(steps):g}..{np.max(steps):g}"
+                              f" s, not system.source.sample_time_s={source.sample_time_s:g}")
+    return checked_signals(name, path, part, np.ravel(columns[source.u]), np.ravel(columns[source.y]))
 
 
 def file_columns(name: str, path: Path) -> dict[str, np.ndarray]:
@@ -180,29 +190,22 @@ def file_columns(name: str, path: Path) -> dict[str, np.ndarray]:
     raise ConfigError(f"{name}: {path} is no .csv, .npz or .mat file")
 
 
-def data_files(source: Mapping[str, Any]) -> list[str]:
-    """The files of a measured source, relative to its data_dir."""
-    if source["kind"] == "files":
-        return [source["train"], *source["test"].values()]
-    return list(source["files"])
-
-
-def require_files(name: str, source: Mapping[str, Any]) -> None:
-    """Raise ConfigError naming the first of a source's files (``data_files``) missing under ``source.data_dir``."""
-    data_dir = Path(source["data_dir"])
-    files = data_files(source)
+def require_files(name: str, source: MeasuredSource) -> None:
+    """Raise ConfigError naming the first of a source's files (``paths``) missing under ``source.data_dir``."""
+    data_dir = Path(source.data_dir)
+    files = source.paths()
     for relative in files:
         if not (data_dir / relative).is_file():
-            where = (f"place the benchmark's files under data_dir={str(data_dir)!r} as {', '.join(files)} (python -m "
-                     "nsl_hpc.place_data; docs/science.md, 'The input-output study')" if source["kind"] != "files"
-                     else f"system.source.data_dir={str(data_dir)!r} holds no {relative} (relative: to the working "
-                     "directory)")
+            where = (f"system.source.data_dir={str(data_dir)!r} holds no {relative} (relative: to the working "
+                     "directory)" if isinstance(source, FileRecords) else
+                     f"place the benchmark's files under data_dir={str(data_dir)!r} as {', '.join(files)} (python -m "
+                     "nsl_hpc.place_data; docs/science.md, 'The input-output study')")
             raise ConfigError(f"{name}: data file {data_dir / relative} is missing; {where}")
 
 
-def measured_file(source: Mapping[str, Any]) -> Path:
+def measured_file(source: BenchmarkSource) -> Path:
     """The file the loader reads (the last of ``source.files``)."""
-    return Path(source["data_dir"]) / source["files"][-1]
+    return Path(source.data_dir) / source.files[-1]
 
 
 def checked_signals(name: str, data_file: Path, part: str, u: Any, y: Any) -> Signals:
@@ -217,16 +220,16 @@ def checked_signals(name: str, data_file: Path, part: str, u: Any, y: Any) -> Si
     return Signals(u, y)
 
 
-def simulated_signals(system_cfg: Mapping[str, Any], cache: ArrayCache) -> tuple[Signals, dict[str, Signals]]:
+def simulated_signals(system: InputOutputSystem, cache: ArrayCache) -> tuple[Signals, dict[str, Signals]]:
     """Training record and test records (``system.tests``) of a stand-in, simulated once per configuration and
     then read from cache."""
-    key = {"version": STANDIN_VERSION, "system": dict(system_cfg)}
-    parts = ["train", *system_cfg["tests"]]
+    key = {"version": STANDIN_VERSION, "system": dataclasses.asdict(system)}
+    parts = ["train", *system.tests]
 
     def create() -> dict[str, np.ndarray]:
         arrays = {}
         for part in parts:
-            record = simulate_signals(system_cfg, part)
+            record = simulate_signals(system, part)
             arrays[f"{part}_u"], arrays[f"{part}_y"] = record.u, record.y
         return arrays
 
@@ -235,16 +238,17 @@ def simulated_signals(system_cfg: Mapping[str, Any], cache: ArrayCache) -> tuple
     return records.pop("train"), records
 
 
-def simulate_signals(system_cfg: Mapping[str, Any], part: str) -> Signals:
+def simulate_signals(system: InputOutputSystem, part: str) -> Signals:
     """One record of a stand-in: its own input realisation, the simulated output plus white noise."""
-    source, samples = system_cfg["source"], system_cfg["samples"][part]
-    rng = np.random.default_rng(stable_seed("record", system_cfg["name"], source["seed"], part))
-    u = random_phase_multisine(rng, samples, system_cfg["fs_hz"], **system_cfg["excitation"])
+    source = system.source
+    assert isinstance(source, SimulatedSource) and system.samples and system.excitation and system.fs_hz
+    samples = system.samples[part]
+    rng = np.random.default_rng(stable_seed("record", system.name, source.seed, part))
+    u = random_phase_multisine(rng, samples, system.fs_hz, system.excitation.band_hz, system.excitation.rms)
     simulators: dict[str, Callable[..., np.ndarray]] = {"duffing": simulate_duffing,
                                                       "wiener_hammerstein": simulate_wiener_hammerstein}
-    simulate = simulators[source["kind"]]
-    y = simulate(u, system_cfg["fs_hz"], **source["params"])
-    return Signals(u, y + system_cfg["output_noise_std"] * rng.standard_normal(samples))
+    y = simulators[source.kind](u, system.fs_hz, **source.params)
+    return Signals(u, y + (system.output_noise_std or 0.0) * rng.standard_normal(samples))
 
 
 def random_phase_multisine(rng: np.random.Generator, samples: int, fs_hz: float, band_hz: list[float],

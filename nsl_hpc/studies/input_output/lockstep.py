@@ -32,7 +32,6 @@ import torch
 from torch import nn
 
 from nsl_hpc.checkpoint import Checkpointer
-from nsl_hpc.config.schema import typed
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.data import Signals
@@ -220,8 +219,8 @@ class IOLockstep(LockstepRun):
 
     block_steps = BLOCK_STEPS
 
-    def __init__(self, members: Sequence[IOMember], cfg: Mapping[str, Any], compiler: StepCompiler | None = None):
-        self.train = train = typed(InputOutputTrain, cfg, "train")
+    def __init__(self, members: Sequence[IOMember], train: InputOutputTrain, compiler: StepCompiler | None = None):
+        self.train = train
         self.dtype = getattr(torch, train.dtype)
         self.compiler = compiler or StepCompiler(False)
         self.windows = Windows(members, self.dtype)
@@ -306,14 +305,14 @@ class IOLockstep(LockstepRun):
         return [row for row, k in enumerate(self.member) if self.outcomes[k] is None]
 
 
-def train_lockstep(members: Sequence[IOMember], cfg: Mapping[str, Any], on_progress: Callable[[], None] = lambda: None,
-                   checkpoint: Checkpointer | None = None, compiler: StepCompiler | None = None
-                   ) -> tuple[StackedMLPs, torch.Tensor, list[TrainingOutcome]]:
-    """Train every member as if alone (``cfg`` is the ``train`` group); returns the group, each member's trained
+def train_lockstep(members: Sequence[IOMember], train: InputOutputTrain,
+                   on_progress: Callable[[], None] = lambda: None, checkpoint: Checkpointer | None = None,
+                   compiler: StepCompiler | None = None) -> tuple[StackedMLPs, torch.Tensor, list[TrainingOutcome]]:
+    """Train every member as if alone with the ``train`` settings; returns the group, each member's trained
     parameters (K, P) (rows of its ``theta`` layout) and outcomes. ``on_progress``, ``checkpoint``: as
     ``drive_lockstep`` takes them. With an enabled ``compiler`` the step is compiled, and the stack keeps static
     shapes (``stack_rows``)."""
-    run = IOLockstep(members, cfg, compiler)
+    run = IOLockstep(members, train, compiler)
     drive_lockstep(run, on_progress, checkpoint)
     return run.nets, run.final, cast(list[TrainingOutcome], run.outcomes)  # every model has settled
 

@@ -9,16 +9,14 @@ n_i iterations (optimizer steps).
 """
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 from tqdm import tqdm
 
-from nsl_hpc.config.schema import typed
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.data import Signals
@@ -79,13 +77,12 @@ def window_loss(model: NARX | SUBNET, signals: Signals, scaling: SignalScaling, 
     return len(u_windows), loss
 
 
-def train_io_model(model: NARX | SUBNET, signals: Signals, scaling: SignalScaling, cfg: Mapping[str, Any],
+def train_io_model(model: NARX | SUBNET, signals: Signals, scaling: SignalScaling, train: InputOutputTrain,
                    iterations: int, horizon: int, shuffle_seed: int,
                    on_progress: Callable[[], None] = lambda: None) -> TrainingOutcome:
-    """Adam (``cfg.schedule``'s schedule over ``iterations`` steps, gradient clipping) on mini-batches of
-    ``cfg.batch_size`` windows (all windows when there are fewer); ``cfg`` is the ``train`` group.
-    ``on_progress`` is called after each pass over the windows; stops early (finite=False) on a NaN loss."""
-    train = typed(InputOutputTrain, cfg, "train")
+    """Adam (``train.schedule``'s schedule over ``iterations`` steps, gradient clipping) on mini-batches of
+    ``train.batch_size`` windows (all windows when there are fewer). ``on_progress`` is called after each pass over
+    the windows; stops early (finite=False) on a NaN loss."""
     windows, batch_loss = window_loss(model, signals, scaling, horizon, getattr(torch, train.dtype))
     batch = min(train.batch_size, windows)
     kind = train.schedule["narx" if isinstance(model, NARX) else "subnet"]

@@ -6,15 +6,16 @@ with ``test_set=100x10s|100x100s|1000x10s``) has a seed of its own, is simulated
 every task of a system.
 """
 
+import dataclasses
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.config.targets import TARGET, outcome_values
+from nsl_hpc.config.system import InputStateSystem
+from nsl_hpc.config.targets import outcome_values
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.systems import build_system
 from nsl_hpc.systems.simulation import Trajectory, draw_multisine, simulate
@@ -40,10 +41,9 @@ class Dataset:
         return Dataset(self.x[start:stop], self.u[start:stop], self.dx[start:stop], self.y[start:stop])
 
 
-def points_per_trajectory(system_cfg: Mapping[str, Any]) -> int:
+def points_per_trajectory(system: InputStateSystem) -> int:
     """Samples in one simulated trajectory (1,000 for 10 s at 0.01 s)."""
-    sim = system_cfg["simulation"]
-    return round(sim["duration_s"] / sim["dt_s"])
+    return round(system.simulation.duration_s / system.simulation.dt_s)
 
 
 def split_trajectory_count(n_traj: float, points: int) -> tuple[int, int]:
@@ -61,36 +61,37 @@ def training_points(n_traj: float, points: int) -> int:
 FIELDS = ("t", "x", "u", "dx", "y")
 
 
-def simulation_key(system_cfg: Mapping[str, Any], **where: Any) -> dict[str, Any]:
+SIMULATED_BY = ("name", "_target_", "params", "initial_box", "input", "simulation")  # what a trajectory depends on
+
+
+def simulation_key(system: InputStateSystem, **where: Any) -> dict[str, Any]:
     """Cache key of simulated data: everything the simulation depends on, and ``where`` in which pool."""
-    return {"version": SIMULATION_VERSION,
-            "system": outcome_values({k: system_cfg[k] for k in ("name", TARGET, "params", "initial_box", "input",
-                                                        "simulation")}), **where}
+    values = dataclasses.asdict(system)
+    return {"version": SIMULATION_VERSION, "system": outcome_values({k: values[k] for k in SIMULATED_BY}), **where}
 
 
-def load_trajectory(system_cfg: Mapping[str, Any], split: str, seed: int, index: int,
-                    cache: ArrayCache) -> Trajectory:
+def load_trajectory(system: InputStateSystem, split: str, seed: int, index: int, cache: ArrayCache) -> Trajectory:
     """Trajectory ``index`` of the pool (system, split, seed), simulated once and then read from cache."""
-    key = simulation_key(system_cfg, split=split, seed=seed, index=index)
+    key = simulation_key(system, split=split, seed=seed, index=index)
 
     def create() -> dict[str, np.ndarray]:
-        (trajectory,) = simulate_experiments(system_cfg, stable_seed("trajectory", key), 1)
+        (trajectory,) = simulate_experiments(system, stable_seed("trajectory", key), 1)
         return {field: getattr(trajectory, field) for field in FIELDS}
 
     return Trajectory(**cache.get_or_create(key, create))
 
 
-def simulate_experiments(system_cfg: Mapping[str, Any], seed: int, count: int) -> list[Trajectory]:
+def simulate_experiments(settings: InputStateSystem, seed: int, count: int) -> list[Trajectory]:
     """``count`` experiments simulated together: x0 uniform in the initial box, a fresh multisine per
     experiment and input channel."""
-    system = build_system(system_cfg)
+    system = build_system(settings)
     rng = np.random.default_rng(seed)
-    box = np.asarray(system_cfg["initial_box"], dtype=float)  # (n, 2)
+    box = np.asarray(settings.initial_box, dtype=float)  # (n, 2)
     x0 = rng.uniform(box[:, 0], box[:, 1], size=(count, len(box)))
-    excitation = draw_multisine(rng, count, system.input_dim, **system_cfg["input"])
-    trajectories = simulate(system, x0, excitation, **system_cfg["simulation"])
+    excitation = draw_multisine(rng, count, system.input_dim, **dataclasses.asdict(settings.input))
+    trajectories = simulate(system, x0, excitation, **dataclasses.asdict(settings.simulation))
     if not all(np.all(np.isfinite(trajectory.x)) for trajectory in trajectories):
-        raise FloatingPointError(f"simulation of {system_cfg['name']} (seed {seed}) diverged")
+        raise FloatingPointError(f"simulation of {settings.name} (seed {seed}) diverged")
     return trajectories
 
 
@@ -98,25 +99,26 @@ def stack(trajectories: list[Trajectory]) -> Dataset:
     return Dataset(*(np.concatenate([getattr(t, f) for t in trajectories]) for f in ("x", "u", "dx", "y")))
 
 
-def build_training_set(system_cfg: Mapping[str, Any], seed: int, n_traj: float, cache: ArrayCache) -> Dataset:
+def build_training_set(system: InputStateSystem, seed: int, n_traj: float, cache: ArrayCache) -> Dataset:
     """The first n_t trajectories of seed ``seed``; a fractional part takes a prefix of the next one."""
-    whole, partial = split_trajectory_count(n_traj, points_per_trajectory(system_cfg))
-    parts = [load_trajectory(system_cfg, "train", seed, i, cache) for i in range(whole)]
+    whole, partial = split_trajectory_count(n_traj, points_per_trajectory(system))
+    parts = [load_trajectory(system, "train", seed, i, cache) for i in range(whole)]
     if partial:
-        parts.append(load_trajectory(system_cfg, "train", seed, whole, cache).head(partial))
+        parts.append(load_trajectory(system, "train", seed, whole, cache).head(partial))
     return stack(parts)
 
 
-def build_test_set(system_cfg: Mapping[str, Any], cache: ArrayCache) -> Dataset:
+def build_test_set(system: InputStateSystem, cache: ArrayCache) -> Dataset:
     """The fixed test set of a system (``test_set``: ``trajectories`` experiments of ``duration_s`` each from a
     seed of its own, simulated together once), shared by every task of that system: N = trajectories x
     duration_s / dt rows."""
-    spec = system_cfg["test_set"]
-    simulated = {**system_cfg, "simulation": {**system_cfg["simulation"], "duration_s": spec["duration_s"]}}
-    key = simulation_key(simulated, split="test", seed=spec["seed"], trajectories=spec["trajectories"])
+    spec = system.test_set
+    simulated = dataclasses.replace(system, simulation=dataclasses.replace(system.simulation,
+                                                                            duration_s=spec.duration_s))
+    key = simulation_key(simulated, split="test", seed=spec.seed, trajectories=spec.trajectories)
 
     def create() -> dict[str, np.ndarray]:
-        trajectories = simulate_experiments(simulated, stable_seed("test set", key), spec["trajectories"])
+        trajectories = simulate_experiments(simulated, stable_seed("test set", key), spec.trajectories)
         return {field: np.concatenate([getattr(t, field) for t in trajectories]) for field in FIELDS}
 
     stored = cache.get_or_create(key, create)

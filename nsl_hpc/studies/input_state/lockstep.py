@@ -24,8 +24,8 @@ import torch
 from torch import nn
 
 from nsl_hpc.checkpoint import Checkpointer
-from nsl_hpc.config.schema import typed
-from nsl_hpc.config.targets import where
+from nsl_hpc.config.arch import Arch
+from nsl_hpc.config.targets import labelled
 from nsl_hpc.errors import ConfigError, one_line
 from nsl_hpc.models import build_model
 from nsl_hpc.models.state_space import StateSpaceModel
@@ -163,8 +163,8 @@ class Lockstep(LockstepRun):
 
     block_steps = BLOCK_STEPS
 
-    def __init__(self, members: Sequence[Member], cfg: Mapping[str, Any], compiler: StepCompiler | None = None):
-        self.train = train = typed(InputStateTrain, cfg, "train")
+    def __init__(self, members: Sequence[Member], train: InputStateTrain, compiler: StepCompiler | None = None):
+        self.train = train
         self.dtype = getattr(torch, train.dtype)
         self.compiler = compiler or StepCompiler(False)
         self.compiled_losses = self.compiler.wrap(self.losses)
@@ -300,15 +300,15 @@ class Lockstep(LockstepRun):
         return training
 
 
-def train_lockstep(members: Sequence[Member], cfg: Mapping[str, Any], on_progress: Callable[[], None] = lambda: None,
+def train_lockstep(members: Sequence[Member], train: InputStateTrain, on_progress: Callable[[], None] = lambda: None,
                    checkpoint: Checkpointer | None = None, compiler: StepCompiler | None = None
                    ) -> tuple[Stack, list[list[Snapshot]]]:
-    """Train every member as if alone (``cfg`` is the ``train`` group); returns the stack and each member's
+    """Train every member as if alone with the ``train`` settings; returns the stack and each member's
     snapshots, by epochs (the last after its ``epochs``). Models that have finished leave the stack at the
     end of a block, so the stack holds the models that trained longest. ``on_progress``, ``checkpoint``: as
     ``drive_lockstep`` takes them. With an enabled ``compiler`` the step is compiled, and the stack keeps static
     shapes (``stack_rows``)."""
-    run = Lockstep(members, cfg, compiler)
+    run = Lockstep(members, train, compiler)
     drive_lockstep(run, on_progress, checkpoint)
     return run.stack, [[with_divergence(snapshot, outcome) for snapshot in member_snapshots]
                        for member_snapshots, outcome in zip(run.snapshots, run.outcomes, strict=True)]
@@ -382,18 +382,17 @@ def score_mean_predictor(data: Dataset, mean: np.ndarray, normalization: str) ->
     return sums.both_ways(normalization)
 
 
-def check_architecture(arch_cfg: Mapping[str, Any], state_dim: int, input_dim: int, width: int, depth: int,
-                       batch: int = 8) -> None:
+def check_architecture(arch: Arch, state_dim: int, input_dim: int, width: int, depth: int, batch: int = 8) -> None:
     """Refuse in one line an architecture whose module does not give dx/dt (B, n) and y (B, m), finite, on a sample
     batch, or whose stacked form (two models, as the lockstep training runs them) computes something else."""
-    label = f"{where('arch', arch_cfg)}: arch._target_={arch_cfg['_target_']!r}"
+    label = labelled("arch", arch)
     generator = torch.Generator().manual_seed(0)
     z = torch.randn(2, batch, state_dim, generator=generator, dtype=torch.float64)
     v = torch.randn(2, batch, input_dim, generator=generator, dtype=torch.float64)
     models = []
     for k in range(2):
         torch.manual_seed(k)
-        models.append(build_model(arch_cfg, state_dim, input_dim, width, depth).double())
+        models.append(build_model(arch, state_dim, input_dim, width, depth).double())
     try:
         outputs = [models[k](z[k], v[k]) for k in range(2)]
         stack = stack_of(models, torch.float64, state_dim, input_dim)
