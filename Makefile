@@ -79,8 +79,12 @@ data: $(INSTALLED)
 # after another on one worker and a test file at a time on each of two others, filling both cores; make test-fast
 # runs two (tests/conftest.py's scheduling). TEST_WORKERS=N sets either; TEST_WORKERS=0 runs in this process.
 TEST_WORKERS ?=
-test: $(INSTALLED)
-	bash cluster/up.sh --optional
+# The cluster starts (on a fresh machine: installs SLURM, munge and MariaDB) while .venv installs; its lines follow.
+test:
+	@log=$$(mktemp); bash cluster/up.sh --optional > $$log 2>&1 & up=$$!; \
+	  $(MAKE) --no-print-directory install; installed=$$?; \
+	  wait $$up; started=$$?; cat $$log; rm -f $$log; \
+	  [ $$installed -eq 0 ] && [ $$started -eq 0 ]
 	$(PY) -m pytest -n $(or $(TEST_WORKERS),3)
 
 # Everything but the cluster, the end-to-end and the slow tests: the science, the planning core, fits (< 2 min).

@@ -7,7 +7,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from nsl_hpc.config import compose_config, plain
+from nsl_hpc.config import compose_config
+from nsl_hpc.config.arch import arch_settings
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.input_state.study import model_shape
 from nsl_hpc.sweep.manifest import read_base_config
@@ -190,7 +191,7 @@ def test_the_manifest_is_what_trains_a_hand_edited_size_is_not_drawn_again(tmp_p
     manifest = pq.read_table(sweep_dir / "manifest.parquet").to_pylist()
     edited = manifest[0]
     edited["width"] = edited["width"] + 3
-    edited["params"], _ = model_shape(plain(compose_config(["arch=input_affine"]).arch), (4, 2),
+    edited["params"], _ = model_shape(arch_settings(compose_config(["arch=input_affine"]).arch), (4, 2),
                                       edited["width"], edited["depth"])  # spring: n = 4, m = 2
     pq.write_table(pa.Table.from_pylist(manifest), sweep_dir / "manifest.parquet")
     result = nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}")

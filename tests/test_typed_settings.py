@@ -1,0 +1,99 @@
+"""Settings are typed once where a command or a job reads its config and passed down as instances: below the
+commands no code reads a setting by its key (``cfg["train"]["lr"]``, ``launch.get("rehearsal")``), except where a
+config is typed or hashed. A static check of the package's source."""
+
+import ast
+from collections import Counter
+from pathlib import Path
+
+import nsl_hpc
+
+PACKAGE = Path(nsl_hpc.__file__).parent
+COMMANDS = {"launch", "status", "resubmit", "report", "fit", "predict", "merge", "clean", "train", "place_data", "cli",
+            "__init__", "__main__"}  # nsl_hpc/<command>.py: where a command reads its config
+# names that hold a config or a group of one in the package's code
+SETTINGS = {"cfg", "config", "base", "launch", "values", "settings", "system_cfg", "arch_cfg", "train", "source",
+            "spec", "rehearse", "launch_config", "nsl", "sweep", "launcher", "cost", "packing", "lockstep", "budget",
+            "watchdog", "checkpoint", "run", "tiers", "metric", "system", "arch", "options", "figures", "mlflow",
+            "joint"}
+# where a plain config is typed (config/: the owners themselves) or hashed for task ids and caches
+BOUNDARIES = {"config", "studies/__init__.py:study_of", "studies/base.py:shared_identity",
+              "studies/base.py:with_neutral_settings", "studies/input_output/study.py:shared_identity",
+              "sweep/manifest.py:read_pair", "sweep/prepare.py:require_costs"}
+# the launch side and post-processing still read their settings by key: each module here has such reads (this set
+# only shrinks)
+NOT_YET_TYPED = {"sweep/plan.py", "sweep/limits.py", "sweep/budget.py", "sweep/rounds.py", "sweep/directory.py",
+                 "sweep/job.py", "analysis/fitting.py", "analysis/figures.py", "analysis/report.py",
+                 "analysis/cards.py", "analysis/joint_law.py", "analysis/prediction.py", "analysis/reproduction.py",
+                 "analysis/learning.py", "analysis/cheapest.py", "analysis/mlflow_runs.py", "analysis/bootstrap.py",
+                 "analysis/nsl_settings.py", "analysis/widths.py", "bench/compiled.py", "bench/input_state.py",
+                 "bench/input_output.py"}
+
+
+def holder(node: ast.AST) -> str | None:
+    """The name a subscript or ``.get`` reads from: ``cfg`` of ``cfg["x"]``, ``train`` of ``base.train["lr"]``."""
+    if isinstance(node, ast.Name):
+        return node.id
+    if isinstance(node, ast.Attribute):
+        return node.attr
+    return holder(node.value) if isinstance(node, ast.Subscript) else None
+
+
+def read_key(node: ast.AST) -> str | None:
+    """The string key a settings name is read by at ``node`` (``x["key"]``, ``x.get("key")``), else None."""
+    if isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Constant) and isinstance(node.slice.value, str):
+        return node.slice.value if holder(node.value) in SETTINGS else None
+    if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "get" and node.args
+            and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+        return node.args[0].value if holder(node.func.value) in SETTINGS else None
+    return None
+
+
+class Reads(ast.NodeVisitor):
+    """The settings a module reads by key, counted by the function they are read in (its innermost)."""
+
+    def __init__(self, module: str) -> None:
+        self.module, self.functions, self.found = module, [""], Counter[str]()
+
+    def visit_FunctionDef(self, node: ast.FunctionDef) -> None:
+        self.functions.append(node.name)
+        self.generic_visit(node)
+        self.functions.pop()
+
+    def generic_visit(self, node: ast.AST) -> None:
+        if read_key(node) is not None:
+            self.found[f"{self.module}:{self.functions[-1]}"] += 1
+        super().generic_visit(node)
+
+
+def reads_by_key() -> Counter[str]:
+    """'module.py:function' -> the settings it reads by key, for every module below the commands."""
+    found: Counter[str] = Counter()
+    for path in sorted(PACKAGE.rglob("*.py")):
+        module = path.relative_to(PACKAGE).as_posix()
+        if "/" not in module and path.stem in COMMANDS:
+            continue
+        reads = Reads(module)
+        reads.visit(ast.parse(path.read_text()))
+        found.update(reads.found)
+    return found
+
+
+def excused(place: str) -> bool:
+    module = place.split(":")[0]
+    return (place in BOUNDARIES or module.split("/")[0] in BOUNDARIES or module in NOT_YET_TYPED)
+
+
+def test_no_setting_is_read_by_key_below_the_commands():
+    reads = reads_by_key()
+    offending = {place: count for place, count in reads.items() if not excused(place)}
+    assert not offending, f"settings read by key (type them where the config is read, pass the instance): {offending}"
+    still = {place.split(":")[0] for place in reads}
+    assert still >= NOT_YET_TYPED, f"typed now, drop from NOT_YET_TYPED: {sorted(NOT_YET_TYPED - still)}"
+
+
+def test_the_check_finds_a_read_by_key():
+    reads = Reads("m.py")
+    source = 'def f(cfg, row):\n    return cfg["train"]["lr"], cfg.get("x"), row["flops"], cfg.train.lr\n'
+    reads.visit(ast.parse(source))
+    assert reads.found == {"m.py:f": 3}  # cfg["train"], cfg["train"]["lr"], cfg.get("x"); not the row's
