@@ -19,13 +19,12 @@ from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.widths import track_laws
-from nsl_hpc.config.schema import typed
 from nsl_hpc.studies.base import model_of
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 from nsl_hpc.sweep.executors import run_jobs
 from nsl_hpc.sweep.groups import saved_groups
 from nsl_hpc.sweep.limits import cluster_limits, describe_fit, within_limits
-from nsl_hpc.sweep.plan import Pack, lockstep_settings, plan_jobs
+from nsl_hpc.sweep.plan import Grouping, Pack
 from nsl_hpc.sweep.prepare import (
     PAIR_KEYS,
     BuiltSweep,
@@ -34,19 +33,19 @@ from nsl_hpc.sweep.prepare import (
     describe_infeasible,
     prepare_sweep,
 )
-from nsl_hpc.sweep.rehearsal import Rehearse, plant_job_deaths
+from nsl_hpc.sweep.rehearsal import plant_job_deaths
 from nsl_hpc.sweep.rounds import Budgeted, budgeted_rounds, launch_rounds
 from nsl_hpc.sweep.storage import read_storage
 
 
-def describe_lockstep(tasks: Sequence[Mapping[str, Any]], packs: Sequence[Pack], lockstep: Mapping[str, Any]) -> str:
+def describe_lockstep(tasks: Sequence[Mapping[str, Any]], packs: Sequence[Pack], lockstep: Grouping) -> str:
     """How the tasks to run train: as how many models, in how many lockstep groups."""
-    models = len({model_of(task, lockstep["model_keys"]) for task in tasks})
+    models = len({model_of(task, lockstep.model_keys) for task in tasks})
     groups = sum(len(pack.groups) for pack in packs)
     alone = sorted({task["arch"] for task in tasks if not task.get("stackable", True)})
     return (f"  lockstep: {len(tasks):,} tasks as {models:,} models in {groups:,} group{'s' * (groups != 1)} of up to "
-            f"{lockstep['size']} models" + (" (epoch milestones: a row per task after its epochs)"
-                                            if lockstep["model_keys"] else "")
+            f"{lockstep.size} models" + (" (epoch milestones: a row per task after its epochs)"
+                                         if lockstep.model_keys else "")
             + (f"; {', '.join(alone)}: one model per group, priced alone (a torch.nn.Module the lockstep training "
                "cannot batch)" if alone else ""))
 
@@ -82,7 +81,7 @@ def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
     with private_umask():
         sweep_dir = usable_sweep_dir(cfg.sweep_dir)
         with sweep_lock(sweep_dir, "launch"):
-            check_control_files(sweep_dir, cfg)
+            check_control_files(sweep_dir, cfg.compile_cache_dir, cfg.allow_shared_sweep_dir)
             return launch(cfg, built, sweep_dir, budgeted, overrides)
 
 
@@ -99,10 +98,10 @@ def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path, budgeted: Budget
 def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> int:
     """Print the plan of ``prepared.todo`` within the cluster's limits and the sweep directory's file system, and
     (unless a dry run) run or submit it."""
-    lockstep, tasks = lockstep_settings(cfg), prepared.todo.to_pylist()
+    settings, tasks = built.settings, prepared.todo.to_pylist()
     limits = cluster_limits(cfg, cfg.dry_run)
-    packs = plan_jobs(tasks, within_limits(cfg, limits) if limits else cfg,
-                      saved=[saved.task_ids for saved in saved_groups(prepared.sweep_dir)])
+    packs = (within_limits(settings, limits) if limits else settings).plan(
+        tasks, saved=[saved.task_ids for saved in saved_groups(prepared.sweep_dir)])
     print(describe_plan(prepared, packs, cfg.launcher.name))
     for line in describe_fit(limits, read_storage(prepared.sweep_dir), packs, len(tasks),
                              cfg.checkpoint.every_minutes > 0, cfg.launcher.get("feed_minutes")):
@@ -111,8 +110,8 @@ def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> in
         sweep = built.sweep
         print(f"  sweep.max_flops={sweep.max_flops:g} ({sweep.max_flops_column}): {built.above_max_flops:,} tasks "
               "of the grid above it are not part of the sweep")
-    if tasks and (lockstep["size"] > 1 or lockstep["model_keys"]):
-        print(describe_lockstep(tasks, packs, lockstep))
+    if tasks and (settings.grouping.size > 1 or settings.grouping.model_keys):
+        print(describe_lockstep(tasks, packs, settings.grouping))
     if prepared.infeasible:
         print(describe_infeasible(prepared.sweep_dir, prepared.infeasible, record=not cfg.dry_run))
     if cfg.dry_run or not packs:
@@ -120,7 +119,7 @@ def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> in
               + (" or is queued" if prepared.queued else ""))
         return 0
     if cfg.rehearsal:  # the jobs this launch's lost nodes kill
-        plant_job_deaths(prepared.sweep_dir, typed(Rehearse, cfg.rehearse, "rehearse"), packs)
+        plant_job_deaths(prepared.sweep_dir, settings.rehearse, packs)
     return run_jobs(prepared.sweep_dir, cfg, packs, tasks, prepared.configs, limits)
 
 

@@ -24,17 +24,16 @@ import pyarrow.compute as pc
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
-from nsl_hpc.config import plain
 from nsl_hpc.config.schema import field_names, setting, typed
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock
 from nsl_hpc.sweep.executors import run_jobs
 from nsl_hpc.sweep.groups import saved_groups
+from nsl_hpc.sweep.launch_settings import check_run_settings
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.limits import cluster_limits, describe_fit, within_limits
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest, read_pair, require_sweep
-from nsl_hpc.sweep.plan import check_run_settings, plan_jobs
 from nsl_hpc.sweep.prepare import describe_infeasible, override_key, split_runnable
 from nsl_hpc.sweep.rows import set_aside
 from nsl_hpc.sweep.run_settings import RUN_KEYS
@@ -89,8 +88,8 @@ def main(config: DictConfig, overrides: Sequence[str]) -> int:
     sweep_dir = require_sweep(cfg.sweep_dir)
     with private_umask(), sweep_lock(sweep_dir, "resubmit"):
         launch = with_named_settings(read_launch_config(sweep_dir), config, overrides)
-        check_control_files(sweep_dir, {**plain(launch), "allow_shared_sweep_dir": cfg.allow_shared_sweep_dir})
-        check_run_settings(launch)
+        check_control_files(sweep_dir, launch.compile_cache_dir, cfg.allow_shared_sweep_dir)
+        settings = check_run_settings(launch)
         state = read_sweep_state(sweep_dir)
         if note := state.accounting_note():
             print(note)
@@ -110,8 +109,8 @@ def main(config: DictConfig, overrides: Sequence[str]) -> int:
             if state.states[task["task_id"]] == "corrupt":
                 set_aside(row_path(sweep_dir, task["task_id"]))
         limits = cluster_limits(launch)
-        packs = plan_jobs(tasks, within_limits(launch, limits) if limits else launch, cfg.time_factor,
-                          [saved.task_ids for saved in saved_groups(sweep_dir)])
+        packs = (within_limits(settings, limits) if limits else settings).plan(
+            tasks, cfg.time_factor, [saved.task_ids for saved in saved_groups(sweep_dir)])
         print(f"resubmitting {len(tasks):,} tasks ({', '.join(cfg.states)}) in {len(packs):,} jobs "
               f"({launch.launcher.name})")
         for line in describe_fit(limits, read_storage(sweep_dir), packs, len(tasks),

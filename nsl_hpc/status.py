@@ -26,8 +26,8 @@ from nsl_hpc.config.schema import setting, typed
 from nsl_hpc.sweep.budget import stop_when_of
 from nsl_hpc.sweep.decisions import describe_rounds, read_decisions, round_job_queued
 from nsl_hpc.sweep.groups import held_locks, saved_groups
+from nsl_hpc.sweep.launch_settings import launch_settings
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest, require_sweep
-from nsl_hpc.sweep.plan import packing_for, sweep_groups
 from nsl_hpc.sweep.task_states import STATES, SweepState, read_sweep_state
 
 LOG_LINES = 5  # log lines shown per failed task
@@ -58,8 +58,7 @@ def remaining_seconds(sweep_dir, state: SweepState, launch: DictConfig) -> float
     never_submitted = todo - shares.keys()
     unplanned = [task for task in read_manifest(sweep_dir).to_pylist()
                  if task["task_id"] in never_submitted] if never_submitted else []
-    groups = sweep_groups(unplanned, launch, packing_for(launch.packing, launch.launcher), list(saved)) \
-        if unplanned else []
+    groups = launch_settings(launch).groups(unplanned, list(saved)) if unplanned else []
     return (sum(shares[task_id] * left.get(task_id, 1.0) for task_id in todo if task_id in shares)
             + sum(group.seconds * left.get(group.task_ids[0], 1.0) for group in groups))
 

@@ -9,7 +9,7 @@ import pytest
 from nsl_hpc.config import compose_config
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.resubmit import refuse_task_overrides
-from nsl_hpc.sweep.plan import check_run_settings
+from nsl_hpc.sweep.launch_settings import check_run_settings
 from tests.sweeps import TINY_GRID, nsl
 
 LOCAL = [*TINY_GRID, "launcher=local"]

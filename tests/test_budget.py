@@ -9,9 +9,9 @@ import pytest
 
 from nsl_hpc.config import compose_config
 from nsl_hpc.studies import study_named
-from nsl_hpc.sweep import budget as budget_module
 from nsl_hpc.sweep.budget import Budget, decide_round, planned_seconds
 from nsl_hpc.sweep.decisions import DECISION_SCHEMA, read_decisions
+from nsl_hpc.sweep.launch_settings import LaunchSettings
 from nsl_hpc.sweep.rounds import Rounds, first_round_levels
 from tests.sweeps import nsl, row_files
 
@@ -109,8 +109,8 @@ def test_of_equally_promising_tasks_the_one_nearer_more_envelopes_runs_first():
 
 def test_the_planned_seconds_of_a_set_of_tasks_are_planned_once_whatever_their_order(monkeypatch):
     planned = []
-    monkeypatch.setattr(budget_module, "sweep_groups",
-                        lambda tasks, launch, packing: planned.append([t["task_id"] for t in tasks]) or [])
+    monkeypatch.setattr(LaunchSettings, "groups",
+                        lambda self, tasks, saved=(): planned.append([t["task_id"] for t in tasks]) or [])
     seconds = planned_seconds(BY_ID, compose_config(["+sweep=demo"], "launch"))
     assert seconds(["s1w2e2", "s0w2e2"]) == seconds(["s0w2e2", "s1w2e2"]) == 0.0
     assert planned == [["s0w2e2", "s1w2e2"]]  # once, in the order of the ids

@@ -29,8 +29,9 @@ from nsl_hpc.studies.training import StepCompiler
 from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.groups import GroupLock, checkpoint_path
 from nsl_hpc.sweep.job import JobRunner
+from nsl_hpc.sweep.launch_settings import check_run_settings, launch_settings
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest
-from nsl_hpc.sweep.plan import Group, check_run_settings, make_packs, packing_for, plan_jobs
+from nsl_hpc.sweep.plan import Group, make_packs
 from tests.sweeps import ALONE, TINY_GRID, nsl, row_files
 from tests.test_io_lockstep import members_of
 
@@ -251,7 +252,8 @@ def test_a_live_jobs_lock_keeps_a_second_job_off_the_group_and_a_dead_ones_is_ta
 def test_a_job_runner_leaves_a_group_that_a_live_job_trains_then_trains_it_once_that_job_is_gone(tmp_path):
     sweep_dir = tmp_path / "sweep"
     assert nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "dry_run=true").returncode == 0
-    groups = [group for pack in plan_jobs(read_manifest(sweep_dir).to_pylist(), read_launch_config(sweep_dir))
+    settings = launch_settings(read_launch_config(sweep_dir))
+    groups = [group for pack in settings.plan(read_manifest(sweep_dir).to_pylist())
               for group in pack.groups]
     held, others = len(groups[0].task_ids), 4 - len(groups[0].task_ids)
     holder = held_lock(sweep_dir, groups[0].task_ids)
@@ -271,7 +273,8 @@ def test_a_finished_groups_checkpoint_goes_whether_its_job_was_stopped_after_the
     came as the group finished): the checkpoint must not outlive the rows (status and clean would show it)."""
     sweep_dir = tmp_path / "sweep"
     assert nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}").returncode == 0
-    groups = [group for pack in plan_jobs(read_manifest(sweep_dir).to_pylist(), read_launch_config(sweep_dir))
+    settings = launch_settings(read_launch_config(sweep_dir))
+    groups = [group for pack in settings.plan(read_manifest(sweep_dir).to_pylist())
               for group in pack.groups]
     ids = list(groups[0].task_ids)
     path = checkpoint_path(sweep_dir, ids)
@@ -294,7 +297,8 @@ def test_a_warned_job_keeps_its_timeout_record_and_stops_even_when_the_warnings_
     assert nsl("launch", *TINY_GRID, "sweep.grid.seed=[0,1]", ALONE, "launcher=slurm",
                f"sweep_dir={sweep_dir}", "packing.time_classes_minutes=[1]", "launcher.signal_delay_s=2",
                "fault.kind=hang", "dry_run=true").returncode == 0
-    groups = [group for pack in plan_jobs(read_manifest(sweep_dir).to_pylist(), read_launch_config(sweep_dir))
+    settings = launch_settings(read_launch_config(sweep_dir))
+    groups = [group for pack in settings.plan(read_manifest(sweep_dir).to_pylist())
               for group in pack.groups]
     assert len(groups) == 2
     runner = JobRunner()
@@ -316,9 +320,8 @@ def test_a_warned_job_keeps_its_timeout_record_and_stops_even_when_the_warnings_
 
 def test_a_site_time_cap_makes_a_long_group_a_chain_of_jobs_and_needs_checkpoints():
     launch = compose_config(["+sweep=demo", "launcher=slurm", "launcher.max_time_minutes=60"], "launch")
-    check_run_settings(launch)
-    packing = packing_for(launch.packing, launch.launcher)
-    assert packing["time_classes_minutes"] == [20, 60]
+    packing = check_run_settings(launch).packing_for()
+    assert packing.time_classes_minutes == (20, 60)
     (short, long) = make_packs([Group(("a",), 10 * 60), Group(("b",), 3 * 3600)], packing)
     assert (short.time_limit_min, short.chain) == (60, 1)  # 30 min with the safety factor 3
     assert (long.time_limit_min, long.chain) == (60, math.ceil(3 * 3 * 60 / 60))

@@ -3,6 +3,7 @@ groups, packs and time classes, array splitting, array-id expansion, task-state 
 text submitit gets, and composing every config file with every command's root config."""
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -15,9 +16,12 @@ from nsl_hpc.status import remaining_seconds, running_cores, summary
 from nsl_hpc.sweep.executors import array_chunks, balance, slurm_executor
 from nsl_hpc.sweep.groups import GroupLock
 from nsl_hpc.sweep.job import compile_allowance
+from nsl_hpc.sweep.launch_settings import launch_settings
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import (
     Group,
+    Grouping,
+    JobPacking,
     Pack,
     check_signal_delay,
     compiles,
@@ -25,22 +29,22 @@ from nsl_hpc.sweep.plan import (
     lockstep_groups,
     make_packs,
     padded_width,
-    plan_jobs,
     planned_group,
     planned_groups,
     predicted_seconds,
 )
+from nsl_hpc.sweep.run_settings import Cost
 from nsl_hpc.sweep.slurm import expand_array_ids, merged_states
 from nsl_hpc.sweep.submissions import record_submission
 from nsl_hpc.sweep.task_states import ACCOUNTING_LAG_S, read_sweep_state, task_state
 from tests.sweeps import TINY_GRID, nsl
 
 GOLDEN = Path(__file__).parent / "golden"
-COST = {"startup_s": 2.0, "group_start_s": 2.0, "step_seconds": {"unstructured": 1e-3},
-        "params_per_overhead": {"unstructured": 1000}, "lockstep_extra": {"unstructured": 0.5}, "score_seconds": 0.0,
-        "compile_s": {}, "compile_speedup": {}}  # a cost group: eager, scoring free
-PACKING = {"enabled": True, "short_task_minutes": 5, "pack_minutes": 20, "time_safety": 3.0,
-           "time_classes_minutes": [20, 60, 240]}
+COST = Cost(startup_s=2.0, group_start_s=2.0, step_seconds={"unstructured": 1e-3},
+            params_per_overhead={"unstructured": 1000}, lockstep_extra={"unstructured": 0.5}, score_seconds=0.0,
+            compile_s={}, compile_speedup={})  # a cost group: eager, scoring free
+PACKING = JobPacking(enabled=True, short_task_minutes=5, pack_minutes=20, time_safety=3.0,
+                     time_classes_minutes=(20, 60, 240))
 
 
 def task(task_id: str, steps: int = 1000, width: int = 4, depth: int = 1, params: int = 100, seed: int = 0,
@@ -49,9 +53,14 @@ def task(task_id: str, steps: int = 1000, width: int = 4, depth: int = 1, params
             "steps": steps, "params": params, "seed": seed, "epochs": epochs, "sweep_seed": 0}
 
 
-def lockstep(size: int = 4, buckets=(2, 4, 8), model_keys=(), memory_mb: float = 1000.0, compile_mode="auto") -> dict:
-    return {"size": size, "width_buckets": list(buckets), "model_keys": list(model_keys), "memory_mb": memory_mb,
-            "compile": compile_mode}
+def lockstep(size: int = 4, buckets=(2, 4, 8), model_keys=(), memory_mb: float = 1000.0,
+             compile_mode="auto") -> Grouping:
+    return Grouping(size, tuple(buckets), memory_mb, tuple(model_keys), compile_mode)
+
+
+def planned(tasks: list[dict], *overrides: str) -> list[Pack]:
+    """The jobs the launch config of ``overrides`` plans for ``tasks``."""
+    return launch_settings(compose_config(list(overrides), "launch")).plan(tasks)
 
 
 def test_predicted_seconds_follow_the_cost_model():
@@ -103,9 +112,8 @@ def test_a_job_pays_its_start_up_once_whatever_its_groups_and_only_on_slurm():
     (pack,) = make_packs([Group(("a",), 10.0), Group(("b",), 20.0)], PACKING, startup_s=2.0)
     assert pack.seconds == 32.0
     tasks = [task(f"t{i}", steps=1000 + i, width=1 + i % 16, depth=1 + i % 3) for i in range(50)]
-    plans = {launcher: plan_jobs(tasks, compose_config(["+sweep=demo", f"launcher={launcher}", "cost.startup_s=100",
-                                                        "packing.enabled=false"], "launch"))
-             for launcher in ("local", "slurm")}
+    plans = {launcher: planned(tasks, "+sweep=demo", f"launcher={launcher}", "cost.startup_s=100",
+                               "packing.enabled=false") for launcher in ("local", "slurm")}
     assert [p.task_ids for p in plans["slurm"]] == [p.task_ids for p in plans["local"]]
     assert all(job.seconds == pytest.approx(alone.seconds + 100)
                for job, alone in zip(plans["slurm"], plans["local"], strict=True))
@@ -139,7 +147,7 @@ def test_milestone_tasks_of_one_model_stay_in_one_group_and_cost_their_longest_r
     for group in groups:
         assert len({t["seed"] for t in group}) == len(group) // 3
     one = [t for t in tasks if t["seed"] == 0]
-    per_step = predicted_seconds("unstructured", 1, 100, COST) - COST["startup_s"]
+    per_step = predicted_seconds("unstructured", 1, 100, COST) - COST.startup_s
     assert planned_group(one, COST, lockstep(model_keys=["seed"])).seconds == pytest.approx(2.0 + 400 * per_step)
 
 
@@ -149,8 +157,8 @@ def test_a_group_compiles_where_the_predicted_saving_exceeds_the_compile_time():
     one of 48 s does not (16 s), nor one of 59.5 s (19.8 s; with the start-up it would have been 20.5 s): the
     start-up counts toward neither; always and never override, and under auto
     an architecture without a measured speedup never compiles."""
-    cost = {**COST, "compile_s": {"unstructured": 20.0}, "compile_speedup": {"unstructured": 1.5}}
-    per_step = predicted_seconds("unstructured", 1, 100, COST) - COST["startup_s"]
+    cost = replace(COST, compile_s={"unstructured": 20.0}, compile_speedup={"unstructured": 1.5})
+    per_step = predicted_seconds("unstructured", 1, 100, COST) - COST.startup_s
     long, short = [task("long", steps=round(98 / per_step))], [task("short", steps=round(48 / per_step))]
     (planned,) = planned_groups(long, lockstep(), cost)
     assert planned.compiled and planned.seconds == pytest.approx(2 + 98 / 1.5 + 20, rel=1e-3)
@@ -161,17 +169,19 @@ def test_a_group_compiles_where_the_predicted_saving_exceeds_the_compile_time():
     (unmeasured,) = planned_groups(long, lockstep(compile_mode="always"), COST)  # no speedup, no compile time
     assert unmeasured.compiled and unmeasured.seconds == pytest.approx(100.0, rel=1e-3)
     assert compiles("unstructured", 100.0, cost, "auto") and not compiles("narx", 1e9, cost, "auto")
-    assert not compiles("narx", 1e9, {**cost, "compile_speedup": {"narx": None}}, "auto")
+    assert not compiles("narx", 1e9, replace(cost, compile_speedup={"narx": None}), "auto")
 
 
 def test_a_compiled_group_may_go_without_a_heartbeat_three_times_its_compile_time_longer():
-    launch = compose_config(["+sweep=input_output", "cost.compile_s.subnet=400", "cost.compile_s.narx=null"], "launch")
-    assert compile_allowance(launch, "subnet") == 1200.0 and compile_allowance(launch, "narx") == 0.0
+    launch = compose_config(["+sweep=input_output", "cost.compile_s.subnet=400", "cost.compile_s.narx=null",
+                             "cost.compile_speedup.narx=null"], "launch")
+    settings = launch_settings(launch)
+    assert compile_allowance(settings, "subnet") == 1200.0 and compile_allowance(settings, "narx") == 0.0
 
 
 def test_a_groups_seconds_charge_the_extra_share_while_more_models_train():
     tasks = [task("a", steps=100), task("b", steps=300)]
-    per_step = predicted_seconds("unstructured", 1, 100, COST) - COST["startup_s"]
+    per_step = predicted_seconds("unstructured", 1, 100, COST) - COST.startup_s
     expected = 2.0 + 100 * per_step * 1.5 + 200 * per_step
     assert planned_group(tasks, COST, lockstep()).seconds == pytest.approx(expected)
 
@@ -181,7 +191,7 @@ def test_a_groups_seconds_charge_scoring_each_task_on_its_test_set():
     100x100s test set froze 81 of 779 small tasks when the planner left scoring out)."""
     tasks = [{**task("a", steps=100), "test_points": 1_000_000}, {**task("b", steps=300), "test_points": 1_000_000}]
     unscored = planned_group([task("a", steps=100), task("b", steps=300)], COST, lockstep()).seconds
-    scored = planned_group(tasks, {**COST, "score_seconds": 1e-9}, lockstep()).seconds
+    scored = planned_group(tasks, replace(COST, score_seconds=1e-9), lockstep()).seconds
     assert scored == pytest.approx(unscored + 2 * 0.1)
     assert planned_group(tasks, COST, lockstep()).seconds == pytest.approx(unscored)  # a run.yaml from before
 
@@ -196,18 +206,18 @@ def test_packs_carry_whole_groups_short_ones_fill_packs_long_ones_run_alone():
     assert [len(p.groups) for p in short] == [20, 20, 10]  # 20 min of 1-min groups per pack
     assert all(p.seconds == sum(g.seconds for g in p.groups) for p in packs)
     assert short[0].task_ids[:3] == ("s0a", "s0b", "s1a")
-    assert len(make_packs(groups, {**PACKING, "enabled": False})) == len(groups)
+    assert len(make_packs(groups, replace(PACKING, enabled=False))) == len(groups)
 
 
 def test_plan_jobs_packs_for_slurm_only_and_stretches_time_limits():
     tasks = [task(f"t{i}", steps=1000 + i, width=1 + i % 16, depth=1 + i % 3) for i in range(200)]
-    launch = compose_config(["+sweep=demo", "launcher=slurm"], "launch")
-    slurm = plan_jobs(tasks, launch)
+    slurm = planned(tasks, "+sweep=demo", "launcher=slurm")
     assert sorted(t for p in slurm for t in p.task_ids) == sorted(t["task_id"] for t in tasks)
     assert len(slurm) < sum(len(p.groups) for p in slurm)  # short groups share jobs
-    local = plan_jobs(tasks, compose_config(["+sweep=demo"], "launch"))
+    local = planned(tasks, "+sweep=demo")
     assert all(len(p.groups) == 1 for p in local)
-    stretched = plan_jobs(tasks, launch, time_factor=100)
+    stretched = launch_settings(compose_config(["+sweep=demo", "launcher=slurm"], "launch")).plan(tasks,
+                                                                                                 time_factor=100)
     assert max(p.time_limit_min for p in stretched) > max(p.time_limit_min for p in slurm)
 
 

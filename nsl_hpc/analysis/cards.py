@@ -21,8 +21,8 @@ from nsl_hpc.atomic import write_text
 from nsl_hpc.config import plain
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.launch_settings import launch_settings
 from nsl_hpc.sweep.manifest import read_manifest
-from nsl_hpc.sweep.plan import packing_for, sweep_groups
 from nsl_hpc.sweep.submissions import predicted_shares, read_submissions
 
 INTERVALS = ("last_slope", "L_at_max", "L_at_10x", "alpha")  # and sigma_1.. as the law has breaks
@@ -115,7 +115,7 @@ def core_hours(sweep_dir: Path, launch: DictConfig, results: pa.Table) -> dict[s
     recorded = predicted_shares(read_submissions(sweep_dir))
     tasks = [task for task in read_manifest(sweep_dir).to_pylist() if task["task_id"] in merged]
     unrecorded = [task for task in tasks if task["task_id"] not in recorded]
-    groups = sweep_groups(unrecorded, launch, packing_for(launch.packing, launch.launcher), []) if unrecorded else []
+    groups = launch_settings(launch).groups(unrecorded) if unrecorded else []
     predicted = sum(recorded[task["task_id"]] for task in tasks if task["task_id"] in recorded)
     measured = (float(np.nansum(results["wall_seconds"].to_numpy(zero_copy_only=False).astype(float))) / 3600
                 if "wall_seconds" in results.column_names else None)

@@ -27,13 +27,13 @@ from tqdm import tqdm
 from nsl_hpc.analysis.cards import core_hours
 from nsl_hpc.analysis.fitting import fittable, pair_outcomes
 from nsl_hpc.analysis.joint_law import VARIABLES, JointLaw, JointLawError, bootstrap_joint_laws, fit_joint_law
-from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import Pair, Study
+from nsl_hpc.sweep.launch_settings import launch_settings
 from nsl_hpc.sweep.manifest import read_manifest, read_pair
-from nsl_hpc.sweep.plan import lockstep_settings, planned_group
+from nsl_hpc.sweep.plan import planned_group
 
 SIZE_COLUMNS = {"model": "params", "data": "train_points"}  # the length variable: the study's length axis
 
@@ -70,9 +70,9 @@ def axis_values(rows: Sequence[Mapping[str, Any]], axes: Sequence[str], doubling
 def configurations_of(rows: Sequence[Mapping[str, Any]], study: Study, launch: Mapping[str, Any]) -> Configurations:
     """Manifest or results rows as Configurations: their size-axis coordinates, sizes and the planner's seconds of
     each trained alone."""
-    cost, lockstep = plain(launch["cost"], resolve=False), lockstep_settings(launch)
+    settings = launch_settings(launch)
     return Configurations([{axis: row[axis] for axis in study.size_axes} for row in rows], sizes_of(rows, study),
-                          np.array([planned_group([row], cost, lockstep).seconds for row in rows]))
+                          np.array([planned_group([row], settings.cost, settings.grouping).seconds for row in rows]))
 
 
 def candidate_configurations(study: Study, pair: Pair, template: Mapping[str, Any],

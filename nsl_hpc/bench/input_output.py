@@ -36,7 +36,8 @@ from nsl_hpc.studies.input_output.lockstep import IOMember, train_lockstep
 from nsl_hpc.studies.input_output.scoring import numpy_mlps, score_records
 from nsl_hpc.studies.input_output.study import InputOutput, build_io_model, horizon, training_memory_mb
 from nsl_hpc.studies.input_output.training import SignalScaling, train_io_model
-from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments, with_compile
+from nsl_hpc.sweep.launch_settings import launch_settings
+from nsl_hpc.sweep.plan import lockstep_groups, training_segments, with_compile
 
 
 class IOBench:
@@ -149,7 +150,8 @@ def projection(bench: IOBench, process_s: float) -> dict[str, Any]:
 
     reference = sum(process_s + task["steps"] * cost(task, "reference")
                     + samples[task["system"]] * scoring[task["arch"]]["alone"] for task in manifest)
-    settings, cost_values = lockstep_settings(launch), plain(launch.cost, resolve=False)
+    launched = launch_settings(launch)
+    settings, cost_values = launched.grouping, launched.cost
     groups = lockstep_groups(manifest, settings)
     ours = eager = len(groups) * process_s
     for group in groups:
@@ -161,14 +163,14 @@ def projection(bench: IOBench, process_s: float) -> dict[str, Any]:
         training = sum(steps * (single + per_model * (models - 1))
                        for steps, models in training_segments(group, settings))
         scored = sum(samples[task["system"]] * scoring[task["arch"]]["packed"] for task in group)
-        ours += with_compile(first["arch"], training, cost_values, settings["compile"])[0] + scored
+        ours += with_compile(first["arch"], training, cost_values, settings.compile)[0] + scored
         eager += training + scored
     try:
         planner: float | str = planner_core_hours(launch, manifest)
     except ConfigError as error:  # e.g. cost values under which a group outgrows every time class
         planner = f"refused: {error}"
     return {"io_core_hours_reference": reference / 3600, "io_core_hours_ours": ours / 3600,
-            "io_core_hours_ours_eager": eager / 3600, "io_compile": settings["compile"],
+            "io_core_hours_ours_eager": eager / 3600, "io_compile": settings.compile,
             "io_core_hours_planner": planner, "io_tasks": len(manifest),
             "io_groups": len(groups), "io_calibrated_cost": calibrated_cost(measured),
             "io_scoring_seconds_per_sample": scoring}

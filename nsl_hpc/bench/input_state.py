@@ -17,6 +17,7 @@ process.
 """
 
 import copy
+import dataclasses
 import math
 import resource
 import subprocess
@@ -39,7 +40,7 @@ from nsl_hpc.bench.measure import (
     timed,
 )
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.config import compose_config, plain
+from nsl_hpc.config import compose_config
 from nsl_hpc.config.arch import arch_settings
 from nsl_hpc.config.schema import typed
 from nsl_hpc.config.system import InputStateSystem
@@ -51,7 +52,8 @@ from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.input_state.study import system_dimensions
 from nsl_hpc.studies.metrics import normalized_errors
 from nsl_hpc.studies.settings import InputStateTrain, batch_count, warmup_cosine
-from nsl_hpc.sweep.plan import lockstep_groups, lockstep_settings, training_segments, with_compile
+from nsl_hpc.sweep.launch_settings import launch_settings
+from nsl_hpc.sweep.plan import Grouping, lockstep_groups, training_segments, with_compile
 from nsl_hpc.sweep.rows import write_row_atomically
 
 
@@ -204,7 +206,7 @@ def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, 
         return len(manifest) * (process + per_task) + sum(
             task["steps"] * step_cost(task["arch"], method, task["width"], task["depth"]) for task in manifest)
 
-    def ours(tasks: list[dict[str, Any]], settings: Mapping[str, Any], mode: str) -> tuple[float, int]:
+    def ours(tasks: list[dict[str, Any]], settings: Grouping, mode: str) -> tuple[float, int]:
         """Seconds and lockstep groups of ``tasks`` trained our way with lockstep ``settings``, the groups
         compiled as ``compile=mode`` would (``with_compile``: the cost values of the bench's compiled part)."""
         seconds, groups = len(tasks) * per_task, lockstep_groups(tasks, settings)
@@ -216,16 +218,18 @@ def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, 
                 for steps, models in training_segments(group, settings)), cost, mode)[0]
         return seconds, len(groups)
 
-    cost, settings = plain(launch.cost, resolve=False), {**lockstep_settings(launch), "size": cfg.pack_size}
-    faithful, groups = ours(manifest, settings, settings["compile"])
+    launched = launch_settings(launch)
+    cost, settings = launched.cost, dataclasses.replace(launched.grouping, size=cfg.pack_size)
+    faithful, groups = ours(manifest, settings, settings.compile)
     eager, _ = ours(manifest, settings, "never")
     shared_launch, shared = study_manifest("input_state", "draws=shared_across_epochs", "train.schedule_epochs=16384")
-    milestones, _ = ours(shared, {**lockstep_settings(shared_launch), "size": cfg.pack_size}, settings["compile"])
+    milestones, _ = ours(shared, dataclasses.replace(launch_settings(shared_launch).grouping, size=cfg.pack_size),
+                         settings.compile)
     return {"core_hours_reference": one_process_per_task("reference") / 3600,
             "core_hours_authors": one_process_per_task("authors") / 3600, "core_hours_ours": faithful / 3600,
             "core_hours_ours_eager": eager / 3600, "core_hours_milestones": milestones / 3600,
             "core_hours_planner": planner_core_hours(launch, manifest), "tasks": len(manifest), "groups": groups,
-            "compile": settings["compile"]}
+            "compile": settings.compile}
 
 
 def largest_task_peak_memory(cfg: DictConfig, root: Path) -> float:

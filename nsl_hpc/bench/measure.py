@@ -1,6 +1,7 @@
 """What both parts of the benchmark use: a timer, the study's manifest and the planner's prediction of it,
 and interpolation of per-step costs measured on a (width, depth) grid."""
 
+import dataclasses
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -10,9 +11,10 @@ import torch
 from omegaconf import DictConfig
 
 from nsl_hpc.config import compose_config
+from nsl_hpc.config.launchers import SlurmLauncher
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.grid import build_manifest
-from nsl_hpc.sweep.plan import make_packs, packing_for, sweep_groups
+from nsl_hpc.sweep.launch_settings import launch_settings
 from nsl_hpc.sweep.prepare import pair_configs
 
 # what a process that trains tasks imports (python -c): the task runner and the training code it imports later
@@ -46,8 +48,9 @@ def study_manifest(sweep: str, *overrides: str) -> tuple[DictConfig, list[dict[s
 
 def planner_core_hours(launch: DictConfig, manifest: list[dict[str, Any]]) -> float:
     """The core-hours ``launch +sweep=<its sweep> launcher=slurm dry_run=true`` predicts (``cost.*``)."""
-    packing = packing_for(launch.packing, {"name": "slurm"})
-    packs = make_packs(sweep_groups(manifest, launch, packing), packing, launch.cost.startup_s)
+    settings = launch_settings(launch)
+    on_slurm = dataclasses.replace(settings, launcher=SlurmLauncher())
+    packs = on_slurm.plan(manifest)
     return sum(pack.seconds for pack in packs) / 3600
 
 

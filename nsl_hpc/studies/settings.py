@@ -3,14 +3,12 @@ check a config, plan a sweep or read one (launch's checks, status, merge, clean,
 not the training loops (``studies.training``; torch alone is ~1.5 s of a command's start).
 """
 
-from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from nsl_hpc.config.arch import IO_ARCHITECTURES
-from nsl_hpc.config.schema import field_names, setting, typed
+from nsl_hpc.config.schema import setting
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies.metrics import NORMALIZATIONS
 
@@ -147,8 +145,3 @@ class Runtime:
     threads: int = setting("torch intra-op threads (SLURM tasks are single-CPU)", 1)
     compile: str = setting("lockstep training steps compiled with torch.compile: always, never, or auto (where the "
                            "planner predicts the saving exceeds the compile time)", choices=COMPILE_MODES)
-
-    @classmethod
-    def of(cls, values: Mapping[str, Any]) -> "Runtime":
-        """The top-level ``threads`` and ``compile`` of a task or launch config, typed."""
-        return typed(cls, {key: values[key] for key in field_names(cls)}, "")

@@ -40,7 +40,7 @@ from nsl_hpc.config import plain
 from nsl_hpc.config.schema import setting, typed
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.sweep.decisions import describe_rounds
-from nsl_hpc.sweep.plan import packing_for, sweep_groups
+from nsl_hpc.sweep.launch_settings import launch_settings
 
 WIDTHS = ("last_slope", "breaks", "prediction")
 
@@ -158,11 +158,11 @@ def planned_seconds(tasks: Mapping[str, Mapping[str, Any]], launch: DictConfig) 
     """The planner's predicted core-seconds of running some of ``tasks`` (by id) as one launch: their lockstep
     groups' seconds (``cost.*``). Remembered per set of ids: a launch asks for round 1's to size it, to refuse a
     budget below it and to print it."""
-    packing = packing_for(launch.packing, launch.launcher)
+    settings = launch_settings(launch)
 
     @functools.lru_cache(maxsize=8)
     def seconds_of(task_ids: frozenset[str]) -> float:
-        return sum(group.seconds for group in sweep_groups([tasks[t] for t in sorted(task_ids)], launch, packing))
+        return sum(group.seconds for group in settings.groups([tasks[t] for t in sorted(task_ids)]))
 
     return lambda task_ids: seconds_of(frozenset(task_ids))
 

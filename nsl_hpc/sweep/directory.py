@@ -150,19 +150,20 @@ def process_alive(pid: int) -> bool:
     return True
 
 
-def check_control_files(sweep_dir: Path, launch: Mapping[str, Any]) -> None:
+def check_control_files(sweep_dir: Path, compile_cache_dir: str | None, allow_shared: bool) -> None:
     """Refuse (one line) a sweep directory whose control files another user could change: anyone who can
     write a job runner pickle, ``launch.yaml`` (its ``launcher.setup`` lines run in every job), a task config or
-    the compile cache (Inductor unpickles what it finds there) can run code as you when a job starts. ``launch``:
-    the launch config (its ``compile_cache_dir``; ``allow_shared_sweep_dir=true`` skips the check)."""
-    if (refusal := unsafe_refusal([*control_paths(Path(sweep_dir)), *tree(compile_cache(launch))], launch)):
+    the compile cache ``compile_cache_dir`` (Inductor unpickles what it finds there) can run code as you when a
+    job starts; ``allow_shared`` (``allow_shared_sweep_dir=true``) skips the check."""
+    if (refusal := unsafe_refusal([*control_paths(Path(sweep_dir)), *tree(compile_cache(compile_cache_dir))],
+                                  allow_shared)):
         raise ConfigError(refusal)
 
 
-def unsafe_refusal(paths: Sequence[Path], launch: Mapping[str, Any]) -> str | None:
-    """The one line that refuses the first of ``paths`` another user could change, None when none is (or the
-    launch config says ``allow_shared_sweep_dir=true``)."""
-    if launch.get("allow_shared_sweep_dir"):
+def unsafe_refusal(paths: Sequence[Path], allow_shared: bool) -> str | None:
+    """The one line that refuses the first of ``paths`` another user could change, None when none is (or
+    ``allow_shared``: ``allow_shared_sweep_dir=true``)."""
+    if allow_shared:
         return None
     for path in paths:
         if (reason := unsafe(path)) is not None:
@@ -190,9 +191,8 @@ def unsafe(path: Path) -> str | None:
     return f"{who} it (mode {stat.filemode(info.st_mode)})"
 
 
-def compile_cache(launch: Mapping[str, Any]) -> Path | None:
-    """The compile cache a launch config's jobs compile into (``compile_cache_dir``), None for torch's default."""
-    folder = launch.get("compile_cache_dir")
+def compile_cache(folder: str | None) -> Path | None:
+    """The compile cache a sweep's jobs compile into (``compile_cache_dir``), None for torch's default."""
     return None if folder is None else Path(folder).resolve()
 
 

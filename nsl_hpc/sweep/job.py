@@ -39,7 +39,6 @@ from pathlib import Path
 from typing import Any
 
 import submitit
-from omegaconf import DictConfig
 
 from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info, remove_checkpoint
 from nsl_hpc.config import plain
@@ -49,6 +48,7 @@ from nsl_hpc.studies.base import Pair, Study
 from nsl_hpc.sweep.directory import compile_cache, process_alive, tree, unsafe_refusal
 from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.groups import GroupLock, checkpoint_path, this_job
+from nsl_hpc.sweep.launch_settings import LaunchSettings, launch_settings
 from nsl_hpc.sweep.layout import failure_path, row_path, task_log_path
 from nsl_hpc.sweep.manifest import read_base_config, read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import Group
@@ -103,9 +103,9 @@ def as_planned(sweep: Path, task: ResolvedTask, compiled: bool) -> ResolvedTask:
     return with_run(task, compile="always" if compiled else "never", fault=fault)
 
 
-def checkpoint_seconds(launch: DictConfig) -> float:
+def checkpoint_seconds(settings: LaunchSettings) -> float:
     """How often (s of training) a group writes its checkpoint; 0: never."""
-    return 60.0 * launch.checkpoint.every_minutes
+    return 60.0 * settings.checkpoint.every_minutes
 
 
 def die_with_parent() -> None:
@@ -189,18 +189,19 @@ class JobRunner:
             return self.run_groups(Path(sweep_dir), groups)
 
     def run_groups(self, sweep: Path, groups: Sequence[Group]) -> dict[str, int]:
-        launch = read_launch_config(sweep)
+        launch = launch_settings(read_launch_config(sweep))
         self.configs = TaskConfigs(sweep)
         # SLURM sends SIGCONT with its warning; submitit's handler for it logs, and logging swallows the exception
         # a warning handler nested in it raises (the job would go on as if not warned)
         signal.signal(signal.SIGCONT, signal.SIG_DFL)
-        if refusal := unsafe_refusal(list(tree(compile_cache(launch))), launch):  # Inductor unpickles from it
+        if refusal := unsafe_refusal(list(tree(compile_cache(launch.compile_cache_dir))),  # Inductor unpickles from it
+                                     launch.allow_shared_sweep_dir):
             return self.refuse(sweep, groups, refusal)
         if not launch.rehearsal:  # a rehearsal trains nothing
             import_training_code()  # once, not in each group's forked process
         prepare_row_writes()
         self.checkpointing = checkpoint_seconds(launch) > 0
-        self.stop_wait_s = launch.launcher.get("signal_delay_s", 60) / 2  # SLURM's warning; local launchers: 60
+        self.stop_wait_s = (launch.signal_delay_s or 60) / 2  # SLURM's warning; local launchers: 60
         rows = manifest_rows(sweep, [task_id for group in groups for task_id in group.task_ids])
         by_id = {task["task_id"]: task for task in rows}
         counts: Counter[str] = Counter()
@@ -217,7 +218,7 @@ class JobRunner:
         self.current = None
         return dict(counts)
 
-    def train_group(self, sweep: Path, group: Group, tasks: Sequence[Mapping[str, Any]], launch: DictConfig,
+    def train_group(self, sweep: Path, group: Group, tasks: Sequence[Mapping[str, Any]], launch: LaunchSettings,
                     counts: Counter[str]) -> str | None:
         """Train the ``tasks`` (manifest rows) of ``group`` that have no valid row yet (a corrupt one set aside)
         while holding its lock, adding to ``counts``; returns the outcome (ok, failed, frozen, stopped), None
@@ -260,7 +261,7 @@ class JobRunner:
         LOG.error("not run: %s", reason)
         return {"failed": len(ids)} if ids else {}
 
-    def run_watched(self, sweep: Path, group: Sequence[Mapping[str, Any]], planned: Group, launch: DictConfig,
+    def run_watched(self, sweep: Path, group: Sequence[Mapping[str, Any]], planned: Group, launch: LaunchSettings,
                     lock: GroupLock) -> str:
         """Run the tasks (manifest rows) ``group`` of the lockstep group ``planned`` (its predicted seconds, compiled
         or not) in a child process under the watchdog (``launch.watchdog``), renewing ``lock``; returns ok,
@@ -348,7 +349,7 @@ class JobRunner:
         return submitit.helpers.DelayedSubmission(JobRunner(self.launcher_pid), sweep_dir, remaining)
 
 
-def compile_allowance(launch: DictConfig, arch: str) -> float:
+def compile_allowance(launch: LaunchSettings, arch: str) -> float:
     """Seconds a compiled group of ``arch`` may go without a heartbeat beyond the watchdog's: three times its
     predicted compile time (cost.compile_s; a slower node, a cold cache)."""
     return 3.0 * float(launch.cost.compile_s.get(arch) or 0.0)

@@ -6,17 +6,17 @@ one may run (MaxWall). Each limit keeps where it comes from; the smallest of eac
 (AccountingStorageType=none, or slurmdbd down) the association's and QOS's limits are unknown, and say why.
 """
 
-import copy
 import getpass
 import logging
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from omegaconf import DictConfig
 
 from nsl_hpc.config.launchers import SlurmLauncher, launcher_from
 from nsl_hpc.errors import ConfigError, SlurmError
+from nsl_hpc.sweep.launch_settings import LaunchSettings
 from nsl_hpc.sweep.plan import Pack
 from nsl_hpc.sweep.slurm import SlurmMissing, slurm_command
 from nsl_hpc.sweep.storage import Storage, predicted_files
@@ -108,14 +108,14 @@ def config_values(text: str) -> dict[str, str]:
 
 
 def partition_settings(name: str | None) -> tuple[str, dict[str, str]]:
-    """(name, settings) of the partition ``name`` (None: the cluster's default), refused in one line when the
+    """(name, fields: scontrol's) of the partition ``name`` (None: the cluster's default), refused in one line when the
     cluster has no such partition."""
     partitions = [key_values(line) for line in slurm_command("scontrol", "show", "partition", "-o").splitlines()
                   if line.strip()]
-    for settings in partitions:
-        if settings.get("PartitionName") == name or (name is None and settings.get("Default") == "YES"):
-            return settings["PartitionName"], settings
-    names = ", ".join(settings.get("PartitionName", "?") for settings in partitions)
+    for fields in partitions:
+        if fields.get("PartitionName") == name or (name is None and fields.get("Default") == "YES"):
+            return fields["PartitionName"], fields
+    names = ", ".join(fields.get("PartitionName", "?") for fields in partitions)
     if name is None:
         raise ConfigError(f"the cluster has no default partition: set launcher.partition (one of: {names})")
     raise ConfigError(f"launcher.partition={name!r} is no partition of this cluster; choose one of: {names}")
@@ -144,28 +144,28 @@ def accounting_rows(user: str, account: str | None, partition: str, qos: str | N
     if names:
         for line in slurm_command("sacctmgr", "-n", "-P", "show", "qos", *names, f"format={','.join(qos_fields)}",
                                   retries=2).splitlines():
-            settings = dict(zip(qos_fields, line.split("|"), strict=False))
-            qos_rows.append((settings["Name"], settings))
+            row = dict(zip(qos_fields, line.split("|"), strict=False))
+            qos_rows.append((row["Name"], row))
     return association, qos_rows
 
 
 def read_cluster_limits(launcher: SlurmLauncher) -> ClusterLimits:
     """The limits a sweep submitted with ``launcher`` must fit; the launcher's own settings (max_array_size, one
     above the cluster's refused; max_job_count, max_submit_jobs) count as limits too."""
-    config = config_values(slurm_command("scontrol", "show", "config"))
-    cluster_array = int(config.get("MaxArraySize", "1001"))
+    scontrol = config_values(slurm_command("scontrol", "show", "config"))
+    cluster_array = int(scontrol.get("MaxArraySize", "1001"))
     if launcher.max_array_size is not None and launcher.max_array_size > cluster_array:
         raise ConfigError(f"launcher.max_array_size={launcher.max_array_size} is above the cluster's MaxArraySize="
                           f"{cluster_array}: leave it unset (null) or lower it")
     array = smallest(Limit(cluster_array, "MaxArraySize"), own(launcher.max_array_size, "launcher.max_array_size"))
-    jobs = smallest(Limit(int(config.get("MaxJobCount", "10000")), "MaxJobCount"),
+    jobs = smallest(Limit(int(scontrol.get("MaxJobCount", "10000")), "MaxJobCount"),
                     own(launcher.max_job_count, "launcher.max_job_count"))
-    partition, settings = partition_settings(launcher.partition)
-    wall = [minutes_limit(settings.get("MaxTime", ""), f"partition {partition} MaxTime")]
+    partition, fields = partition_settings(launcher.partition)
+    wall = [minutes_limit(fields.get("MaxTime", ""), f"partition {partition} MaxTime")]
     submit = [own(launcher.max_submit_jobs, "launcher.max_submit_jobs")]
     running = [own(launcher.max_running, "launcher.max_running")]
     qos, unaccounted = launcher.qos, None
-    if "none" in config.get("AccountingStorageType", "").lower():
+    if "none" in scontrol.get("AccountingStorageType", "").lower():
         unaccounted = "accounting is disabled (AccountingStorageType=none)"
     else:
         try:
@@ -215,14 +215,16 @@ def minutes_limit(text: str, source: str) -> Limit | None:
     return None if minutes is None else Limit(minutes, source)
 
 
-def within_limits(launch: DictConfig, limits: ClusterLimits) -> DictConfig:
-    """``launch`` (a copy) with its jobs' time limits within the cluster's longest (``wall_minutes``): at most
-    that, a longer group as a chain of jobs through its checkpoints (``describe_fit`` refuses one without)."""
-    cap = smallest(limits.wall_minutes, own(launch.launcher.get("max_time_minutes"), "launcher.max_time_minutes"))
-    fitted = copy.deepcopy(launch)
-    if cap is not None:
-        fitted.launcher.max_time_minutes = cap.value
-    return fitted
+def within_limits(settings: LaunchSettings, limits: ClusterLimits) -> LaunchSettings:
+    """``settings`` with its jobs' time limits within the cluster's longest (``wall_minutes``): at most that, a
+    longer group as a chain of jobs through its checkpoints (``describe_fit`` refuses one without)."""
+    launcher = settings.launcher
+    if not isinstance(launcher, SlurmLauncher):
+        return settings
+    cap = smallest(limits.wall_minutes, own(launcher.max_time_minutes, "launcher.max_time_minutes"))
+    if cap is None:
+        return settings
+    return replace(settings, launcher=replace(launcher, max_time_minutes=cap.value))
 
 
 def describe_fit(limits: ClusterLimits | None, storage: Storage, packs: Sequence[Pack], tasks: int,

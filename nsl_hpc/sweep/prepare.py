@@ -21,6 +21,7 @@ from nsl_hpc.studies.base import Pair, Study
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.grid import Grid, build_manifest, grid_size, sub_grids, validate_grid
+from nsl_hpc.sweep.launch_settings import LaunchSettings, check_run_settings
 from nsl_hpc.sweep.layout import base_config_path, row_path
 from nsl_hpc.sweep.manifest import (
     manifest_path,
@@ -30,7 +31,6 @@ from nsl_hpc.sweep.manifest import (
     write_sweep,
     write_yaml,
 )
-from nsl_hpc.sweep.plan import check_run_settings
 from nsl_hpc.sweep.rows import row_states, set_aside
 from nsl_hpc.sweep.task import check_settings
 from nsl_hpc.sweep.task_states import read_sweep_state
@@ -141,6 +141,7 @@ class BuiltSweep:
     configs: dict[tuple[str, str], Pair]  # the typed settings of each (system, arch)
     study: Study
     sweep: SweepSettings
+    settings: LaunchSettings  # what its jobs run by
     above_max_flops: int = 0  # tasks of the grid left out by sweep.max_flops
 
 
@@ -172,7 +173,7 @@ def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
     require_tasks_at_most(grid_size(grid, study), cfg.max_tasks)
     configs = pair_configs(cfg, overrides, study)
     validate_grid_values(grid, study, configs)
-    check_run_settings(cfg)
+    settings = check_run_settings(cfg)
     max_flops, column = sweep.max_flops, sweep.max_flops_column
     manifest = build_manifest(grid, study, configs, cfg.sweep_seed)
     compute_columns = [name for name in manifest.column_names if name.startswith("flops")]
@@ -180,12 +181,12 @@ def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
         raise ConfigError(f"sweep.max_flops_column={column!r} is not a compute column of this study's tasks; "
                           f"choose one of: {', '.join(compute_columns)}")
     if max_flops is None:
-        return BuiltSweep(manifest, configs, study, sweep)
+        return BuiltSweep(manifest, configs, study, sweep, settings)
     kept = manifest.filter(pc.less(manifest[column], max_flops))
     if kept.num_rows == 0:
         raise ConfigError(f"sweep.max_flops={max_flops:g} leaves no task of the grid (its least {column} is "
                           f"{pc.min(manifest[column]).as_py():.3g})")
-    return BuiltSweep(kept, configs, study, sweep, manifest.num_rows - kept.num_rows)
+    return BuiltSweep(kept, configs, study, sweep, settings, manifest.num_rows - kept.num_rows)
 
 
 def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> PreparedSweep:

@@ -104,11 +104,11 @@ class Watchdog:
 class RunSettings:
     """The run-setting groups of a launch config (the launcher's aside: ``config.launchers``)."""
 
-    lockstep: Lockstep
-    packing: Packing
-    cost: Cost
-    checkpoint: Checkpoint
-    watchdog: Watchdog
+    lockstep: Lockstep = setting("tasks trained together in one process")
+    packing: Packing = setting("short tasks packed into one job")
+    cost: Cost = setting("what the planner predicts wall time from")
+    checkpoint: Checkpoint = setting("training checkpoints")
+    watchdog: Watchdog = setting("frozen-task detection")
 
 
 RUN_GROUPS: dict[str, type] = typing.get_type_hints(RunSettings)  # name -> owner
