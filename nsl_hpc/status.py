@@ -21,7 +21,6 @@ from dataclasses import dataclass
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
-from nsl_hpc.analysis.widths import describe_law_records, law_records
 from nsl_hpc.config.schema import setting, typed
 from nsl_hpc.sweep.budget import stop_when_of
 from nsl_hpc.sweep.decisions import describe_rounds, read_decisions, round_job_queued
@@ -124,6 +123,8 @@ def main(config: DictConfig) -> int:
         if note := state.accounting_note():
             print(note, flush=True)
         if decisions := read_decisions(sweep_dir):
+            from nsl_hpc.analysis.widths import describe_law_records, law_records  # scipy: a budget's only
+
             print(f"budget: {describe_rounds(decisions)}", flush=True)
             stop_when = stop_when_of(OmegaConf.select(launch, "budget.stop_when", default=None))
             for line in describe_law_records(law_records(sweep_dir), stop_when):

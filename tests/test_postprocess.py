@@ -12,7 +12,6 @@ import pyarrow.parquet as pq
 import pytest
 import yaml
 from mlflow.tracking import MlflowClient
-from omegaconf import OmegaConf
 
 from nsl_hpc.analysis.cards import core_hours
 from nsl_hpc.analysis.figures import power_label
@@ -20,6 +19,7 @@ from nsl_hpc.seeding import stable_hash
 from nsl_hpc.sweep.directory import sweep_lock
 from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.layout import row_path
+from nsl_hpc.sweep.manifest import read_launch_config
 from nsl_hpc.sweep.merge import Vanished, read_shards
 from nsl_hpc.sweep.rows import read_row, read_task_rows, row_states, write_row_atomically
 from nsl_hpc.sweep.submissions import record_submission
@@ -121,7 +121,7 @@ def test_fit_writes_one_row_per_nsl_and_reports_excluded_outcomes(sweep_copy):
     # tasks submitted to SLURM: the prediction recorded at their submission (status's), not planned again
     submitted = manifest_ids(sweep_copy)[:6]
     record_submission(sweep_copy, "77", 60, ["77_0"], [submitted], [[600.0] * 6])
-    launch_config, results = OmegaConf.load(sweep_copy / "launch.yaml"), pq.read_table(sweep_copy / "results.parquet")
+    launch_config, results = read_launch_config(sweep_copy), pq.read_table(sweep_copy / "results.parquet")
     again = core_hours(sweep_copy, launch_config, results)
     others = results.filter(pc.invert(pc.is_in(results["task_id"], value_set=pa.array(submitted))))
     unsubmitted = core_hours(sweep_copy, launch_config, others)

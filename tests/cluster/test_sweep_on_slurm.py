@@ -70,7 +70,7 @@ def test_sweep_larger_than_max_array_size_is_split(small_max_array_size, tmp_pat
 
 def test_faults_on_slurm_then_resubmit_completes_every_task_once(slurm_cluster, tmp_path):
     sweep_dir = tmp_path / "sweep"
-    launched = nsl("launch", *TINY_GRID, "sweep.grid.seed=[0,1,2,3,4,5]", "sweep.grid.epochs=[2,400]", *UNPACKED,
+    launched = nsl("launch", *TINY_GRID, "sweep.grid.seed=[0,1,2,3]", "sweep.grid.epochs=[2,400]", *UNPACKED,
                    f"sweep_dir={sweep_dir}", "fault.kind=hang", "fault.seed=1", "watchdog.heartbeat_timeout_s=10")
     assert launched.returncode == 0, launched.stderr
     assert len(submitted_arrays(launched.stdout)) == 1, launched.stdout
@@ -86,12 +86,12 @@ def test_faults_on_slurm_then_resubmit_completes_every_task_once(slurm_cluster, 
     assert "frozen 2 |" in status  # seed 1 at both epoch counts
     assert "missing 3" in status  # the cancelled elements
     finished = {path: path.stat().st_mtime_ns for path in row_files(sweep_dir)}
-    assert len(finished) == 7
+    assert len(finished) == 3
 
     resubmitted = nsl("resubmit", f"sweep_dir={sweep_dir}")
     assert resubmitted.returncode == 0 and "resubmitting 5 tasks" in resubmitted.stdout
     status = wait_for_sweep(sweep_dir)
-    assert "done 12 |" in status
+    assert "done 8 |" in status
     assert sorted(path.stem for path in row_files(sweep_dir)) == sorted(manifest_ids(sweep_dir))
     assert all(path.stat().st_mtime_ns == mtime for path, mtime in finished.items())  # nothing recomputed
 
