@@ -54,8 +54,8 @@ def test_test_set_is_fixed_and_sized_by_config(cache, tmp_path):
 
 def test_the_test_set_length_is_a_setting(cache):
     cfg = system_settings("ball")
-    short, long = (build_test_set(dataclasses.replace(cfg, test_set=system_groups.TestSet(2, duration_s, seed=5)), cache)
-                   for duration_s in (10.0, 100.0))
+    short, long = (build_test_set(dataclasses.replace(cfg, test_set=system_groups.TestSet(2, seconds, seed=5)), cache)
+                   for seconds in (10.0, 100.0))
     assert (len(short), len(long)) == (2 * 1000, 2 * 10_000)
     assert np.all(np.isfinite(long.dx)) and not np.allclose(long.x[:1000], short.x[:1000])  # a test set of its own
 
