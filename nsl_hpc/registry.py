@@ -33,7 +33,7 @@ def groups() -> tuple[Group, ...]:
     from nsl_hpc.config.arch import ARCH_SCHEMAS, Arch
     from nsl_hpc.config.launchers import LAUNCHERS
     from nsl_hpc.config.system import InputOutputSystem, InputStateSystem
-    from nsl_hpc.studies.input_output.study import InputOutputTiers
+    from nsl_hpc.studies.base import Tiers
     from nsl_hpc.studies.input_state.study import InputStateTiers
     from nsl_hpc.studies.settings import InputOutputTrain, InputStateTrain, Metric, Runtime
     from nsl_hpc.sweep.budget import BudgetSettings
@@ -48,7 +48,7 @@ def groups() -> tuple[Group, ...]:
             Group("rehearse", OUTCOME, (Rehearse,)),
             Group("sweep", GRID, (SweepSettings,)),
             Group("budget", GRID, (BudgetSettings,)),
-            Group("tiers", GRID, (InputStateTiers, InputOutputTiers)),
+            Group("tiers", GRID, (InputStateTiers, Tiers)),
             Group("launcher", RUN, tuple(LAUNCHERS.values())),
             *(Group(name, RUN, (owner,)) for name, owner in RUN_GROUPS.items()),
             Group("", RUN, (Runtime,)),

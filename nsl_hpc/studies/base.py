@@ -23,6 +23,14 @@ DRAWS = ("per_task", "shared_across_epochs")
 
 
 @dataclass(frozen=True)
+class Tiers:
+    """The tiers a grid may use; a task outside them is refused before any work."""
+
+    width: list[int] = setting("n_h~ values", 1, nonempty=True)
+    depth: list[int] = setting("n_d~ (input-state) or n_d (input-output) values", 1, nonempty=True)
+
+
+@dataclass(frozen=True)
 class Pair:
     """The settings every task of one (system, arch) shares, typed once where a command or a job reads the pair's
     config (``Study.pair``) and passed down as this instance to the study's checks, draws, data, models and
@@ -32,6 +40,7 @@ class Pair:
     arch: Arch = setting("the architecture")
     system: Any = setting("the system (each study types its own)")
     train: Any = setting("how each model trains (each study types its own)")
+    tiers: Tiers = setting("the allowed tiers")
     draws: str = setting("per_task: a task's draws depend on all its coordinates; shared_across_epochs: on all but "
                          "its training length", choices=DRAWS)
     cache_dir: str = setting("simulated trajectories and records")

@@ -39,20 +39,11 @@ if TYPE_CHECKING:
 
 
 @dataclass(frozen=True)
-class InputOutputTiers:
-    """The tiers a grid may use (the data tiers are the system's); a task outside them is refused before any work."""
-
-    width: list[int] = setting("n_h~ values", 1, nonempty=True)
-    depth: list[int] = setting("n_d values", 1, nonempty=True)
-
-
-@dataclass(frozen=True)
 class InputOutputPair(Pair):
-    """An input-output (system, arch)'s settings."""
+    """An input-output (system, arch)'s settings (its data tiers are the system's)."""
 
     system: InputOutputSystem = setting("the records and their split")
     train: InputOutputTrain = setting("how each model trains")
-    tiers: InputOutputTiers = setting("the allowed tiers")
 
 
 def build_io_model(arch: Arch, system: InputOutputSystem, width: int, depth: int) -> "NARX | SUBNET":

@@ -22,7 +22,7 @@ from nsl_hpc.config.arch import Arch
 from nsl_hpc.config.schema import setting
 from nsl_hpc.config.system import InputStateSystem
 from nsl_hpc.errors import ConfigError, require_member
-from nsl_hpc.studies.base import Pair, Study, Task, draw_tier, model_of
+from nsl_hpc.studies.base import Pair, Study, Task, Tiers, draw_tier, model_of
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set, points_per_trajectory, training_points
 from nsl_hpc.studies.settings import InputStateTrain, Metric, batch_count
 from nsl_hpc.systems import build_system, check_system
@@ -30,13 +30,12 @@ from nsl_hpc.systems import build_system, check_system
 if TYPE_CHECKING:
     from nsl_hpc.studies.input_state.lockstep import Member
 
+
 @dataclass(frozen=True)
-class InputStateTiers:
-    """The tiers a grid may use; a task outside them is refused before any work."""
+class InputStateTiers(Tiers):
+    """The input-state grid's tiers, its data tiers among them."""
 
     data: list[int] = setting("d~ values", 1, nonempty=True)
-    width: list[int] = setting("n_h~ values", 1, nonempty=True)
-    depth: list[int] = setting("n_d~ values", 1, nonempty=True)
 
 
 @dataclass(frozen=True)
