@@ -77,7 +77,8 @@ data: $(INSTALLED)
 # a cluster that cannot start fails the run).
 # pytest-xdist workers: make test runs the SLURM tests (mostly waiting on the scheduler and on jobs that sleep) one
 # after another on one worker and a test file at a time on each of two others, filling both cores; make test-fast
-# runs two (tests/conftest.py's scheduling). TEST_WORKERS=N sets either; TEST_WORKERS=0 runs in this process.
+# runs two (tests/conftest.py's scheduling); more workers only contend for the two cores (the tests are CPU-bound).
+# TEST_WORKERS=N sets either; TEST_WORKERS=0 runs in this process.
 TEST_WORKERS ?=
 # The cluster starts (on a fresh machine: installs SLURM, munge and MariaDB) while .venv installs; its lines follow.
 test:

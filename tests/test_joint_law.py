@@ -1,14 +1,17 @@
 """The joint law of error over model size, data and training length, and the cheapest configuration it names:
 planted laws recovered from noisy outcomes, the search and the backtest on a cloud whose law is known."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from nsl_hpc.analysis.cheapest import Configurations, backtest, cheaper_share, cheapest_index, cost_interval
 from nsl_hpc.analysis.joint_law import JointLaw, JointLawError, bootstrap_joint_laws, fit_joint_law
+from nsl_hpc.analysis.nsl_settings import nsl_settings
 from nsl_hpc.config import compose_config
 
-SETTINGS = dict(compose_config(["target=0.1", "sweep_dir=unused"], "predict").nsl.joint)
+SETTINGS = nsl_settings(compose_config(["target=0.1", "sweep_dir=unused"], "predict").nsl).joint
 PLANTED = np.log([0.01, 2.0, 0.5, 5.0, 0.4, 1.0, 0.7])  # ln E, (ln A, alpha), (ln B, beta), (ln C, gamma)
 
 
@@ -33,7 +36,7 @@ def test_a_planted_joint_law_is_recovered_from_outcomes_above_it():
     assert np.allclose(law.theta[2::2], [0.5, 0.4, 0.7], rtol=0.1)  # alpha, beta, gamma
     ratio = np.exp(law.log_predict(sizes)) / values
     assert 0.95 < np.median(ratio) < 1.1  # fitted from below: on the law, not on the outcomes' middle
-    plain = fit_joint_law(sizes, errors, SETTINGS | {"above_weight": 1.0})
+    plain = fit_joint_law(sizes, errors, replace(SETTINGS, above_weight=1.0))
     assert np.median(np.exp(plain.log_predict(sizes)) / values) > np.median(ratio)
 
 

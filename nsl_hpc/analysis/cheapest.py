@@ -27,6 +27,7 @@ from tqdm import tqdm
 from nsl_hpc.analysis.cards import core_hours
 from nsl_hpc.analysis.fitting import fittable, pair_outcomes
 from nsl_hpc.analysis.joint_law import VARIABLES, JointLaw, JointLawError, bootstrap_joint_laws, fit_joint_law
+from nsl_hpc.analysis.nsl_settings import Joint
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.studies import study_named
@@ -134,7 +135,7 @@ def cheaper_share(seconds: np.ndarray, share: float) -> np.ndarray:
     return keep
 
 
-def backtest(configurations: Configurations, errors: np.ndarray, share: float, settings: Mapping[str, Any]
+def backtest(configurations: Configurations, errors: np.ndarray, share: float, settings: Joint
              ) -> Backtest:
     cheap = cheaper_share(configurations.seconds, share)
     law = fit_joint_law({k: v[cheap] for k, v in configurations.sizes.items()}, errors[cheap], settings)
@@ -189,22 +190,22 @@ def cost_interval(refits: Sequence[JointLaw], candidates: Configurations, hours:
 
 def cheapest_for(outcomes: pa.Table, metric: str, target: float, study: Study, pair: Pair,
                  template: Mapping[str, Any], launch: Mapping[str, Any], calibration: float,
-                 settings: Mapping[str, Any], level: float) -> Cheapest:
+                 settings: Joint, level: float) -> Cheapest:
     """The Cheapest of one (system, arch)'s ``outcomes`` (its typed settings ``pair``; raises JointLawError with
     too few configurations); ``calibration``: measured over predicted core-hours of the sweep; ``settings``:
     nsl.joint."""
     rows = outcomes.to_pylist()
     configurations, errors = best_per_configuration(outcomes, rows, metric, study, launch)
     law = fit_joint_law(configurations.sizes, errors, settings)
-    axes = axis_values(rows, study.size_axes, settings["beyond_doublings"])
+    axes = axis_values(rows, study.size_axes, settings.beyond_doublings)
     candidates = candidate_configurations(study, pair, template, axes, launch)
     runs = len({row["seed"] for row in rows})
     hours = candidates.seconds * calibration * runs / 3600  # (candidates,)
-    refits = bootstrap_joint_laws(law, configurations.sizes, errors, settings["bootstrap"],
+    refits = bootstrap_joint_laws(law, configurations.sizes, errors, settings.bootstrap,
                                   stable_seed("joint", template["system"], template["arch"]), settings)
     low, high = cost_interval(refits, candidates, hours, target, level)
     try:
-        tested = backtest(configurations, errors, settings["backtest_share"], settings)
+        tested = backtest(configurations, errors, settings.backtest_share, settings)
     except JointLawError:
         tested = None
     log_errors = law.log_predict(candidates.sizes)
@@ -234,7 +235,7 @@ def calibration_of(sweep_dir: Path, launch: DictConfig, results: pa.Table) -> fl
 
 
 def cheapest_configurations(sweep_dir: Path, results: pa.Table, launch: Mapping[str, Any], metric: str,
-                            target: float, calibration: float, settings: Mapping[str, Any], level: float
+                            target: float, calibration: float, settings: Joint, level: float
                             ) -> list[Cheapest | str]:
     """The Cheapest of every (system, arch) of a merged sweep, or a line saying why a pair has no joint law."""
     study = study_named(launch["study"]["name"])

@@ -20,6 +20,7 @@ from nsl_hpc.analysis.fitting import (
     write_fits,
 )
 from nsl_hpc.analysis.learning import PairLearning, sweep_learning
+from nsl_hpc.analysis.nsl_settings import nsl_settings
 from nsl_hpc.config import plain
 
 
@@ -44,4 +45,4 @@ def fit_and_record(sweep_dir: Path, nsl: DictConfig, metrics: Sequence[str] | No
     write_fits(sweep_dir, rows)
     settings = plain(chosen)
     cards = write_law_cards(sweep_dir, launch, settings, results, rows)
-    return FittedSweep(results, settings, rows, cards, sweep_learning(results, settings))
+    return FittedSweep(results, settings, rows, cards, sweep_learning(results, nsl_settings(settings)))

@@ -14,10 +14,11 @@ coefficient). Settings: ``nsl.joint``.
 import itertools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from scipy.optimize import least_squares
+
+from nsl_hpc.analysis.nsl_settings import Joint
 
 VARIABLES = ("model", "data", "length")  # the order of a law's terms and of the columns of ``sizes``
 
@@ -76,25 +77,25 @@ def jacobian(theta: np.ndarray, log_sizes: np.ndarray) -> np.ndarray:
     return np.stack(parts, axis=1)
 
 
-def fit_from(start: np.ndarray, log_sizes: np.ndarray, log_errors: np.ndarray, settings: Mapping[str, Any]
+def fit_from(start: np.ndarray, log_sizes: np.ndarray, log_errors: np.ndarray, settings: Joint
              ) -> tuple[np.ndarray, float]:
     """(theta, mean Huber loss) refined from ``start``. Exponents lie in [0, max_exponent]; E and each term at the
     smallest size at least ``floor_share`` of the smallest error (below that they change no prediction in the
     sweep's range, and a vanishing term would drift without end). Fitted with each size over its smallest."""
     terms, origin = len(log_sizes), log_sizes.min(axis=1)
-    floor = log_errors.min() + np.log(settings["floor_share"])
+    floor = log_errors.min() + np.log(settings.floor_share)
     low = np.array([floor] + [floor, 0.0] * terms)
-    high = np.array([log_errors.max()] + [np.inf, settings["max_exponent"]] * terms)
+    high = np.array([log_errors.max()] + [np.inf, settings.max_exponent] * terms)
     shifted = log_sizes - origin[:, None]
 
     def weights(theta: np.ndarray) -> np.ndarray:  # (points,) a law above an outcome weighs above_weight
-        return np.where(log_law(theta, shifted) > log_errors, settings["above_weight"], 1.0)
+        return np.where(log_law(theta, shifted) > log_errors, settings.above_weight, 1.0)
 
     result = least_squares(lambda theta: weights(theta) * (log_law(theta, shifted) - log_errors),
                            np.clip(moved(start, origin, -1), low, high),
                            jac=lambda theta: weights(theta)[:, None] * jacobian(theta, shifted),
-                           bounds=(low, high), loss="huber", f_scale=settings["huber_delta"],
-                           max_nfev=settings["max_evaluations"], ftol=settings["tolerance"], xtol=settings["tolerance"])
+                           bounds=(low, high), loss="huber", f_scale=settings.huber_delta,
+                           max_nfev=settings.max_evaluations, ftol=settings.tolerance, xtol=settings.tolerance)
     return moved(result.x, origin, 1), float(2 * result.cost / len(log_errors))
 
 
@@ -120,23 +121,23 @@ def fitted_variables(sizes: Mapping[str, np.ndarray], min_levels: int) -> tuple[
     return tuple(name for name in VARIABLES if len(np.unique(sizes[name])) >= min_levels)
 
 
-def fit_joint_law(sizes: Mapping[str, np.ndarray], errors: np.ndarray, settings: Mapping[str, Any]) -> JointLaw:
+def fit_joint_law(sizes: Mapping[str, np.ndarray], errors: np.ndarray, settings: Joint) -> JointLaw:
     """The joint law of ``errors`` (configurations,) at ``sizes`` (VARIABLES -> (configurations,)), the best of the
     refinements from ``starts`` (``settings``: nsl.joint)."""
-    variables = fitted_variables(sizes, settings["min_levels"])
-    if not variables or len(errors) < settings["min_configurations"]:
+    variables = fitted_variables(sizes, settings.min_levels)
+    if not variables or len(errors) < settings.min_configurations:
         raise JointLawError(f"{len(errors)} configurations with {len(variables)} varied sizes: a joint law needs "
-                            f"{settings['min_configurations']} (nsl.joint.min_configurations) and one size with "
-                            f"{settings['min_levels']} values (nsl.joint.min_levels)")
+                            f"{settings.min_configurations} (nsl.joint.min_configurations) and one size with "
+                            f"{settings.min_levels} values (nsl.joint.min_levels)")
     log_sizes, log_errors = columns(sizes, variables), np.log(errors)
     fits = [fit_from(start, log_sizes, log_errors, settings)
-            for start in starts(log_sizes, log_errors, settings["start_exponents"])]
+            for start in starts(log_sizes, log_errors, settings.start_exponents)]
     theta, loss = min(fits, key=lambda fit: fit[1])
     return JointLaw(variables, theta, loss)
 
 
 def bootstrap_joint_laws(law: JointLaw, sizes: Mapping[str, np.ndarray], errors: np.ndarray, replicates: int,
-                         seed: int, settings: Mapping[str, Any]) -> list[JointLaw]:
+                         seed: int, settings: Joint) -> list[JointLaw]:
     """``law`` refitted, from itself, on ``replicates`` resamples of the configurations (with replacement)."""
     rng = np.random.default_rng(seed)
     log_sizes, log_errors = columns(sizes, law.variables), np.log(errors)

@@ -8,14 +8,14 @@ or n_i = n_l iterations on the least data, leave many tasks of every architectur
 counted, not flagged.)
 """
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import pyarrow as pa
 
 from nsl_hpc.analysis.fitting import pair_outcomes
+from nsl_hpc.analysis.nsl_settings import Learning, Nsl
 
 MEAN_PREDICTOR = "mean_predictor_nmae"  # the rows' column of the mean predictor's nmae
 
@@ -61,14 +61,13 @@ def learned(results: pa.Table, below: float) -> np.ndarray:
         return ok & np.isfinite(nmae) & (nmae < below * mean)
 
 
-def pair_learning(results: pa.Table, system: str, arch: str, settings: Mapping[str, Any], column: str
-                  ) -> PairLearning:
+def pair_learning(results: pa.Table, system: str, arch: str, settings: Learning, column: str) -> PairLearning:
     """``PairLearning`` of the (system, arch) rows of ``results``; ``settings``: the ``nsl.learning`` group,
     ``column``: the results column of its resource."""
     rows = pair_outcomes(results, system, arch)
-    failed = ~learned(rows, settings["below"])
+    failed = ~learned(rows, settings.below)
     resource = rows[column].to_numpy(zero_copy_only=False).astype(float)
-    above = resource > np.quantile(resource, settings["above_quantile"]) if settings["above_quantile"] else \
+    above = resource > np.quantile(resource, settings.above_quantile) if settings.above_quantile else \
         np.ones(rows.num_rows, dtype=bool)
     nmae = rows["nmae"].to_numpy(zero_copy_only=False).astype(float)
     worst = int(np.argmax(np.where(np.isfinite(nmae), nmae, np.inf)))
@@ -77,17 +76,17 @@ def pair_learning(results: pa.Table, system: str, arch: str, settings: Mapping[s
                   + (f", mean predictor {mean:.3g})" if mean is not None else ")"))
     not_above = int((failed & above).sum())
     return PairLearning(system, arch, rows.num_rows, int(failed.sum()), int(above.sum()), not_above, worst_text,
-                        bool(above.sum()) and not_above > settings["flag_share"] * above.sum())
+                        bool(above.sum()) and not_above > settings.flag_share * above.sum())
 
 
-def sweep_learning(results: pa.Table, nsl: Mapping[str, Any]) -> list[PairLearning]:
+def sweep_learning(results: pa.Table, nsl: Nsl) -> list[PairLearning]:
     """``pair_learning`` of every (system, arch) of ``results`` by the ``nsl`` group's ``learning`` settings, in the
     order they first appear; none where the rows carry no mean predictor's score (a sweep from before it was
     recorded)."""
     if MEAN_PREDICTOR not in results.column_names:
         return []
-    settings = nsl["learning"]
-    column = nsl["resources"][settings["resource"]]["column"]
+    settings = nsl.learning
+    column = nsl.resources[settings.resource].column
     pairs = dict.fromkeys(zip(results["system"].to_pylist(), results["arch"].to_pylist(), strict=True))
     return [pair_learning(results, system, arch, settings, column) for system, arch in pairs]
 
