@@ -108,8 +108,8 @@ class Study(Generic[P]):
     def pair(self, values: Mapping[str, Any]) -> P:
         """The typed settings of a (system, arch) from its plain or composed config ``values`` (one-line
         ConfigError naming a bad key), ``values`` kept plain beside them."""
-        return dataclasses.replace(typed(self.pair_schema, {name: values[name] for name in field_names(
-            self.pair_schema) if name != "values"}, ""), values=plain(values))
+        given = {name: values[name] for name in field_names(self.pair_schema) if name != "values" and name in values}
+        return dataclasses.replace(typed(self.pair_schema, given, ""), values=plain(values))
 
     def model_keys(self, schedule_epochs: int | None, draws: str) -> tuple[str, ...]:
         """The coordinates that make tasks one model (``model_of``): with epoch milestones (a lockstep study
