@@ -60,19 +60,19 @@ def intervals(fit: NSLFit, thetas: np.ndarray, largest: float, level: float, kin
     sigma_i, alpha (percentile: alpha is often 0), L_at_max (L at the ``largest`` observed resource) and L_at_10x
     (at 10 x largest)."""
     point = fit.parameters()
-    values: dict[str, Any] = {"last_slope": float(last_slope(point)), "L_at_max": float(fit.predict(largest)),
+    found: dict[str, Any] = {"last_slope": float(last_slope(point)), "L_at_max": float(fit.predict(largest)),
                               "L_at_10x": float(fit.predict(10 * largest))}
     at = law_values(thetas, np.array([largest, 10 * largest])).T
-    quantities = {"last_slope": (values["last_slope"], last_slope(thetas), kind, False),
+    quantities = {"last_slope": (found["last_slope"], last_slope(thetas), kind, False),
                   "alpha": (fit.alpha, np.exp(thetas[:, 0]), "percentile", False),
-                  "L_at_max": (values["L_at_max"], at[0], kind, True),
-                  "L_at_10x": (values["L_at_10x"], at[1], kind, True)}
+                  "L_at_max": (found["L_at_max"], at[0], kind, True),
+                  "L_at_10x": (found["L_at_10x"], at[1], kind, True)}
     quantities |= {f"sigma_{i}": (sigma, np.exp(thetas[:, 3 * i]), kind, True)
                    for i, (sigma, _, _) in enumerate(fit.breaks, start=1)}
     for name, (value, sample, form, log) in quantities.items():
         low, high = interval(value, sample, level, form, log)
-        values |= {f"{name}_lo": float(low), f"{name}_hi": float(high)}
-    return values
+        found |= {f"{name}_lo": float(low), f"{name}_hi": float(high)}
+    return found
 
 
 def band(fit: NSLFit, thetas: np.ndarray, r: np.ndarray, level: float, kind: str) -> tuple[np.ndarray, np.ndarray]:
