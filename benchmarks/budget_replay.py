@@ -39,10 +39,12 @@ from scipy.optimize import Bounds, LinearConstraint, milp
 
 from nsl_hpc.analysis.broken_law import lower_envelope
 from nsl_hpc.analysis.fitting import fit_sweep, fittable, nsl_key, pair_outcomes
+from nsl_hpc.analysis.nsl_settings import nsl_settings
 from nsl_hpc.analysis.widths import decided, law_state, widths_of
 from nsl_hpc.config import compose_config, plain
+from nsl_hpc.config.schema import typed
 from nsl_hpc.errors import ConfigError
-from nsl_hpc.sweep.budget import WIDTHS, Budget, budget_of, planned_seconds, stopped_resources
+from nsl_hpc.sweep.budget import WIDTHS, Budget, BudgetSettings, budget_of, planned_seconds, stopped_resources
 from nsl_hpc.sweep.prepare import build_sweep
 from nsl_hpc.sweep.rounds import Rounds, first_round_levels, next_round
 
@@ -58,7 +60,7 @@ def sweep_of(full: pa.Table, overrides: list[str]) -> tuple[Any, Any, dict[str, 
     if missing := len(set(manifest) - set(full["task_id"].to_pylist())):
         raise ConfigError(f"{missing:,} of the {len(manifest):,} tasks of these overrides have no row in the full "
                           "sweep: give the full sweep's own overrides")
-    return cfg, built.study, manifest, planned_seconds(manifest, cfg)
+    return cfg, built.study, manifest, planned_seconds(manifest, built.settings)
 
 
 def replay(full: pa.Table, overrides: list[str]) -> tuple[list[dict], list[dict], Budget]:
@@ -69,10 +71,12 @@ def replay(full: pa.Table, overrides: list[str]) -> tuple[list[dict], list[dict]
     cfg, study, manifest, planned_s = sweep_of(full, overrides)
     ok = full.filter(pc.equal(full["status"], "ok"))
     rows = {row["task_id"]: row for row in ok.to_pylist()}
-    budget = budget_of(cfg, planned_s(list(manifest)))
+    nsl = nsl_settings(cfg.nsl)
+    columns = {name: resource.column for name, resource in nsl.resources.items()}
+    budget = budget_of(typed(BudgetSettings, cfg.budget, "budget"), planned_s(list(manifest)), list(columns.values()),
+                       list(nsl.metrics))
     if budget is None:
         raise ConfigError("give a budget below the whole sweep: budget.share=<0..1) or budget.core_hours=<B>")
-    columns = {name: spec["column"] for name, spec in cfg.nsl.resources.items()}
     tasks = list(manifest.values())
     rounds = Rounds(tasks, study, first_round_levels(tasks, study, budget, planned_s), budget.levels_per_round)
     decisions: list[dict] = []
@@ -82,7 +86,7 @@ def replay(full: pa.Table, overrides: list[str]) -> tuple[list[dict], list[dict]
         stopped: set[str] = set()
         if number > 1 and budget.track_laws:
             ran = pa.array(sorted(d["task_id"] for d in decisions if d["run"]), pa.string())
-            fits = fit_sweep(ok.filter(pc.is_in(ok["task_id"], value_set=ran)), cfg.nsl, None, backtest=False)
+            fits = fit_sweep(ok.filter(pc.is_in(ok["task_id"], value_set=ran)), nsl, None, backtest=False)
             states.append({"round": number - 1, "committed_s": sum(d["cost_s"] for d in decisions), "fits": fits})
             state = law_state(fits, state)
             stopped = stopped_resources(state, budget.stop_when, columns)
@@ -209,7 +213,7 @@ def main() -> None:
     print(f"replayed: {len(ran):,} of {full.num_rows:,} tasks run, trained core-hours (in the full sweep) "
           f"{trained:.3f} of {total:.3f} ({trained / total:.0%})\n")
     print("\n".join(round_rows(decisions, seconds)) + "\n")
-    budgeted_fits = [] if args.no_fits else fit_sweep(budgeted, fit_cfg.nsl, None)
+    budgeted_fits = [] if args.no_fits else fit_sweep(budgeted, nsl_settings(fit_cfg.nsl), None)
     laws = law_ratios(full, full_fits, budgeted, budgeted_fits, nsl)
     print("\n".join(summary_rows(laws, args.goal, fits=not args.no_fits)))
     if states:

@@ -9,16 +9,17 @@ On a synthetic 63,504-task input-state sweep (97% of rows written, 3% failure re
    margins of the default fit against the study's objective (without bootstrap).
 """
 
+import dataclasses
 import os
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
-from omegaconf import OmegaConf
 from synthetic import corrupt_rows, fill_sweep, synthetic_input_state_sweep
 
 from nsl_hpc.analysis.fitting import fit_sweep
+from nsl_hpc.analysis.nsl_settings import nsl_settings
 from nsl_hpc.bench.measure import timed
 from nsl_hpc.config import compose_config
 from nsl_hpc.sweep.merge import merge_sweep, results_path
@@ -42,11 +43,11 @@ def main() -> None:
               f"{summary.merged:,} merged")
 
         results = pq.read_table(results_path(sweep_dir))
-        nsl = compose_config([f"sweep_dir={sweep_dir}"], "fit").nsl
+        nsl = nsl_settings(compose_config([f"sweep_dir={sweep_dir}"], "fit").nsl)
         fits, fit_s = timed(fit_sweep, results, nsl, None)
         print(f"fit: {len(fits)} NSLs on {results.num_rows:,} outcomes with {nsl.bootstrap} bootstrap refits each in "
               f"{fit_s:.0f} s on {os.cpu_count()} cores (target 300 s; b chosen: {sorted(f['b'] for f in fits)})")
-        study_cfg = OmegaConf.merge(nsl, {"objective": "study", "bootstrap": 0})
+        study_cfg = dataclasses.replace(nsl, objective="study", bootstrap=0)
         study, study_s = timed(fit_sweep, results, study_cfg, None)
         ratios = np.array([s["margin"] / d["margin"] for d, s in zip(fits, study, strict=True)])
         print(f"objective: the study's Adam fit ({study_s:.0f} s) has a margin {np.median(ratios):.1f}x the "

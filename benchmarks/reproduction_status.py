@@ -14,6 +14,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from nsl_hpc.analysis.reproduction import (
+    LawSlice,
     candidates_table,
     collect,
     mechanism_factors,
@@ -24,6 +25,8 @@ from nsl_hpc.analysis.reproduction import (
 )
 from nsl_hpc.atomic import write_text
 from nsl_hpc.config import config_dir, plain
+from nsl_hpc.config.schema import typed
+from nsl_hpc.errors import ConfigError
 
 
 def train_candidates(cfg: dict) -> None:
@@ -53,15 +56,19 @@ def main() -> None:
     except Exception as error:  # OmegaConf's errors name the key; one line, no traceback
         sys.exit(f"error: {str(error).splitlines()[0]}")
     status_path, document = Path(cfg["status"]), Path(cfg["document"])
+    try:
+        laws = {law: typed(LawSlice, spec, f"laws.{law}") for law, spec in cfg["laws"].items()}
+    except ConfigError as error:
+        sys.exit(f"error: {error}")
     before = read_statuses(status_path)
     if cfg["train"]:
         train_candidates(cfg)
     if cfg["collect"]:
         mechanisms = mechanism_factors(Path(cfg["mechanisms"]).read_text())
-        statuses = collect(cfg["laws"], Path(cfg["root"]), cfg["candidates"], mechanisms, before)
+        statuses = collect(laws, Path(cfg["root"]), cfg["candidates"], mechanisms, before)
         write_text(statuses_json(statuses), status_path)
         if any((Path(cfg["root"]) / slice_name).exists() for slice_name in cfg["candidates"]):
-            write_text(candidates_table(cfg["laws"], Path(cfg["root"]), cfg["candidates"], cfg["learned_below"]),
+            write_text(candidates_table(laws, Path(cfg["root"]), cfg["candidates"], cfg["learned_below"]),
                        Path(cfg["candidates_output"]))
         for slice_name in cfg["sweeps"]:  # each slice's fits beside the published laws, as its report wrote them
             comparison = Path(cfg["root"]) / slice_name / "comparison.md"

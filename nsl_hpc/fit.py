@@ -26,13 +26,14 @@ from nsl_hpc.analysis.fitting import fits_path
 from nsl_hpc.analysis.learning import learning_lines
 from nsl_hpc.analysis.nsl_settings import nsl_settings
 from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.launch_settings import launch_settings
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 
 
 def main(cfg: DictConfig) -> int:
-    nsl_settings(cfg.nsl)
+    nsl = nsl_settings(cfg.nsl)
     sweep_dir = require_sweep(cfg.sweep_dir)
-    fitted = fit_and_record(sweep_dir, cfg.nsl, cfg.metrics, cfg.workers, read_launch_config(sweep_dir))
+    fitted = fit_and_record(sweep_dir, nsl, cfg.metrics, cfg.workers, launch_settings(read_launch_config(sweep_dir)))
     print("\n".join(learning_lines(fitted.learning)))
     rows = fitted.rows
     failed = sum(row["error"] is not None for row in rows)

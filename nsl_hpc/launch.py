@@ -11,6 +11,7 @@ clean, is refused. launcher=slurm returns as soon as the job arrays are submitte
 `python -m nsl_hpc.status sweep_dir=<dir>`.
 """
 
+import functools
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -18,7 +19,9 @@ from typing import Any
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
+from nsl_hpc.config.schema import typed
 from nsl_hpc.studies.base import model_of
+from nsl_hpc.sweep.budget import BudgetSettings
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 from nsl_hpc.sweep.executors import run_jobs
 from nsl_hpc.sweep.groups import saved_groups
@@ -33,7 +36,7 @@ from nsl_hpc.sweep.prepare import (
     prepare_sweep,
 )
 from nsl_hpc.sweep.rehearsal import plant_job_deaths
-from nsl_hpc.sweep.rounds import Budgeted, budgeted_rounds, launch_rounds
+from nsl_hpc.sweep.rounds import Budgeted, TrackedLaws, budgeted_rounds, launch_rounds
 from nsl_hpc.sweep.storage import read_storage
 
 
@@ -74,9 +77,21 @@ def describe_plan(prepared: PreparedSweep, packs: Sequence[Pack], launcher: str)
             f"  predicted: {predicted}")
 
 
+def tracked_laws(nsl: DictConfig) -> TrackedLaws:
+    """The laws a budgeted sweep's rounds look at, from the launch's ``nsl`` group typed once. The law fits (scipy:
+    ~0.7 s to import) are imported here, where a budget needs them: a launch without one starts sooner."""
+    from nsl_hpc.analysis.nsl_settings import nsl_settings
+    from nsl_hpc.analysis.widths import track_laws
+
+    settings = nsl_settings(nsl)
+    return TrackedLaws({name: resource.column for name, resource in settings.resources.items()},
+                       tuple(settings.metrics), functools.partial(track_laws, nsl=settings))
+
+
 def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
     built = build_sweep(cfg, overrides)  # every check first: nothing is written for a refused launch
-    budgeted = budgeted_rounds(cfg, built, Path(cfg.sweep_dir))
+    budget = typed(BudgetSettings, cfg.budget, "budget")
+    budgeted = budgeted_rounds(built, Path(cfg.sweep_dir), budget, tracked_laws(cfg.nsl) if budget.requested else None)
     with private_umask():
         sweep_dir = usable_sweep_dir(cfg.sweep_dir)
         with sweep_lock(sweep_dir, "launch"):
@@ -91,17 +106,14 @@ def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path, budgeted: Budget
     prepared = prepare_sweep(cfg, built, sweep_dir)
     if budgeted is None:
         return run_tasks(cfg, built, prepared)
-    # the law fits (scipy: ~0.7 s to import) where a budget's rounds track them: a launch without starts sooner
-    from nsl_hpc.analysis.widths import track_laws
-
-    return launch_rounds(cfg, built, prepared, overrides, *budgeted, run_tasks, track_laws)
+    return launch_rounds(cfg, built, prepared, overrides, *budgeted, run_tasks)
 
 
 def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> int:
     """Print the plan of ``prepared.todo`` within the cluster's limits and the sweep directory's file system, and
     (unless a dry run) run or submit it."""
     settings, tasks = built.settings, prepared.todo.to_pylist()
-    limits = cluster_limits(cfg, cfg.dry_run)
+    limits = cluster_limits(settings, cfg.dry_run)
     packs = (within_limits(settings, limits) if limits else settings).plan(
         tasks, saved=[saved.task_ids for saved in saved_groups(prepared.sweep_dir)])
     print(describe_plan(prepared, packs, cfg.launcher.name))
@@ -109,7 +121,7 @@ def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> in
                              cfg.checkpoint.every_minutes > 0, cfg.launcher.get("feed_minutes")):
         print(f"  {line}")
     if built.above_max_flops:
-        sweep = built.sweep
+        sweep = settings.sweep
         print(f"  sweep.max_flops={sweep.max_flops:g} ({sweep.max_flops_column}): {built.above_max_flops:,} tasks "
               "of the grid above it are not part of the sweep")
     if tasks and (settings.grouping.size > 1 or settings.grouping.model_keys):
@@ -122,7 +134,7 @@ def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> in
         return 0
     if cfg.rehearsal:  # the jobs this launch's lost nodes kill
         plant_job_deaths(prepared.sweep_dir, settings.rehearse, packs)
-    return run_jobs(prepared.sweep_dir, cfg, packs, tasks, prepared.configs, limits)
+    return run_jobs(prepared.sweep_dir, settings, packs, tasks, prepared.configs, limits)
 
 
 if __name__ == "__main__":

@@ -18,25 +18,23 @@ the cheaper configurations, predicting the best outcome of the dearer ones and w
 """
 
 from pathlib import Path
-from typing import Any
 
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.cheapest import calibration_of, cheapest_configurations, describe_cheapest
 from nsl_hpc.analysis.fitting import fits_path, read_results
-from nsl_hpc.analysis.nsl_settings import Joint, check_target, nsl_settings
+from nsl_hpc.analysis.nsl_settings import Nsl, check_target, nsl_settings
 from nsl_hpc.analysis.prediction import describe_need, what_it_takes
 from nsl_hpc.atomic import read_parquet
-from nsl_hpc.config import plain
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies import study_named
+from nsl_hpc.sweep.launch_settings import launch_settings
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 
 
 def main(cfg: DictConfig) -> int:
-    nsl = plain(cfg.nsl)
-    settings = nsl_settings(nsl)
+    nsl = nsl_settings(cfg.nsl)
     check_target(cfg.target, cfg.metric, cfg.resource, nsl)
     sweep_dir = require_sweep(cfg.sweep_dir)
     if not fits_path(sweep_dir).exists():
@@ -46,25 +44,25 @@ def main(cfg: DictConfig) -> int:
                             nsl)
     if not entries:
         raise ConfigError(f"no fitted {cfg.resource}-{cfg.metric} law in {fits_path(sweep_dir)}")
-    symbol = nsl["resources"][cfg.resource]["symbol"]
-    print(f"{nsl['metrics'][cfg.metric]} {cfg.target:g} by {cfg.resource} ({symbol}), "
-          f"{nsl['bootstrap_level']:.0%} intervals from the bootstrap refits:")
+    symbol = nsl.resources[cfg.resource].symbol
+    print(f"{nsl.metrics[cfg.metric]} {cfg.target:g} by {cfg.resource} ({symbol}), "
+          f"{nsl.bootstrap_level:.0%} intervals from the bootstrap refits:")
     for entry in entries:
         print("  " + describe_need(entry, symbol))
-    print_cheapest(sweep_dir, cfg, nsl, settings.joint)
+    print_cheapest(sweep_dir, cfg, nsl)
     return 0
 
 
-def print_cheapest(sweep_dir: Path, cfg: DictConfig, nsl: dict[str, Any], joint: Joint) -> None:
-    """The cheapest configuration of every (system, arch) for the target, by its joint law (``joint``: nsl.joint)."""
-    results, launch = read_results(sweep_dir), read_launch_config(sweep_dir)
-    calibration = calibration_of(sweep_dir, launch, results)
+def print_cheapest(sweep_dir: Path, cfg: DictConfig, nsl: Nsl) -> None:
+    """The cheapest configuration of every (system, arch) for the target, by its joint law (nsl.joint)."""
+    results, launch = read_results(sweep_dir), launch_settings(read_launch_config(sweep_dir))
+    calibration, joint = calibration_of(sweep_dir, launch, results), nsl.joint
     found = cheapest_configurations(sweep_dir, results, launch, cfg.metric, cfg.target, calibration, joint,
-                                    nsl["bootstrap_level"])
+                                    nsl.bootstrap_level)
     length = study_named(launch.study.name).length_axis
-    print(f"\n{nsl['metrics'][cfg.metric]} {cfg.target:g} at the least cost, by a joint law over model size p, data d "
+    print(f"\n{nsl.metrics[cfg.metric]} {cfg.target:g} at the least cost, by a joint law over model size p, data d "
           f"and {length} n (nsl.joint); cost: the planner's seconds of the configuration trained alone x "
-          f"{calibration:.2f} (this sweep's measured over predicted core-hours), {nsl['bootstrap_level']:.0%} "
+          f"{calibration:.2f} (this sweep's measured over predicted core-hours), {nsl.bootstrap_level:.0%} "
           f"interval from {joint.bootstrap} refits on resampled configurations:")
     for entry in found:
         print("\n".join("  " + line for line in ([entry] if isinstance(entry, str) else describe_cheapest(entry))))

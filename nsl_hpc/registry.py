@@ -37,7 +37,7 @@ def groups() -> tuple[Group, ...]:
     from nsl_hpc.studies.input_state.study import InputStateTiers
     from nsl_hpc.studies.settings import InputOutputTrain, InputStateTrain, Metric, Runtime
     from nsl_hpc.sweep.budget import BudgetSettings
-    from nsl_hpc.sweep.prepare import SweepSettings
+    from nsl_hpc.sweep.launch_settings import SweepSettings
     from nsl_hpc.sweep.rehearsal import Rehearse
     from nsl_hpc.sweep.run_settings import RUN_GROUPS, Fault
 

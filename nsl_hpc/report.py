@@ -12,7 +12,7 @@ updated, not duplicated. A tracking server (http, https) must answer within ``ml
 is written. The steps also run alone: ``python -m nsl_hpc.merge``, ``python -m nsl_hpc.fit``.
 """
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.figures import draw_figures, figure_stem
@@ -24,36 +24,37 @@ from nsl_hpc.analysis.nsl_settings import MlflowSettings, figure_settings, nsl_s
 from nsl_hpc.analysis.prediction import what_it_takes
 from nsl_hpc.analysis.report import comparison_markdown, report_html, scores_note, what_it_takes_html
 from nsl_hpc.atomic import write_text
-from nsl_hpc.config import plain
 from nsl_hpc.config.schema import typed
 from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.launch_settings import launch_settings
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep
 from nsl_hpc.sweep.merge import merge_sweep, results_path
 
 
 def main(cfg: DictConfig) -> int:
-    nsl_settings(cfg.nsl)
-    figure_settings(cfg.figures, cfg.nsl.resources)
+    settings = nsl_settings(cfg.nsl)
+    figure_options = figure_settings(cfg.figures, settings.resources)
     sweep_dir = require_sweep(cfg.sweep_dir)
     mlflow = typed(MlflowSettings, cfg.mlflow, "mlflow")
     require_server(mlflow)
     launch_config = read_launch_config(sweep_dir)
-    launch = plain(launch_config)
+    launch = launch_settings(launch_config)
     summary = merge_sweep(sweep_dir, cfg.compact)
     print(f"merged {summary.merged:,} tasks into {results_path(sweep_dir)}\n{summary.describe()}")
-    fitted = fit_and_record(sweep_dir, cfg.nsl, cfg.metrics, cfg.workers, launch_config)
+    fitted = fit_and_record(sweep_dir, settings, cfg.metrics, cfg.workers, launch)
     results, rows, nsl = fitted.results, fitted.rows, fitted.nsl
     print(f"{sum(row['error'] is None for row in rows)} of {len(rows)} NSLs fitted -> {fits_path(sweep_dir)}")
     print("\n".join(learning_lines(fitted.learning)))
-    figures = draw_figures(sweep_dir, results, rows, nsl, plain(cfg.figures, resolve=False))
-    wanted = nsl["predict"]["report"]
-    entries = what_it_takes(results, rows, wanted["resource"], wanted["metric"],
-                            lambda best: [factor * best for factor in wanted["factors"]], nsl)
-    section = what_it_takes_html(entries, wanted, nsl["resources"][wanted["resource"]]["symbol"])
+    figures = draw_figures(sweep_dir, results, rows, nsl, figure_options)
+    wanted = nsl.predict.report
+    entries = what_it_takes(results, rows, wanted.resource, wanted.metric,
+                            lambda best: [factor * best for factor in wanted.factors], nsl)
+    section = what_it_takes_html(entries, wanted, nsl.resources[wanted.resource].symbol)
+    scores = scores_note(launch.study.name, OmegaConf.select(launch_config, "metric.normalization"))
     report = sweep_dir / layout.REPORT
     write_text(report_html(sweep_dir, launch, summary, rows, figures, section, nsl, fitted.cards["core_hours"],
-                           fitted.learning), report)
-    notes = " ".join(note for note in (scores_note(launch), fit_note(nsl)) if note)
+                           fitted.learning, scores), report)
+    notes = " ".join(note for note in (scores, fit_note(nsl)) if note)
     write_text(comparison_markdown(rows, notes), sweep_dir / layout.COMPARISON)
     if mlflow.enabled:
         by_key = {nsl_key(row): figure_stem(sweep_dir, row).with_suffix(".png") for row in rows}

@@ -98,7 +98,7 @@ def main(config: DictConfig, overrides: Sequence[str]) -> int:
         selected = manifest.filter(pc.is_in(manifest["task_id"], value_set=pa.array(wanted, type=pa.string())))
         configs = {pair: read_pair(sweep_dir, *pair)
                    for pair in set(zip(selected["system"].to_pylist(), selected["arch"].to_pylist(), strict=True))}
-        runnable, infeasible = split_runnable(selected, study_named(launch.study.name), configs)
+        runnable, infeasible = split_runnable(selected, study_named(settings.study.name), configs)
         if infeasible:
             print(describe_infeasible(sweep_dir, infeasible, record=True))
         tasks = runnable.to_pylist()
@@ -108,7 +108,7 @@ def main(config: DictConfig, overrides: Sequence[str]) -> int:
         for task in tasks:
             if state.states[task["task_id"]] == "corrupt":
                 set_aside(row_path(sweep_dir, task["task_id"]))
-        limits = cluster_limits(launch)
+        limits = cluster_limits(settings)
         packs = (within_limits(settings, limits) if limits else settings).plan(
             tasks, cfg.time_factor, [saved.task_ids for saved in saved_groups(sweep_dir)])
         print(f"resubmitting {len(tasks):,} tasks ({', '.join(cfg.states)}) in {len(packs):,} jobs "
@@ -116,7 +116,7 @@ def main(config: DictConfig, overrides: Sequence[str]) -> int:
         for line in describe_fit(limits, read_storage(sweep_dir), packs, len(tasks),
                                  launch.checkpoint.every_minutes > 0, launch.launcher.get("feed_minutes")):
             print(f"  {line}")
-        return run_jobs(sweep_dir, launch, packs, tasks, configs, limits)
+        return run_jobs(sweep_dir, settings, packs, tasks, configs, limits)
 
 
 def sweeps_launcher(argv: Sequence[str]) -> list[str]:

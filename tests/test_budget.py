@@ -11,7 +11,7 @@ from nsl_hpc.config import compose_config
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.budget import Budget, decide_round, planned_seconds
 from nsl_hpc.sweep.decisions import DECISION_SCHEMA, read_decisions
-from nsl_hpc.sweep.launch_settings import LaunchSettings
+from nsl_hpc.sweep.launch_settings import LaunchSettings, launch_settings
 from nsl_hpc.sweep.rounds import Rounds, first_round_levels
 from tests.sweeps import nsl, row_files
 
@@ -111,7 +111,7 @@ def test_the_planned_seconds_of_a_set_of_tasks_are_planned_once_whatever_their_o
     planned = []
     monkeypatch.setattr(LaunchSettings, "groups",
                         lambda self, tasks, saved=(): planned.append([t["task_id"] for t in tasks]) or [])
-    seconds = planned_seconds(BY_ID, compose_config(["+sweep=demo"], "launch"))
+    seconds = planned_seconds(BY_ID, launch_settings(compose_config(["+sweep=demo"], "launch")))
     assert seconds(["s1w2e2", "s0w2e2"]) == seconds(["s0w2e2", "s1w2e2"]) == 0.0
     assert planned == [["s0w2e2", "s1w2e2"]]  # once, in the order of the ids
 

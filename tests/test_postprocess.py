@@ -18,6 +18,7 @@ from nsl_hpc.analysis.figures import power_label
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.sweep.directory import sweep_lock
 from nsl_hpc.sweep.failures import record_failure
+from nsl_hpc.sweep.launch_settings import launch_settings
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.manifest import read_launch_config
 from nsl_hpc.sweep.merge import Vanished, read_shards
@@ -121,10 +122,10 @@ def test_fit_writes_one_row_per_nsl_and_reports_excluded_outcomes(sweep_copy):
     # tasks submitted to SLURM: the prediction recorded at their submission (status's), not planned again
     submitted = manifest_ids(sweep_copy)[:6]
     record_submission(sweep_copy, "77", 60, ["77_0"], [submitted], [[600.0] * 6])
-    launch_config, results = read_launch_config(sweep_copy), pq.read_table(sweep_copy / "results.parquet")
-    again = core_hours(sweep_copy, launch_config, results)
+    launch, results = launch_settings(read_launch_config(sweep_copy)), pq.read_table(sweep_copy / "results.parquet")
+    again = core_hours(sweep_copy, launch, results)
     others = results.filter(pc.invert(pc.is_in(results["task_id"], value_set=pa.array(submitted))))
-    unsubmitted = core_hours(sweep_copy, launch_config, others)
+    unsubmitted = core_hours(sweep_copy, launch, others)
     assert again["predicted"] == pytest.approx(1.0 + unsubmitted["predicted"], rel=1e-9)  # 6 x 600 s
     (sweep_copy / "submissions" / "77.json").unlink()
     assert nsl("fit", f"sweep_dir={sweep_copy}", "metrics=[nmae]", "nsl.bootstrap=0").returncode == 0

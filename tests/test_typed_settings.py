@@ -21,14 +21,6 @@ BOUNDARIES = {"config", "studies/__init__.py:study_of", "studies/base.py:shared_
               "studies/base.py:with_neutral_settings", "studies/input_output/study.py:shared_identity",
               "sweep/manifest.py:read_pair", "sweep/prepare.py:require_costs",
               "sweep/launch_settings.py:launch_settings", "sweep/launch_settings.py:check_run_settings"}
-# the budget's rounds, post-processing and the benchmarks still read their settings (nsl, figures, mlflow, bench) by
-# key: each module here has such reads (this set only shrinks)
-NOT_YET_TYPED = {"sweep/budget.py", "sweep/rounds.py", "analysis/fitting.py", "analysis/figures.py",
-                 "analysis/report.py", "analysis/cards.py", "analysis/prediction.py", "analysis/reproduction.py",
-                 "analysis/cheapest.py", "analysis/mlflow_runs.py", "analysis/nsl_settings.py",
-                 "analysis/widths.py", "bench/compiled.py"}
-
-
 def holder(node: ast.AST) -> str | None:
     """The name a subscript or ``.get`` reads from: ``cfg`` of ``cfg["x"]``, ``train`` of ``base.train["lr"]``."""
     if isinstance(node, ast.Name):
@@ -80,15 +72,13 @@ def reads_by_key() -> Counter[str]:
 
 def excused(place: str) -> bool:
     module = place.split(":")[0]
-    return (place in BOUNDARIES or module.split("/")[0] in BOUNDARIES or module in NOT_YET_TYPED)
+    return place in BOUNDARIES or module.split("/")[0] in BOUNDARIES
 
 
 def test_no_setting_is_read_by_key_below_the_commands():
     reads = reads_by_key()
     offending = {place: count for place, count in reads.items() if not excused(place)}
     assert not offending, f"settings read by key (type them where the config is read, pass the instance): {offending}"
-    still = {place.split(":")[0] for place in reads}
-    assert still >= NOT_YET_TYPED, f"typed now, drop from NOT_YET_TYPED: {sorted(NOT_YET_TYPED - still)}"
 
 
 def test_the_check_finds_a_read_by_key():

@@ -8,20 +8,20 @@ import json
 import math
 import subprocess
 from collections.abc import Mapping, Sequence
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pyarrow as pa
-from omegaconf import DictConfig
 
 import nsl_hpc
 from nsl_hpc.analysis.fitting import fit_note, nsl_key
+from nsl_hpc.analysis.nsl_settings import Nsl
 from nsl_hpc.atomic import write_text
-from nsl_hpc.config import plain
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.sweep import layout
-from nsl_hpc.sweep.launch_settings import launch_settings
+from nsl_hpc.sweep.launch_settings import LaunchSettings
 from nsl_hpc.sweep.manifest import read_manifest
 from nsl_hpc.sweep.submissions import predicted_shares, read_submissions
 
@@ -42,25 +42,24 @@ def code_commit() -> str | None:
     return None
 
 
-def sweep_context(launch: Mapping[str, Any], nsl: Mapping[str, Any], core_hours: Mapping[str, float]
-                  ) -> dict[str, Any]:
+def sweep_context(launch: LaunchSettings, nsl: Nsl, core_hours: Mapping[str, float]) -> dict[str, Any]:
     """What every card of a sweep shares: its grid, the fit settings, the code, the core-hours (predicted by
     the planner and measured, of the merged tasks)."""
-    grid = launch["sweep"]["grid"]
-    return {"sweep": launch["sweep"]["name"], "rehearsal": bool(launch.get("rehearsal")),
-            "sweep_seed": launch.get("sweep_seed"), "grid": grid, "grid_hash": stable_hash(grid),
-            "fit_settings": dict(nsl), "fit_settings_hash": stable_hash(nsl), "how_fitted": fit_note(nsl),
+    grid, fit_settings = launch.sweep.grid, asdict(nsl)
+    return {"sweep": launch.sweep.name, "rehearsal": launch.rehearsal, "sweep_seed": launch.sweep_seed,
+            "grid": grid, "grid_hash": stable_hash(grid), "fit_settings": fit_settings,
+            "fit_settings_hash": stable_hash(fit_settings), "how_fitted": fit_note(nsl),
             "package_version": nsl_hpc.__version__, "commit": code_commit(), "core_hours": dict(core_hours)}
 
 
-def law_card(row: Mapping[str, Any], context: Mapping[str, Any]) -> dict[str, Any]:
-    """The card of one nsl_fits row (a law that could not be fitted: its key and why)."""
+def law_card(row: Mapping[str, Any], context: Mapping[str, Any], nsl: Nsl) -> dict[str, Any]:
+    """The card of one nsl_fits row (a law that could not be fitted: its key and why) of a sweep fitted with
+    ``nsl``."""
     key = {name: row[name] for name in ("system", "arch", "resource", "metric")}
     provenance = {name: context[name] for name in ("sweep", "rehearsal", "sweep_seed", "grid", "grid_hash",
                                                      "fit_settings_hash", "package_version", "commit")}
     if row["error"] is not None:
         return {**key, "fitted": False, "why_not": row["error"], "outcomes": row["outcomes"], **provenance}
-    nsl = context["fit_settings"]
     breaks = [{"sigma": row[f"sigma_{i}"], "phi": row[f"phi_{i}"], "delta": row[f"delta_{i}"]}
               for i in range(1, row["b"] + 1)]
     names = [*INTERVALS, *(f"sigma_{i}" for i in range(1, row["b"] + 1))]
@@ -71,7 +70,7 @@ def law_card(row: Mapping[str, Any], context: Mapping[str, Any]) -> dict[str, An
                 "segment_points": row["segment_points"], "undetermined": row["undetermined"] or None},
         "outcomes": {"fitted": row["outcomes"], "excluded": row["excluded"],
                      "resource_range": [row["r_min"], row["r_max"]]},
-        "envelope": {"kind": row["envelope"], "points": nsl["K"],
+        "envelope": {"kind": row["envelope"], "points": nsl.K,
                      "definition": "Definition 1: the smallest error of the outcomes with a resource at most r, at "
                                    "K log-spaced resources from the smallest to the largest"
                                    + ("" if row["envelope"] == "step" else "; the law was fitted to the envelope "
@@ -81,8 +80,7 @@ def law_card(row: Mapping[str, Any], context: Mapping[str, Any]) -> dict[str, An
         "margin": {"M": row["margin"], "on_fitted_envelope": row["fit_margin"],
                    "by_b": {int(b): m for b, m in json.loads(row["margins_by_b"]).items()}},
         "b_why": why_b(row, nsl),
-        "intervals": ({"resamples": row["bootstrap"], "level": nsl["bootstrap_level"],
-                       "kind": nsl["bootstrap_interval"],
+        "intervals": ({"resamples": row["bootstrap"], "level": nsl.bootstrap_level, "kind": nsl.bootstrap_interval,
                        **{name: {"value": row.get(name), "lo": row.get(f"{name}_lo"), "hi": row.get(f"{name}_hi")}
                           for name in names}} if row.get("bootstrap") else None),
         "backtest": {"fitted_below": row["backtest_cut"], "M_above": row["backtest_margin"],
@@ -96,18 +94,18 @@ def law_card(row: Mapping[str, Any], context: Mapping[str, Any]) -> dict[str, An
     }
 
 
-def why_b(row: Mapping[str, Any], nsl: Mapping[str, Any]) -> str:
+def why_b(row: Mapping[str, Any], nsl: Nsl) -> str:
     """Why the law has its number of breaks, in one sentence."""
-    if nsl["breaks"] is not None:
-        return f"b fixed at {nsl['breaks']} (nsl.breaks)"
+    if nsl.breaks is not None:
+        return f"b fixed at {nsl.breaks} (nsl.breaks)"
     margins = ", ".join(f"b={b}: {m:.3g}" for b, m in sorted(json.loads(row["margins_by_b"]).items()))
-    return (f"b={row['b']} of 0..{nsl['max_breaks']}: the most breaks whose every segment stands on at least "
-            f"{nsl['min_segment_points']} outcomes of the envelope and each of which cuts the margin (without the "
-            f"{nsl['choice_trim']:.0%} of envelope points the law fits worst) by {nsl['min_gain']:.0%} or more; "
+    return (f"b={row['b']} of 0..{nsl.max_breaks}: the most breaks whose every segment stands on at least "
+            f"{nsl.min_segment_points} outcomes of the envelope and each of which cuts the margin (without the "
+            f"{nsl.choice_trim:.0%} of envelope points the law fits worst) by {nsl.min_gain:.0%} or more; "
             f"the best margin on the fitted envelope by b: {margins}")
 
 
-def core_hours(sweep_dir: Path, launch: DictConfig, results: pa.Table) -> dict[str, Any]:
+def core_hours(sweep_dir: Path, launch: LaunchSettings, results: pa.Table) -> dict[str, Any]:
     """Core-hours of the merged tasks: predicted (each task's share as recorded when it was submitted last, as
     status reads it; a task never submitted to SLURM: the planner's lockstep groups of those, as launch plans)
     and measured (their rows' wall seconds, a group's shared among its tasks)."""
@@ -115,7 +113,7 @@ def core_hours(sweep_dir: Path, launch: DictConfig, results: pa.Table) -> dict[s
     recorded = predicted_shares(read_submissions(sweep_dir))
     tasks = [task for task in read_manifest(sweep_dir).to_pylist() if task["task_id"] in merged]
     unrecorded = [task for task in tasks if task["task_id"] not in recorded]
-    groups = launch_settings(launch).groups(unrecorded) if unrecorded else []
+    groups = launch.groups(unrecorded) if unrecorded else []
     predicted = sum(recorded[task["task_id"]] for task in tasks if task["task_id"] in recorded)
     measured = (float(np.nansum(results["wall_seconds"].to_numpy(zero_copy_only=False).astype(float))) / 3600
                 if "wall_seconds" in results.column_names else None)
@@ -137,22 +135,23 @@ def strict_json(value: Any) -> Any:
     return value
 
 
-def write_cards(sweep_dir: Path, rows: Sequence[Mapping[str, Any]], context: Mapping[str, Any]) -> list[Path]:
+def write_cards(sweep_dir: Path, rows: Sequence[Mapping[str, Any]], context: Mapping[str, Any], nsl: Nsl
+                ) -> list[Path]:
     """Write each row's card (atomically), remove cards of laws the fit no longer has; returns the paths."""
     paths = []
     for row in rows:
         path = card_path(sweep_dir, row)
-        write_text(json.dumps(strict_json(law_card(row, context)), indent=1, allow_nan=False) + "\n", path)
+        write_text(json.dumps(strict_json(law_card(row, context, nsl)), indent=1, allow_nan=False) + "\n", path)
         paths.append(path)
     for stale in set((Path(sweep_dir) / layout.LAW_CARDS).glob("*.json")) - set(paths):
         stale.unlink(missing_ok=True)
     return paths
 
 
-def write_law_cards(sweep_dir: Path, launch: DictConfig, nsl: Mapping[str, Any], results: pa.Table,
+def write_law_cards(sweep_dir: Path, launch: LaunchSettings, nsl: Nsl, results: pa.Table,
                     rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """Write the cards of a fit's ``rows`` (fit and report write them beside nsl_fits.parquet); returns what
     they share (sweep_context)."""
-    context = sweep_context(plain(launch), nsl, core_hours(sweep_dir, launch, results))
-    write_cards(sweep_dir, rows, context)
+    context = sweep_context(launch, nsl, core_hours(sweep_dir, launch, results))
+    write_cards(sweep_dir, rows, context, nsl)
     return context

@@ -21,7 +21,6 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
-from omegaconf import DictConfig
 from tqdm import tqdm
 
 from nsl_hpc.analysis.cards import core_hours
@@ -32,7 +31,7 @@ from nsl_hpc.errors import ConfigError
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import Pair, Study
-from nsl_hpc.sweep.launch_settings import launch_settings
+from nsl_hpc.sweep.launch_settings import LaunchSettings
 from nsl_hpc.sweep.manifest import read_manifest, read_pair
 from nsl_hpc.sweep.plan import planned_group
 
@@ -68,16 +67,15 @@ def axis_values(rows: Sequence[Mapping[str, Any]], axes: Sequence[str], doubling
     return values
 
 
-def configurations_of(rows: Sequence[Mapping[str, Any]], study: Study, launch: Mapping[str, Any]) -> Configurations:
+def configurations_of(rows: Sequence[Mapping[str, Any]], study: Study, launch: LaunchSettings) -> Configurations:
     """Manifest or results rows as Configurations: their size-axis coordinates, sizes and the planner's seconds of
     each trained alone."""
-    settings = launch_settings(launch)
     return Configurations([{axis: row[axis] for axis in study.size_axes} for row in rows], sizes_of(rows, study),
-                          np.array([planned_group([row], settings.cost, settings.grouping).seconds for row in rows]))
+                          np.array([planned_group([row], launch.cost, launch.grouping).seconds for row in rows]))
 
 
 def candidate_configurations(study: Study, pair: Pair, template: Mapping[str, Any],
-                             values: Mapping[str, Sequence[Any]], launch: Mapping[str, Any]) -> Configurations:
+                             values: Mapping[str, Sequence[Any]], launch: LaunchSettings) -> Configurations:
     """Every combination of ``values`` (size axis -> values) as a task like ``template`` (a manifest row), drawn
     and checked as the study does, with the planner's seconds of it trained alone."""
     rows = []
@@ -94,7 +92,7 @@ def candidate_configurations(study: Study, pair: Pair, template: Mapping[str, An
 
 
 def best_per_configuration(pair: pa.Table, rows: Sequence[Mapping[str, Any]], metric: str, study: Study,
-                           launch: Mapping[str, Any]) -> tuple[Configurations, np.ndarray]:
+                           launch: LaunchSettings) -> tuple[Configurations, np.ndarray]:
     """The configurations a pair's fittable outcomes ran (``rows``: ``pair``'s rows), each with its best outcome
     over the seeds (its sizes are that outcome's draw), and those best errors (n,)."""
     best: dict[tuple, Mapping[str, Any]] = {}
@@ -189,7 +187,7 @@ def cost_interval(refits: Sequence[JointLaw], candidates: Configurations, hours:
 
 
 def cheapest_for(outcomes: pa.Table, metric: str, target: float, study: Study, pair: Pair,
-                 template: Mapping[str, Any], launch: Mapping[str, Any], calibration: float,
+                 template: Mapping[str, Any], launch: LaunchSettings, calibration: float,
                  settings: Joint, level: float) -> Cheapest:
     """The Cheapest of one (system, arch)'s ``outcomes`` (its typed settings ``pair``; raises JointLawError with
     too few configurations); ``calibration``: measured over predicted core-hours of the sweep; ``settings``:
@@ -228,17 +226,17 @@ def cheapest_for(outcomes: pa.Table, metric: str, target: float, study: Study, p
                     core_hours=float(hours[chosen]))
 
 
-def calibration_of(sweep_dir: Path, launch: DictConfig, results: pa.Table) -> float:
+def calibration_of(sweep_dir: Path, launch: LaunchSettings, results: pa.Table) -> float:
     """The sweep's measured over predicted core-hours (1 where no row measured its seconds)."""
     hours = core_hours(sweep_dir, launch, results)
     return hours["measured"] / hours["predicted"] if hours["measured"] and hours["predicted"] else 1.0
 
 
-def cheapest_configurations(sweep_dir: Path, results: pa.Table, launch: Mapping[str, Any], metric: str,
+def cheapest_configurations(sweep_dir: Path, results: pa.Table, launch: LaunchSettings, metric: str,
                             target: float, calibration: float, settings: Joint, level: float
                             ) -> list[Cheapest | str]:
     """The Cheapest of every (system, arch) of a merged sweep, or a line saying why a pair has no joint law."""
-    study = study_named(launch["study"]["name"])
+    study = study_named(launch.study.name)
     manifest = read_manifest(sweep_dir).to_pylist()
     found: list[Cheapest | str] = []
     pairs = dict.fromkeys(zip(results["system"].to_pylist(), results["arch"].to_pylist(), strict=True))

@@ -22,6 +22,7 @@ from tqdm import tqdm
 from nsl_hpc.analysis.bootstrap import band, thetas_of
 from nsl_hpc.analysis.broken_law import NSLFit, log_law, lower_envelope
 from nsl_hpc.analysis.fitting import fit_from_row, fittable, pair_outcomes
+from nsl_hpc.analysis.nsl_settings import Figures, Nsl
 from nsl_hpc.analysis.published import KEY as PUBLISHED_KEY
 from nsl_hpc.analysis.published import published_law
 from nsl_hpc.atomic import replacing
@@ -40,17 +41,17 @@ def overview_stem(sweep_dir: Path, resource: str, metric: str) -> Path:
     return Path(sweep_dir) / layout.FIGURES / f"overview__{resource}__{metric}"
 
 
-def save(fig: Figure, stem: Path, figures: Mapping[str, Any]) -> list[Path]:
+def save(fig: Figure, stem: Path, figures: Figures) -> list[Path]:
     paths = []
-    for fmt in figures["formats"]:
+    for fmt in figures.formats:
         path = stem.with_suffix(f".{fmt}")
         with replacing(path) as temporary:
-            fig.savefig(temporary, format=fmt, dpi=figures["dpi"])
+            fig.savefig(temporary, format=fmt, dpi=figures.dpi)
         paths.append(path)
     return paths
 
 
-def marker_sizes(values: np.ndarray, limits: tuple[float, float]) -> np.ndarray:
+def marker_sizes(values: np.ndarray, limits: Sequence[float]) -> np.ndarray:
     """Marker areas growing with log(value) from limits[0] to limits[1]."""
     logs = np.log(values)
     span = logs.max() - logs.min()
@@ -58,44 +59,44 @@ def marker_sizes(values: np.ndarray, limits: tuple[float, float]) -> np.ndarray:
     return limits[0] + share * (limits[1] - limits[0])
 
 
-def outcomes_of(results: pa.Table, row: Mapping[str, Any], nsl: Mapping[str, Any], figures: Mapping[str, Any]
+def outcomes_of(results: pa.Table, row: Mapping[str, Any], nsl: Nsl, figures: Figures
                 ) -> dict[str, np.ndarray]:
     """Resource, error, colour and size values of the fitted outcomes of one NSL."""
     subset = pair_outcomes(results, row["system"], row["arch"])
-    resources = nsl["resources"]
-    columns = {"r": resources[row["resource"]]["column"], "c": resources[figures["colour"][row["resource"]]]["column"],
-               "s": resources[figures["size"][row["resource"]]]["column"]}
+    resources = nsl.resources
+    columns = {"r": resources[row["resource"]].column, "c": resources[figures.colour[row["resource"]]].column,
+               "s": resources[figures.size[row["resource"]]].column}
     keep = fittable(subset, columns["r"], row["metric"])
     values = {name: subset[column].to_numpy().astype(float)[keep] for name, column in columns.items()}
     return {**values, "e": subset[row["metric"]].to_numpy().astype(float)[keep]}
 
 
-def draw_nsl(ax: Axes, data: Mapping[str, np.ndarray], row: Mapping[str, Any], nsl: Mapping[str, Any],
-             figures: Mapping[str, Any], norm: LogNorm, legend: bool):
+def draw_nsl(ax: Axes, data: Mapping[str, np.ndarray], row: Mapping[str, Any], nsl: Nsl,
+             figures: Figures, norm: LogNorm, legend: bool):
     """One NSL on ``ax``; returns the scatter (for a colour bar)."""
-    points = ax.scatter(data["r"], data["e"], c=data["c"], s=marker_sizes(data["s"], figures["marker_size"]),
+    points = ax.scatter(data["r"], data["e"], c=data["c"], s=marker_sizes(data["s"], figures.marker_size),
                         norm=norm, cmap="viridis", alpha=0.6, linewidths=0, rasterized=True)
-    grid_r, grid_e = lower_envelope(data["r"], data["e"], nsl["K"])
-    ax.step(grid_r, grid_e, where="post", color="black", lw=1.2, label=f"envelope (K={nsl['K']}, Definition 1)")
+    grid_r, grid_e = lower_envelope(data["r"], data["e"], nsl.K)
+    ax.step(grid_r, grid_e, where="post", color="black", lw=1.2, label=f"envelope (K={nsl.K}, Definition 1)")
     dense = np.geomspace(grid_r[0], grid_r[-1], 400)
     if row["error"] is None:
         fit = fit_from_row(row)
         if row.get("envelope") == "interpolated":  # why the law may run below the steps
-            ax.plot(*lower_envelope(data["r"], data["e"], nsl["K"], "interpolated"), color="grey", lw=0.9,
+            ax.plot(*lower_envelope(data["r"], data["e"], nsl.K, "interpolated"), color="grey", lw=0.9,
                     label="interpolated envelope (the fitted one: the law may run below the steps)")
-        formula = "\n".join(textwrap.wrap(row["formula"], figures["formula_width"]))
+        formula = "\n".join(textwrap.wrap(row["formula"], figures.formula_width))
         law, determined = fit.predict(dense), determined_mask(dense, fit, row)
         ax.plot(dense, np.where(determined, law, np.nan), color="crimson", lw=1.8,
                 label=f"{formula}\nM = {row['margin']:.2g}")
         if not determined.all():  # the segments the outcomes do not determine: no law there
             ax.plot(dense, np.where(np.convolve(~determined, [1, 1, 1], "same") > 0, law, np.nan), color="grey",
                     ls=":", lw=1.5, label="\n".join(textwrap.wrap(f"undetermined: {row['undetermined']}",
-                                                                 figures["formula_width"])))
+                                                                 figures.formula_width)))
         thetas = thetas_of(row)
         if len(thetas):
-            low, high = band(fit, thetas, dense, nsl["bootstrap_level"], nsl["bootstrap_interval"])
+            low, high = band(fit, thetas, dense, nsl.bootstrap_level, nsl.bootstrap_interval)
             ax.fill_between(dense, low, high, where=determined, color="crimson", alpha=0.15, lw=0,
-                            label=f"{nsl['bootstrap_level']:.0%} band ({len(thetas)} resamples)")
+                            label=f"{nsl.bootstrap_level:.0%} band ({len(thetas)} resamples)")
         for i, (sigma, _, _) in enumerate(fit.breaks):
             ax.axvline(sigma, color="crimson", ls=":", lw=1, label="breaks" if i == 0 else None)
     low, high = data["e"].min() / 2, data["e"].max() * 2  # a band far off stays out of the way
@@ -155,25 +156,25 @@ def power_label(value: float, _position: object = None) -> str:
     return power if mantissa == 1 else f"{mantissa:g}\u00d7{power}"
 
 
-def figure_for_nsl(sweep_dir: Path, results: pa.Table, row: Mapping[str, Any], nsl: Mapping[str, Any],
-                   figures: Mapping[str, Any]) -> list[Path]:
+def figure_for_nsl(sweep_dir: Path, results: pa.Table, row: Mapping[str, Any], nsl: Nsl,
+                   figures: Figures) -> list[Path]:
     data = outcomes_of(results, row, nsl, figures)
     if len(data["r"]) == 0:
         return []
     fig = Figure(figsize=(7.5, 5.2), layout="constrained")
     ax = fig.subplots()
     points = draw_nsl(ax, data, row, nsl, figures, LogNorm(data["c"].min(), data["c"].max()), legend=True)
-    colour, size = figures["colour"][row["resource"]], figures["size"][row["resource"]]
-    fig.colorbar(points, ax=ax, label=nsl["resources"][colour]["label"], format=FuncFormatter(power_label))
-    ax.set_xlabel(nsl["resources"][row["resource"]]["label"])
-    ax.set_ylabel(f"{nsl['metrics'][row['metric']]} (test)")
+    colour, size = figures.colour[row["resource"]], figures.size[row["resource"]]
+    fig.colorbar(points, ax=ax, label=nsl.resources[colour].label, format=FuncFormatter(power_label))
+    ax.set_xlabel(nsl.resources[row["resource"]].label)
+    ax.set_ylabel(f"{nsl.metrics[row['metric']]} (test)")
     ax.set_title(f"{REHEARSAL_TITLE if row.get('rehearsal') else ''}{row['system']} / {row['arch']}: "
-                 f"{nsl['metrics'][row['metric']]} vs {row['resource']} (marker size: {size})", fontsize=10)
+                 f"{nsl.metrics[row['metric']]} vs {row['resource']} (marker size: {size})", fontsize=10)
     return save(fig, figure_stem(sweep_dir, row), figures)
 
 
 def overview_figure(sweep_dir: Path, results: pa.Table, rows: Sequence[Mapping[str, Any]], resource: str, metric: str,
-                    nsl: Mapping[str, Any], figures: Mapping[str, Any]) -> list[Path]:
+                    nsl: Nsl, figures: Figures) -> list[Path]:
     """Architecture (rows) x system (columns) grid of the NSLs of one (resource, metric)."""
     archs = list(dict.fromkeys(row["arch"] for row in rows))
     systems = list(dict.fromkeys(row["system"] for row in rows))
@@ -189,11 +190,11 @@ def overview_figure(sweep_dir: Path, results: pa.Table, rows: Sequence[Mapping[s
         fitted = "not fitted" if row["error"] else f"b={row['b']}, M={row['margin']:.2g}"
         ax.set_title(f"{row['system']} / {row['arch']}: {fitted}", fontsize=8)
     for ax in axes[-1]:
-        ax.set_xlabel(nsl["resources"][resource]["label"], fontsize=8)
+        ax.set_xlabel(nsl.resources[resource].label, fontsize=8)
     for ax in axes[:, 0]:
-        ax.set_ylabel(nsl["metrics"][metric], fontsize=8)
+        ax.set_ylabel(nsl.metrics[metric], fontsize=8)
     if points is not None:
-        fig.colorbar(points, ax=axes, label=nsl["resources"][figures["colour"][resource]]["label"], shrink=0.8,
+        fig.colorbar(points, ax=axes, label=nsl.resources[figures.colour[resource]].label, shrink=0.8,
                      format=FuncFormatter(power_label))
     fig.legend(*overview_legend(axes), loc="outside lower center", fontsize=8, ncols=4)
     if any(row.get("rehearsal") for row in rows):
@@ -216,14 +217,14 @@ def overview_legend(axes: np.ndarray) -> tuple[list, list[str]]:
     return [handle for handle, _ in handles.values()], [label for _, label in handles.values()]
 
 
-def draw_figures(sweep_dir: Path, results: pa.Table, rows: list[dict[str, Any]], nsl: Mapping[str, Any],
-                 figures: Mapping[str, Any]) -> dict[str, list[Path]]:
+def draw_figures(sweep_dir: Path, results: pa.Table, rows: list[dict[str, Any]], nsl: Nsl,
+                 figures: Figures) -> dict[str, list[Path]]:
     """Every NSL figure and overview grid; returns their paths by kind ('nsl', 'overview')."""
     drawn: dict[str, list[Path]] = {"nsl": [], "overview": []}
     for row in tqdm(rows, desc="figures", unit="NSL", disable=None):
         drawn["nsl"] += figure_for_nsl(sweep_dir, results, row, nsl, figures)
-    for resource in nsl["resources"]:
-        for metric in nsl["metrics"]:
+    for resource in nsl.resources:
+        for metric in nsl.metrics:
             group = [row for row in rows if row["resource"] == resource and row["metric"] == metric]
             if group:
                 drawn["overview"] += overview_figure(sweep_dir, results, group, resource, metric, nsl, figures)

@@ -7,7 +7,6 @@ from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
-from omegaconf import DictConfig
 
 from nsl_hpc.analysis.cards import write_law_cards
 from nsl_hpc.analysis.fitting import (
@@ -20,29 +19,28 @@ from nsl_hpc.analysis.fitting import (
     write_fits,
 )
 from nsl_hpc.analysis.learning import PairLearning, sweep_learning
-from nsl_hpc.analysis.nsl_settings import nsl_settings
-from nsl_hpc.config import plain
+from nsl_hpc.analysis.nsl_settings import Nsl
+from nsl_hpc.sweep.launch_settings import LaunchSettings
 
 
 @dataclass(frozen=True)
 class FittedSweep:
     results: pa.Table  # the merged outcomes
-    nsl: dict[str, Any]  # the nsl group with the chosen metrics
+    nsl: Nsl  # the nsl settings with the chosen metrics
     rows: list[dict[str, Any]]  # a row per NSL (nsl_fits.parquet)
     cards: dict[str, Any]  # what write_law_cards returns
     learning: list[PairLearning]  # per (system, arch): did its models learn
 
 
-def fit_and_record(sweep_dir: Path, nsl: DictConfig, metrics: Sequence[str] | None, workers: int | None,
-                   launch: DictConfig) -> FittedSweep:
+def fit_and_record(sweep_dir: Path, nsl: Nsl, metrics: Sequence[str] | None, workers: int | None,
+                   launch: LaunchSettings) -> FittedSweep:
     """Fit the laws of ``metrics`` (None: the nsl group's) on the sweep's merged results with ``workers``
     processes, write them (nsl_fits.parquet, fits.txt) and their cards once one law could be fitted (else raise,
-    replacing nothing), and say whether each pair's models learned. ``launch``: the sweep's launch config."""
+    replacing nothing), and say whether each pair's models learned. ``launch``: the sweep's launch settings."""
     results = read_results(sweep_dir)
     chosen = choose_metrics(nsl, metrics, results)
     rows = fit_sweep(results, chosen, workers, rehearsal_of(launch))
     require_some_fit(rows, fits_path(sweep_dir))
     write_fits(sweep_dir, rows)
-    settings = plain(chosen)
-    cards = write_law_cards(sweep_dir, launch, settings, results, rows)
-    return FittedSweep(results, settings, rows, cards, sweep_learning(results, nsl_settings(settings)))
+    cards = write_law_cards(sweep_dir, launch, chosen, results, rows)
+    return FittedSweep(results, chosen, rows, cards, sweep_learning(results, chosen))

@@ -5,32 +5,31 @@ import json
 import os
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from nsl_hpc.analysis.bootstrap import bootstrap_thetas, intervals
 from nsl_hpc.analysis.broken_law import (
-    FitSettings,
     NSLFit,
     NSLFitError,
     backtest_broken_law,
     fit_broken_law,
     lower_envelope,
 )
+from nsl_hpc.analysis.nsl_settings import Nsl
 from nsl_hpc.analysis.published import comparison
 from nsl_hpc.atomic import read_parquet, write_parquet, write_text
-from nsl_hpc.config import plain
-from nsl_hpc.config.schema import typed
 from nsl_hpc.errors import ConfigError, RunError
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.studies.metrics import NORMALIZATIONS
 from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.launch_settings import LaunchSettings
 from nsl_hpc.sweep.merge import results_path
 from nsl_hpc.sweep.rehearsal import Rehearse, planted_law
 
@@ -63,7 +62,7 @@ def metric_label(column: str, labels: Mapping[str, str]) -> str:
     return column
 
 
-def choose_metrics(nsl: DictConfig, metrics: Sequence[str] | None, results: pa.Table) -> DictConfig:
+def choose_metrics(nsl: Nsl, metrics: Sequence[str] | None, results: pa.Table) -> Nsl:
     """``nsl`` fitting the results columns ``metrics`` (None: its own ``nsl.metrics``); refused with a one-line
     error naming the score columns there are when one is missing. The report's "What it takes" metric falls
     back to the first chosen."""
@@ -74,11 +73,11 @@ def choose_metrics(nsl: DictConfig, metrics: Sequence[str] | None, results: pa.T
     if missing or not metrics:
         raise ConfigError(f"metrics={list(metrics)}: {', '.join(missing) or 'none chosen'} not among the sweep's "
                           f"scores; choose from: {', '.join(scores)}")
-    chosen = plain(nsl)
-    chosen["metrics"] = {metric: metric_label(metric, chosen["metrics"]) for metric in metrics}
-    if chosen["predict"]["report"]["metric"] not in chosen["metrics"]:
-        chosen["predict"]["report"]["metric"] = metrics[0]
-    return OmegaConf.create(chosen)
+    chosen = {metric: metric_label(metric, nsl.metrics) for metric in metrics}
+    report = nsl.predict.report
+    if report.metric not in chosen:
+        report = replace(report, metric=metrics[0])
+    return replace(nsl, metrics=chosen, predict=replace(nsl.predict, report=report))
 
 
 def require_some_fit(rows: Sequence[Mapping[str, Any]], path: Path) -> None:
@@ -88,9 +87,9 @@ def require_some_fit(rows: Sequence[Mapping[str, Any]], path: Path) -> None:
                        f"{path.name} is left as it was")
 
 
-def rehearsal_of(launch: Mapping[str, Any]) -> Rehearse | None:
-    """A launch config's rehearsal settings (``rehearse``: its planted laws) when it is a rehearsal, else None."""
-    return typed(Rehearse, launch["rehearse"], "rehearse") if launch.get("rehearsal") else None
+def rehearsal_of(launch: LaunchSettings) -> Rehearse | None:
+    """A launch's rehearsal settings (``rehearse``: its planted laws) when it is a rehearsal, else None."""
+    return launch.rehearse if launch.rehearsal else None
 
 
 def read_results(sweep_dir: Path) -> pa.Table:
@@ -117,22 +116,21 @@ def pair_outcomes(results: pa.Table, system: str, arch: str) -> pa.Table:
     return results.filter(pc.and_(pc.equal(results["system"], system), pc.equal(results["arch"], arch)))
 
 
-def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, nsl: dict[str, Any], symbol: str,
+def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, nsl: Nsl, symbol: str,
             rehearse: Rehearse | None = None, backtest: bool = True) -> dict[str, Any]:
     """One NSL's row (KEY_COLUMNS, outcomes, excluded, b, parameters, margin, formula, backtest, bootstrap
     intervals and thetas, the published law's paper_* columns, a rehearsal's planted_* ones; error on failure).
     ``excluded``: merged tasks left out (not ok, or non-finite / non-positive values); ``rehearse``: a
     rehearsal's settings (its planted laws), None for a real sweep; ``backtest``: false leaves the backtest out (a
     second fit)."""
-    settings = FitSettings.of(nsl)
-    options = {"breaks": nsl["breaks"], "max_breaks": nsl["max_breaks"], "K": nsl["K"], "settings": settings}
+    options: dict[str, Any] = {"breaks": nsl.breaks, "max_breaks": nsl.max_breaks, "K": nsl.K, "settings": nsl}
     row: dict[str, Any] = {**key, "outcomes": len(r), "excluded": excluded, "error": None,
                            **({"rehearsal": True} if rehearse is not None else {})}
     try:
         fit = fit_broken_law(r, e, **options)
     except NSLFitError as error:
         return {**row, "error": str(error)}
-    slots = nsl["breaks"] if nsl["breaks"] is not None else nsl["max_breaks"]
+    slots = nsl.breaks if nsl.breaks is not None else nsl.max_breaks
     padded = fit.breaks + [(None, None, None)] * (slots - fit.b)
     row.update(b=fit.b, alpha=fit.alpha, beta=fit.beta, delta0=fit.delta0, margin=fit.margin,
                fit_margin=fit.fit_margin, envelope=fit.envelope, formula=fit.formula(symbol),
@@ -143,19 +141,18 @@ def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, ns
                envelope_r=fit.envelope_r.tolist(), envelope_e=fit.envelope_e.tolist())
     for i, (sigma, phi, delta) in enumerate(padded, start=1):
         row.update({f"sigma_{i}": sigma, f"phi_{i}": phi, f"delta_{i}": delta})
-    thetas = bootstrap_thetas(fit, r, e, nsl["bootstrap"], stable_seed("bootstrap", *key.values()), nsl["K"],
-                              settings)
-    row.update(bootstrap=nsl["bootstrap"], bootstrap_thetas=thetas.tolist())
-    if nsl["bootstrap"]:
-        bounds = intervals(fit, thetas, float(r.max()), nsl["bootstrap_level"], nsl["bootstrap_interval"])
+    thetas = bootstrap_thetas(fit, r, e, nsl.bootstrap, stable_seed("bootstrap", *key.values()), nsl.K, nsl)
+    row.update(bootstrap=nsl.bootstrap, bootstrap_thetas=thetas.tolist())
+    if nsl.bootstrap:
+        bounds = intervals(fit, thetas, float(r.max()), nsl.bootstrap_level, nsl.bootstrap_interval)
         row.update({name: bounds.get(name) for name in interval_columns(slots)})
-    row.update(comparison(tuple(key.values()), r, e, nsl["K"]))
+    row.update(comparison(tuple(key.values()), r, e, nsl.K))
     if rehearse is not None:
-        row.update(planted_comparison(rehearse, key, row, r, e, nsl["K"]))
+        row.update(planted_comparison(rehearse, key, row, r, e, nsl.K))
     if not backtest:
         return row
     log_r = np.log(r)
-    cut = float(np.exp(log_r.min() + nsl["backtest_cut"] * (log_r.max() - log_r.min())))
+    cut = float(np.exp(log_r.min() + nsl.backtest_cut * (log_r.max() - log_r.min())))
     try:
         held_out = backtest_broken_law(r, e, cut, **options | {"breaks": fit.b})
         row.update(backtest_cut=cut, backtest_margin=held_out.margin, backtest_final_ratio=held_out.final_ratio)
@@ -178,15 +175,15 @@ def planted_comparison(rehearse: Rehearse, key: Mapping[str, str], row: Mapping[
     with np.errstate(divide="ignore"):  # alpha 0: ln alpha = -inf
         theta = law.parameters().tolist()
     at_max = float(law.predict(r.max()))
-    values = {"planted_formula": law.formula("c"), "planted_theta": theta,
+    planted = {"planted_formula": law.formula("c"), "planted_theta": theta,
               "planted_last_slope": local_slope(law, float(r.max())), "planted_L_at_max": at_max,
               "planted_envelope_excess": float(grid_e[-1]) / at_max,
               "planted_margin_on_ours": float(np.mean((np.log(law.predict(grid_r)) - np.log(grid_e)) ** 2))}
     if row.get("last_slope_lo") is not None:
-        values["planted_recovered"] = bool(
-            row["last_slope_lo"] <= values["planted_last_slope"] <= row["last_slope_hi"]
+        planted["planted_recovered"] = bool(
+            row["last_slope_lo"] <= planted["planted_last_slope"] <= row["last_slope_hi"]
             and row["L_at_max_lo"] <= at_max <= row["L_at_max_hi"])
-    return values
+    return planted
 
 
 def local_slope(law: NSLFit, r: float) -> float:
@@ -208,12 +205,11 @@ def fit_from_row(row: Mapping[str, Any]) -> NSLFit:
                   {int(b): m for b, m in json.loads(row["margins_by_b"]).items()}, row["objective"])
 
 
-def fit_sweep(results: pa.Table, nsl: DictConfig | Mapping[str, Any], workers: int | None,
-              rehearse: Rehearse | None = None, backtest: bool = True) -> list[dict[str, Any]]:
+def fit_sweep(results: pa.Table, nsl: Nsl, workers: int | None, rehearse: Rehearse | None = None,
+              backtest: bool = True) -> list[dict[str, Any]]:
     """Every NSL of the sweep, fitted in parallel processes, in (system, arch, resource, metric) order
     (``rehearse``: a rehearsal's settings, whose planted laws are set beside the fitted ones; ``backtest``: see
     ``fit_one``)."""
-    settings = plain(nsl)
     jobs = []
     present = set(zip(results["system"].to_pylist(), results["arch"].to_pylist(), strict=True))
     for system in dict.fromkeys(results["system"].to_pylist()):
@@ -221,13 +217,13 @@ def fit_sweep(results: pa.Table, nsl: DictConfig | Mapping[str, Any], workers: i
             if (system, arch) not in present:  # a grid of sub-grids need not hold every pair
                 continue
             subset = pair_outcomes(results, system, arch)
-            for resource, spec in settings["resources"].items():
-                for metric in settings["metrics"]:
-                    keep = fittable(subset, spec["column"], metric)
-                    r = subset[spec["column"]].to_numpy().astype(float)[keep]
+            for name, resource in nsl.resources.items():
+                for metric in nsl.metrics:
+                    keep = fittable(subset, resource.column, metric)
+                    r = subset[resource.column].to_numpy().astype(float)[keep]
                     e = subset[metric].to_numpy().astype(float)[keep]
-                    key = {"system": system, "arch": arch, "resource": resource, "metric": metric}
-                    jobs.append((key, r, e, int((~keep).sum()), settings, spec["symbol"], rehearse, backtest))
+                    key = {"system": system, "arch": arch, "resource": name, "metric": metric}
+                    jobs.append((key, r, e, int((~keep).sum()), nsl, resource.symbol, rehearse, backtest))
     with ProcessPoolExecutor(workers or os.cpu_count()) as pool:
         futures = [pool.submit(fit_one, *job) for job in jobs]
         return [future.result() for future in tqdm(futures, desc="NSL fits", unit="fit", disable=None)]
@@ -273,23 +269,23 @@ def describe_fit(row: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def fit_note(nsl: Mapping[str, Any]) -> str:
+def fit_note(nsl: Nsl) -> str:
     """How the sweep's laws were fitted: the envelope, the objective and what chose b."""
-    if nsl["objective"] == "study":
+    if nsl.objective == "study":
         how = "Section 4.3's loss by Adam on Definition 1's step envelope (nsl.objective=study)"
     else:
-        envelope = ("Definition 1's step envelope" if nsl["envelope"] == "step"
+        envelope = ("Definition 1's step envelope" if nsl.envelope == "step"
                     else "the envelope interpolated between its outcomes (M still on Definition 1's)")
-        how = f"least squares of the log residuals on {envelope} (nsl.envelope={nsl['envelope']})"
-    if nsl["breaks"] is not None:
-        chosen = f"b fixed at {nsl['breaks']} (nsl.breaks)"
+        how = f"least squares of the log residuals on {envelope} (nsl.envelope={nsl.envelope})"
+    if nsl.breaks is not None:
+        chosen = f"b fixed at {nsl.breaks} (nsl.breaks)"
     else:
-        chosen = (f"b chosen in 0..{nsl['max_breaks']} among the laws whose every segment stands on at least "
-                  f"{nsl['min_segment_points']} outcomes of the envelope: each break must cut the margin by "
-                  f"{nsl['min_gain']:.0%}, not counting the {nsl['choice_trim']:.0%} of envelope points the law fits "
+        chosen = (f"b chosen in 0..{nsl.max_breaks} among the laws whose every segment stands on at least "
+                  f"{nsl.min_segment_points} outcomes of the envelope: each break must cut the margin by "
+                  f"{nsl.min_gain:.0%}, not counting the {nsl.choice_trim:.0%} of envelope points the law fits "
                   "worst (nsl.min_segment_points, nsl.min_gain, nsl.choice_trim)")
-    bound = f"-{nsl['max_slope']:g}"
-    return (f"Fits: {how}, every segment's slope in [{bound}, {nsl['max_rise']:g}] (a law never rises more than the "
+    bound = f"-{nsl.max_slope:g}"
+    return (f"Fits: {how}, every segment's slope in [{bound}, {nsl.max_rise:g}] (a law never rises more than the "
             f"published ones do; nsl.max_slope, nsl.max_rise); {chosen}. A slope at {bound} or on fewer outcomes of "
             "the envelope is undetermined (marked ?, drawn grey).")
 

@@ -27,6 +27,7 @@ from nsl_hpc.errors import RunError, one_line
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.launch_settings import LaunchSettings
 from nsl_hpc.sweep.merge import MergeSummary
 
 SWEEP_TAG = "nsl_hpc.sweep.directory"  # the sweep directory, for people
@@ -146,29 +147,29 @@ def log_nsl_runs(client: MlflowClient, experiment: str, parent: str, rows: Seque
         client.delete_run(stale.info.run_id)
 
 
-def log_to_mlflow(sweep_dir: Path, settings: MlflowSettings, launch_config: Mapping[str, Any],
+def log_to_mlflow(sweep_dir: Path, settings: MlflowSettings, launch: LaunchSettings,
                   summary: MergeSummary, rows: Sequence[Mapping[str, Any]], figures: Mapping[str, Path],
                   artifacts: Sequence[Path]) -> tuple[str, str]:
     """Log (or update) the sweep's runs; returns the experiment's id and the parent run's. A RunError in one line
     when the store fails on the way (what is on disk stays: a re-run logs it)."""
     try:
-        return logged(sweep_dir, settings, launch_config, summary, rows, figures, artifacts)
+        return logged(sweep_dir, settings, launch, summary, rows, figures, artifacts)
     except (MlflowException, OSError) as error:
         raise RunError(f"logging to MLflow at {tracking_uri(sweep_dir, settings.tracking_uri)} failed "
                        f"({type(error).__name__}: {one_line(error)[:160]}); the results, fits, figures "
                        "and report on disk are complete: run the report again to log them") from None
 
 
-def logged(sweep_dir: Path, settings: MlflowSettings, launch_config: Mapping[str, Any],
+def logged(sweep_dir: Path, settings: MlflowSettings, launch: LaunchSettings,
            summary: MergeSummary, rows: Sequence[Mapping[str, Any]], figures: Mapping[str, Path],
            artifacts: Sequence[Path]) -> tuple[str, str]:
     """``log_to_mlflow``'s work."""
     client = MlflowClient(tracking_uri(sweep_dir, settings.tracking_uri))
     experiment = experiment_id(client, settings.experiment, sweep_dir, settings.tracking_uri is None)
-    study = study_named(launch_config["study"]["name"])
+    study = study_named(launch.study.name)
     keys = ("sweep", "sweep_seed", "study", *(key for key in study.shared_keys if key not in ("system", "arch")))
-    params = flatten({key: launch_config[key] for key in keys})
-    parent = sweep_run(client, experiment, sweep_dir, launch_config["sweep"]["name"], params)
+    params = flatten({key: launch.values[key] for key in keys})  # the sweep's config as it was written
+    parent = sweep_run(client, experiment, sweep_dir, launch.sweep.name, params)
     counts = {name: value for name, value in asdict(summary).items() if isinstance(value, int)}
     metrics = {**counts, "dropped": summary.dropped, "dropped_fraction": summary.dropped / max(summary.tasks, 1),
                "nsl_fitted": sum(row["error"] is None for row in rows)}

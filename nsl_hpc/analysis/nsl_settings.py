@@ -150,10 +150,10 @@ def figure_settings(figures: Mapping[str, Any], resources: Mapping[str, Any]) ->
     return settings
 
 
-def check_target(target: Any, metric: str, resource: str, nsl: Mapping[str, Any]) -> None:
+def check_target(target: Any, metric: str, resource: str, nsl: Nsl) -> None:
     """Raise ConfigError unless ``target`` is a positive finite error of a fitted ``metric`` and ``resource``."""
-    require_choice("metric", metric, list(nsl["metrics"]))
-    require_choice("resource", resource, list(nsl["resources"]))
+    require_choice("metric", metric, list(nsl.metrics))
+    require_choice("resource", resource, list(nsl.resources))
     require_number("target", target, 0, low_open=True)
 
 

@@ -12,6 +12,7 @@ import pyarrow as pa
 from nsl_hpc.analysis.bootstrap import thetas_of
 from nsl_hpc.analysis.broken_law import log_law, pareto_indices
 from nsl_hpc.analysis.fitting import fit_from_row, fittable, pair_outcomes
+from nsl_hpc.analysis.nsl_settings import Nsl
 
 
 def resource_for(theta: np.ndarray, target: float, start: float, decades: float, points: int = 4000) -> float:
@@ -87,28 +88,28 @@ def format_need(need: Need) -> str:
 
 
 def what_it_takes(results: pa.Table, fits: Sequence[Mapping[str, Any]], resource: str, metric: str,
-                  targets: Callable[[float], Sequence[float]], nsl: Mapping[str, Any]) -> list[dict[str, Any]]:
+                  targets: Callable[[float], Sequence[float]], nsl: Nsl) -> list[dict[str, Any]]:
     """Per fitted (system, arch) law of ``resource`` and ``metric`` and per target error (``targets`` of the
     pair's best observed error): system, arch, target, best (observed), need (a Need) and, for compute,
     the smallest model and data sizes on the envelope near the needed compute (model, data, mix_where);
     search and window: ``nsl.predict``."""
-    columns = {name: spec["column"] for name, spec in nsl["resources"].items()}
+    columns = {name: spec.column for name, spec in nsl.resources.items()}
     entries = []
     for row in fits:
         if row["resource"] != resource or row["metric"] != metric or row["error"] is not None:
             continue
         pair = pair_outcomes(results, row["system"], row["arch"])
         keep = fittable(pair, columns[resource], metric)
-        values = {name: pair[column].to_numpy().astype(float)[keep] for name, column in columns.items()}
+        outcomes = {name: pair[column].to_numpy().astype(float)[keep] for name, column in columns.items()}
         e = pair[metric].to_numpy().astype(float)[keep]
-        r = values[resource]
+        r = outcomes[resource]
         for target in targets(float(e.min())):
-            need = need_for(row, target, float(r.min()), nsl["predict"]["decades"], nsl["bootstrap_level"])
+            need = need_for(row, target, float(r.min()), nsl.predict.decades, nsl.bootstrap_level)
             entry = {"system": row["system"], "arch": row["arch"], "target": target, "best": float(e.min()),
                      "need": need}
             if resource == "compute" and need.reachable:
                 entry |= dict(zip(("model", "data", "mix_where"), envelope_mix(
-                    r, e, values["model"], values["data"], need.resource, nsl["predict"]["window_decades"]),
+                    r, e, outcomes["model"], outcomes["data"], need.resource, nsl.predict.window_decades),
                     strict=True))
             entries.append(entry)
     return entries

@@ -11,11 +11,13 @@ from typing import Any
 from nsl_hpc.analysis.fitting import fit_note, last_slope_undetermined, nsl_key
 from nsl_hpc.analysis.learning import PairLearning
 from nsl_hpc.analysis.mlflow_runs import flatten
+from nsl_hpc.analysis.nsl_settings import Learning, Nsl, ReportTargets
 from nsl_hpc.analysis.prediction import format_need
 from nsl_hpc.config import compose_config, plain
 from nsl_hpc.config.targets import outcome_values
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.grid import sub_grids
+from nsl_hpc.sweep.launch_settings import LaunchSettings
 from nsl_hpc.sweep.manifest import read_base_config
 from nsl_hpc.sweep.merge import MergeSummary
 
@@ -125,12 +127,12 @@ NORMALIZATION_NOTES = {
 }
 
 
-def scores_note(launch: Mapping[str, Any]) -> str:
-    """Which normalisation the sweep's nmae / nmse columns (and so the comparison) use; '' for the input-output
-    study, whose scores are of one output column (both normalisations agree)."""
-    if launch["study"]["name"] != "input_state":
+def scores_note(study: str, normalization: str | None) -> str:
+    """Which normalisation (``metric.normalization``; None: a format-1 sweep's) the sweep's nmae / nmse columns
+    (and so the comparison) use; '' for the input-output study, whose scores are of one output column (both
+    normalisations agree)."""
+    if study != "input_state":
         return ""
-    normalization = launch["metric"]["normalization"]
     if normalization is None:  # a format-1 sweep (nsl_hpc/sweep/formats.py), before either could be chosen
         return "Scores: nMAE and nMSE per dx/dt column (a sweep from before metric.normalization)."
     return (f"Scores: {NORMALIZATION_NOTES[normalization]} (metric.normalization={normalization}); every row also "
@@ -179,26 +181,26 @@ def comparison_markdown(rows: Sequence[Mapping[str, Any]], note: str) -> str:
     return "\n".join(lines) + (f"\n\n{note}\n" if note else "\n")
 
 
-def what_it_takes_html(entries: Sequence[Mapping[str, Any]], settings: Mapping[str, Any], symbol: str) -> str:
-    """The report's table of what_it_takes entries."""
-    head = (f"<tr><th>system</th><th>arch</th><th>target {settings['metric']}</th><th>best observed</th>"
+def what_it_takes_html(entries: Sequence[Mapping[str, Any]], settings: ReportTargets, symbol: str) -> str:
+    """The report's table of what_it_takes entries (for the targets ``settings``: nsl.predict.report)."""
+    head = (f"<tr><th>system</th><th>arch</th><th>target {settings.metric}</th><th>best observed</th>"
             f"<th>{symbol} needed [90%]</th><th>smallest model / data on the envelope there</th></tr>")
     body = "".join("<tr>" + cells((
         entry["system"], entry["arch"], f"{entry['target']:.3g}", f"{entry['best']:.3g}", format_need(entry["need"]),
         f"{entry['model']:,.0f} parameters / {entry['data']:,.0f} points" if "model" in entry else "")) + "</tr>"
         for entry in entries)
-    factors = ", ".join(f"{factor:g}" for factor in settings["factors"])
-    return (f"<p>The {settings['resource']} each law needs to reach {factors} &times; the best "
-            f"{settings['metric']} observed for its (system, arch) (<code>python -m nsl_hpc.predict</code> "
+    factors = ", ".join(f"{factor:g}" for factor in settings.factors)
+    return (f"<p>The {settings.resource} each law needs to reach {factors} &times; the best "
+            f"{settings.metric} observed for its (system, arch) (<code>python -m nsl_hpc.predict</code> "
             f"answers for any target).</p><table>{head}{body}</table>")
 
 
-def science_settings(sweep_dir: Path, launch: Mapping[str, Any]) -> dict[tuple[str, str], dict[str, tuple[str, str]]]:
+def science_settings(sweep_dir: Path, launch: LaunchSettings) -> dict[tuple[str, str], dict[str, tuple[str, str]]]:
     """Per (system, arch) of the sweep, its outcome-changing settings (the study's shared keys, flattened) as
     (value, the study's default value): what the sweep trained against the Fidelity section's defaults."""
-    study = study_named(launch["study"]["name"])
+    study = study_named(launch.study.name)
     settings = {}
-    for part in sub_grids(launch["sweep"]["grid"]):
+    for part in sub_grids(launch.sweep.grid):
         for system in part["system"]:
             for arch in part["arch"]:
                 used = plain(read_base_config(sweep_dir, system, arch))
@@ -230,7 +232,7 @@ def configuration_html(settings: Mapping[tuple[str, str], Mapping[str, tuple[str
     return f"<table>{rows}</table>{verdict}"
 
 
-def learning_html(pairs: Sequence[PairLearning], settings: Mapping[str, Any]) -> str:
+def learning_html(pairs: Sequence[PairLearning], settings: Learning) -> str:
     """The report's table of how each (system, arch) learned (``analysis.learning``), flagged pairs in red."""
     if not pairs:
         return ("<p>The rows carry no mean predictor's score (<code>mean_predictor_nmae</code>): a sweep from before "
@@ -243,39 +245,40 @@ def learning_html(pairs: Sequence[PairLearning], settings: Mapping[str, Any]) ->
             f"{pair.not_learned_above:,} of {pair.above:,} ({pair.share_above:.0%})", pair.worst,
             "NOT LEARNING: its laws describe models that fail" if pair.flagged else "")) + "</tr>"
         for pair in pairs)
-    return (f"<p>A task did not learn where its nMAE is not below {settings['below']:g} times the mean predictor's "
+    return (f"<p>A task did not learn where its nMAE is not below {settings.below:g} times the mean predictor's "
             f"(the constant output at its training data's mean) or it did not finish with finite scores. A pair is "
-            f"flagged where more than {settings['flag_share']:.0%} of its better-resourced tasks (above the "
-            f"{settings['above_quantile']:g} quantile of its {settings['resource']}) did not learn "
+            f"flagged where more than {settings.flag_share:.0%} of its better-resourced tasks (above the "
+            f"{settings.above_quantile:g} quantile of its {settings.resource}) did not learn "
             f"(<code>nsl.learning</code>).</p>"
             f"<table>{head}{body}</table>")
 
 
-def report_html(sweep_dir: Path, launch: Mapping[str, Any], summary: MergeSummary, rows: Sequence[Mapping[str, Any]],
-                figures: Mapping[str, list[Path]], what_it_takes: str, nsl: Mapping[str, Any],
-                core_hours: Mapping[str, Any], learning: Sequence[PairLearning]) -> str:
-    grid = launch["sweep"]["grid"]
+def report_html(sweep_dir: Path, launch: LaunchSettings, summary: MergeSummary, rows: Sequence[Mapping[str, Any]],
+                drawn: Mapping[str, list[Path]], what_it_takes: str, nsl: Nsl, core_hours: Mapping[str, Any],
+                learning: Sequence[PairLearning], scores: str) -> str:
+    """The report's HTML (``drawn``: draw_figures' paths by kind; ``scores``: scores_note's line)."""
+    grid = launch.sweep.grid
     parts = sub_grids(grid)
     axes = "".join((f"<tr><th colspan='2'>sub-grid {index + 1} of {len(parts)}</th></tr>" if len(parts) > 1 else "")
                    + "".join(f"<tr><th>{html.escape(axis)}</th><td>{html.escape(', '.join(map(str, values)))}</td></tr>"
                              for axis, values in part.items())
                    for index, part in enumerate(parts))
     overviews = "".join(f"<h3>{html.escape(path.stem.replace('overview__', '').replace('__', ' / '))}</h3>"
-                        + embedded_png(path, path.stem) for path in figures["overview"] if path.suffix == ".png")
+                        + embedded_png(path, path.stem) for path in drawn["overview"] if path.suffix == ".png")
     singles = "".join(f"<details><summary>{html.escape(path.stem.replace('__', ' / '))}</summary>"
-                      f"{embedded_png(path, path.stem)}</details>" for path in figures["nsl"] if path.suffix == ".png")
-    name = html.escape(launch["sweep"]["name"])
+                      f"{embedded_png(path, path.stem)}</details>" for path in drawn["nsl"] if path.suffix == ".png")
+    name = html.escape(launch.sweep.name)
     return f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>NSL report: {name}</title>
 <style>{STYLE}</style></head><body>
-<h1>Neural scaling laws: {"rehearsal" if launch.get("rehearsal") else "sweep"} {name}</h1>
+<h1>Neural scaling laws: {"rehearsal" if launch.rehearsal else "sweep"} {name}</h1>
 {rehearsal_html(rows)}
-<p>Sweep directory <code>{html.escape(str(Path(sweep_dir).resolve()))}</code>, sweep seed {launch['sweep_seed']},
+<p>Sweep directory <code>{html.escape(str(Path(sweep_dir).resolve()))}</code>, sweep seed {launch.sweep_seed},
 {summary.tasks:,} tasks.</p>
 <h2>Grid</h2><table>{axes}</table>
 <h2>Configuration</h2>{configuration_html(science_settings(sweep_dir, launch))}
 <h2>Tasks</h2><p>{summary.merged:,} tasks merged. {html.escape(core_hours_line(core_hours))}</p>
 <pre>{html.escape(summary.describe())}</pre>
-<h2>Did the models learn?</h2>{learning_html(learning, nsl["learning"])}
+<h2>Did the models learn?</h2>{learning_html(learning, nsl.learning)}
 <h2>Neural scaling laws ({sum(r['error'] is None for r in rows)} of {len(rows)} fitted)</h2>
 <p>L(r) = &alpha; + &beta; r<sup>&delta;0</sup> &prod;<sub>i</sub>
 [1 + (r/&sigma;<sub>i</sub>)<sup>1/&phi;<sub>i</sub></sup>]<sup>&delta;<sub>i</sub>&phi;<sub>i</sub></sup>
@@ -290,7 +293,7 @@ published law, code version).</p>
 <h2>Against the published laws</h2>
 <p>The study's laws (<code>conf/published_laws.yaml</code>) beside ours where it publishes one: a published M and
 ours are each on their own outcomes; the published law's M on our envelope says how well it describes ours. Break
-positions are &sigma;<sub>i</sub>; ours with their 90% intervals. {html.escape(scores_note(launch))}
+positions are &sigma;<sub>i</sub>; ours with their 90% intervals. {html.escape(scores)}
 {html.escape(fit_note(nsl))}</p>
 {comparison_table(rows)}
 <h2>What it takes</h2>{what_it_takes}

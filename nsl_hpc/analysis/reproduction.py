@@ -16,8 +16,20 @@ import pyarrow.parquet as pq
 from nsl_hpc.analysis.fitting import pair_outcomes
 from nsl_hpc.analysis.learning import MEAN_PREDICTOR, learned
 from nsl_hpc.analysis.published import gap_to_published, resource_columns
+from nsl_hpc.config.schema import setting
 
 BEGIN, END = "<!-- status table: begin -->", "<!-- status table: end -->"
+
+
+@dataclass(frozen=True)
+class LawSlice:
+    """A published law's entry of conf/reproduction.yaml's ``laws``: the slice that measures it and the resources
+    its factors are taken at; a law no slice covers says why."""
+
+    at: list[float] = setting("the resources at which our envelope is set over the law", 0, low_open=True,
+                              nonempty=True)
+    slice: str | None = setting("the slice that measures it (<root>/<slice>; null: none)", default=None)
+    why: str = setting("why no slice measures it", default="its slice was not run")
 
 
 @dataclass(frozen=True)
@@ -62,7 +74,7 @@ def envelope_factors(sweep_dir: Path, law: str, at: Sequence[float], column: str
     return int(keep.sum()), gap_to_published(key, r[keep], e[keep], np.asarray(at, dtype=float))
 
 
-def collect(laws: Mapping[str, Mapping], root: Path, candidates: Mapping[str, Mapping[str, str]],
+def collect(laws: Mapping[str, LawSlice], root: Path, candidates: Mapping[str, Mapping[str, str]],
             mechanism_factors: Mapping[str, dict[str, float]], before: Mapping[str, LawStatus]) -> list[LawStatus]:
     """Each law's status from ``root``/<slice> (and ``root``/<slice>__<candidate> for the slice's ``candidates``;
     ``mechanism_factors``: law -> candidate -> largest factor, from the mechanism table); a law whose slice is not
@@ -70,32 +82,32 @@ def collect(laws: Mapping[str, Mapping], root: Path, candidates: Mapping[str, Ma
     today = datetime.date.today().isoformat()
     statuses = []
     for law, spec in laws.items():
-        at = [float(value) for value in spec["at"]]
-        sweep_dir = root / spec["slice"] if spec.get("slice") else None
-        if sweep_dir is None or not (sweep_dir / "results.parquet").exists():
-            statuses.append(before.get(law) or LawStatus(law, at, why=spec.get("why", "its slice was not run")))
+        at = [float(value) for value in spec.at]
+        sweep_dir = root / spec.slice if spec.slice else None
+        if spec.slice is None or sweep_dir is None or not (sweep_dir / "results.parquet").exists():
+            statuses.append(before.get(law) or LawStatus(law, at, why=spec.why))
             continue
         outcomes, ratios = envelope_factors(sweep_dir, law, at)
         scored, where = dict(mechanism_factors.get(law, {})), "make mechanisms" if law in mechanism_factors else ""
-        for name in candidates.get(spec["slice"], {}):
-            other = root / f"{spec['slice']}__{name}"
+        for name in candidates.get(spec.slice, {}):
+            other = root / f"{spec.slice}__{name}"
             if (other / "results.parquet").exists():
-                scored[name], where = largest_factor(envelope_factors(other, law, at)[1]), spec["slice"]
-        statuses.append(LawStatus(law, at, spec["slice"], today, outcomes, [float(x) for x in ratios],
+                scored[name], where = largest_factor(envelope_factors(other, law, at)[1]), spec.slice
+        statuses.append(LawStatus(law, at, spec.slice, today, outcomes, [float(x) for x in ratios],
                                   largest_factor(ratios), scored, where))
     return statuses
 
 
-def candidates_table(laws: Mapping[str, Mapping], root: Path, candidates: Mapping[str, Mapping[str, Sequence[str]]],
+def candidates_table(laws: Mapping[str, LawSlice], root: Path, candidates: Mapping[str, Mapping[str, Sequence[str]]],
                      below: float) -> str:
     """Per slice with candidates, a Markdown table of its default run and each candidate run under ``root``: the
     overrides, the outcomes, how many learned (nMAE below ``below`` times the mean predictor's) and, per law of the
     slice, the envelope over the law at its resources and the largest factor ('' where no slice has candidates)."""
     lines: list[str] = []
     for slice_name, runs in candidates.items():
-        slice_laws = [law for law, spec in laws.items() if spec.get("slice") == slice_name]
+        slice_laws = [law for law, spec in laws.items() if spec.slice == slice_name]
         for law in slice_laws:
-            at = [float(value) for value in laws[law]["at"]]
+            at = [float(value) for value in laws[law].at]
             lines += [f"**{law}** on `{slice_name}` (envelope / published law)", "",
                       "| settings | outcomes | learned | " + " | ".join(map(resource_text, at))
                       + " | largest factor |", "|---|---:|---:|" + "---:|" * (len(at) + 1)]

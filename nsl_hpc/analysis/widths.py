@@ -23,6 +23,7 @@ import numpy as np
 import pyarrow as pa
 
 from nsl_hpc.analysis.fitting import fit_from_row, fit_sweep, nsl_key
+from nsl_hpc.analysis.nsl_settings import Nsl
 from nsl_hpc.atomic import write_text
 from nsl_hpc.errors import damaged_file
 from nsl_hpc.sweep import layout
@@ -106,7 +107,7 @@ def describe_state(state: Sequence[Mapping[str, Any]], stop_when: StopWhen | Non
 
 
 def track_laws(sweep_dir: Path, number: int, rows: Sequence[Mapping[str, Any]], committed: Mapping[str, float],
-               nsl: Mapping[str, Any], stop_when: StopWhen | None) -> set[str]:
+               stop_when: StopWhen | None, *, nsl: Nsl) -> set[str]:
     """Fit the laws on ``rows`` (a budgeted sweep's rows of its rounds up to ``number``, manifest columns with
     each), record their state with the predicted core-hours ``committed`` so far (``all``, and per resource name
     those of the later rounds' tasks its envelopes made promising) (``layout.law_state_path``) and return the
@@ -117,7 +118,7 @@ def track_laws(sweep_dir: Path, number: int, rows: Sequence[Mapping[str, Any]], 
     state = law_state(fits, earlier[-1]["laws"] if earlier else ())
     record = {"round": number, "rows": len(rows), "committed_core_hours": dict(committed), "laws": state}
     write_text(json.dumps(record, indent=1, default=float), layout.law_state_path(sweep_dir, number))
-    columns = {name: spec["column"] for name, spec in nsl["resources"].items()}
+    columns = {name: resource.column for name, resource in nsl.resources.items()}
     return stopped_resources(state, stop_when, columns)
 
 

@@ -27,6 +27,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -57,37 +58,57 @@ FUSED = "CompiledFxGraph"  # the profiler's name of a call into Inductor's gener
 Train = Callable[[StepCompiler, Callable[[], None]], object]
 
 
-def input_state_run(spec: Mapping[str, Any]) -> tuple[Train, int, float]:
+@dataclass(frozen=True)
+class Shape:
+    """One shape measured (``compiled.shapes``) with what its process needs: the bench's systems and data (input-state
+    ``system``, ``n_traj`` trajectories; input-output ``io_system``, its first ``io_points`` samples from
+    ``data_dir``), the trajectory cache, the blocks timed, and whether one more block is profiled."""
+
+    arch: str
+    width: int
+    depth: int
+    models: int
+    system: str
+    n_traj: int
+    io_system: str
+    io_points: int
+    data_dir: str
+    data_cache: str
+    blocks: int
+    profile: bool
+
+
+def input_state_run(shape: Shape) -> tuple[Train, int, float]:
     """``train(compiler, on_progress)`` of K input-state models, the steps of a block and the flops of a step."""
-    pair = pair_of(compose_config([f"system={spec['system']}", f"arch={spec['arch']}"]))
-    data = build_training_set(pair.system, 0, spec["n_traj"], ArrayCache(spec["data_cache"]))
+    pair = pair_of(compose_config([f"system={shape.system}", f"arch={shape.arch}"]))
+    data = build_training_set(pair.system, 0, shape.n_traj, ArrayCache(shape.data_cache))
     train = pair.train
     batches = math.ceil(len(data) / train.batch_size)
     members = []
-    for k in range(spec["models"]):
+    for k in range(shape.models):
         torch.manual_seed(k)
-        model = build_model(pair.arch, *system_dimensions(pair.system), spec["width"], spec["depth"])
+        model = build_model(pair.arch, *system_dimensions(pair.system), shape.width, shape.depth)
         members.append(lockstep.Member(model, data, Scaling.fit(data, False),
-                                       math.ceil(spec["blocks"] * lockstep.BLOCK_STEPS / batches), k))
-    flops = 6.0 * parameter_count(members[0].model) * train.batch_size * spec["models"]
+                                       math.ceil(shape.blocks * lockstep.BLOCK_STEPS / batches), k))
+    flops = 6.0 * parameter_count(members[0].model) * train.batch_size * shape.models
     return (lambda compiler, on_progress: lockstep.train_lockstep(members, train, on_progress, None, compiler),
             lockstep.BLOCK_STEPS, flops)
 
 
-def input_output_run(spec: Mapping[str, Any]) -> tuple[Train, int, float]:
+def input_output_run(shape: Shape) -> tuple[Train, int, float]:
     """``train(compiler, on_progress)`` of K input-output models, the iterations of a block and the flops of one."""
-    pair = pair_of(compose_config(["study=input_output", f"system={spec['io_system']}", f"arch={spec['arch']}",
-                                   f"data_dir={spec['data_dir']}"]))
+    pair = pair_of(compose_config(["study=input_output", f"system={shape.io_system}", f"arch={shape.arch}",
+                                   f"data_dir={shape.data_dir}"]))
     assert isinstance(pair, InputOutputPair)
-    record = load_benchmark(pair.system, ArrayCache(spec["data_cache"])).train.head(spec["io_points"])
+    record = load_benchmark(pair.system, ArrayCache(shape.data_cache)).train.head(shape.io_points)
     scaling, steps = SignalScaling.fit(record), horizon(pair)
     members = []
-    for k in range(spec["models"]):
+    for k in range(shape.models):
         torch.manual_seed(k)
-        members.append(io_lockstep.IOMember(build_io_model(pair.arch, pair.system, spec["width"], spec["depth"]),
-                                            record, scaling, spec["blocks"] * io_lockstep.BLOCK_STEPS, k, steps))
+        members.append(io_lockstep.IOMember(build_io_model(pair.arch, pair.system, shape.width, shape.depth),
+                                            record, scaling, shape.blocks * io_lockstep.BLOCK_STEPS, k, steps))
     train = pair.train
-    flops = 6.0 * members[0].model.counted_parameters() * train.batch_size * steps * spec["models"]
+    flops = 6.0 * members[0].model.counted_parameters() * train.batch_size * steps * shape.models
     return (lambda compiler, on_progress: io_lockstep.train_lockstep(members, train, on_progress, None, compiler),
             io_lockstep.BLOCK_STEPS, flops)
 
@@ -125,16 +146,16 @@ def timed_blocks(train: Train, compiled: bool, profiled: int | None) -> tuple[li
     return durations[:profiled], time_shares(profiler.key_averages(), durations[profiled])
 
 
-def measure(spec: Mapping[str, Any]) -> dict[str, Any]:
+def measure(shape: Shape) -> dict[str, Any]:
     """Eager and compiled seconds per step (fastest block after the first), the compile seconds of one shape,
-    the flops of a step, and with ``spec['profile']`` the time shares of one more block each way."""
+    the flops of a step, and with ``shape.profile`` the time shares of one more block each way."""
     torch.set_num_threads(1)
-    build = input_output_run if spec["arch"] in INPUT_OUTPUT else input_state_run
-    blocks = spec["blocks"] + 1
-    train, block, flops = build({**spec, "blocks": blocks + bool(spec["profile"])})
-    profiled = blocks if spec["profile"] else None
+    build = input_output_run if shape.arch in INPUT_OUTPUT else input_state_run
+    blocks = shape.blocks + 1
+    train, block, flops = build(replace(shape, blocks=blocks + shape.profile))
+    profiled = blocks if shape.profile else None
     (eager, eager_shares), (compiled, compiled_shares) = (timed_blocks(train, mode, profiled) for mode in (False, True))
-    shares = {"eager": eager_shares, "compiled": compiled_shares} if spec["profile"] else {}
+    shares = {"eager": eager_shares, "compiled": compiled_shares} if shape.profile else {}
     return {"eager_s": min(eager[1:]) / block, "compiled_s": min(compiled[1:]) / block,
             "compile_s": compiled[0] - eager[0], "flops": flops, "shares": shares}
 
@@ -144,25 +165,25 @@ def fxgraph_entries(cache: Path) -> int:
     return sum(1 for _ in cache.glob("fxgraph/*/*/*"))
 
 
-def measured(spec: Mapping[str, Any], kernels: Path) -> dict[str, Any]:
-    """``measure(spec)`` in a fresh process with the kernel cache ``kernels``; its error output when it fails."""
-    command = [sys.executable, "-m", "nsl_hpc.bench.compiled", json.dumps(dict(spec))]
+def measured(shape: Shape, kernels: Path) -> dict[str, Any]:
+    """``measure(shape)`` in a fresh process with the kernel cache ``kernels``; its error output when it fails."""
+    command = [sys.executable, "-m", "nsl_hpc.bench.compiled", json.dumps(asdict(shape))]
     result = subprocess.run(command, capture_output=True, text=True,
                             env={**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(kernels)})
     if result.returncode != 0:
-        raise SystemExit(f"measuring {spec['arch']} failed:\n{result.stderr[-3000:]}")
+        raise SystemExit(f"measuring {shape.arch} failed:\n{result.stderr[-3000:]}")
     return json.loads(result.stdout.splitlines()[-1])
 
 
-def shape_row(spec: Mapping[str, Any], scratch: Path, peak: float) -> dict[str, Any]:
-    """One table row: a cold and a warm (cache) measurement of ``spec``'s shape."""
+def shape_row(shape: Shape, scratch: Path, peak: float) -> dict[str, Any]:
+    """One table row: a cold and a warm (cache) measurement of ``shape``."""
     with tempfile.TemporaryDirectory(dir=scratch) as folder:
         kernels = Path(folder)
-        cold = measured(spec, kernels)
+        cold = measured(shape, kernels)
         entries = fxgraph_entries(kernels)
-        warm = measured({**spec, "profile": False}, kernels)
+        warm = measured(replace(shape, profile=False), kernels)
         hit = fxgraph_entries(kernels) == entries
-    return {**{key: spec[key] for key in ("arch", "width", "depth", "models")},
+    return {"arch": shape.arch, "width": shape.width, "depth": shape.depth, "models": shape.models,
             "eager_ms": cold["eager_s"] * 1e3, "compiled_ms": cold["compiled_s"] * 1e3,
             "ratio": cold["eager_s"] / cold["compiled_s"], "compile_cold_s": cold["compile_s"],
             "compile_warm_s": warm["compile_s"], "cache_hit": hit,
@@ -172,13 +193,14 @@ def shape_row(spec: Mapping[str, Any], scratch: Path, peak: float) -> dict[str, 
 
 def cost_values(rows: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
     """``cost.compile_speedup`` and ``cost.compile_s`` per architecture (conf/launch.yaml)."""
-    values: dict[str, dict[str, float]] = {"compile_speedup": {}, "compile_s": {}}
+    speedup: dict[str, float] = {}
+    compile_s: dict[str, float] = {}
     for arch in dict.fromkeys(row["arch"] for row in rows):
         own = [row for row in rows if row["arch"] == arch]
-        values["compile_speedup"][arch] = round(statistics.median(row["ratio"] for row in own), 2)
-        values["compile_s"][arch] = round(max(row["compile_cold_s"] for row in own) + max(
+        speedup[arch] = round(statistics.median(row["ratio"] for row in own), 2)
+        compile_s[arch] = round(max(row["compile_cold_s"] for row in own) + max(
             math.log2(row["models"]) * row["compile_warm_s"] for row in own))
-    return values
+    return {"compile_speedup": speedup, "compile_s": compile_s}
 
 
 def report(rows: list[dict[str, Any]], costs: Mapping[str, Mapping[str, float]], peak: float,
@@ -212,15 +234,13 @@ def report(rows: list[dict[str, Any]], costs: Mapping[str, Mapping[str, float]],
 def compiled_part(cfg: DictConfig, root: Path) -> tuple[str, dict[str, Any]]:
     """The compiled table and its headline figures (``compiled_*`` keys)."""
     peak = matmul_peak_flops(cfg.matmul_size)
-    common = {"system": cfg.system.name, "n_traj": cfg.n_traj, "io_system": cfg.io.system,
-              "io_points": cfg.io.train_points, "data_dir": cfg.io.data_dir, "data_cache": str(root / "data"),
-              "blocks": cfg.compiled.blocks}
     rows = []
     for arch, shapes in cfg.compiled.shapes.items():
         for width, depth, models in shapes:
-            spec = {**common, "arch": arch, "width": width, "depth": depth, "models": models,
-                    "profile": [arch, width, depth, models] == list(cfg.compiled.profile)}
-            rows.append(shape_row(spec, root, peak))
+            shape = Shape(arch, width, depth, models, cfg.system.name, cfg.n_traj, cfg.io.system, cfg.io.train_points,
+                          cfg.io.data_dir, str(root / "data"), cfg.compiled.blocks,
+                          [arch, width, depth, models] == list(cfg.compiled.profile))
+            rows.append(shape_row(shape, root, peak))
             print(f"compiled: {arch} {width} x {depth}, K {models}: {rows[-1]['ratio']:.2f}x", file=sys.stderr,
                   flush=True)
     costs = cost_values(rows)
@@ -228,4 +248,4 @@ def compiled_part(cfg: DictConfig, root: Path) -> tuple[str, dict[str, Any]]:
 
 
 if __name__ == "__main__":  # a measuring process: python -m nsl_hpc.bench.compiled '<spec as JSON>'
-    print(json.dumps(measure(json.loads(sys.argv[1]))))
+    print(json.dumps(measure(Shape(**json.loads(sys.argv[1])))))

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nsl_hpc.config.arch import IO_ARCHITECTURES
+from nsl_hpc.config.arch import IO_ARCHITECTURES, STUDIES
 from nsl_hpc.config.schema import setting
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies.metrics import NORMALIZATIONS
@@ -127,6 +127,13 @@ def learning_rate_at(step: np.ndarray, total_steps: np.ndarray, schedule: str, w
         progress = (step - warmup) / np.maximum(total_steps - warmup, 1e-12)
         rate = np.where(step < warmup, rising, lr * 0.5 * (1 + np.cos(np.pi * progress)))
     return np.where(step < total_steps, rate, 0.0)
+
+
+@dataclass(frozen=True)
+class StudyName:
+    """The ``study`` group (conf/study/<name>.yaml): the study a config belongs to."""
+
+    name: str = setting("input_state or input_output", choices=STUDIES)
 
 
 @dataclass(frozen=True)

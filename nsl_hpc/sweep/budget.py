@@ -34,13 +34,11 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
 
-from nsl_hpc.config import plain
 from nsl_hpc.config.schema import setting, typed
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.sweep.decisions import describe_rounds
-from nsl_hpc.sweep.launch_settings import launch_settings
+from nsl_hpc.sweep.launch_settings import LaunchSettings
 
 WIDTHS = ("last_slope", "breaks", "prediction")
 
@@ -86,6 +84,11 @@ class BudgetSettings:
     track_laws: bool = setting("fit the laws with their intervals before each later round")
     stop_when: StopWhen | None = setting("the widths at which a law is narrow enough (null: spend the budget)")
 
+    @property
+    def requested(self) -> bool:
+        """Whether a budget is set (``core_hours`` or ``share``)."""
+        return self.core_hours is not None or self.share is not None
+
     def check(self) -> None:
         if self.core_hours is not None and self.share is not None:
             raise ConfigError(f"budget.core_hours={self.core_hours} and budget.share={self.share}: set one of them")
@@ -127,38 +130,33 @@ class Budget:
     track_laws: bool = False  # fit the laws with their intervals before each round (status shows their widths)
 
 
-def budget_requested(launch: DictConfig) -> bool:
-    """Whether the launch sets a budget (``budget.core_hours`` or ``budget.share``)."""
-    return any(OmegaConf.select(launch, f"budget.{key}", default=None) is not None for key in ("core_hours", "share"))
-
-
 def describe_budget(budget: Budget, decisions: Sequence[Mapping[str, Any]], rounds: int) -> str:
     """A line: the budget of the sweep's predicted core-hours, its rounds and ``describe_rounds``."""
     return (f"budget: {budget.seconds / 3600:,.3g} of the sweep's {budget.full_seconds / 3600:,.3g} predicted "
             f"core-hours in {rounds} rounds; {describe_rounds(decisions)}")
 
 
-def budget_of(launch: DictConfig, full_seconds: float) -> Budget | None:
-    """The launch's budget (``budget.core_hours`` or ``budget.share``), checked; None without one, or when it
-    covers the whole sweep (``budget.share=1``: a full sweep)."""
-    settings = typed(BudgetSettings, launch["budget"], "budget")
-    hours, share = settings.core_hours, settings.share
-    if hours is None and share is None:
+def budget_of(settings: BudgetSettings, full_seconds: float, resources: Sequence[str], metrics: Sequence[str]
+              ) -> Budget | None:
+    """The budget of ``settings`` (``budget.core_hours`` or ``budget.share`` of ``full_seconds``, the sweep's
+    predicted seconds) over the envelopes of the result columns ``resources`` and ``metrics``; None without one, or
+    when it covers the whole sweep (``budget.share=1``: a full sweep)."""
+    if not settings.requested:
         return None
+    hours, share = settings.core_hours, settings.share
     seconds = 3600 * hours if hours is not None else (share or 0.0) * full_seconds
     if seconds >= full_seconds:
         return None
-    resources, metrics = fitted_columns(plain(launch.nsl))
     return Budget(seconds, full_seconds, settings.first_levels, settings.first_share, settings.levels_per_round,
                   settings.margin, tuple(resources), tuple(metrics), settings.spread, settings.stop_when,
                   settings.track_laws or settings.stop_when is not None)
 
 
-def planned_seconds(tasks: Mapping[str, Mapping[str, Any]], launch: DictConfig) -> Callable[[Sequence[str]], float]:
-    """The planner's predicted core-seconds of running some of ``tasks`` (by id) as one launch: their lockstep
-    groups' seconds (``cost.*``). Remembered per set of ids: a launch asks for round 1's to size it, to refuse a
-    budget below it and to print it."""
-    settings = launch_settings(launch)
+def planned_seconds(tasks: Mapping[str, Mapping[str, Any]], settings: LaunchSettings
+                    ) -> Callable[[Sequence[str]], float]:
+    """The planner's predicted core-seconds of running some of ``tasks`` (by id) as one launch with ``settings``:
+    their lockstep groups' seconds (``cost.*``). Remembered per set of ids: a launch asks for round 1's to size it,
+    to refuse a budget below it and to print it."""
 
     @functools.lru_cache(maxsize=8)
     def seconds_of(task_ids: frozenset[str]) -> float:
@@ -192,11 +190,6 @@ class Envelopes:
             return math.inf
         index = int(np.searchsorted(curve[0], x, side="right")) - 1
         return math.inf if index < 0 else float(curve[1][index])
-
-
-def fitted_columns(nsl: Mapping[str, Any]) -> tuple[list[str], list[str]]:
-    """The resource columns and metrics the sweep's fits use (the launch's ``nsl`` group, conf/nsl)."""
-    return [spec["column"] for spec in nsl["resources"].values()], list(nsl["metrics"])
 
 
 class Promise(NamedTuple):

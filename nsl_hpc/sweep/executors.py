@@ -18,10 +18,9 @@ from pathlib import Path
 from typing import Any
 
 import submitit
-from omegaconf import DictConfig
 from tqdm import tqdm
 
-from nsl_hpc.config.launchers import DebugLauncher, Launcher, LocalLauncher, SlurmLauncher, launcher_from
+from nsl_hpc.config.launchers import DebugLauncher, Launcher, LocalLauncher, SlurmLauncher
 from nsl_hpc.errors import ConfigError, RunError, one_line
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import Pair
@@ -30,6 +29,7 @@ from nsl_hpc.sweep.directory import process_alive
 from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.groups import HeldLock, held_locks, this_node
 from nsl_hpc.sweep.job import JobRunner, record_group_failure
+from nsl_hpc.sweep.launch_settings import LaunchSettings
 from nsl_hpc.sweep.limits import ClusterLimits, read_cluster_limits
 from nsl_hpc.sweep.manifest import write_run_settings
 from nsl_hpc.sweep.plan import Group, Pack
@@ -346,14 +346,14 @@ def limit_threads(threads: int) -> None:
         os.environ[variable] = str(threads)
 
 
-def run_jobs(sweep_dir: Path, launch: DictConfig, packs: Sequence[Pack], tasks: Sequence[Mapping[str, Any]],
+def run_jobs(sweep_dir: Path, settings: LaunchSettings, packs: Sequence[Pack], tasks: Sequence[Mapping[str, Any]],
              configs: Mapping[tuple[str, str], Pair], limits: ClusterLimits | None = None) -> int:
-    """Run the planned ``packs`` of ``tasks`` (manifest rows) with the run settings ``launch`` (within the cluster's
-    ``limits``): the data they share first (none in a rehearsal), the settings recorded in run.yaml, then
+    """Run the planned ``packs`` of ``tasks`` (manifest rows) with the launch's ``settings`` (within the cluster's
+    ``limits``): the data they share first (none in a rehearsal), the run settings recorded in run.yaml, then
     ``dispatch``; returns its exit status."""
-    if not launch.rehearsal:  # a rehearsal's tasks read no data
-        prepare_shared_data(tasks, configs, study_named(launch.study.name))
-    write_run_settings(sweep_dir, launch)
-    limit_threads(launch.threads)
-    return dispatch(sweep_dir, packs, launcher_from(launch.launcher), launch.sweep.name,
-                    launch.watchdog.worker_silence_s, limits)
+    if not settings.rehearsal:  # a rehearsal's tasks read no data
+        prepare_shared_data(tasks, configs, study_named(settings.study.name))
+    write_run_settings(sweep_dir, settings.values)
+    limit_threads(settings.threads)
+    return dispatch(sweep_dir, packs, settings.launcher, settings.sweep.name, settings.watchdog.worker_silence_s,
+                    limits)

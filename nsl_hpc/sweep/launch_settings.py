@@ -1,17 +1,19 @@
-"""A launch config's settings as a sweep's planner and jobs use them, typed once where a command or a job reads the
-config (``launch_settings``): the run settings (``RunSettings``), the launcher, how a task's process runs (threads,
-compile), a rehearsal's settings, the sweep directory's compile cache and trust, and how tasks are grouped
-(``plan.Grouping``). ``check_run_settings`` refuses, before any work, the settings no job can run with."""
+"""A launch config's settings as a sweep's planner, jobs and post-processing use them, typed once where a command or
+a job reads the config (``launch_settings``): the sweep (its name and grid), its study and seed, the run settings
+(``RunSettings``), the launcher, how a task's process runs (threads, compile), a rehearsal's settings, the sweep
+directory's compile cache and trust, and how tasks are grouped (``plan.Grouping``). ``check_run_settings`` refuses,
+before any work, the settings no job can run with."""
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
+from nsl_hpc.config import plain
 from nsl_hpc.config.launchers import LocalLauncher, SlurmLauncher, check_batch_text, launcher_from
 from nsl_hpc.config.schema import setting, typed
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies import study_named
-from nsl_hpc.studies.settings import Runtime
+from nsl_hpc.studies.settings import Runtime, StudyName
 from nsl_hpc.sweep.plan import (
     Group,
     Grouping,
@@ -27,10 +29,26 @@ from nsl_hpc.sweep.run_settings import RunSettings
 
 
 @dataclass(frozen=True)
-class LaunchSettings(RunSettings, Runtime):
-    """The run settings and the launch config's top-level keys its planner and jobs read (threads and compile:
-    ``Runtime``)."""
+class SweepSettings:
+    """The ``sweep`` group (conf/sweep/<name>.yaml, a preset or the user's): its name, grid and compute cap."""
 
+    name: str = setting("the sweep's name: its directory under runs/ and its jobs' name")
+    grid: Any = setting("axis -> values, or a list of such sub-grids (their tasks together)")
+    max_flops: float | None = setting("only the grid's tasks below this compute are the sweep's (null: all)", 0,
+                                      low_open=True, default=None)
+    max_flops_column: str = setting("the compute column max_flops caps: flops (exact p), or flops_paper (the "
+                                    "paper's 4 n_d n_h^2; input-state)", default="flops")
+
+
+@dataclass(frozen=True)
+class LaunchSettings(RunSettings, Runtime):
+    """The run settings and the launch config's top-level keys its planner, jobs and post-processing read (threads
+    and compile: ``Runtime``). ``values``: the plain config it was typed from (what MLflow logs as the sweep's
+    params)."""
+
+    sweep: SweepSettings = setting("the sweep: its name and grid")
+    study: StudyName = setting("the sweep's study")
+    sweep_seed: int = setting("mixed into every random draw of the sweep", 0)
     launcher: Any = setting("where the jobs run: a config.launchers instance")
     rehearsal: bool = setting("true: a rehearsal, nothing trains")
     rehearse: Rehearse = setting("a rehearsal's planted laws and faults")
@@ -38,6 +56,7 @@ class LaunchSettings(RunSettings, Runtime):
     allow_shared_sweep_dir: bool = setting("true: control files others can write are accepted", default=False)
     grouping: Any = setting("how tasks are grouped (plan.Grouping, from lockstep, the study and compile)",
                             default=None)
+    values: dict[str, Any] = field(default_factory=dict, compare=False, repr=False, kw_only=True)
 
     @property
     def signal_delay_s(self) -> int | None:
@@ -67,14 +86,14 @@ class LaunchSettings(RunSettings, Runtime):
 
 def launch_settings(launch: Mapping[str, Any]) -> LaunchSettings:
     """A launch config's (composed, or read by ``read_launch_config``) settings, typed (one-line ConfigError)."""
-    names = [item.name for item in fields(LaunchSettings) if item.name != "grouping"]
+    names = [item.name for item in fields(LaunchSettings) if item.name not in ("grouping", "values")]
     settings = typed(LaunchSettings, {name: launch[name] for name in names if name in launch}, "")
-    study = study_named(launch["study"]["name"])
+    study = study_named(settings.study.name)
     lockstep = settings.lockstep
     grouping = Grouping(lockstep.size if lockstep.enabled and study.lockstep else 1, tuple(lockstep.width_buckets),
                         lockstep.memory_mb,
                         study.model_keys(launch["train"].get("schedule_epochs"), launch["draws"]), settings.compile)
-    return replace(settings, launcher=launcher_from(launch["launcher"]), grouping=grouping)
+    return replace(settings, launcher=launcher_from(launch["launcher"]), grouping=grouping, values=plain(launch))
 
 
 def check_run_settings(launch: Mapping[str, Any]) -> LaunchSettings:
@@ -90,6 +109,6 @@ def check_run_settings(launch: Mapping[str, Any]) -> LaunchSettings:
             raise ConfigError(f"launcher.max_time_minutes={launcher.max_time_minutes} needs checkpoints "
                               "(checkpoint.every_minutes > 0): a group longer than the cap continues in its next "
                               "job from its checkpoint")
-        check_batch_text("sweep.name", launch["sweep"]["name"], flag=True)  # the jobs' --job-name
+        check_batch_text("sweep.name", settings.sweep.name, flag=True)  # the jobs' --job-name
         check_signal_delay(launcher.signal_delay_s, settings.packing_for().time_classes_minutes)
     return settings

@@ -12,9 +12,7 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
-from omegaconf import DictConfig
-
-from nsl_hpc.config.launchers import SlurmLauncher, launcher_from
+from nsl_hpc.config.launchers import SlurmLauncher
 from nsl_hpc.errors import ConfigError, SlurmError
 from nsl_hpc.sweep.launch_settings import LaunchSettings
 from nsl_hpc.sweep.plan import Pack
@@ -191,10 +189,10 @@ def read_cluster_limits(launcher: SlurmLauncher) -> ClusterLimits:
                          unaccounted, launcher.max_running)
 
 
-def cluster_limits(launch: DictConfig, dry_run: bool = False) -> ClusterLimits | None:
-    """The cluster's limits a launch config's SLURM jobs fit; None for the local launchers, and for a dry run on a
-    machine without SLURM's commands (said in a line)."""
-    launcher = launcher_from(launch.launcher)
+def cluster_limits(settings: LaunchSettings, dry_run: bool = False) -> ClusterLimits | None:
+    """The cluster's limits a launch's SLURM jobs fit; None for the local launchers, and for a dry run on a machine
+    without SLURM's commands (said in a line)."""
+    launcher = settings.launcher
     if not isinstance(launcher, SlurmLauncher):
         return None
     try:

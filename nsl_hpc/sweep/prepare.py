@@ -14,7 +14,6 @@ import pyarrow.compute as pc
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.config import compose_config, plain, unknown_key
-from nsl_hpc.config.schema import setting, typed
 from nsl_hpc.errors import ConfigError, require_non_negative_int, require_positive_int
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import Pair, Study
@@ -44,31 +43,19 @@ def override_key(override: str) -> str:
     return override.split("=", 1)[0].lstrip("+~")
 
 
-@dataclass(frozen=True)
-class SweepSettings:
-    """The ``sweep`` group (conf/sweep/<name>.yaml, a preset or the user's): its name, grid and compute cap."""
-
-    name: str = setting("the sweep's name: its directory under runs/ and its jobs' name")
-    grid: Any = setting("axis -> values, or a list of such sub-grids (their tasks together)")
-    max_flops: float | None = setting("only the grid's tasks below this compute are the sweep's (null: all)", 0,
-                                      low_open=True, default=None)
-    max_flops_column: str = setting("the compute column max_flops caps: flops (exact p), or flops_paper (the "
-                                    "paper's 4 n_d n_h^2; input-state)", default="flops")
-
-
-def validate_launch(cfg: DictConfig, overrides: Sequence[str]) -> tuple[Study, SweepSettings]:
-    """Refuse, before any work, a launch without a sweep, with a bad sweep group or with grid axes set outside the
-    grid; returns the sweep's study and its typed sweep group."""
+def validate_launch(cfg: DictConfig, overrides: Sequence[str]) -> LaunchSettings:
+    """Refuse, before any work, a launch without a sweep, with settings no job can run with (``check_run_settings``)
+    or with grid axes set outside the grid; returns its settings, typed."""
     if "sweep" not in cfg:
         raise ConfigError("no sweep chosen: add +sweep=<name> (see conf/sweep/, e.g. +sweep=demo)")
-    sweep = typed(SweepSettings, cfg.sweep, "sweep")
-    study = study_named(cfg.study.name)
+    settings = check_run_settings(cfg)
+    study = study_named(settings.study.name)
     for override in overrides:
         if override_key(override) in study.axes:
             raise ConfigError(f"{override_key(override)} is a grid axis of the sweep; set "
                               f"sweep.grid.{override_key(override)}=[...] instead of {override}")
     validate_grid(sweep_grid(cfg), study)
-    return study, sweep
+    return settings
 
 
 def sweep_grid(cfg: DictConfig) -> Grid:
@@ -140,8 +127,7 @@ class BuiltSweep:
     manifest: pa.Table
     configs: dict[tuple[str, str], Pair]  # the typed settings of each (system, arch)
     study: Study
-    sweep: SweepSettings
-    settings: LaunchSettings  # what its jobs run by
+    settings: LaunchSettings  # what its jobs run by, its sweep group among them
     above_max_flops: int = 0  # tasks of the grid left out by sweep.max_flops
 
 
@@ -168,25 +154,24 @@ def require_tasks_at_most(tasks: int, cap: Any) -> None:
 
 def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
     """Validate everything a launch depends on and expand its grid; writes nothing."""
-    study, sweep = validate_launch(cfg, overrides)
-    grid = sweep_grid(cfg)
+    settings = validate_launch(cfg, overrides)
+    study, sweep, grid = study_named(settings.study.name), settings.sweep, sweep_grid(cfg)
     require_tasks_at_most(grid_size(grid, study), cfg.max_tasks)
     configs = pair_configs(cfg, overrides, study)
     validate_grid_values(grid, study, configs)
-    settings = check_run_settings(cfg)
     max_flops, column = sweep.max_flops, sweep.max_flops_column
-    manifest = build_manifest(grid, study, configs, cfg.sweep_seed)
+    manifest = build_manifest(grid, study, configs, settings.sweep_seed)
     compute_columns = [name for name in manifest.column_names if name.startswith("flops")]
     if column not in compute_columns:
         raise ConfigError(f"sweep.max_flops_column={column!r} is not a compute column of this study's tasks; "
                           f"choose one of: {', '.join(compute_columns)}")
     if max_flops is None:
-        return BuiltSweep(manifest, configs, study, sweep, settings)
+        return BuiltSweep(manifest, configs, study, settings)
     kept = manifest.filter(pc.less(manifest[column], max_flops))
     if kept.num_rows == 0:
         raise ConfigError(f"sweep.max_flops={max_flops:g} leaves no task of the grid (its least {column} is "
                           f"{pc.min(manifest[column]).as_py():.3g})")
-    return BuiltSweep(kept, configs, study, sweep, settings, manifest.num_rows - kept.num_rows)
+    return BuiltSweep(kept, configs, study, settings, manifest.num_rows - kept.num_rows)
 
 
 def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> PreparedSweep:

@@ -8,6 +8,7 @@ import logging
 import time
 from collections import defaultdict
 from collections.abc import Callable, Collection, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -15,16 +16,15 @@ import pyarrow as pa
 import pyarrow.compute as pc
 from omegaconf import DictConfig
 
-from nsl_hpc.config import plain
-from nsl_hpc.config.launchers import SlurmLauncher, launcher_from
+from nsl_hpc.config.launchers import SlurmLauncher
 from nsl_hpc.errors import ConfigError, RunError
 from nsl_hpc.studies.base import Study
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.budget import (
     Budget,
+    BudgetSettings,
     StopWhen,
     budget_of,
-    budget_requested,
     decide_round,
     describe_budget,
     planned_seconds,
@@ -39,6 +39,7 @@ from nsl_hpc.sweep.decisions import (
 )
 from nsl_hpc.sweep.executors import submit_next_round
 from nsl_hpc.sweep.failures import read_failures
+from nsl_hpc.sweep.launch_settings import LaunchSettings
 from nsl_hpc.sweep.prepare import BuiltSweep, PreparedSweep, prepare_sweep, queued_tasks
 from nsl_hpc.sweep.rows import read_task_rows
 from nsl_hpc.sweep.submissions import read_submissions
@@ -183,36 +184,49 @@ def decide_next_round(sweep_dir: Path, number: int, rounds: Rounds, manifest: Ma
                                                   planned_s, budget, stopped), rounds.structure)
 
 
-Budgeted = tuple[Budget, Rounds, Callable[[Sequence[str]], float]] | None
-# (sweep_dir, round, rows, committed core-hours, nsl settings, stop_when) -> the result columns whose laws are narrow
-# enough: the fits' law tracker (analysis.widths.track_laws), which the launch hands down
-LawTracker = Callable[[Path, int, Sequence[Mapping[str, Any]], Mapping[str, float], Mapping[str, Any],
-                       StopWhen | None], set[str]]
+# (sweep_dir, round, rows, committed core-hours, stop_when) -> the result columns whose laws are narrow enough: the
+# fits' law tracker (analysis.widths.track_laws with the nsl settings), which the launch hands down
+LawTracker = Callable[[Path, int, Sequence[Mapping[str, Any]], Mapping[str, float], StopWhen | None], set[str]]
 
 
-def budgeted_rounds(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Budgeted:
-    """The launch's budget, the rounds of its tasks and the planner's seconds of any of them; None without a
-    budget or with one that covers the whole sweep. A budget below round 1's cost, with another
-    budget.levels_per_round than the rounds already decided, or none for a sweep whose rounds have begun, is
-    refused; nothing is written."""
-    if not budget_requested(cfg):
+@dataclass(frozen=True)
+class TrackedLaws:
+    """The laws a budgeted sweep's rounds look at (the launch's ``nsl`` group, typed where launch reads it):
+    ``columns``, each resource's results column by its name; ``metrics``; ``track``, the law tracker."""
+
+    columns: dict[str, str]
+    metrics: tuple[str, ...]
+    track: LawTracker
+
+
+Budgeted = tuple[Budget, Rounds, Callable[[Sequence[str]], float], TrackedLaws] | None
+
+
+def budgeted_rounds(built: BuiltSweep, sweep_dir: Path, settings: BudgetSettings, laws: TrackedLaws | None
+                    ) -> Budgeted:
+    """The launch's budget (``settings``, the laws its rounds look at ``laws``: None where no budget is set), the
+    rounds of its tasks and the planner's seconds of any of them; None without a budget or with one that covers the
+    whole sweep. A budget below round 1's cost, with another budget.levels_per_round than the rounds already
+    decided, or none for a sweep whose rounds have begun, is refused; nothing is written."""
+    if laws is None or not settings.requested:
         if decision_files(sweep_dir):
             raise ConfigError(f"sweep_dir={str(sweep_dir)!r} is a budgeted sweep (its budget/ holds decided rounds): "
                               "launch it with budget.core_hours or budget.share (budget.share=1: every task left)")
         return None
     manifest = {task["task_id"]: task for task in built.manifest.to_pylist()}
-    planned_s = planned_seconds(manifest, cfg)
-    budget = budget_of(cfg, planned_s(list(manifest)))
+    planned_s = planned_seconds(manifest, built.settings)
+    budget = budget_of(settings, planned_s(list(manifest)), list(laws.columns.values()), laws.metrics)
     if budget is None:
         return None
-    return budget, sweep_rounds(sweep_dir, list(manifest.values()), built.study, budget, planned_s), planned_s
+    rounds = sweep_rounds(sweep_dir, list(manifest.values()), built.study, budget, planned_s)
+    return budget, rounds, planned_s, laws
 
 
 def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, overrides: Sequence[str],
-                  budget: Budget, rounds: Rounds, planned_s: Callable[[Sequence[str]], float],
-                  run_tasks: Callable[[DictConfig, BuiltSweep, PreparedSweep], int], track_laws: LawTracker) -> int:
+                  budget: Budget, rounds: Rounds, planned_s: Callable[[Sequence[str]], float], laws: TrackedLaws,
+                  run_tasks: Callable[[DictConfig, BuiltSweep, PreparedSweep], int]) -> int:
     """A budgeted sweep: decide the next round once the rounds before have run (the laws fitted on their rows
-    first by ``track_laws``), run its tasks (``run_tasks``: plan, print and run or submit them), and go on (the
+    first by ``laws.track``), run its tasks (``run_tasks``: plan, print and run or submit them), and go on (the
     local launchers) until the last round; on SLURM submit one round and, behind it, a job that launches again
     (``overrides``) once it has run, and return."""
     sweep_dir, manifest = prepared.sweep_dir, {task["task_id"]: task for task in prepared.manifest.to_pylist()}
@@ -231,9 +245,9 @@ def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, o
         if this_round.todo.num_rows or prepared.queued:
             started = time.time()
             worst = max(worst, run_tasks(cfg, built, this_round))
-            if prepared.queued or isinstance(launcher_from(cfg.launcher), SlurmLauncher):
+            if prepared.queued or isinstance(built.settings.launcher, SlurmLauncher):
                 if decided < rounds.count:
-                    LOG.info(next_round_line(cfg, sweep_dir, overrides, chosen, started, decided))
+                    LOG.info(next_round_line(cfg, built.settings, sweep_dir, overrides, chosen, started, decided))
                 return worst
             attempted |= set(this_round.todo["task_id"].to_pylist())
             prepared = prepare_sweep(cfg, built, sweep_dir)
@@ -241,24 +255,24 @@ def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, o
         if decided == rounds.count:
             LOG.info("budget: every round has run")
             if not layout.law_state_path(sweep_dir, decided).exists():
-                track_round_laws(sweep_dir, decided, manifest, cfg, budget, track_laws)
+                track_round_laws(sweep_dir, decided, manifest, budget, laws)
             return worst
-        stopped = track_round_laws(sweep_dir, decided, manifest, cfg, budget, track_laws)
+        stopped = track_round_laws(sweep_dir, decided, manifest, budget, laws)
         decide_next_round(sweep_dir, decided + 1, rounds, manifest, planned_s, budget, stopped)
 
 
-def track_round_laws(sweep_dir: Path, number: int, manifest: Mapping[str, Mapping[str, Any]], cfg: DictConfig,
-                     budget: Budget, track_laws: LawTracker) -> set[str]:
-    """``track_laws`` on the rows of the rounds up to ``number``: the result columns whose laws are narrow enough
+def track_round_laws(sweep_dir: Path, number: int, manifest: Mapping[str, Mapping[str, Any]], budget: Budget,
+                     laws: TrackedLaws) -> set[str]:
+    """``laws.track`` on the rows of the rounds up to ``number``: the result columns whose laws are narrow enough
     (none without ``budget.track_laws`` or before round 1)."""
     if not budget.track_laws or number == 0:
         return set()
-    decisions, nsl = read_decisions(sweep_dir), plain(cfg.nsl)
+    decisions = read_decisions(sweep_dir)
     rows = [{**manifest[task_id], **row} for task_id, row in ran_rows(sweep_dir, decisions).items()]
     committed = {"all": sum(d["cost_s"] for d in decisions if d["run"]) / 3600}
-    for name, spec in nsl["resources"].items():  # what the candidates promising on each resource's envelopes cost
-        committed[name] = sum(d["cost_s"] for d in decisions if d["run"] and d["resource"] == spec["column"]) / 3600
-    return track_laws(sweep_dir, number, rows, committed, nsl, budget.stop_when)
+    for name, column in laws.columns.items():  # what the candidates promising on each resource's envelopes cost
+        committed[name] = sum(d["cost_s"] for d in decisions if d["run"] and d["resource"] == column) / 3600
+    return laws.track(sweep_dir, number, rows, committed, budget.stop_when)
 
 
 def only(prepared: PreparedSweep, task_ids: set[str]) -> PreparedSweep:
@@ -267,8 +281,8 @@ def only(prepared: PreparedSweep, task_ids: set[str]) -> PreparedSweep:
     return dataclasses.replace(prepared, todo=prepared.todo.filter(keep))
 
 
-def next_round_line(cfg: DictConfig, sweep_dir: Path, overrides: Sequence[str], chosen: set[str], since: float,
-                    decided: int) -> str:
+def next_round_line(cfg: DictConfig, settings: LaunchSettings, sweep_dir: Path, overrides: Sequence[str],
+                    chosen: set[str], since: float, decided: int) -> str:
     """Submit the job that decides the next round once the arrays that hold this round's ``chosen`` tasks (those
     submitted since ``since``, or still queued from before) have ended, in place of one queued by an earlier
     launch (this launch's settings win), and say so."""
@@ -277,12 +291,12 @@ def next_round_line(cfg: DictConfig, sweep_dir: Path, overrides: Sequence[str], 
     arrays = [record["array_id"] for record in records
               if any(task_id in chosen and (record["submitted"] >= since or task_id in queued)
                      for element in record["elements"] for task_id in element)]
-    launcher = launcher_from(cfg.launcher)
+    launcher = settings.launcher
     if not arrays or not isinstance(launcher, SlurmLauncher):
         return (f"budget: round {decided} is queued or running in SLURM; launch again with launcher=slurm once it "
                 f"has run to decide round {decided + 1}")
     cancel_round_job(sweep_dir)
-    job = submit_next_round(sweep_dir, overrides, launcher, cfg.sweep.name, arrays, cfg.budget.round_job_minutes)
+    job = submit_next_round(sweep_dir, overrides, launcher, settings.sweep.name, arrays, cfg.budget.round_job_minutes)
     record_round_job(sweep_dir, job)
     return (f"budget: round {decided} submitted; job {job} launches again once it has run (afterany), to decide "
             f"and submit round {decided + 1} (python -m nsl_hpc.status sweep_dir={sweep_dir})")
