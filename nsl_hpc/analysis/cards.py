@@ -15,12 +15,12 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-import nsl_hpc
 from nsl_hpc.analysis.fitting import fit_note, nsl_key
 from nsl_hpc.analysis.nsl_settings import Nsl
 from nsl_hpc.atomic import write_text
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.formats import package_version
 from nsl_hpc.sweep.launch_settings import LaunchSettings
 from nsl_hpc.sweep.manifest import read_manifest
 from nsl_hpc.sweep.submissions import predicted_shares, read_submissions
@@ -35,7 +35,7 @@ def card_path(sweep_dir: Path, row: Mapping[str, Any]) -> Path:
 def code_commit() -> str | None:
     """The git commit of the nsl_hpc source in use, None outside a git checkout."""
     with contextlib.suppress(OSError, subprocess.SubprocessError):
-        result = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(nsl_hpc.__file__).parent,
+        result = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent,
                                 capture_output=True, text=True, timeout=10)
         if result.returncode == 0:
             return result.stdout.strip()
@@ -49,7 +49,7 @@ def sweep_context(launch: LaunchSettings, nsl: Nsl, core_hours: Mapping[str, flo
     return {"sweep": launch.sweep.name, "rehearsal": launch.rehearsal, "sweep_seed": launch.sweep_seed,
             "grid": grid, "grid_hash": stable_hash(grid), "fit_settings": fit_settings,
             "fit_settings_hash": stable_hash(fit_settings), "how_fitted": fit_note(nsl),
-            "package_version": nsl_hpc.__version__, "commit": code_commit(), "core_hours": dict(core_hours)}
+            "package_version": package_version(), "commit": code_commit(), "core_hours": dict(core_hours)}
 
 
 def law_card(row: Mapping[str, Any], context: Mapping[str, Any], nsl: Nsl) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""The format of a sweep directory, and the one upgrade of an older one.
+"""The format of a sweep directory, the one upgrade of an older one, and the version of the package that writes it.
 
 launch.yaml records the ``format`` it was written in (``FORMAT``). A sweep launched before that (format 1: no
 ``format`` key) may lack settings added since, in launch.yaml and run.yaml; ``upgrade_launch`` gives each the value
@@ -8,6 +8,8 @@ task configs are upgraded by ``Study.with_neutral_settings`` (they also keep the
 later format, by a newer nsl_hpc, is refused in one line.
 """
 
+import functools
+import importlib.metadata
 from typing import Any
 
 import pyarrow as pa
@@ -32,6 +34,16 @@ FORMAT_1_SETTINGS: tuple[tuple[str, Any], ...] = (
     ("cost.compile_speedup", {}),
     ("metric", {"normalization": None}),  # input-state scores per dx/dt column, without the other normalisation
 )
+
+
+@functools.cache
+def package_version() -> str | None:
+    """The installed nsl_hpc's version (its metadata: pyproject's, from nsl_hpc.__version__), which rows and law cards
+    record; None where it runs from a source tree it was not installed from."""
+    try:
+        return importlib.metadata.version("nsl_hpc")
+    except importlib.metadata.PackageNotFoundError:
+        return None
 
 
 def format_of(launch: DictConfig, where: str) -> int:

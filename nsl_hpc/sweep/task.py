@@ -14,7 +14,6 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import nsl_hpc
 from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.config import plain
 from nsl_hpc.config.schema import field_names, setting, typed
@@ -23,6 +22,7 @@ from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_of
 from nsl_hpc.studies.base import Pair, Study, Task
 from nsl_hpc.studies.settings import Runtime
+from nsl_hpc.sweep.formats import package_version
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.rehearsal import Rehearse, rehearsed_group
 from nsl_hpc.sweep.rows import write_row_atomically
@@ -188,7 +188,7 @@ def run_tasks(tasks: Sequence[ResolvedTask], on_progress: Callable[[], None] = l
             **outcome,
             "status": "ok" if finite else "diverged",
             "wall_seconds": (time.perf_counter() - started) / len(todo),
-            "package_version": nsl_hpc.__version__,
+            "package_version": package_version(),
             "torch_version": torch_version,
             "python_version": platform.python_version(),
             "host": socket.gethostname(),
