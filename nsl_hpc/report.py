@@ -19,7 +19,6 @@ from nsl_hpc.analysis.figures import draw_figures, figure_stem
 from nsl_hpc.analysis.fitted import fit_and_record
 from nsl_hpc.analysis.fitting import fit_note, fits_path, nsl_key
 from nsl_hpc.analysis.learning import learning_lines
-from nsl_hpc.analysis.mlflow_runs import log_to_mlflow, require_server, tracking_uri
 from nsl_hpc.analysis.nsl_settings import MlflowSettings, figure_settings, nsl_settings
 from nsl_hpc.analysis.prediction import what_it_takes
 from nsl_hpc.analysis.report import comparison_markdown, report_html, scores_note, what_it_takes_html
@@ -36,7 +35,10 @@ def main(cfg: DictConfig) -> int:
     figure_options = figure_settings(cfg.figures, settings.resources)
     sweep_dir = require_sweep(cfg.sweep_dir)
     mlflow = typed(MlflowSettings, cfg.mlflow, "mlflow")
-    require_server(mlflow)
+    if mlflow.enabled:  # MLflow's import (1.6 s) only where the sweep is logged
+        from nsl_hpc.analysis import mlflow_runs
+
+        mlflow_runs.require_server(mlflow)
     launch_config = read_launch_config(sweep_dir)
     launch = launch_settings(launch_config)
     summary = merge_sweep(sweep_dir, cfg.compact)
@@ -61,9 +63,10 @@ def main(cfg: DictConfig) -> int:
         artifacts = [results_path(sweep_dir), fits_path(sweep_dir), sweep_dir / layout.FITS_TEXT, report,
                      sweep_dir / layout.COMPARISON,
                      *(path for path in figures["overview"])]
-        experiment, run = log_to_mlflow(sweep_dir, mlflow, launch, summary, rows,
-                                        {key: path for key, path in by_key.items() if path.exists()}, artifacts)
-        uri = tracking_uri(sweep_dir, mlflow.tracking_uri)
+        experiment, run = mlflow_runs.log_to_mlflow(sweep_dir, mlflow, launch, summary, rows,
+                                                    {key: path for key, path in by_key.items() if path.exists()},
+                                                    artifacts)
+        uri = mlflow_runs.tracking_uri(sweep_dir, mlflow.tracking_uri)
         print(f"MLflow: run {run} in {uri}; browse with `mlflow ui --backend-store-uri {uri}` at "
               f"#/experiments/{experiment}/runs (MLflow 3 opens on its GenAI overview)")
     print(f"report: {report.resolve()}")

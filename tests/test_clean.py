@@ -71,8 +71,8 @@ def test_a_compiled_sweep_shares_its_kernel_cache_and_clean_removes_it_once_done
     """compile=always: the launch says its lockstep groups compile, every row says compiled, the kernels are in
     the sweep's compile_cache (the jobs' shared cache); clean removes that cache once every task has a row."""
     sweep_dir = tmp_path / "sweep"
-    launched = nsl("launch", *TINY_GRID, "sweep.grid.arch=[unstructured]", "sweep.grid.seed=[0]", "launcher=debug",
-                   "compile=always", f"sweep_dir={sweep_dir}")
+    launched = nsl("launch", *TINY_GRID, "sweep.grid.seed=[0]", "launcher=debug", "compile=always",
+                   f"sweep_dir={sweep_dir}")  # input-affine models: compiled here only
     assert launched.returncode == 0, launched.stderr
     assert "lockstep groups compiled)" in launched.stdout
     assert [read_row(path)["compiled"] for path in row_files(sweep_dir)] == [True]

@@ -120,7 +120,8 @@ def test_an_input_output_sweep_runs_merges_and_fits(tmp_path):
     assert summary["merged"] + summary["failed"] == 15 and summary["failed"] == (1 if infeasible else 0)
     results = pq.read_table(sweep_dir / "results.parquet")
     assert {"iter_multiplier", "depth", "rmse_mv", "flops", "train_points", "params"} <= set(results.column_names)
-    reported = nsl("report", f"sweep_dir={sweep_dir}", "nsl.max_breaks=1", "nsl.bootstrap=20", "figures.formats=[png]")
+    reported = nsl("report", f"sweep_dir={sweep_dir}", "nsl.max_breaks=1", "nsl.bootstrap=20", "figures.formats=[png]",
+                   "mlflow.enabled=false")
     assert reported.returncode == 0, reported.stderr
     fits = pq.read_table(sweep_dir / "nsl_fits.parquet").to_pylist()
     pairs = {(fit["system"], fit["arch"]) for fit in fits}

@@ -26,6 +26,7 @@ from nsl_hpc.studies.input_state.scaling import Scaling
 EXAMPLE = Path(nsl_hpc.__file__).parents[1] / "examples" / "own_study"
 SMALL_STUDY = ["sweep.grid.seed=[0]", "sweep.grid.epochs=[16,64]", "sweep.grid.data_tier=[8]",
                "sweep.grid.width_tier=[16]"]  # 6 tasks: 3 archs
+LIGHT_FITS = ["nsl.bootstrap=20", "nsl.max_breaks=1", "nsl.joint.bootstrap=10"]  # the fits themselves: test_nsl.py
 
 
 @pytest.fixture(scope="module")
@@ -97,14 +98,15 @@ def test_your_own_system_and_model_train_fit_and_report_from_a_wheel(study, site
     assert "tank_mlp: one model per group, priced alone" in launched.stdout  # a plain module trains alone
     manifest = pq.read_table(study / "runs/own_study/manifest.parquet").to_pandas()
     assert (manifest["stackable"] == (manifest["arch"] != "tank_mlp")).all()
-    reported = run(study, site, "report", "sweep_dir=runs/own_study")  # merge, fit, figures, MLflow, report.html
+    reported = run(study, site, "report", "sweep_dir=runs/own_study", *LIGHT_FITS, "figures.formats=[png]",
+                   "mlflow.enabled=false")  # merge, fit, figures, report.html (MLflow: tests/test_postprocess.py)
     assert reported.returncode == 0, reported.stderr
     assert (study / "runs/own_study/report.html").stat().st_size > 0
     results = pq.read_table(study / "runs/own_study/results.parquet").to_pandas()
     assert sorted(set(results["arch"])) == ["cascade_net", "tank_mlp", "unstructured"]
     best = results.groupby("arch")["nmae"].min()
     assert (best < 0.5 * results.groupby("arch")["mean_predictor_nmae"].median()).all(), best  # each learns
-    predicted = run(study, site, "predict", "sweep_dir=runs/own_study", "target=0.2")
+    predicted = run(study, site, "predict", "sweep_dir=runs/own_study", "target=0.2", *LIGHT_FITS)
     assert predicted.returncode == 0, predicted.stderr
 
 

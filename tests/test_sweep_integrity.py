@@ -28,6 +28,9 @@ from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
 pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
 
 LOCAL = [*TINY_GRID, "launcher=local"]
+# tasks that train for at least ~10 s on any machine, mostly asleep (fault.kind=slow: at every heartbeat), so that a
+# test can act while they run without their training taking the CPU the other tests need
+LONGER = ["sweep.grid.epochs=[640]", "fault.kind=slow", "fault.heartbeat_s=0.25"]
 
 
 def tree(root: Path) -> set[Path]:
@@ -163,8 +166,8 @@ def sweep_processes(sweep_dir: Path) -> list[int]:
 
 def test_killing_the_local_launcher_stops_its_workers_and_a_relaunch_runs_the_rest(tmp_path):
     sweep_dir = tmp_path / "sweep"
-    launcher = subprocess.Popen([sys.executable, "-m", "nsl_hpc.launch", *LOCAL, f"sweep_dir={sweep_dir}",
-                                 "sweep.grid.epochs=[4000]", "launcher.workers=2", "lockstep.enabled=false"],
+    launcher = subprocess.Popen([sys.executable, "-m", "nsl_hpc.launch", *LOCAL, f"sweep_dir={sweep_dir}", *LONGER,
+                                 "launcher.workers=2", "lockstep.enabled=false"],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     while not any((sweep_dir / "logs").rglob("*.log")):  # a task is training
         assert launcher.poll() is None
@@ -178,7 +181,7 @@ def test_killing_the_local_launcher_stops_its_workers_and_a_relaunch_runs_the_re
     assert not sweep_processes(sweep_dir)
     finished = len(row_files(sweep_dir))
     assert finished < 4
-    again = launched(sweep_dir, "sweep.grid.epochs=[4000]", "lockstep.enabled=false")
+    again = launched(sweep_dir, *LONGER, "lockstep.enabled=false")
     assert f"{4 - finished} to run" in again.stdout and len(row_files(sweep_dir)) == 4
 
 
@@ -388,7 +391,7 @@ def test_a_local_worker_killed_or_stopped_is_recorded_and_the_others_finish(sent
     (SIGSTOP, to it and its training process: noticed after watchdog.worker_silence_s=30); its group is recorded,
     its other task is not run, the other worker's two tasks finish."""
     sweep_dir = tmp_path / "sweep"
-    launch = subprocess.Popen([sys.executable, "-m", "nsl_hpc.launch", *TINY_GRID, "sweep.grid.epochs=[4000]",
+    launch = subprocess.Popen([sys.executable, "-m", "nsl_hpc.launch", *TINY_GRID, *LONGER,
                                "launcher=local", "launcher.workers=2", "lockstep.enabled=false",
                                "watchdog.worker_silence_s=30", f"sweep_dir={sweep_dir}"],
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

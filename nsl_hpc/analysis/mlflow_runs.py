@@ -23,6 +23,7 @@ from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.fitting import interval_columns, nsl_key
 from nsl_hpc.analysis.nsl_settings import MlflowSettings
+from nsl_hpc.config.mapping import flatten
 from nsl_hpc.errors import RunError, one_line
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_named
@@ -76,17 +77,6 @@ def experiment_id(client: MlflowClient, name: str, sweep_dir: Path, default_stor
         return experiment.experiment_id
     location = (Path(sweep_dir).resolve() / layout.MLFLOW_ARTIFACTS).as_uri() if default_store else None
     return client.create_experiment(name, artifact_location=location)
-
-
-def flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
-    """{'a': {'b': 1}} -> {'a.b': '1'}; lists as their text."""
-    flat = {}
-    for key, value in config.items():
-        if isinstance(value, Mapping):
-            flat.update(flatten(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = str(value)
-    return flat
 
 
 def law_params(row: Mapping[str, Any]) -> dict[str, str]:

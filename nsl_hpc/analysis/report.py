@@ -10,10 +10,10 @@ from typing import Any
 
 from nsl_hpc.analysis.fitting import fit_note, last_slope_undetermined, nsl_key
 from nsl_hpc.analysis.learning import PairLearning
-from nsl_hpc.analysis.mlflow_runs import flatten
 from nsl_hpc.analysis.nsl_settings import Learning, Nsl, ReportTargets
 from nsl_hpc.analysis.prediction import format_need
 from nsl_hpc.config import compose_config, plain
+from nsl_hpc.config.mapping import flatten
 from nsl_hpc.config.targets import outcome_values
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.grid import sub_grids
