@@ -2,7 +2,7 @@
 #   make demo   the main job: the demo sweep (216 tasks) on local processes, then merge, NSL fits,
 #               figures, MLflow and report.html
 #   make test   start the local SLURM cluster (cluster/up.sh) and run the test suite
-#   make test-fast  the tests that need no cluster and run no command end to end (< 2 min)
+#   make test-fast  the tests that need no cluster and run no command end to end (README: its time)
 #   make demo-io  the input-output demo (io_demo, 60 tasks on the simulated stand-ins), merge ... report.html
 #   make repro  the reduced-scale reproduction (docs/reproduction.md): the repro and repro_io sweeps (~1.8 predicted
 #               core-hours) into runs/repro/{input_state,input_output}, then the SUBNET laws' slices subnet_compute
@@ -88,7 +88,7 @@ test:
 	  [ $$installed -eq 0 ] && [ $$started -eq 0 ]
 	$(PY) -m pytest -n $(or $(TEST_WORKERS),3)
 
-# Everything but the cluster, the end-to-end and the slow tests: the science, the planning core, fits (< 2 min).
+# Everything but the cluster, the end-to-end and the slow tests: the science, the planning core, fits (README: its time).
 test-fast: $(INSTALLED)
 	$(PY) -m pytest -n $(or $(TEST_WORKERS),2) -m "not slurm and not e2e and not slow" --ignore=tests/cluster
 
