@@ -83,10 +83,10 @@ def collect(laws: Mapping[str, LawSlice], root: Path, candidates: Mapping[str, M
     statuses = []
     for law, spec in laws.items():
         at = [float(value) for value in spec.at]
-        sweep_dir = root / spec.slice if spec.slice else None
-        if spec.slice is None or sweep_dir is None or not (sweep_dir / "results.parquet").exists():
+        if not spec.slice or not (root / spec.slice / "results.parquet").exists():
             statuses.append(before.get(law) or LawStatus(law, at, why=spec.why))
             continue
+        sweep_dir = root / spec.slice
         outcomes, ratios = envelope_factors(sweep_dir, law, at)
         scored, where = dict(mechanism_factors.get(law, {})), "make mechanisms" if law in mechanism_factors else ""
         for name in candidates.get(spec.slice, {}):

@@ -206,9 +206,9 @@ def budgeted_rounds(built: BuiltSweep, sweep_dir: Path, settings: BudgetSettings
                     ) -> Budgeted:
     """The launch's budget (``settings``, the laws its rounds look at ``laws``: None where no budget is set), the
     rounds of its tasks and the planner's seconds of any of them; None without a budget or with one that covers the
-    whole sweep. A budget below round 1's cost, with another budget.levels_per_round than the rounds already
-    decided, or none for a sweep whose rounds have begun, is refused; nothing is written."""
-    if laws is None or not settings.requested:
+    whole sweep (``budget_of``). A budget below round 1's cost, with another budget.levels_per_round than the rounds
+    already decided, or none for a sweep whose rounds have begun, is refused; nothing is written."""
+    if laws is None:
         if decision_files(sweep_dir):
             raise ConfigError(f"sweep_dir={str(sweep_dir)!r} is a budgeted sweep (its budget/ holds decided rounds): "
                               "launch it with budget.core_hours or budget.share (budget.share=1: every task left)")
