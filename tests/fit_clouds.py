@@ -1,10 +1,22 @@
 """Outcome clouds of known broken laws and a direct multi-start fit of Definition 1's margin: the reference
-that the fit is held to (tests/test_nsl.py, benchmarks/fit_quality.py)."""
+that the fit is held to (tests/test_nsl.py, benchmarks/fit_quality.py).
 
+The references of the clouds tests/test_nsl.py holds the fit to take 5-60 s each; they are stored in
+tests/golden/direct_margins.json with their cloud's fingerprint, and written again by
+
+    .venv/bin/python -m tests.fit_clouds
+"""
+
+import json
 import math
+import os
+from collections.abc import Callable
+from functools import partial
+from pathlib import Path
 
 import numpy as np
 from scipy.optimize import least_squares
+from tqdm import tqdm
 
 from nsl_hpc.analysis.broken_law import (
     Bounds,
@@ -92,3 +104,88 @@ def direct_margin(r: np.ndarray, e: np.ndarray, b: int, starts: int = 60, K: int
                                x_scale="jac", max_nfev=400)
         best = min(best, float(np.mean(result.fun**2)))
     return best
+
+
+def outcomes(true: NSLFit, seed: int, n: int = 3000, low: float = 1e3, high: float = 1e12):
+    """Resources log-uniform in [low, high], errors scattered above the law (factor 1 + Exp(0.3))."""
+    rng = np.random.default_rng(seed)
+    r = np.exp(rng.uniform(np.log(low), np.log(high), n))
+    return r, true.predict(r) * (1 + rng.exponential(0.3, n))
+
+
+def shape(delta0: float, *breaks: tuple[float, float, float], low: float) -> NSLFit:
+    """A law with these slopes and breaks that starts at error 10 at ``low``."""
+    unit = law(0.0, 1.0, delta0, *breaks)
+    return law(0.0, 10 / float(unit.predict(low)), delta0, *breaks)
+
+
+DIP, DROP = 10**0.1, 10**0.2
+HARD_SHAPES = {  # name: (law, smallest and largest resource, outcomes); errors stay in [1e-6, 10]
+    "b0": (shape(-0.5, low=1e2), 1e2, 1e8, 300),
+    "b1 to slope -5": (shape(-0.1, (1e4, 0.2, -4.9), low=1e2), 1e2, 10**5.2, 3000),
+    "steep start, slope change +5": (shape(-4.0, (10**3.5, 0.2, 3.8), low=1e2), 1e2, 1e8, 3000),
+    "dip: breaks 0.1 decades apart": (shape(-0.3, (1e5, 0.2, -3.0), (1e5 * DIP, 0.2, 3.0), low=1e2), 1e2, 1e9, 3000),
+    "drop: breaks 0.2 decades apart": (shape(-0.3, (1e5, 0.2, -2.7), (1e5 * DROP, 0.2, 2.7), low=1e2), 1e2, 1e9, 300),
+    "plateau then steep fall": (shape(0.0, (1e5, 0.2, -5.0), (1e6, 0.2, 4.5), low=1e2), 1e2, 1e10, 30000),
+    "b3": (shape(-0.02, (1e4, 0.3, -0.4), (1e7, 0.3, 0.3), (1e10, 0.3, -0.4), low=1e2), 1e2, 1e12, 3000),
+    "b4": (shape(-0.2, (1e4, 0.2, -0.8), (1e6, 0.2, 0.6), (1e8, 0.2, -1.0), (1e10, 0.2, 0.8), low=1e2),
+           1e2, 1e11, 30000),
+}
+
+
+SWEEP_LIKE = {name: shape for name, shape in (published_shapes() | random_shapes(8, seed=1)).items()
+              if name.startswith(("wiener_hammerstein/narx", "motor", "ball/input_affine/compute/nmse",
+                                  "ball/port_hamiltonian", "silverbox/subnet", "random 3", "random 6", "random 7"))}
+
+
+def hard_cloud(name: str) -> tuple[NSLFit, np.ndarray, np.ndarray]:
+    """The law of HARD_SHAPES[name] and its outcomes."""
+    true, low, high, n = HARD_SHAPES[name]
+    return (true, *outcomes(true, 0, n, low, high))
+
+
+def sweep_like_cloud(name: str) -> tuple[NSLFit, np.ndarray, np.ndarray]:
+    """The law of SWEEP_LIKE[name] and a sweep's 7,056 outcomes of it."""
+    true, low, high = SWEEP_LIKE[name]
+    return (true, *cloud(true, low, high, 7056, seed=list(SWEEP_LIKE).index(name)))
+
+
+REFERENCES = Path(__file__).parent / "golden" / "direct_margins.json"
+# key -> (the law and its cloud, the direct fit's random starts)
+REFERENCE_CLOUDS: dict[str, tuple[Callable[[], tuple[NSLFit, np.ndarray, np.ndarray]], int]] = {
+    **{f"hard: {name}": (partial(hard_cloud, name), 20) for name in HARD_SHAPES},
+    **{f"sweep-like: {name}": (partial(sweep_like_cloud, name), 60) for name in SWEEP_LIKE},
+}
+
+
+def fingerprint(r: np.ndarray, e: np.ndarray) -> list[float]:
+    """What tells one cloud from another: its size and the sums of ln r and ln e."""
+    return [len(r), float(np.log(r).sum()), float(np.log(e).sum())]
+
+
+def stored_direct_margin(key: str, r: np.ndarray, e: np.ndarray) -> float:
+    """``direct_margin`` of the cloud REFERENCE_CLOUDS[key], as stored; an AssertionError if (r, e) is not the
+    cloud it was computed on."""
+    stored = json.loads(REFERENCES.read_text()).get(key)
+    assert stored is not None and np.allclose(stored["cloud"], fingerprint(r, e), rtol=1e-9, atol=0), (
+        f"no stored direct margin of this cloud of {key!r}: write them again with python -m tests.fit_clouds")
+    return stored["margin"]
+
+
+def direct_reference(key: str) -> dict:
+    """The direct fit of cloud ``key`` with the true b, as stored in REFERENCES."""
+    make, starts = REFERENCE_CLOUDS[key]
+    true, r, e = make()
+    return {"b": true.b, "starts": starts, "cloud": fingerprint(r, e), "margin": direct_margin(r, e, true.b, starts)}
+
+
+def main() -> None:
+    """Write REFERENCES (a few minutes)."""
+    references = {key: direct_reference(key) for key in tqdm(REFERENCE_CLOUDS, desc="direct fits", unit="cloud")}
+    temporary = REFERENCES.with_suffix(".tmp")
+    temporary.write_text(json.dumps(references, indent=1) + "\n")
+    os.replace(temporary, REFERENCES)
+
+
+if __name__ == "__main__":
+    main()

@@ -2,6 +2,7 @@
 against a direct multi-start fit, the study's procedure, bootstrap intervals, the published laws, what a law
 needs for a target error, bad input."""
 
+import json
 import math
 import warnings
 
@@ -25,14 +26,19 @@ from nsl_hpc.analysis.broken_law import (
 from nsl_hpc.analysis.prediction import need_for, resource_for
 from nsl_hpc.analysis.published import comparison, gap_to_published, published_laws, step_envelope_at
 from nsl_hpc.nsl import backtest_nsl, default_settings, fit_nsl
-from tests.fit_clouds import b_acceptable, cloud, direct_margin, law, published_shapes, random_shapes
-
-
-def outcomes(true: NSLFit, seed: int, n: int = 3000, low: float = 1e3, high: float = 1e12):
-    """Resources log-uniform in [low, high], errors scattered above the law (factor 1 + Exp(0.3))."""
-    rng = np.random.default_rng(seed)
-    r = np.exp(rng.uniform(np.log(low), np.log(high), n))
-    return r, true.predict(r) * (1 + rng.exponential(0.3, n))
+from tests.fit_clouds import (
+    HARD_SHAPES,
+    REFERENCES,
+    SWEEP_LIKE,
+    b_acceptable,
+    cloud,
+    direct_reference,
+    hard_cloud,
+    law,
+    outcomes,
+    stored_direct_margin,
+    sweep_like_cloud,
+)
 
 
 def test_envelope_against_hand_computed_values():
@@ -81,26 +87,6 @@ def test_known_laws_are_recovered_without_hints(breaks, seed):
         assert abs(math.log10(sigma / true_sigma)) < 0.5 and abs(delta - true_delta) < 0.15
 
 
-def shape(delta0: float, *breaks: tuple[float, float, float], low: float) -> NSLFit:
-    """A law with these slopes and breaks that starts at error 10 at ``low``."""
-    unit = law(0.0, 1.0, delta0, *breaks)
-    return law(0.0, 10 / float(unit.predict(low)), delta0, *breaks)
-
-
-DIP, DROP = 10**0.1, 10**0.2
-HARD_SHAPES = {  # name: (law, smallest and largest resource, outcomes); errors stay in [1e-6, 10]
-    "b0": (shape(-0.5, low=1e2), 1e2, 1e8, 300),
-    "b1 to slope -5": (shape(-0.1, (1e4, 0.2, -4.9), low=1e2), 1e2, 10**5.2, 3000),
-    "steep start, slope change +5": (shape(-4.0, (10**3.5, 0.2, 3.8), low=1e2), 1e2, 1e8, 3000),
-    "dip: breaks 0.1 decades apart": (shape(-0.3, (1e5, 0.2, -3.0), (1e5 * DIP, 0.2, 3.0), low=1e2), 1e2, 1e9, 3000),
-    "drop: breaks 0.2 decades apart": (shape(-0.3, (1e5, 0.2, -2.7), (1e5 * DROP, 0.2, 2.7), low=1e2), 1e2, 1e9, 300),
-    "plateau then steep fall": (shape(0.0, (1e5, 0.2, -5.0), (1e6, 0.2, 4.5), low=1e2), 1e2, 1e10, 30000),
-    "b3": (shape(-0.02, (1e4, 0.3, -0.4), (1e7, 0.3, 0.3), (1e10, 0.3, -0.4), low=1e2), 1e2, 1e12, 3000),
-    "b4": (shape(-0.2, (1e4, 0.2, -0.8), (1e6, 0.2, 0.6), (1e8, 0.2, -1.0), (1e10, 0.2, 0.8), low=1e2),
-           1e2, 1e11, 30000),
-}
-
-
 def last_slope(fit: NSLFit) -> float:
     return fit.delta0 + sum(delta for _, _, delta in fit.breaks)
 
@@ -108,20 +94,15 @@ def last_slope(fit: NSLFit) -> float:
 @pytest.mark.slow
 @pytest.mark.parametrize("name", HARD_SHAPES)
 def test_hard_shapes_fit_like_a_direct_multistart_and_choose_b_within_one(name):
-    true, low, high, n = HARD_SHAPES[name]
-    r, e = outcomes(true, 0, n, low, high)
+    true, r, e = hard_cloud(name)
+    _, low, high, n = HARD_SHAPES[name]
     assert true.predict(low) == pytest.approx(10) and true.predict(np.geomspace(low, high, 400)).min() >= 1e-6
     given = fit_nsl(r, e, breaks=true.b)
-    assert given.margin <= 1.1 * direct_margin(r, e, true.b, starts=20)
+    assert given.margin <= 1.1 * stored_direct_margin(f"hard: {name}", r, e)
     chosen = fit_nsl(r, e)
     assert abs(chosen.b - true.b) <= 1
     if n >= 3000:
         assert abs(last_slope(chosen) - last_slope(true)) <= 0.1
-
-
-SWEEP_LIKE = {name: shape for name, shape in (published_shapes() | random_shapes(8, seed=1)).items()
-              if name.startswith(("wiener_hammerstein/narx", "motor", "ball/input_affine/compute/nmse",
-                                  "ball/port_hamiltonian", "silverbox/subnet", "random 3", "random 6", "random 7"))}
 
 
 @pytest.mark.slow
@@ -131,10 +112,19 @@ def test_sweep_like_clouds_reach_the_direct_margin_and_no_spurious_break(name):
     laws (close pairs of breaks, a break at the range's edge, 3 breaks 0.1 decades apart) and of random 3- and
     4-break laws: Definition 1's margin within 1.1x of a long direct multi-start fit with the true b; b chosen
     within 1 of it, and no more than it for a 1-break law."""
-    true, low, high = SWEEP_LIKE[name]
-    r, e = cloud(true, low, high, 7056, seed=list(SWEEP_LIKE).index(name))
-    assert fit_nsl(r, e, breaks=true.b).margin <= 1.1 * direct_margin(r, e, true.b)
+    true, r, e = sweep_like_cloud(name)
+    assert fit_nsl(r, e, breaks=true.b).margin <= 1.1 * stored_direct_margin(f"sweep-like: {name}", r, e)
     assert b_acceptable(fit_nsl(r, e).b, true.b)
+
+
+@pytest.mark.parametrize("key", ["hard: b0", "hard: drop: breaks 0.2 decades apart"])
+def test_the_stored_direct_margins_are_what_the_direct_fit_gives(key):
+    """The references the two tests above read (tests/golden/direct_margins.json) are the direct fit's on this
+    machine too: for the two clouds it fits in seconds (300 outcomes)."""
+    stored, now = json.loads(REFERENCES.read_text())[key], direct_reference(key)
+    assert (now["b"], now["starts"]) == (stored["b"], stored["starts"])
+    assert now["cloud"] == pytest.approx(stored["cloud"], rel=1e-9) and now["margin"] == pytest.approx(
+        stored["margin"], rel=1e-6)
 
 
 def test_a_lone_outcome_at_the_envelopes_start_does_not_buy_a_break():
