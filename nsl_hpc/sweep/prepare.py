@@ -94,7 +94,7 @@ def pair_configs(cfg: DictConfig, overrides: Sequence[str], study: Study) -> dic
         selected = compose_config(selection, "launch")
         applicable = [o for o in scoped if OmegaConf.select(selected, override_key(o), default=MISSING) is not MISSING]
         used.update(applicable)
-        values = plain(compose_config([*applicable, *selection], "launch"))
+        values = plain(compose_config([*applicable, *selection], "launch") if applicable else selected)
         configs[system, arch] = check_settings(values)
         study.check_pair(configs[system, arch])
         require_costs(values)
