@@ -1,4 +1,4 @@
-"""Shared fixtures: composed configs and a private trajectory cache per test session.
+"""Shared fixtures: composed configs and a private trajectory cache per test session (and worker).
 
 Every test trains on one thread, as a job does (``threads: 1``): torch's default of one per core made a test
 take 30x longer with another process on the second core. The variables reach the commands tests run too."""
@@ -17,6 +17,7 @@ from xdist.scheduler import LoadScopeScheduling  # noqa: E402
 
 from nsl_hpc.cache import ArrayCache  # noqa: E402
 from nsl_hpc.config import compose_config  # noqa: E402
+from tests.sweeps import SHARED_CACHE  # noqa: E402
 
 torch.set_num_threads(1)
 
@@ -24,6 +25,12 @@ torch.set_num_threads(1)
 @pytest.fixture(scope="session")
 def cache_dir(tmp_path_factory) -> str:
     return str(tmp_path_factory.mktemp("trajectory-cache"))
+
+
+@pytest.fixture(scope="session", autouse=True)
+def shared_trajectories(cache_dir) -> None:
+    """The launches of tests/sweeps.py's ``nsl`` simulate into ``cache_dir`` too."""
+    os.environ[SHARED_CACHE] = cache_dir
 
 
 @pytest.fixture(scope="session")

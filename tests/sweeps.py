@@ -16,9 +16,18 @@ TINY_GRID = ["+sweep=demo", "sweep.grid.system=[spring]", "sweep.grid.arch=[inpu
 ALONE = "lockstep.enabled=false"
 
 
+# A launch that names no cache_dir simulates into the trajectory cache of the test session (tests/conftest.py sets
+# it), not into its sweep directory's: a system's test set is simulated once per session, not once per sweep (3 s
+# of CPU for spring). The cache is keyed by what it holds; the tests of the sweep's own cache name it.
+SHARED_CACHE = "NSL_TESTS_TRAJECTORY_CACHE"
+OWN_CACHE = "cache_dir=${sweep_dir}/cache"  # launch.yaml's default
+
+
 def nsl(verb: str, *args: str, timeout: float = 600, cwd: Path | None = None,
         umask: int | None = None) -> subprocess.CompletedProcess:
-    """``python -m nsl_hpc.<verb> args...`` (in ``cwd``, with ``umask``)."""
+    """``python -m nsl_hpc.<verb> args...`` (in ``cwd``, with ``umask``); a launch into the session's cache."""
+    if verb == "launch" and SHARED_CACHE in os.environ and not any(arg.startswith("cache_dir=") for arg in args):
+        args = (*args, f"cache_dir={os.environ[SHARED_CACHE]}")
     return subprocess.run([sys.executable, "-m", f"nsl_hpc.{verb}", *args], capture_output=True, text=True,
                           timeout=timeout, cwd=cwd, preexec_fn=None if umask is None else lambda: os.umask(umask))
 

@@ -13,7 +13,7 @@ from nsl_hpc.sweep.budget import Budget, decide_round, planned_seconds
 from nsl_hpc.sweep.decisions import DECISION_SCHEMA, read_decisions
 from nsl_hpc.sweep.launch_settings import LaunchSettings, launch_settings
 from nsl_hpc.sweep.rounds import Rounds, first_round_levels
-from tests.sweeps import nsl, row_files
+from tests.sweeps import OWN_CACHE, nsl, row_files
 
 STUDY = study_named("input_state")
 
@@ -133,7 +133,7 @@ BUDGETED = ["+sweep=demo", "sweep.grid.system=[spring]", "sweep.grid.arch=[unstr
 @pytest.mark.e2e
 def test_a_budgeted_sweep_runs_in_rounds_skips_the_rest_and_continues_where_it_stopped(tmp_path):
     sweep_dir = tmp_path / "sweep"
-    args = [*BUDGETED, "budget.share=0.97", f"sweep_dir={sweep_dir}"]
+    args = [*BUDGETED, "budget.share=0.97", f"sweep_dir={sweep_dir}", OWN_CACHE]  # its cache: clean removes it
     first = nsl("launch", *args)
     assert first.returncode == 0, first.stderr
     assert "budget: round 1 is the 4 tasks at epochs 4, " in first.stdout

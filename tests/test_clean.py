@@ -11,14 +11,15 @@ import pytest
 from nsl_hpc.checkpoint import Checkpointer, info_path
 from nsl_hpc.sweep.groups import GroupLock, checkpoint_path
 from nsl_hpc.sweep.rows import read_row
-from tests.sweeps import ALONE, TINY_GRID, manifest_ids, nsl, row_files
+from tests.sweeps import ALONE, OWN_CACHE, TINY_GRID, manifest_ids, nsl, row_files
 
 pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
 
 
 def test_clean_keeps_rows_and_failures_then_removes_them_once_resolved(tmp_path):
     sweep_dir = tmp_path / "sweep"
-    nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "fault.kind=raise", "fault.seed=2", ALONE)
+    nsl("launch", *TINY_GRID, "launcher=debug", f"sweep_dir={sweep_dir}", "fault.kind=raise", "fault.seed=2", ALONE,
+        OWN_CACHE)
     rows = {path: path.stat().st_mtime_ns for path in row_files(sweep_dir)}
     failure_files = sorted((sweep_dir / "failures").rglob("*.json")) + sorted((sweep_dir / "logs").rglob("*.log"))
     assert len(rows) == 3 and len(failure_files) == 2
