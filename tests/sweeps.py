@@ -17,8 +17,9 @@ ALONE = "lockstep.enabled=false"
 
 
 # A launch that names no cache_dir simulates into the trajectory cache of the test session (tests/conftest.py sets
-# it), not into its sweep directory's: a system's test set is simulated once per session, not once per sweep (3 s
-# of CPU for spring). The cache is keyed by what it holds; the tests of the sweep's own cache name it.
+# it, one per xdist worker), not into its sweep directory's: a system's test set is simulated once per worker, not
+# once per sweep (3 s of CPU for spring). The cache is keyed by what it holds; the tests of the sweep's own cache
+# name it.
 SHARED_CACHE = "NSL_TESTS_TRAJECTORY_CACHE"
 OWN_CACHE = "cache_dir=${sweep_dir}/cache"  # launch.yaml's default
 
