@@ -9,7 +9,6 @@ tests/golden/direct_margins.json with their cloud's fingerprint, and written aga
 
 import json
 import math
-import os
 from collections.abc import Callable
 from functools import partial
 from pathlib import Path
@@ -28,6 +27,7 @@ from nsl_hpc.analysis.broken_law import (
     theta_of,
 )
 from nsl_hpc.analysis.published import published_laws
+from nsl_hpc.atomic import replacing
 from nsl_hpc.nsl import default_settings
 
 
@@ -182,9 +182,8 @@ def direct_reference(key: str) -> dict:
 def main() -> None:
     """Write REFERENCES (a few minutes)."""
     references = {key: direct_reference(key) for key in tqdm(REFERENCE_CLOUDS, desc="direct fits", unit="cloud")}
-    temporary = REFERENCES.with_suffix(".tmp")
-    temporary.write_text(json.dumps(references, indent=1) + "\n")
-    os.replace(temporary, REFERENCES)
+    with replacing(REFERENCES) as temporary:
+        temporary.write_text(json.dumps(references, indent=1) + "\n")
 
 
 if __name__ == "__main__":
