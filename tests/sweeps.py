@@ -2,10 +2,11 @@
 
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pyarrow.parquet as pq
+
+from tests import preloaded
 
 # 4 tasks: one system, one architecture, 4 seeds, 2 epochs on ~150 points.
 TINY_GRID = ["+sweep=demo", "sweep.grid.system=[spring]", "sweep.grid.arch=[input_affine]", "sweep.grid.epochs=[2]",
@@ -24,13 +25,22 @@ SHARED_CACHE = "NSL_TESTS_TRAJECTORY_CACHE"
 OWN_CACHE = "cache_dir=${sweep_dir}/cache"  # launch.yaml's default
 
 
+# A local launch (launch.yaml's default launcher) that names no launcher.workers runs on one worker: each worker is a
+# process of its own that imports torch (3 s of CPU), and a test's sweep trains for a second or two. The tests of
+# several workers name them.
+ONE_WORKER = "launcher.workers=1"
+NOT_LOCAL = ("launcher=slurm", "launcher=debug", "launcher.workers=")
+
+
 def nsl(verb: str, *args: str, timeout: float = 600, cwd: Path | None = None,
         umask: int | None = None) -> subprocess.CompletedProcess:
-    """``python -m nsl_hpc.<verb> args...`` (in ``cwd``, with ``umask``); a launch into the session's cache."""
+    """``python -m nsl_hpc.<verb> args...`` (in ``cwd``, with ``umask``), forked from a process that has imported
+    its libraries (tests/preloaded.py); a launch into the session's cache, a local one on one worker."""
     if verb == "launch" and SHARED_CACHE in os.environ and not any(arg.startswith("cache_dir=") for arg in args):
         args = (*args, f"cache_dir={os.environ[SHARED_CACHE]}")
-    return subprocess.run([sys.executable, "-m", f"nsl_hpc.{verb}", *args], capture_output=True, text=True,
-                          timeout=timeout, cwd=cwd, preexec_fn=None if umask is None else lambda: os.umask(umask))
+    if verb == "launch" and not any(arg.startswith(NOT_LOCAL) for arg in args):
+        args = (*args, ONE_WORKER)
+    return preloaded.run(f"nsl_hpc.{verb}", args, timeout=timeout, cwd=cwd, umask=umask)
 
 
 def row_files(sweep_dir: Path) -> list[Path]:

@@ -8,6 +8,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from nsl_hpc.sweep.rows import read_row
+from tests import preloaded
 
 pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
 
@@ -25,8 +26,7 @@ ROW_COLUMNS = {
 
 
 def train(*args: str, cache_dir: str, env: dict | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "nsl_hpc.train", f"cache_dir={cache_dir}", *args],
-                          capture_output=True, text=True, timeout=300, env=env)
+    return preloaded.run("nsl_hpc.train", [f"cache_dir={cache_dir}", *args], timeout=300, env=env)
 
 
 def rows_under(out_dir):
