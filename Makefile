@@ -80,9 +80,11 @@ data: $(INSTALLED)
 # runs two (tests/conftest.py's scheduling); more workers only contend for the two cores (the tests are CPU-bound).
 # TEST_WORKERS=N sets either; TEST_WORKERS=0 runs in this process.
 TEST_WORKERS ?=
-# The cluster starts (on a fresh machine: installs SLURM, munge and MariaDB) while .venv installs; its lines follow.
+# The two clusters start (on a fresh machine: the first installs SLURM, munge and MariaDB) while .venv installs;
+# their lines follow. The SLURM tests run on both at once (tests/clusters.py).
 test:
-	@log=$$(mktemp); bash cluster/up.sh --optional > $$log 2>&1 & up=$$!; \
+	@log=$$(mktemp); { bash cluster/up.sh --optional && CLUSTER_INSTANCE=2 bash cluster/up.sh --optional; } \
+	  > $$log 2>&1 & up=$$!; \
 	  $(MAKE) --no-print-directory install; installed=$$?; \
 	  wait $$up; started=$$?; cat $$log; rm -f $$log; \
 	  [ $$installed -eq 0 ] && [ $$started -eq 0 ]

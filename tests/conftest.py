@@ -17,6 +17,7 @@ from xdist.scheduler import LoadScopeScheduling  # noqa: E402
 
 from nsl_hpc.cache import ArrayCache  # noqa: E402
 from nsl_hpc.config import compose_config  # noqa: E402
+from tests import clusters  # noqa: E402
 from tests.sweeps import SHARED_CACHE  # noqa: E402
 
 torch.set_num_threads(1)
@@ -48,18 +49,25 @@ def compose(cache_dir, tmp_path):
     return make
 
 
-OWN_CLUSTER = ("tests/cluster/test_node_loss.py",)  # SLURM tests on a cluster of their own (cluster/nodes.sh)
+def pytest_configure(config: pytest.Config) -> None:
+    """Whether the second cluster answers, decided once, before the xdist workers start (they inherit it)."""
+    if not hasattr(config, "workerinput") and clusters.SECOND not in os.environ and clusters.second_answers():
+        os.environ[clusters.SECOND] = clusters.SECOND_CONF
 
 
 class FileOrCluster(LoadScopeScheduling):
     """pytest-xdist's scheduling for ``make test`` (``-n 3``): the tests of one file run on one worker, in order,
-    sharing their module fixtures, and the SLURM tests (tests/cluster/) one after another on one worker: they share
-    the cluster's queue and CPUs, and one restarts it. A file of ``OWN_CLUSTER`` runs on another worker, beside
-    them. (xdist's loadgroup would do this with marks, but does not group anything under pytest 9.)"""
+    sharing their module fixtures, and the SLURM tests (tests/cluster/) of one cluster one after another on one
+    worker: they share the cluster's queue and CPUs, and some restart it or change its limits. With the second
+    cluster up, its files (``clusters.ON_SECOND``) run on another worker, beside the first's; a file of
+    ``clusters.OWN_CLUSTER`` on a third. (xdist's loadgroup would do this with marks, but does not group anything under
+    pytest 9.)"""
 
     def _split_scope(self, nodeid: str) -> str:
         path = nodeid.split("::", 1)[0]
-        return "tests/cluster" if nodeid.startswith("tests/cluster/") and path not in OWN_CLUSTER else path
+        if not nodeid.startswith("tests/cluster/") or path in clusters.OWN_CLUSTER:
+            return path
+        return "cluster 2" if clusters.SECOND in os.environ and path in clusters.ON_SECOND else "cluster 1"
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

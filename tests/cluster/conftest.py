@@ -1,4 +1,4 @@
-"""Tests on the real single-node SLURM cluster of cluster/up.sh. Without a cluster they are skipped,
+"""Tests on the real single-node SLURM clusters of cluster/up.sh. Without a cluster they are skipped,
 except under CI=true, where a missing cluster fails them."""
 
 import getpass
@@ -7,11 +7,13 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
 
 import pytest
 
+from tests import clusters
 from tests.cluster.long_jobs import GROUP, outcome_rows
 
 
@@ -23,9 +25,9 @@ def cluster_answers() -> bool:
 
 
 def cancel_earlier_test_jobs(before: datetime) -> list[str]:
-    """Cancel the jobs earlier test sessions left in the queue (output under pytest's temp root, submitted
-    ``before``): a run stopped before its cleanup, or a controller state restored from a disk snapshot. They
-    would share this session's job names and hold its CPUs. Returns their ids."""
+    """Cancel the jobs earlier tests left in the queue (output under pytest's temp root, submitted ``before``): a run
+    stopped before its cleanup, a controller state restored from a disk snapshot, an earlier module's leftovers.
+    They would share this module's job names and hold its CPUs. Returns their ids."""
     root = str(Path(tempfile.gettempdir()) / f"pytest-of-{getpass.getuser()}") + os.sep
     queue = subprocess.run(["squeue", "-h", "-u", getpass.getuser(), "-O", "ArrayJobID:20,SubmitTime:25,STDOUT:1000"],
                            capture_output=True, text=True, check=True).stdout.splitlines()
@@ -38,16 +40,30 @@ def cancel_earlier_test_jobs(before: datetime) -> list[str]:
     return earlier
 
 
-@pytest.fixture(scope="session")
-def slurm_cluster() -> None:
-    """Require the cluster started by `cluster/up.sh`, without the jobs of earlier test sessions."""
-    if cluster_answers():
+@pytest.fixture(scope="module")
+def slurm_cluster(request) -> Iterator[dict[str, str]]:
+    """The cluster of cluster/up.sh this module's tests run on, without the jobs of earlier tests: the first, or the
+    second (``CLUSTER_INSTANCE=2``) for a file of ``clusters.ON_SECOND`` when it is up (tests/clusters.py). Its
+    settings are the environment of this module's SLURM commands and of up.sh restarting it; yields them."""
+    second = os.environ.get(clusters.SECOND)
+    on_second = second is not None and request.node.nodeid in clusters.ON_SECOND
+    cluster = {"CLUSTER_INSTANCE": "2", "SLURM_CONF": second} if on_second else {"CLUSTER_INSTANCE": "1"}
+    saved = os.environ.get("SLURM_CONF")
+    os.environ.pop("SLURM_CONF", None)
+    os.environ.update(cluster)
+    try:
+        if not cluster_answers():
+            message = "no SLURM cluster answers `sinfo`: start one with `sudo cluster/up.sh`"
+            if os.environ.get("CI") == "true":
+                pytest.fail(message)
+            pytest.skip(message)
         cancel_earlier_test_jobs(datetime.now())
-        return
-    message = "no SLURM cluster answers `sinfo`: start one with `sudo cluster/up.sh`"
-    if os.environ.get("CI") == "true":
-        pytest.fail(message)
-    pytest.skip(message)
+        yield cluster
+    finally:
+        os.environ.pop("CLUSTER_INSTANCE")
+        os.environ.pop("SLURM_CONF", None)
+        if saved is not None:
+            os.environ["SLURM_CONF"] = saved
 
 
 @pytest.fixture(scope="module")

@@ -2,8 +2,11 @@
 from the queue, and a task the controller still holds is never called missing (issue: pending tasks were
 submitted twice after slurmdbd came back)."""
 
+import os
+import signal
 import subprocess
 import time
+from pathlib import Path
 
 import pytest
 
@@ -16,8 +19,21 @@ def accounting_answers() -> bool:
     return subprocess.run(["sacctmgr", "-n", "show", "cluster"], capture_output=True, timeout=30).returncode == 0
 
 
+def slurmdbd_pid() -> int | None:
+    """The pid of this cluster's slurmdbd (its slurmdbd.conf lies beside SLURM_CONF), None when it is not running."""
+    conf = Path(os.environ.get("SLURM_CONF", "/etc/slurm/slurm.conf")).with_name("slurmdbd.conf")
+    settings = dict(line.split("=", 1) for line in conf.read_text().splitlines() if "=" in line)
+    pid_file = Path(settings["PidFile"])
+    if not pid_file.exists():
+        return None
+    pid = int(pid_file.read_text())
+    comm = Path(f"/proc/{pid}/comm")
+    return pid if comm.exists() and comm.read_text() == "slurmdbd\n" else None
+
+
 def stop_slurmdbd() -> None:
-    subprocess.run(["pkill", "-x", "slurmdbd"], check=False)
+    if (pid := slurmdbd_pid()) is not None:
+        os.kill(pid, signal.SIGTERM)
     for _ in range(60):
         if not accounting_answers():
             return
@@ -26,7 +42,7 @@ def stop_slurmdbd() -> None:
 
 
 def start_slurmdbd() -> None:
-    if subprocess.run(["pgrep", "-x", "slurmdbd"], capture_output=True).returncode != 0:
+    if slurmdbd_pid() is None:
         subprocess.run(["/usr/sbin/slurmdbd"], check=True)
     for _ in range(120):
         if accounting_answers():

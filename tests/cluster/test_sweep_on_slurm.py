@@ -53,11 +53,12 @@ def test_packed_sweep_completes_on_slurm(slurm_cluster, tmp_path):
 @pytest.fixture
 def small_max_array_size(slurm_cluster):
     """The cluster restarted with MaxArraySize=3, restored afterwards."""
-    subprocess.run(["bash", str(REPO / "cluster" / "up.sh")], env={"MAX_ARRAY_SIZE": "3", "PATH": "/usr/bin:/bin:"
-                   "/usr/sbin:/sbin"}, check=True, capture_output=True)
-    yield 3
-    subprocess.run(["bash", str(REPO / "cluster" / "up.sh")], env={"PATH": "/usr/bin:/bin:/usr/sbin:/sbin"},
+    path = {"PATH": "/usr/bin:/bin:/usr/sbin:/sbin"}
+    subprocess.run(["bash", str(REPO / "cluster" / "up.sh")], env={**slurm_cluster, **path, "MAX_ARRAY_SIZE": "3"},
                    check=True, capture_output=True)
+    yield 3
+    subprocess.run(["bash", str(REPO / "cluster" / "up.sh")], env={**slurm_cluster, **path}, check=True,
+                   capture_output=True)
 
 
 def test_sweep_larger_than_max_array_size_is_split(small_max_array_size, tmp_path):
