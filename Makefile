@@ -75,9 +75,10 @@ data: $(INSTALLED)
 
 # The SLURM tests need the real single-node cluster; without root they are skipped (under CI=true,
 # a cluster that cannot start fails the run).
-# pytest-xdist workers: make test runs the SLURM tests (mostly waiting on the scheduler and on jobs that sleep) one
-# after another on one worker and a test file at a time on each of two others, filling both cores; make test-fast
-# runs two (tests/conftest.py's scheduling); more workers only contend for the two cores (the tests are CPU-bound).
+# pytest-xdist workers: make test runs the SLURM tests (mostly waiting on the scheduler and on jobs that sleep) on two
+# workers, one per cluster, each test after another, and a test file at a time on each of two others, filling both
+# cores; make test-fast runs two (tests/conftest.py's scheduling); more workers only contend for the two cores (the
+# tests are CPU-bound).
 # TEST_WORKERS=N sets either; TEST_WORKERS=0 runs in this process.
 TEST_WORKERS ?=
 # The two clusters start (on a fresh machine: the first installs SLURM, munge and MariaDB) while .venv installs;
@@ -88,7 +89,7 @@ test:
 	  $(MAKE) --no-print-directory install; installed=$$?; \
 	  wait $$up; started=$$?; cat $$log; rm -f $$log; \
 	  [ $$installed -eq 0 ] && [ $$started -eq 0 ]
-	$(PY) -m pytest -n $(or $(TEST_WORKERS),3)
+	$(PY) -m pytest -n $(or $(TEST_WORKERS),4)
 
 # Everything but the cluster, the end-to-end and the slow tests: the science, the planning core, fits (README: its time).
 test-fast: $(INSTALLED)

@@ -56,7 +56,7 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 class FileOrCluster(LoadScopeScheduling):
-    """pytest-xdist's scheduling for ``make test`` (``-n 3``): the tests of one file run on one worker, in order,
+    """pytest-xdist's scheduling for ``make test`` (``-n 4``): the tests of one file run on one worker, in order,
     sharing their module fixtures, and the SLURM tests (tests/cluster/) of one cluster one after another on one
     worker: they share the cluster's queue and CPUs, and some restart it or change its limits. With the second
     cluster up, its files (``clusters.ON_SECOND``) run on another worker, beside the first's; a file of

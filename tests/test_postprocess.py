@@ -44,10 +44,11 @@ def finished_sweep(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def fitted_sweep(finished_sweep, tmp_path_factory):
-    """A copy of the finished sweep, merged and fitted (no bootstrap); tests that change it copy it first."""
+    """A copy of the finished sweep, merged and fitted (one break at most, no bootstrap); tests that change it copy
+    it first."""
     sweep_dir = shutil.copytree(finished_sweep, tmp_path_factory.mktemp("fitted") / "sweep")
     assert nsl("merge", f"sweep_dir={sweep_dir}").returncode == 0
-    assert nsl("fit", f"sweep_dir={sweep_dir}", "nsl.bootstrap=0").returncode == 0
+    assert nsl("fit", f"sweep_dir={sweep_dir}", "nsl.max_breaks=1", "nsl.bootstrap=0").returncode == 0
     return sweep_dir
 
 
@@ -85,7 +86,7 @@ def test_fit_writes_one_row_per_nsl_and_reports_excluded_outcomes(sweep_copy):
     nmae[0] = 0.0  # a zero error cannot enter a log-log fit
     pq.write_table(results.set_column(results.schema.get_field_index("nmae"), "nmae", pa.array(nmae)),
                    sweep_copy / "results.parquet")
-    result = nsl("fit", f"sweep_dir={sweep_copy}", "nsl.max_breaks=2")
+    result = nsl("fit", f"sweep_dir={sweep_copy}", "nsl.max_breaks=2", "nsl.bootstrap=20")
     assert result.returncode == 0, result.stderr
     fits = pq.read_table(sweep_copy / "nsl_fits.parquet").to_pylist()
     assert len(fits) == NSLS
@@ -96,9 +97,9 @@ def test_fit_writes_one_row_per_nsl_and_reports_excluded_outcomes(sweep_copy):
     text = (sweep_copy / "nsl_fits.txt").read_text()
     assert text.count("(1 excluded: not ok or non-positive)") == 3
     assert text.count("L(c) = ") == 2 and text.count("L(d) = ") == 2 and text.count("L(p) = ") == 2
-    assert text.count("90% (200 resamples): last slope") == NSLS and text.count("paper (Section 5.2") == 1
+    assert text.count("90% (20 resamples): last slope") == NSLS and text.count("paper (Section 5.2") == 1
     for fit in fits:
-        assert len(fit["bootstrap_thetas"]) == 200 and fit["last_slope_lo"] <= fit["last_slope_hi"]
+        assert len(fit["bootstrap_thetas"]) == 20 and fit["last_slope_lo"] <= fit["last_slope_hi"]
         assert fit["L_at_max_lo"] <= fit["L_at_max_hi"] and fit["r_max"] > 0
     published = next(f for f in fits if (f["resource"], f["metric"]) == ("data", "nmae"))
     assert (published["paper_b"], published["paper_margin"]) == (2, 0.07) and published["paper_margin_on_ours"] > 0
@@ -114,7 +115,7 @@ def test_fit_writes_one_row_per_nsl_and_reports_excluded_outcomes(sweep_copy):
     assert card["law"]["b"] == published["b"] and card["margin"]["M"] == published["margin"]
     assert len(card["envelope"]["r"]) == len(card["envelope"]["e"]) == 100  # nsl.K
     assert card["b_why"].startswith(f"b={published['b']} of 0..2: ") and card["published"]["b"] == 2
-    assert card["intervals"]["resamples"] == 200 and card["intervals"]["last_slope"]["lo"] <= card["law"]["slopes"][-1]
+    assert card["intervals"]["resamples"] == 20 and card["intervals"]["last_slope"]["lo"] <= card["law"]["slopes"][-1]
     assert card["backtest"]["M_above"] == published["backtest_margin"]
     hours = card["core_hours"]
     assert hours["tasks"] == 24 and hours["predicted"] > 0 and hours["measured"] > 0
