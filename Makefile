@@ -1,7 +1,7 @@
 # Set-up and the two everyday commands. Everything installs into .venv on first use.
 #   make demo   the main job: the demo sweep (216 tasks) on local processes, then merge, NSL fits,
 #               figures, MLflow and report.html
-#   make test   start the local SLURM cluster (cluster/up.sh) and run the test suite
+#   make test   start the two local SLURM clusters (cluster/up.sh) and run the test suite
 #   make test-fast  the tests that need no cluster and run no command end to end (README: its time)
 #   make demo-io  the input-output demo (io_demo, 60 tasks on the simulated stand-ins), merge ... report.html
 #   make repro  the reduced-scale reproduction (docs/reproduction.md): the repro and repro_io sweeps (~1.8 predicted
