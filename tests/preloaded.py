@@ -54,7 +54,8 @@ def run(module: str, args: Sequence[str], timeout: float, cwd: Path | None = Non
         ours, theirs = socket.socketpair()
         with ours:
             request = json.dumps(dict(module=module, argv=list(args), cwd=str(cwd or os.getcwd()),
-                                      env=dict(os.environ if env is None else env), umask=umask)).encode()
+                                      env=dict(os.environ if env is None else env),
+                                      umask=_umask() if umask is None else umask)).encode()
             socket.send_fds(_connection(), [request], [null.fileno(), out.fileno(), err.fileno(), theirs.fileno()])
             theirs.close()
             pid = int(_line(ours))
@@ -73,6 +74,13 @@ def _text(output: IO[bytes]) -> str:
     translated: a progress bar's carriage returns too)."""
     output.seek(0)
     return io.TextIOWrapper(output, newline=None).read()
+
+
+def _umask() -> int:
+    """This process's umask (reading it means setting it)."""
+    current = os.umask(0o077)
+    os.umask(current)
+    return current
 
 
 def _line(reply: socket.socket, timeout: float | None = None) -> str:
@@ -107,8 +115,7 @@ def _become(command: dict, stdin: int, stdout: int, stderr: int) -> None:
     os.chdir(command["cwd"])
     os.environ.clear()
     os.environ.update(command["env"])
-    if command["umask"] is not None:
-        os.umask(command["umask"])
+    os.umask(command["umask"])
     sys.path[0] = command["cwd"]  # where `python -m` looks first
     sys.argv = [command["module"], *command["argv"]]
     runpy.run_module(command["module"], run_name="__main__", alter_sys=True)
