@@ -52,7 +52,7 @@ def run(module: str, args: Sequence[str], timeout: float, cwd: Path | None = Non
     command is killed and ``subprocess.TimeoutExpired`` raised."""
     with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, open(os.devnull, "rb") as null:
         ours, theirs = socket.socketpair()
-        with ours:
+        with ours, theirs:
             request = json.dumps(dict(module=module, argv=list(args), cwd=str(cwd or os.getcwd()),
                                       env=dict(os.environ if env is None else env),
                                       umask=_umask() if umask is None else umask)).encode()

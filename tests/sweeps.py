@@ -29,7 +29,7 @@ OWN_CACHE = "cache_dir=${sweep_dir}/cache"  # launch.yaml's default
 # process of its own that imports torch (3 s of CPU), and a test's sweep trains for a second or two. The tests of
 # several workers name them.
 ONE_WORKER = "launcher.workers=1"
-NOT_LOCAL = ("launcher=slurm", "launcher=debug", "launcher.workers=")
+OWN_WORKERS = ("launcher=slurm", "launcher=debug", "launcher.workers=")  # a launch with one of these keeps its own
 
 
 def nsl(verb: str, *args: str, timeout: float = 600, cwd: Path | None = None,
@@ -38,7 +38,7 @@ def nsl(verb: str, *args: str, timeout: float = 600, cwd: Path | None = None,
     its libraries (tests/preloaded.py); a launch into the session's cache, a local one on one worker."""
     if verb == "launch" and SHARED_CACHE in os.environ and not any(arg.startswith("cache_dir=") for arg in args):
         args = (*args, f"cache_dir={os.environ[SHARED_CACHE]}")
-    if verb == "launch" and not any(arg.startswith(NOT_LOCAL) for arg in args):
+    if verb == "launch" and not any(arg.startswith(OWN_WORKERS) for arg in args):
         args = (*args, ONE_WORKER)
     return preloaded.run(f"nsl_hpc.{verb}", args, timeout=timeout, cwd=cwd, umask=umask)
 
