@@ -73,7 +73,7 @@ mechanisms: $(INSTALLED)
 data: $(INSTALLED)
 	$(PY) -m nsl_hpc.place_data source=$(DATA_SOURCE) data_dir=data
 
-# The SLURM tests need the real single-node cluster; without root they are skipped (under CI=true,
+# The SLURM tests need the real single-node clusters; without root they are skipped (under CI=true,
 # a cluster that cannot start fails the run).
 # pytest-xdist workers: make test runs the SLURM tests (mostly waiting on the scheduler and on jobs that sleep) on two
 # workers, one per cluster, each test after another, and a test file at a time on each of two others, filling both

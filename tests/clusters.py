@@ -16,9 +16,14 @@ SECOND = "NSL_TESTS_SECOND_CLUSTER"  # the second cluster's SLURM_CONF, set for 
 SECOND_CONF = "/var/lib/nsl-cluster-2/slurm.conf"  # CLUSTER_INSTANCE=2 cluster/up.sh's
 
 
-def second_answers() -> bool:
-    if not Path(SECOND_CONF).exists() or shutil.which("sinfo") is None:
+def answers(slurm_conf: str | None = None) -> bool:
+    """Whether the cluster of ``slurm_conf`` (default: the environment's) answers ``sinfo`` with its nodes."""
+    if shutil.which("sinfo") is None:
         return False
-    answer = subprocess.run(["sinfo", "-h", "-o", "%T"], capture_output=True, text=True, timeout=30,
-                            env={**os.environ, "SLURM_CONF": SECOND_CONF})
-    return answer.returncode == 0 and bool(answer.stdout.strip())
+    env = {**os.environ, "SLURM_CONF": slurm_conf} if slurm_conf else None
+    result = subprocess.run(["sinfo", "-h", "-o", "%T"], capture_output=True, text=True, timeout=30, env=env)
+    return result.returncode == 0 and bool(result.stdout.strip())
+
+
+def second_answers() -> bool:
+    return Path(SECOND_CONF).exists() and answers(SECOND_CONF)

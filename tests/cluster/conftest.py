@@ -3,7 +3,6 @@ except under CI=true, where a missing cluster fails them."""
 
 import getpass
 import os
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -15,13 +14,6 @@ import pytest
 
 from tests import clusters
 from tests.cluster.long_jobs import GROUP, outcome_rows
-
-
-def cluster_answers() -> bool:
-    if shutil.which("sinfo") is None:
-        return False
-    result = subprocess.run(["sinfo", "-h", "-o", "%T"], capture_output=True, text=True, timeout=30)
-    return result.returncode == 0 and bool(result.stdout.strip())
 
 
 def cancel_earlier_test_jobs(before: datetime) -> list[str]:
@@ -52,7 +44,7 @@ def slurm_cluster(request) -> Iterator[dict[str, str]]:
     os.environ.pop("SLURM_CONF", None)
     os.environ.update(cluster)
     try:
-        if not cluster_answers():
+        if not clusters.answers():
             message = "no SLURM cluster answers `sinfo`: start one with `sudo cluster/up.sh`"
             if os.environ.get("CI") == "true":
                 pytest.fail(message)

@@ -1,4 +1,5 @@
-"""The queue as the cluster tests watch it: jobs leaving it, and the requeued jobs SLURM holds back.
+"""The queue as the cluster tests watch it: jobs leaving it, the requeued jobs SLURM holds back, a job's state in
+accounting.
 
 SLURM holds a requeued job for about two minutes (BeginTime) before it may start again; the cluster tests release
 it (``scontrol update StartTime=now``) to stay short: the wait is SLURM's, not nsl_hpc's. A job released at once
@@ -63,3 +64,16 @@ def wait_until_gone(name: str, timeout_s: float = 240) -> None:
                          check=True).stdout.strip():
         assert time.time() < deadline, f"{name} still queued after {timeout_s} s"
         time.sleep(2)
+
+
+def sacct_state(job_id: str, wait_s: float = 60.0) -> str:
+    """The job's state in sacct once the accounting database has its end (slurmdbd may still say PENDING or
+    RUNNING for a few seconds after sbatch --wait returned)."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        result = subprocess.run(["sacct", "-n", "-X", "-P", "-j", job_id, "--format=State"],
+                                capture_output=True, text=True, check=True)
+        state = result.stdout.strip()
+        if state not in ("", "PENDING", "RUNNING") or time.monotonic() > deadline:
+            return state
+        time.sleep(1.0)

@@ -2,12 +2,12 @@
 
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from nsl_hpc.sweep.rows import read_row
+from tests.cluster.requeues import sacct_state
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.slurm
@@ -24,19 +24,6 @@ def submit_and_wait(cluster: dict[str, str], log_dir: Path, *overrides: str) -> 
         env={**cluster, "PATH": "/usr/bin:/bin:/usr/sbin:/sbin", "NSL_HPC_PYTHON": sys.executable})
     job_id = submitted.stdout.strip().split(";")[0]
     return submitted, job_id, (log_dir / f"slurm-{job_id}.out").read_text()
-
-
-def sacct_state(job_id: str, wait_s: float = 60.0) -> str:
-    """The job's state in sacct once the accounting database has its end (slurmdbd may still say PENDING or
-    RUNNING for a few seconds after sbatch --wait returned)."""
-    deadline = time.monotonic() + wait_s
-    while True:
-        result = subprocess.run(["sacct", "-n", "-X", "-P", "-j", job_id, "--format=State"],
-                                capture_output=True, text=True, check=True)
-        state = result.stdout.strip()
-        if state not in ("", "PENDING", "RUNNING") or time.monotonic() > deadline:
-            return state
-        time.sleep(1.0)
 
 
 def test_one_task_runs_under_sbatch(slurm_cluster, tmp_path, cache_dir):

@@ -3,24 +3,12 @@ test runs half of the SLURM tests on."""
 
 import os
 import subprocess
-import time
 
 import pytest
 
+from tests.cluster.requeues import sacct_state
+
 pytestmark = pytest.mark.slurm
-
-
-def accounted_state(job_id: str, slurm_conf: str | None, wait_s: float) -> str:
-    """The job's state in the accounting of the cluster of ``slurm_conf`` (None: the first's), once it has one."""
-    env = {key: value for key, value in os.environ.items() if key != "SLURM_CONF"}
-    env |= {"SLURM_CONF": slurm_conf} if slurm_conf else {}
-    deadline = time.monotonic() + wait_s
-    while True:
-        state = subprocess.run(["sacct", "-n", "-X", "-P", "-j", job_id, "--format=State"], capture_output=True,
-                               text=True, check=True, env=env).stdout.strip()
-        if state not in ("", "PENDING", "RUNNING") or time.monotonic() > deadline:
-            return state
-        time.sleep(1.0)
 
 
 def test_a_job_of_the_second_cluster_runs_there_and_only_its_accounting_has_it(slurm_cluster, tmp_path):
@@ -34,5 +22,7 @@ def test_a_job_of_the_second_cluster_runs_there_and_only_its_accounting_has_it(s
     job_id = submitted.stdout.strip()
     assert (tmp_path / f"{job_id}.out").read_text().strip() == "nsl2"
     assert int(job_id) >= 500000  # its job ids lie apart from the first's
-    assert accounted_state(job_id, slurm_cluster["SLURM_CONF"], wait_s=60) == "COMPLETED"
-    assert accounted_state(job_id, None, wait_s=0) == ""
+    assert sacct_state(job_id) == "COMPLETED"
+    first = {key: value for key, value in os.environ.items() if key != "SLURM_CONF"}
+    assert subprocess.run(["sacct", "-n", "-X", "-P", "-j", job_id, "--format=State"], capture_output=True, text=True,
+                          check=True, env=first).stdout.strip() == ""
