@@ -42,11 +42,14 @@ def overview_stem(sweep_dir: Path, resource: str, metric: str) -> Path:
 
 
 def save(fig: Figure, stem: Path, figures: Figures) -> list[Path]:
+    """The figure in each of ``figures.formats``, laid out once: the first format's drawing runs the constrained
+    layout, the others keep its positions (the layout takes about half of a drawing's time)."""
     paths = []
     for fmt in figures.formats:
         path = stem.with_suffix(f".{fmt}")
         with replacing(path) as temporary:
             fig.savefig(temporary, format=fmt, dpi=figures.dpi)
+        fig.set_layout_engine("none")
         paths.append(path)
     return paths
 
