@@ -152,11 +152,20 @@ class StepCompiler:
         self.enabled = enabled
 
     def wrap(self, step: Step) -> Step:
-        """``step``, compiled while ``enabled``."""
+        """``step``, compiled while ``enabled`` (and a C++ compiler is found: without one the step is not traced
+        and lowered first, about 8 s of CPU, only to fail)."""
         if not self.enabled:
             return step
         # imported here, not with the module: dynamo adds ~1 s to every command's and eager job's start-up
         from torch._dynamo.exc import FailOnRecompileLimitHit, TorchDynamoException
+        from torch._inductor.cpp_builder import get_cpp_compiler
+        from torch._inductor.exc import InvalidCxxCompiler
+
+        try:
+            get_cpp_compiler()  # Inductor's search (CXX, else its list of names); training runs on the CPU
+        except InvalidCxxCompiler as error:
+            self.disable(error)
+            return step
 
         # a process may compile a step function for many groups and shapes; past the limit, fail (and train
         # eagerly, recorded as such) rather than run uncompiled while recorded compiled
@@ -169,12 +178,16 @@ class StepCompiler:
                 try:
                     return compiled(*args)
                 except (TorchDynamoException, FailOnRecompileLimitHit) as error:
-                    self.enabled = False
-                    reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-                    LOG.warning("compiling the training step failed (%s); training eagerly", reason)
+                    self.disable(error)
             return step(*args)
 
         return cast(Step, call)
+
+    def disable(self, error: Exception) -> None:
+        """Train eagerly from here on, after one warning line naming ``error``."""
+        self.enabled = False
+        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        LOG.warning("compiling the training step failed (%s); training eagerly", reason)
 
 
 def compiled_gradient(losses_of: Callable[..., torch.Tensor], theta: torch.Tensor, mask: torch.Tensor,
