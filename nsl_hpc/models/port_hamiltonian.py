@@ -36,7 +36,13 @@ class PortHamiltonian(StateSpaceArchitecture):
     def __init__(self, state_dim: int, input_dim: int, width: int, hamiltonian: str, dissipation: str):
         super().__init__(state_dim, input_dim, width)
         self.hamiltonian, self.dissipation = hamiltonian, dissipation
-        self.maps: dict[torch.dtype, tuple[torch.Tensor, torch.Tensor]] = {}
+        # built here, not on first use: a compiled step that filled the dict would fail its guard and compile again
+        self.maps = {dtype: self.entry_maps(dtype) for dtype in (torch.float32, torch.float64)}
+
+    def entry_maps(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        """The maps of the J and R heads' entries to the n x n matrices' (``entries_to_matrix``)."""
+        return (entries_to_matrix(self.n, "strict_upper", dtype),
+                entries_to_matrix(self.n, "full" if self.dissipation == "square" else "lower", dtype))
 
     def heads(self) -> list[Head]:
         n, m, width = self.n, self.m, self.width
@@ -59,10 +65,7 @@ class PortHamiltonian(StateSpaceArchitecture):
         """J (n x n) skew-symmetric, R (n x n) symmetric PSD and G (n x m) per sample from the heads' outputs:
         (B, n, n) and (B, n, m) batch-major, (n, n, B) and (n, m, B) feature-major."""
         n, dtype = self.n, outputs["J"].dtype
-        if dtype not in self.maps:
-            self.maps[dtype] = (entries_to_matrix(n, "strict_upper", dtype),
-                                entries_to_matrix(n, "full" if self.dissipation == "square" else "lower", dtype))
-        skew, factor = self.maps[dtype]
+        skew, factor = self.maps[dtype] if dtype in self.maps else self.entry_maps(dtype)
         interconnection = layout.matrix(layout.linear(outputs["J"], skew), n, n)
         q = layout.matrix(layout.linear(outputs["R"], factor), n, n)
         dissipation = layout.matmul(q, layout.transposed(q)) / math.sqrt(n)
