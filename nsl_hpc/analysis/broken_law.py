@@ -84,7 +84,8 @@ def log_law_jacobian(theta: np.ndarray, x: np.ndarray) -> np.ndarray:
     columns = [1 - w, w, w * x]
     for log_sigma, phi, delta in theta[3:].reshape(-1, 3):
         z = (x - log_sigma) / phi
-        columns += [-w * delta * expit(z), w * delta * (softplus(z) - z * expit(z)), w * phi * softplus(z)]
+        sigmoid, soft = expit(z), softplus(z)
+        columns += [-w * delta * sigmoid, w * delta * (soft - z * sigmoid), w * phi * soft]
     return np.stack(columns, axis=1)
 
 
@@ -111,7 +112,7 @@ def slope_form_jacobian(u: np.ndarray, x: np.ndarray) -> np.ndarray:
     jacobian = log_law_jacobian(theta_of(u), x)
     by_slope = jacobian.copy()
     delta = jacobian[:, 2::3]  # d / d delta0, d / d delta_1, ...
-    by_slope[:, 2::3] = delta - np.pad(delta[:, 1:], ((0, 0), (0, 1)))
+    by_slope[:, 2:-3:3] = delta[:, :-1] - delta[:, 1:]  # s_k moves delta_k and, the other way, delta_k+1
     rank = np.argsort(np.argsort(u[3::3], kind="stable"), kind="stable")
     by_slope[:, 3::3] = jacobian[:, 3::3][:, rank]
     return by_slope
