@@ -43,11 +43,16 @@ PIP := $(PY) -m pip install --quiet --disable-pip-version-check
 # configuration names: uv does not read it). Compiled to bytecode as pip does: where PYTHONDONTWRITEBYTECODE is set,
 # every process would compile what it imports anew (mlflow's imports: 5.3 s instead of 1.8).
 UV := $(PY) -m uv pip install --quiet --compile-bytecode --python $(PY)
+# The package's own bytecode (an editable install compiles none), brought up to date before the tests: where
+# PYTHONDONTWRITEBYTECODE is set, each of the suite's hundreds of commands and jobs would compile nsl_hpc's modules
+# anew (0.31 s of CPU each instead of 0.15).
+BYTECODE := $(PY) -m compileall -q nsl_hpc
 
 $(INSTALLED): pyproject.toml
 	$(PYTHON) -m venv $(VENV) || { echo "error: $(PYTHON) -m venv failed; on Debian/Ubuntu: apt-get install python3-venv"; exit 1; }
 	$(PIP) --no-deps --no-index $(TORCH) 2>/dev/null || $(PIP) --no-deps --index-url $(TORCH_INDEX) $(TORCH)
 	{ $(PIP) uv && $(UV) -e '.[test]'; } || $(PIP) -e '.[test]'
+	$(BYTECODE)
 	touch $@
 
 demo: $(INSTALLED)
@@ -94,10 +99,12 @@ test:
 	  $(MAKE) --no-print-directory install; installed=$$?; \
 	  wait $$up; started=$$?; cat $$log; rm -f $$log; \
 	  [ $$installed -eq 0 ] && [ $$started -eq 0 ]
+	$(BYTECODE)
 	$(PY) -m pytest -n $(or $(TEST_WORKERS),4)
 
 # Everything but the cluster, the end-to-end and the slow tests: the science, the planning core, fits (README: its time).
 test-fast: $(INSTALLED)
+	$(BYTECODE)
 	$(PY) -m pytest -n $(or $(TEST_WORKERS),2) -m "not slurm and not e2e and not slow" --ignore=tests/cluster
 
 lint: $(INSTALLED)
