@@ -92,7 +92,8 @@ def test_your_own_system_and_model_train_fit_and_report_from_a_wheel(study, site
     """The example's system and models, launched, reported and predicted by the installed wheel from the study's own
     folder (its records: tests/cluster/test_own_study_slurm.py runs own_data)."""
     assert run(study, site, "launch", "--help").stdout  # the wheel answers, from outside the checkout
-    launched = run(study, site, "launch", "+sweep=own_study", *SMALL_STUDY, "sweep_dir=runs/own_study")
+    launched = run(study, site, "launch", "+sweep=own_study", *SMALL_STUDY, "sweep_dir=runs/own_study",
+                   "launcher.workers=1")  # one job process: each imports torch
     assert launched.returncode == 0, launched.stderr
     assert "finished: 6 ok" in launched.stdout
     assert "tank_mlp: one model per group, priced alone" in launched.stdout  # a plain module trains alone
