@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 from omegaconf import OmegaConf
+from torch._dynamo.utils import counters
 
 from nsl_hpc.config import config_dir
 from nsl_hpc.config.schema import typed
@@ -175,8 +176,10 @@ def test_a_compiled_pack_trains_each_model_as_the_eager_loop_alone(compose, cach
     cfg = compose("system=spring", "arch=port_hamiltonian")
     members = compiled_members(cfg, cache, [3, 3])
     compiler = StepCompiler(True)
+    counters.clear()
     packed = train_lockstep(members, pair_of(cfg).train, compiler=compiler)
     assert compiler.enabled
+    assert counters["stats"]["unique_graphs"] == 1  # one shape, compiled once (no guard the first call fails)
     for k, member in enumerate(members):
         assert_trained_alike(packed, train_lockstep([member], pair_of(cfg).train), [member], [k])
 
