@@ -66,13 +66,14 @@ def wait_until_gone(name: str, timeout_s: float = 240) -> None:
         time.sleep(2)
 
 
-def sacct_state(job_id: str, wait_s: float = 60.0) -> str:
-    """The job's state in sacct once the accounting database has its end (slurmdbd may still say PENDING or
-    RUNNING for a few seconds after sbatch --wait returned)."""
+def sacct_state(job_id: str, wait_s: float = 60.0, env: dict[str, str] | None = None) -> str:
+    """The job's state in sacct (of the cluster ``env`` names; default: this process's) once the accounting database
+    has its end (slurmdbd may still say PENDING or RUNNING for a few seconds after sbatch --wait returned); ""
+    where it has no record of the job within ``wait_s``."""
     deadline = time.monotonic() + wait_s
     while True:
         result = subprocess.run(["sacct", "-n", "-X", "-P", "-j", job_id, "--format=State"],
-                                capture_output=True, text=True, check=True)
+                                capture_output=True, text=True, check=True, env=env)
         state = result.stdout.strip()
         if state not in ("", "PENDING", "RUNNING") or time.monotonic() > deadline:
             return state

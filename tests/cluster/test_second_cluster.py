@@ -24,5 +24,4 @@ def test_a_job_of_the_second_cluster_runs_there_and_only_its_accounting_has_it(s
     assert int(job_id) >= 500000  # its job ids lie apart from the first's
     assert sacct_state(job_id) == "COMPLETED"
     first = {key: value for key, value in os.environ.items() if key != "SLURM_CONF"}
-    assert subprocess.run(["sacct", "-n", "-X", "-P", "-j", job_id, "--format=State"], capture_output=True, text=True,
-                          check=True, env=first).stdout.strip() == ""
+    assert sacct_state(job_id, wait_s=0, env=first) == ""
