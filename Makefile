@@ -1,8 +1,9 @@
 # Set-up and the two everyday commands. Everything installs into .venv on first use.
 #   make demo   the main job: the demo sweep (216 tasks) on local processes, then merge, NSL fits,
 #               figures, MLflow and report.html
-#   make test   start the two local SLURM clusters (cluster/up.sh) and run the test suite
-#   make test-fast  the tests that need no cluster and run no command end to end (README: its time)
+#   make test   start the two local SLURM clusters (cluster/up.sh) and run the test suite but its slow tier
+#   make test-slow  the slow tier: the tests over about 10 s of CPU that need no cluster (CI runs it after make test)
+#   make test-fast  the tests that need no cluster, run no command end to end and are not slow (README: its time)
 #   make demo-io  the input-output demo (io_demo, 60 tasks on the simulated stand-ins), merge ... report.html
 #   make repro  the reduced-scale reproduction (docs/reproduction.md): the repro and repro_io sweeps (~1.8 predicted
 #               core-hours) into runs/repro/{input_state,input_output}, then the SUBNET laws' slices subnet_compute
@@ -27,7 +28,7 @@ REPRO_DIR ?= runs/repro
 REPRO_ARGS ?=
 MECHANISMS_ARGS ?=
 
-.PHONY: install demo demo-io repro repro-candidates mechanisms data test test-fast lint
+.PHONY: install demo demo-io repro repro-candidates mechanisms data test test-slow test-fast lint
 
 install: $(INSTALLED)
 
@@ -87,9 +88,9 @@ data: $(INSTALLED)
 # a cluster that cannot start fails the run).
 # pytest-xdist workers: make test runs the SLURM tests (mostly waiting on the scheduler and on jobs that sleep) on two
 # workers, one per cluster, each test after another, and a test file at a time on each of two others, filling both
-# cores; make test-fast runs two (tests/conftest.py's scheduling); more workers only contend for the two cores (the
+# cores; make test-slow and make test-fast run two (tests/conftest.py's scheduling); more workers only contend for the two cores (the
 # tests are CPU-bound).
-# TEST_WORKERS=N sets either; TEST_WORKERS=0 runs in this process.
+# TEST_WORKERS=N sets each; TEST_WORKERS=0 runs in this process.
 TEST_WORKERS ?=
 # The two clusters start (on a fresh machine: the first installs SLURM, munge and MariaDB) while .venv installs;
 # their lines follow. The SLURM tests run on both at once (tests/clusters.py).
@@ -100,7 +101,12 @@ test:
 	  wait $$up; started=$$?; cat $$log; rm -f $$log; \
 	  [ $$installed -eq 0 ] && [ $$started -eq 0 ]
 	$(BYTECODE)
-	$(PY) -m pytest -n $(or $(TEST_WORKERS),4)
+	$(PY) -m pytest -n $(or $(TEST_WORKERS),4) -m "not slow"
+
+# The slow tier (pyproject.toml's slow marker: no SLURM test is in it): CI runs it after make test (README: its time).
+test-slow: $(INSTALLED)
+	$(BYTECODE)
+	$(PY) -m pytest -n $(or $(TEST_WORKERS),2) -m slow
 
 # Everything but the cluster, the end-to-end and the slow tests: the science, the planning core, fits (README: its time).
 test-fast: $(INSTALLED)

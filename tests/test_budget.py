@@ -131,6 +131,7 @@ BUDGETED = ["+sweep=demo", "sweep.grid.system=[spring]", "sweep.grid.arch=[unstr
 
 
 @pytest.mark.e2e
+@pytest.mark.slow
 def test_a_budgeted_sweep_runs_in_rounds_skips_the_rest_and_continues_where_it_stopped(tmp_path):
     sweep_dir = tmp_path / "sweep"
     args = [*BUDGETED, "budget.share=0.97", f"sweep_dir={sweep_dir}", OWN_CACHE]  # its cache: clean removes it

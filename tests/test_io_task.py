@@ -24,6 +24,7 @@ SUBNET_TASK = ["study=input_output", "system=silverbox_sim", "arch=subnet", "ite
                "width_tier=4", "depth=1", "seed=0"]
 
 
+@pytest.mark.slow
 def test_a_narx_task_writes_one_row_with_the_study_resources(compose):
     row = run_task(compose(*NARX_TASK)).row
     assert row["task_id"] == "263fa82d4ea22077"  # NARX's ids are those of every sweep since draws=per_task
@@ -102,6 +103,7 @@ def test_a_launch_on_missing_measured_data_is_refused_before_anything_is_written
     assert not sweep_dir.exists()
 
 
+@pytest.mark.slow
 def test_an_input_output_sweep_runs_merges_and_fits(tmp_path):
     sweep_dir = tmp_path / "sweep"
     grid = ["+sweep=io_demo", "sweep.grid.0.seed=[0]", "sweep.grid.0.iter_multiplier=[1,2]",
@@ -145,6 +147,7 @@ def test_an_input_output_sweep_runs_merges_and_fits(tmp_path):
     assert bad.returncode != 0 and "nmae_free_run_arrow not among the sweep's scores; choose from: nmae" in bad.stderr
 
 
+@pytest.mark.slow
 def test_resubmit_leaves_out_tasks_that_cannot_run_and_runs_the_rest(tmp_path):
     """NARX reading 250 past samples: data tier 250 (at most 250 samples) holds no window of 251, tier 500 does.
     resubmit runs the tier-500 task whose row went missing, never the two that cannot run (before: they were

@@ -47,6 +47,7 @@ def test_relaunch_runs_only_missing_tasks_and_never_rewrites_rows(tmp_path):
     assert "nothing to run" in done.stdout
 
 
+@pytest.mark.slow
 def test_dry_run_writes_manifest_and_plan_only(tmp_path):
     sweep_dir = tmp_path / "sweep"
     result = nsl("launch", "+sweep=input_state", f"sweep_dir={sweep_dir}", "launcher=slurm", "dry_run=true")
@@ -101,6 +102,7 @@ def test_launch_on_a_directory_of_another_grid_is_refused(tmp_path):
     assert (sweep_dir / "manifest.parquet").read_bytes() == manifest and not (sweep_dir / "rows").exists()
 
 
+@pytest.mark.slow
 def test_failed_and_frozen_tasks_are_recorded_and_resubmitted(tmp_path):
     sweep_dir = tmp_path / "sweep"
     hang = nsl("launch", *TINY_GRID, "launcher=local", f"sweep_dir={sweep_dir}", "fault.kind=hang", "fault.seed=1",
@@ -140,6 +142,7 @@ def rows_of_local_sweep(sweep_dir, grid, extra, tasks):
     return result.stdout, [read_row(path) for path in row_files(sweep_dir)]
 
 
+@pytest.mark.slow
 def test_lockstep_groups_give_the_rows_of_tasks_trained_alone(tmp_path):
     """12 tasks of at most 4 shapes: trained in lockstep groups by the local launcher, each task's row holds
     what training it alone gives (to the packed tolerance of tests/test_training.py)."""
@@ -158,6 +161,7 @@ def test_lockstep_groups_give_the_rows_of_tasks_trained_alone(tmp_path):
             assert packed[key] == pytest.approx(alone[key], rel=1e-4), key
 
 
+@pytest.mark.slow
 def test_epoch_milestone_rows_with_a_constant_learning_rate_are_the_rows_of_separate_runs(tmp_path):
     """6 tasks (3 models x epochs 2 and 4) with train.schedule_epochs=4: each model trains once, to 4 epochs,
     and writes a row after 2 and after 4, marked milestone; with a constant learning rate these rows hold what

@@ -18,6 +18,7 @@ GRID = ["+sweep=io_demo", "tiers.width=[1,4,16]", "train.batch_size=64",
         "sweep.grid.2.width_tier=[4]", "system.subnet.horizon=20"]
 
 
+@pytest.mark.slow
 def test_a_pair_of_constant_models_is_flagged_and_a_pair_that_learns_is_not(tmp_path):
     sweep_dir = tmp_path / "sweep"
     launched = nsl("launch", *GRID, "launcher=local", f"sweep_dir={sweep_dir}")

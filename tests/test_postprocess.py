@@ -57,6 +57,7 @@ def sweep_copy(finished_sweep, tmp_path):
     return shutil.copytree(finished_sweep, tmp_path / "sweep")
 
 
+@pytest.mark.slow
 def test_merge_reports_corrupt_duplicate_and_missing_shards_and_is_idempotent(sweep_copy):
     ids = manifest_ids(sweep_copy)
     corrupt, deleted, frozen, copied = (row_path(sweep_copy, ids[i]) for i in range(4))
@@ -79,6 +80,7 @@ def test_merge_reports_corrupt_duplicate_and_missing_shards_and_is_idempotent(sw
     assert pq.read_table(sweep_copy / "results.parquet").equals(results)
 
 
+@pytest.mark.slow
 def test_fit_writes_one_row_per_nsl_and_reports_excluded_outcomes(sweep_copy):
     assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
     results = pq.read_table(sweep_copy / "results.parquet")
@@ -134,6 +136,7 @@ def test_fit_writes_one_row_per_nsl_and_reports_excluded_outcomes(sweep_copy):
         name for name in cards if "__nmae" in name)  # the cards of laws no longer fitted are gone
 
 
+@pytest.mark.slow
 def test_predict_answers_from_the_fitted_laws_and_refuses_bad_targets(sweep_copy):
     assert nsl("predict", f"sweep_dir={sweep_copy}", "target=0.1").stderr.startswith("error: ")  # not fitted yet
     assert nsl("merge", f"sweep_dir={sweep_copy}").returncode == 0
@@ -159,6 +162,7 @@ def test_predict_answers_from_the_fitted_laws_and_refuses_bad_targets(sweep_copy
         assert refused.returncode == 2 and refused.stderr.strip() == f"error: {message}"
 
 
+@pytest.mark.slow
 def test_report_figures_and_mlflow_runs_are_updated_not_duplicated(sweep_copy):
     result = nsl("report", f"sweep_dir={sweep_copy}", "nsl.max_breaks=1", "nsl.bootstrap=20",
                  "compact=false")  # a row to remove below

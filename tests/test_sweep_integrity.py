@@ -59,6 +59,7 @@ def copy_of(sweep_dir: Path, target: Path) -> Path:
 
 # Clean never removes rows, the manifest, configs or failure records, whatever the paths.
 @pytest.mark.parametrize("cache", ["sweep_dir", "rows"])
+@pytest.mark.slow
 def test_clean_keeps_everything_computed_whatever_cache_dir_is_and_its_dry_run_lists_what_goes(cache, tmp_path):
     sweep_dir = tmp_path / "sweep"
     cache_dir = sweep_dir if cache == "sweep_dir" else sweep_dir / "rows"
@@ -79,6 +80,7 @@ def test_clean_keeps_everything_computed_whatever_cache_dir_is_and_its_dry_run_l
 
 
 # A corrupt or truncated row is no row: status says so, launch and resubmit run it again, the file is kept aside.
+@pytest.mark.slow
 def test_a_truncated_row_is_reported_rerun_and_kept_aside(tiny_sweep, tmp_path):
     sweep_dir = copy_of(tiny_sweep, tmp_path / "sweep")
     first, second = row_files(sweep_dir)[:2]
@@ -100,6 +102,7 @@ def test_a_truncated_row_is_reported_rerun_and_kept_aside(tiny_sweep, tmp_path):
 
 
 # A sweep directory is self-contained and relocatable.
+@pytest.mark.slow
 def test_a_moved_sweep_is_resubmitted_from_elsewhere_into_its_new_place(tmp_path):
     first_home, elsewhere = tmp_path / "first", tmp_path / "elsewhere"
     first_home.mkdir()
@@ -118,6 +121,7 @@ def test_a_moved_sweep_is_resubmitted_from_elsewhere_into_its_new_place(tmp_path
 
 
 # One launch, resubmit or clean at a time per sweep; the manifest is created once.
+@pytest.mark.slow
 def test_concurrent_launches_of_different_grids_into_one_new_directory_accept_one(tmp_path):
     for trial in range(2):
         sweep_dir = tmp_path / f"race{trial}"
@@ -131,6 +135,7 @@ def test_concurrent_launches_of_different_grids_into_one_new_directory_accept_on
         assert "is in use by" in refusal or "holds a different grid" in refusal, refusal
 
 
+@pytest.mark.slow
 def test_a_second_command_is_refused_naming_the_running_one(tmp_path):
     sweep_dir = tmp_path / "sweep"
     first = subprocess.Popen([sys.executable, "-m", "nsl_hpc.launch", *LOCAL, f"sweep_dir={sweep_dir}",
@@ -164,6 +169,7 @@ def sweep_processes(sweep_dir: Path) -> list[int]:
     return found
 
 
+@pytest.mark.slow
 def test_killing_the_local_launcher_stops_its_workers_and_a_relaunch_runs_the_rest(tmp_path):
     sweep_dir = tmp_path / "sweep"
     launcher = subprocess.Popen([sys.executable, "-m", "nsl_hpc.launch", *LOCAL, f"sweep_dir={sweep_dir}", *LONGER,
@@ -186,6 +192,7 @@ def test_killing_the_local_launcher_stops_its_workers_and_a_relaunch_runs_the_re
 
 
 # Resubmit uses the launcher the user names (default: the last one used) and new watchdog and time settings.
+@pytest.mark.slow
 def test_resubmit_runs_on_the_last_launcher_with_the_settings_it_is_given(tmp_path):
     # tasks of 13 heartbeats slowed to >= 1.3 s on any machine: longer than a watchdog poll (0.2 s), every attempt
     sweep_dir, longer = tmp_path / "sweep", ["sweep.grid.epochs=[400]", "fault.kind=slow", "fault.heartbeat_s=0.1",
@@ -219,6 +226,7 @@ def test_a_control_file_another_user_owns_is_refused_with_advice_that_fixes_owne
     assert f"ask its owner or root to `chown -R {getpass.getuser()} {owned}`" in refusal and "chmod" not in refusal
 
 
+@pytest.mark.slow
 def test_control_files_others_can_write_are_refused_and_written_private(tmp_path):
     sweep_dir = tmp_path / "sweep"
     result = nsl("launch", *LOCAL, f"sweep_dir={sweep_dir}", umask=0o002)  # a group project's umask
@@ -324,6 +332,7 @@ def test_a_quote_in_the_sweep_path_does_not_break_the_mlflow_search(tmp_path):
     assert client.get_run(first).data.tags["nsl_hpc.sweep.directory"] == str(sweep_dir.resolve())
 
 
+@pytest.mark.slow
 def test_a_full_disk_during_a_sweep_and_during_merge_is_one_line_and_keeps_the_rows(tmp_path, tmpfs):
     mount = tmpfs("size=2m")
     sweep_dir = mount / "sweep"
@@ -386,6 +395,7 @@ def test_a_row_copied_over_another_tasks_path_is_corrupt_not_done(tmp_path):
     (signal.SIGKILL, "failed", "died while training it (kill -9, the OOM killer?)"),
     (signal.SIGSTOP, "frozen", "stopped answering: its group's lock was not renewed for"),
 ])
+@pytest.mark.slow
 def test_a_local_worker_killed_or_stopped_is_recorded_and_the_others_finish(sent, state, reason, tmp_path):
     """4 tasks on 2 workers, a task each at a time: the worker of the first group to take its lock gets ``sent``
     (SIGSTOP, to it and its training process: noticed after watchdog.worker_silence_s=30); its group is recorded,

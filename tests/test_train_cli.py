@@ -88,42 +88,56 @@ def test_different_seeds_draw_different_sizes(tmp_path, cache_dir):
 COMPILED_RTOL = 1e-4
 
 
-def test_compiled_tasks_agree_with_eager_share_their_kernels_and_fall_back_without_a_compiler(tmp_path, cache_dir):
-    """compile=always: two tasks compiling the same step at once into one kernel cache both finish compiled, with
-    the eager task's scores to float rounding, and a third one compiles nothing anew (the cache hits). On a node
-    without a working C++ compiler (CXX names none) a task trains eagerly after one warning line (compiled=false)."""
-    task = [*TASK, "arch=unstructured"]  # the cheapest to compile
-    eager = train(*task, f"out_dir={tmp_path / 'eager'}", "compile=never", cache_dir=cache_dir)
+COMPILED_TASK = [*TASK, "arch=unstructured"]  # the cheapest to compile
+
+
+@pytest.fixture
+def eager_row(tmp_path, cache_dir) -> dict:
+    """The row of COMPILED_TASK trained eagerly."""
+    eager = train(*COMPILED_TASK, f"out_dir={tmp_path / 'eager'}", "compile=never", cache_dir=cache_dir)
     assert eager.returncode == 0, eager.stderr
+    row = read_row(rows_under(tmp_path / "eager")[0])
+    assert row["compiled"] is False
+    return row
+
+
+@pytest.mark.slow
+def test_compiled_tasks_agree_with_eager_and_share_their_kernels(tmp_path, cache_dir, eager_row):
+    """compile=always: two tasks compiling the same step at once into one kernel cache both finish compiled, with
+    the eager task's scores to float rounding, and a third one compiles nothing anew (the cache hits)."""
     kernels = tmp_path / "kernels"
-    both = [subprocess.Popen([sys.executable, "-m", "nsl_hpc.train", f"cache_dir={cache_dir}", *task,
+    both = [subprocess.Popen([sys.executable, "-m", "nsl_hpc.train", f"cache_dir={cache_dir}", *COMPILED_TASK,
                               f"out_dir={tmp_path / name}", "compile=always", f"compile_cache_dir={kernels}"],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for name in ("a", "b")]
     for process in both:
         _, stderr = process.communicate(timeout=600)
         assert process.returncode == 0, stderr
         assert "warning" not in stderr
-    expected = read_row(rows_under(tmp_path / "eager")[0])
-    assert expected["compiled"] is False
     for name in ("a", "b"):
         row = read_row(rows_under(tmp_path / name)[0])
-        assert row["compiled"] is True and row["task_id"] == expected["task_id"]
+        assert row["compiled"] is True and row["task_id"] == eager_row["task_id"]
         for column in ("nmae", "nmse", "final_loss"):
-            assert row[column] == pytest.approx(expected[column], rel=COMPILED_RTOL)
+            assert row[column] == pytest.approx(eager_row[column], rel=COMPILED_RTOL)
+    graphs = sorted((kernels / "fxgraph").rglob("*"))
+    cached = train(*COMPILED_TASK, f"out_dir={tmp_path / 'cached'}", "compile=always", f"compile_cache_dir={kernels}",
+                   cache_dir=cache_dir)
+    assert cached.returncode == 0, cached.stderr
+    assert read_row(rows_under(tmp_path / "cached")[0])["compiled"] is True
+    assert graphs and sorted((kernels / "fxgraph").rglob("*")) == graphs  # nothing compiled anew: the cache hit
+
+
+def test_compile_always_without_a_cpp_compiler_trains_eagerly_after_one_warning(tmp_path, cache_dir, eager_row):
+    """On a node without a working C++ compiler (CXX names none), compile=always trains eagerly after one warning
+    line (compiled=false), to the eager task's scores."""
     no_compiler = {**os.environ, "CXX": str(tmp_path / "no-such-c++")}
-    fallback = train(*task, f"out_dir={tmp_path / 'fallback'}", "compile=always",
+    fallback = train(*COMPILED_TASK, f"out_dir={tmp_path / 'fallback'}", "compile=always",
                      f"compile_cache_dir={tmp_path / 'fresh'}", cache_dir=cache_dir, env=no_compiler)
     assert fallback.returncode == 0, fallback.stderr
     warnings = [line for line in fallback.stderr.splitlines() if line.startswith("warning:")]
     assert len(warnings) == 1 and "training eagerly" in warnings[0]
     row = read_row(rows_under(tmp_path / "fallback")[0])
-    assert row["compiled"] is False and row["nmae"] == pytest.approx(expected["nmae"], rel=COMPILED_RTOL)
-    graphs = sorted((kernels / "fxgraph").rglob("*"))
-    cached = train(*task, f"out_dir={tmp_path / 'cached'}", "compile=always", f"compile_cache_dir={kernels}",
-                   cache_dir=cache_dir)
-    assert cached.returncode == 0, cached.stderr
-    assert read_row(rows_under(tmp_path / "cached")[0])["compiled"] is True
-    assert graphs and sorted((kernels / "fxgraph").rglob("*")) == graphs  # nothing compiled anew: the cache hit
+    assert row["compiled"] is False and row["nmae"] == pytest.approx(eager_row["nmae"], rel=COMPILED_RTOL)
+    assert not (tmp_path / "fresh" / "fxgraph").exists()  # nothing was traced and compiled before the fallback
 
 
 @pytest.mark.parametrize(("override", "message"), [
