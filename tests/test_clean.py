@@ -68,6 +68,7 @@ def test_clean_removes_checkpoints_of_finished_groups_and_locks_no_job_renews(tm
     assert unfinished.path.exists() and info_path(unfinished.path).exists() and held.path.exists()
 
 
+@pytest.mark.slow
 def test_a_compiled_sweep_shares_its_kernel_cache_and_clean_removes_it_once_done(tmp_path):
     """compile=always: the launch says its lockstep groups compile, every row says compiled, the kernels are in
     the sweep's compile_cache (the jobs' shared cache); clean removes that cache once every task has a row."""

@@ -89,6 +89,7 @@ def load_in_subprocess(root: str) -> bytes:
     return load_trajectory(cfg, "train", 5, 0, ArrayCache(root)).x.tobytes()
 
 
+@pytest.mark.slow
 def test_concurrent_writers_of_one_trajectory_agree(tmp_path):
     with multiprocessing.get_context("spawn").Pool(4) as pool:
         results = pool.map(load_in_subprocess, [str(tmp_path)] * 8)

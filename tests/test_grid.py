@@ -110,6 +110,7 @@ def sizes_by_all_but_epochs(rows: list[dict]) -> dict[tuple, list[tuple]]:
     return groups
 
 
+@pytest.mark.slow
 def test_every_input_state_task_draws_its_own_sizes():
     """Algorithm 1 draws d, n_h, n_d in its innermost loop, afresh for every epoch count: of the 63,504 tasks,
     the 4,536 sets of 14 that differ only in epochs have 14 distinct data sizes each (d is a float), so a

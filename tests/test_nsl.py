@@ -166,6 +166,7 @@ def test_the_slope_form_is_the_law_with_its_breaks_in_order_and_its_jacobian_is_
     np.testing.assert_allclose(slope_form_jacobian(shuffled, x), numeric, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_no_fitted_law_rises_more_than_the_published_laws_do():
     """The published laws rise at most +0.19 (ball / pH / model's delta0): nsl.max_rise. Outcomes whose best
     models get worse with the resource (a rising cloud, a step, a bump) still give a law that never rises more,
@@ -221,6 +222,7 @@ def test_extreme_scales_fit_without_overflow_or_nan():
     assert np.all(np.isfinite(fit.predict(np.array([1.0, 1e15, 1e20]))))
 
 
+@pytest.mark.slow
 def test_the_studys_procedure_holds_phi_and_fits_its_own_loss_and_envelope():
     r, e = outcomes(GENERATING_LAWS[2], 0, n=1000)
     settings = default_settings(objective="study", study_steps=300)

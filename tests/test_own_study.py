@@ -88,6 +88,7 @@ def test_a_users_own_sweep_and_site_settings_run_from_outside_an_installed_packa
 
 
 @pytest.mark.e2e
+@pytest.mark.slow
 def test_your_own_system_and_model_train_fit_and_report_from_a_wheel(study, site):
     """The example's system and models, launched, reported and predicted by the installed wheel from the study's own
     folder (its records: tests/cluster/test_own_study_slurm.py runs own_data)."""
