@@ -1,4 +1,4 @@
-"""Shared fixtures: composed configs and a private trajectory cache per test session (and worker).
+"""Shared fixtures: composed configs and a trajectory cache per test session, shared by its xdist workers.
 
 Every test trains on one thread, as a job does (``threads: 1``): torch's default of one per core made a test
 take 30x longer with another process on the second core. The variables reach the commands tests run too."""
@@ -24,8 +24,14 @@ torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="session")
-def cache_dir(tmp_path_factory) -> str:
-    return str(tmp_path_factory.mktemp("trajectory-cache"))
+def cache_dir(tmp_path_factory, worker_id) -> str:
+    """The session's trajectory cache, one for all its xdist workers (in the session's temp dir, above each
+    worker's): each trajectory is simulated once a run, not once per worker (the cache's writes are atomic and
+    concurrent writers agree: test_datasets)."""
+    root = tmp_path_factory.getbasetemp() if worker_id == "master" else tmp_path_factory.getbasetemp().parent
+    path = root / "trajectory-cache"
+    path.mkdir(exist_ok=True)
+    return str(path)
 
 
 @pytest.fixture(scope="session", autouse=True)

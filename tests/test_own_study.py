@@ -53,6 +53,7 @@ def run(study: Path, site: Path, verb: str, *args: str) -> subprocess.CompletedP
 
 
 @pytest.mark.e2e
+@pytest.mark.slow
 def test_a_users_own_sweep_and_site_settings_run_from_outside_an_installed_package(site, tmp_path):
     """nsl_hpc installed as a wheel (not this checkout), run from elsewhere: `--config-dir` (or
     $NSL_HPC_CONFIG_DIR) adds the user's sweep/<name>.yaml and local/default.yaml to the package's configs."""
