@@ -88,8 +88,8 @@ data: $(INSTALLED)
 # a cluster that cannot start fails the run).
 # pytest-xdist workers: make test runs the SLURM tests (mostly waiting on the scheduler and on jobs that sleep) on two
 # workers, one per cluster, each test after another, and a test file at a time on each of two others, filling both
-# cores; make test-slow and make test-fast run two (tests/conftest.py's scheduling); more workers only contend for the two cores (the
-# tests are CPU-bound).
+# cores; make test-slow and make test-fast run two (tests/conftest.py's scheduling); more workers only contend for the
+# two cores (the tests are CPU-bound).
 # TEST_WORKERS=N sets each; TEST_WORKERS=0 runs in this process.
 TEST_WORKERS ?=
 # The two clusters start (on a fresh machine: the first installs SLURM, munge and MariaDB) while .venv installs;
