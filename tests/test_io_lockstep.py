@@ -55,13 +55,17 @@ def parameters_of(nets: StackedMLPs, theta: torch.Tensor, model: torch.nn.Module
 # SUBNET as deepSI lays it out: a bypass in every MLP, f without the residual, zero initial biases, n_x 10
 DEEPSI = ("arch.bypass=[encoder,f,h]", "arch.residual=false", "arch.zero_bias=true", "arch.block=tanh",
           "arch.state_dim=10")
+# NARX as deepSI lays it out: F an MLP plus a linear map of the regressors, tanh, zero initial biases
+NARX_BYPASS = ("arch.bypass=true", "arch.zero_bias=true", "arch.block=tanh")
+NARX_NO_BYPASS = ("arch.bypass=false", "arch.zero_bias=false", "arch.block=layernorm_silu")
 
 
 @pytest.mark.parametrize(("arch", "compiled", "layout", "segment", "options"), [
-    ("narx", False, "feature_major", 0, ()), ("subnet", False, "feature_major", 0, ()),
-    ("narx", False, "batch_major", 0, ()), ("subnet", False, "batch_major", 0, ()),
+    ("narx", False, "feature_major", 0, NARX_NO_BYPASS), ("subnet", False, "feature_major", 0, ()),
+    ("narx", False, "batch_major", 0, NARX_NO_BYPASS), ("subnet", False, "batch_major", 0, ()),
+    ("narx", False, "feature_major", 0, NARX_BYPASS), ("narx", False, "batch_major", 0, NARX_BYPASS),
     ("subnet", False, "feature_major", 0, DEEPSI), ("subnet", False, "batch_major", 0, DEEPSI),
-    pytest.param("narx", True, "feature_major", 0, (), marks=pytest.mark.slow),
+    pytest.param("narx", True, "feature_major", 0, NARX_BYPASS, marks=pytest.mark.slow),
     pytest.param("subnet", True, "feature_major", 3, (), marks=pytest.mark.slow),
     pytest.param("subnet", True, "batch_major", 0, (), marks=pytest.mark.slow),
 ])
@@ -69,8 +73,8 @@ def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, 
                                                                           compose, cache):
     """Eager, or compiled (``StepCompiler``, the first two models: one shape to compile; the compiled stack's
     shrinking is tests/test_checkpoints.py's), each model of the pack trains as the plain loop trains it alone,
-    its activations stored either way (``train.feature_major_width``: the widths here are 3-6), SUBNET in the
-    paper's layout (bypass in h and the encoder, residual f) and in deepSI's (``DEEPSI``).
+    its activations stored either way (``train.feature_major_width``: the widths here are 3-6), NARX with and
+    without its bypass, SUBNET in the paper's layout (bypass in h and the encoder, residual f) and in deepSI's (``DEEPSI``).
     Compiled SUBNET simulates T = 4 steps (Inductor takes a minute or more per shape to compile the study's
     segments), in one graph or recomputed in segments of 3 and 1 steps (``train.rollout_segment``)."""
     width = 8 if layout == "feature_major" else 0
@@ -138,7 +142,8 @@ def test_a_rollout_recomputed_in_segments_has_the_losses_and_gradient_of_the_who
         torch.testing.assert_close(grad, whole[1], rtol=1e-4, atol=1e-5 * float(whole[1].abs().max()))
 
 
-@pytest.mark.parametrize(("arch", "options"), [("narx", ()), ("subnet", ()), ("subnet", DEEPSI)])
+@pytest.mark.parametrize(("arch", "options"), [("narx", NARX_NO_BYPASS), ("narx", NARX_BYPASS), ("subnet", ()),
+                                               ("subnet", DEEPSI)])
 def test_a_stack_laid_out_for_compiling_computes_the_losses_and_gradient_of_the_eager_stack(arch, options, compose,
                                                                                             cache):
     """A batch-major stack built for a compiled step (centred LayerNorm weights; its products of few output

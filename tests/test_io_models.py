@@ -112,13 +112,24 @@ def test_numpy_free_run_of_a_pack_equals_each_torch_model_step_by_step(block, by
         np.testing.assert_allclose(row[P:], expected.numpy(), rtol=1e-10, atol=1e-12)
         np.testing.assert_array_equal(row[:P], y[:P])
 
+
+@pytest.mark.parametrize(("block", "bypass"), [("layernorm_silu", False), ("tanh", False), ("layernorm_silu", True),
+                                               ("tanh", True)])
+def test_numpy_narx_scoring_of_a_pack_equals_each_torch_model_fed_its_own_outputs(block, bypass):
+    """Two NARX models of different widths (the narrower zero-padded), their bypasses included, simulated freely
+    and one step ahead in numpy give what each torch module gives fed back its own outputs, or the measured ones."""
+    rng = np.random.default_rng(2)
+    u, y = rng.standard_normal(P + 40), rng.standard_normal(P + 40)
     narxes = []
     for seed, width in ((3, 5), (4, 2)):
         torch.manual_seed(seed)
-        narxes.append(NARX(past_outputs=6, past_inputs=4, width=width, depth=2, block=block).double())
+        narxes.append(NARX(past_outputs=6, past_inputs=4, width=width, depth=2, block=block, bypass=bypass).double())
+        for parameter in narxes[-1].parameters():
+            parameter.data.normal_(0, 0.3)
     mlps = numpy_of(*narxes)
-    simulated = simulate_narx(mlps["net"].layers, 6, 4, np.stack([u, u]), np.stack([y, y]), init=P)
-    one_step = one_step_narx(mlps["net"].layers, 6, 4, np.stack([u, u]), np.stack([y, y]), init=P)
+    assert (mlps["net"].bypass is not None) == bypass
+    simulated = simulate_narx(mlps["net"], 6, 4, np.stack([u, u]), np.stack([y, y]), init=P)
+    one_step = one_step_narx(mlps["net"], 6, 4, np.stack([u, u]), np.stack([y, y]), init=P)
     for narx, free_row, one_step_row in zip(narxes, simulated, one_step, strict=True):
         fed_back, measured_past = y.copy(), y.copy()
         with torch.no_grad():
@@ -127,3 +138,29 @@ def test_numpy_free_run_of_a_pack_equals_each_torch_model_step_by_step(block, by
                 measured_past[t] = narx(torch.tensor(y[None, t - 6:t]), torch.tensor(u[None, t - 4:t + 1])).item()
         np.testing.assert_allclose(free_row, fed_back, rtol=1e-10, atol=1e-12)
         np.testing.assert_allclose(one_step_row, measured_past, rtol=1e-10, atol=1e-12)
+
+
+def test_a_width_1_narx_with_its_bypass_depends_on_every_regressor():
+    """One hidden unit behind LayerNorm is a constant: without the bypass such an F ignores its input; with it,
+    each regressor moves the output (the linear dynamics a NARX of the study's smallest width tier captures)."""
+    z = torch.randn(B, 10)
+    for bypass, moves in ((False, False), (True, True)):
+        torch.manual_seed(0)
+        model = NARX(past_outputs=6, past_inputs=3, width=1, depth=1, block="layernorm_silu", bypass=bypass)
+        with torch.no_grad():
+            y = model(z[:, :6], z[:, 6:])
+            for column in range(10):
+                shifted = z.clone()
+                shifted[:, column] += 1.0
+                assert (not torch.allclose(model(shifted[:, :6], shifted[:, 6:]), y)) == moves
+
+
+def test_narx_counts_its_bypass_and_starts_its_biases_at_zero():
+    """p counts F's bypass (n_y + n_u + 1 weights): the study's smallest NARX, n_h 1, n_d 1, tanh, 205 parameters
+    (104 without the bypass); zero_bias starts every bias at 0."""
+    assert NARX(50, 50, 1, 1, "tanh", bypass=True).counted_parameters() == 205
+    assert NARX(50, 50, 1, 1, "tanh").counted_parameters() == 104
+    model = NARX(50, 50, 8, 2, "tanh", bypass=True, zero_bias=True)
+    assert all(not layer.bias.any() for layer in model.net if isinstance(layer, torch.nn.Linear))
+    assert model.bypass is not None and model.bypass.bias is None
+

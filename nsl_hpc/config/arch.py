@@ -77,10 +77,13 @@ class PortHamiltonian(Arch):
 
 @dataclass(frozen=True)
 class Narx(Arch):
-    """y_t = F(y_{t-1..t-n_y}, u_{t..t-n_u})."""
+    """y_t = F(y_{t-1..t-n_y}, u_{t..t-n_u}), F an MLP (plus a linear map of its input: ``bypass``)."""
 
     past_outputs: int = setting("n_y", 1)
     past_inputs: int = setting("n_u", 1)
+    bypass: bool = setting("F adds a bias-free linear map of the regressors to the MLP's output (deepSI's "
+                           "MLP_res_net)")
+    zero_bias: bool = setting("every bias starts at 0 (deepSI); false: PyTorch's default initialisation")
 
 
 @dataclass(frozen=True)

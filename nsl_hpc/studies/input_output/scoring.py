@@ -92,37 +92,53 @@ def hidden(layers: list[NumpyLayer], first: np.ndarray) -> np.ndarray:
     return h @ layers[-1].weight + layers[-1].bias
 
 
-def simulate_narx(net: list[NumpyLayer], past_outputs: int, past_inputs: int, u: np.ndarray, y: np.ndarray,
+def narx_parts(net: NumpyMLP, past_outputs: int) -> tuple[np.ndarray, np.ndarray]:
+    """F's first layer and bypass side by side, (K, n_y + n_u + 1, width + 1) (the last column the bypass, 0
+    without one), split into the rows of the past outputs and of the inputs: both parts of a regressor's
+    contribution come from one product."""
+    first = net.layers[0].weight
+    bypass = np.zeros(first.shape[:-1] + (1,)) if net.bypass is None else net.bypass
+    joined = np.concatenate([first, bypass], axis=-1)
+    return joined[:, :past_outputs], joined[:, past_outputs:]
+
+
+def narx_output(net: NumpyMLP, pre: np.ndarray) -> np.ndarray:
+    """F's output (K, B) from ``pre`` (K, B, width + 1): its first layer's pre-activation without the bias, and
+    the bypass's output in the last column (``narx_parts``)."""
+    return hidden(net.layers, pre[..., :-1] + net.layers[0].bias)[..., 0] + pre[..., -1]
+
+
+def simulate_narx(net: NumpyMLP, past_outputs: int, past_inputs: int, u: np.ndarray, y: np.ndarray,
                   init: int) -> np.ndarray:
-    """Free-run simulation (K, N) on standardised u, y (K, N): y_0..y_{init-1} are given, every later output
-    is predicted from the model's own past predictions. ``init`` >= max(n_y, n_u)."""
-    first = net[0]
-    w_y, w_u = first.weight[:, :past_outputs], first.weight[:, past_outputs:]
+    """Free-run simulation (K, N) on standardised u, y (K, N) of K NARX models' F (``net``, its bypass included):
+    y_0..y_{init-1} are given, every later output is predicted from the model's own past predictions.
+    ``init`` >= max(n_y, n_u)."""
+    w_y, w_u = narx_parts(net, past_outputs)
     windows = np.lib.stride_tricks.sliding_window_view(u, past_inputs + 1, axis=1)  # window j: u_j..u_{j+n_u}
     simulated = y.astype(float).copy()
     for begin in range(init, u.shape[1], CHUNK):
         stop = min(begin + CHUNK, u.shape[1])
-        from_inputs = windows[:, begin - past_inputs:stop - past_inputs] @ w_u + first.bias  # (K, chunk, width)
+        from_inputs = windows[:, begin - past_inputs:stop - past_inputs] @ w_u  # (K, chunk, width + 1)
         for j, t in enumerate(range(begin, stop)):
             pre = from_inputs[:, j:j + 1] + simulated[:, None, t - past_outputs:t] @ w_y
-            simulated[:, t] = hidden(net, pre)[:, 0, 0]
+            simulated[:, t] = narx_output(net, pre)[:, 0]
     return simulated
 
 
-def one_step_narx(net: list[NumpyLayer], past_outputs: int, past_inputs: int, u: np.ndarray, y: np.ndarray,
+def one_step_narx(net: NumpyMLP, past_outputs: int, past_inputs: int, u: np.ndarray, y: np.ndarray,
                   init: int) -> np.ndarray:
-    """One-step-ahead predictions (K, N) on standardised u, y (K, N): y_t from the measured y_{t-n_y..t-1} and
-    u_{t-n_u..t}, for t >= ``init``; the first ``init`` samples are the measured ones."""
-    first = net[0]
-    w_y, w_u = first.weight[:, :past_outputs], first.weight[:, past_outputs:]
+    """One-step-ahead predictions (K, N) on standardised u, y (K, N) of K NARX models' F (``net``): y_t from the
+    measured y_{t-n_y..t-1} and u_{t-n_u..t}, for t >= ``init``; the first ``init`` samples are the measured
+    ones."""
+    w_y, w_u = narx_parts(net, past_outputs)
     u_windows = np.lib.stride_tricks.sliding_window_view(u, past_inputs + 1, axis=1)
     y_windows = np.lib.stride_tricks.sliding_window_view(y, past_outputs, axis=1)  # window j: y_j..y_{j+n_y-1}
     predicted = y.astype(float).copy()
     for begin in range(init, u.shape[1], CHUNK):
         stop = min(begin + CHUNK, u.shape[1])
         pre = (u_windows[:, begin - past_inputs:stop - past_inputs] @ w_u
-               + y_windows[:, begin - past_outputs:stop - past_outputs] @ w_y + first.bias)
-        predicted[:, begin:stop] = hidden(net, pre)[..., 0]
+               + y_windows[:, begin - past_outputs:stop - past_outputs] @ w_y)
+        predicted[:, begin:stop] = narx_output(net, pre)
     return predicted
 
 
@@ -153,7 +169,7 @@ def predictions(model: NARX | SUBNET, mlps: Mapping[str, NumpyMLP], u: np.ndarra
                 init: int) -> dict[str, np.ndarray]:
     """Standardised outputs (K, N) of the models (of ``model``'s architecture) by mode."""
     if isinstance(model, NARX):
-        args = (mlps["net"].layers, model.past_outputs, model.past_inputs, u, y, init)
+        args = (mlps["net"], model.past_outputs, model.past_inputs, u, y, init)
         return {"free_run": simulate_narx(*args), "one_step": one_step_narx(*args)}
     return {"free_run": simulate_subnet(mlps, model.state_dim, model.past, model.residual, u, y, init)}
 

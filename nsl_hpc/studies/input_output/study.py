@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from omegaconf import DictConfig
 
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
@@ -59,7 +60,7 @@ def built_io_model(arch: Arch, state_dim: int, width: int, depth: int) -> "NARX 
 
     builder = located("arch", arch)
     if isinstance(arch, Narx) and builder is NARX:
-        return NARX(arch.past_outputs, arch.past_inputs, width, depth, arch.block)
+        return NARX(arch.past_outputs, arch.past_inputs, width, depth, arch.block, arch.bypass, arch.zero_bias)
     if isinstance(arch, Subnet) and builder is SUBNET:
         return SUBNET(state_dim, arch.past, width, depth, arch.block, tuple(arch.bypass), arch.residual,
                       arch.zero_bias, arch.zero_f_output)
@@ -115,6 +116,9 @@ def training_memory_mb(pair: "InputOutputPair", width: int, depth: int) -> float
     return dtype_bytes * batch * values / 2**20
 
 
+# NARX's layout options at the values every NARX task had before they existed (no bypass, PyTorch's biases)
+NARX_NEUTRAL = {"bypass": False, "zero_bias": False}
+
 VALIDATION = "validation"  # the record name of the validation split (the training record after the pool)
 
 
@@ -141,12 +145,27 @@ class InputOutput(Study[InputOutputPair]):
 
     def shared_identity(self, values: Mapping[str, Any]) -> str:
         """``Study.shared_identity`` with the train group's per-architecture schedule reduced to the pair's own, left
-        out where that is warmup_cosine, the schedule of every task before the setting: their ids stay."""
+        out where that is warmup_cosine, the schedule of every task before the setting, and NARX's layout options
+        left out at ``NARX_NEUTRAL``, the layout of every NARX task before them: their ids stay."""
         train = dict(values["train"])
         own = dict(train.pop("schedule", {})).get(values["arch"]["name"], "warmup_cosine")
         if own != "warmup_cosine":
             train["schedule"] = own
-        return super().shared_identity({**values, "train": train})
+        arch = dict(values["arch"])
+        if arch["name"] == "narx":
+            for key, value in NARX_NEUTRAL.items():
+                if arch.get(key, value) == value:
+                    arch.pop(key, None)
+        return super().shared_identity({**values, "train": train, "arch": arch})
+
+    def with_neutral_settings(self, cfg: DictConfig) -> DictConfig:
+        """``Study.with_neutral_settings``, and a NARX stored before its layout options with ``NARX_NEUTRAL``."""
+        cfg = super().with_neutral_settings(cfg)
+        if cfg.arch.name == "narx":
+            for key, value in NARX_NEUTRAL.items():
+                if key not in cfg.arch:
+                    cfg.arch[key] = value
+        return cfg
 
     def check_size(self, label: str, key: str, value: Any, pair: InputOutputPair) -> None:
         allowed = {"data_tier": pair.system.data_tiers, "width_tier": pair.tiers.width, "depth": pair.tiers.depth}
