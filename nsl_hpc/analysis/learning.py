@@ -32,6 +32,7 @@ class PairLearning:
     not_learned_above: int  # ... and those of them that did not learn
     worst: str  # the task that scored worst, with its score and the mean predictor's
     flagged: bool
+    why: str = ""  # a flagged pair: why its better-resourced tasks failed, and what to change (``diagnosis``)
 
     @property
     def share(self) -> float:
@@ -41,12 +42,13 @@ class PairLearning:
     def share_above(self) -> float:
         return self.not_learned_above / self.above if self.above else 0.0
 
-    def line(self) -> str:
-        """One line for a command's output."""
+    def lines(self) -> list[str]:
+        """A command's output: one line, and for a flagged pair a second that says why and what to change."""
         flag = "  NOT LEARNING" if self.flagged else ""
-        return (f"{self.system} / {self.arch}: {self.not_learned:,} of {self.tasks:,} tasks ({self.share:.0%}) no "
+        line = (f"{self.system} / {self.arch}: {self.not_learned:,} of {self.tasks:,} tasks ({self.share:.0%}) no "
                 f"better than the mean predictor, {self.not_learned_above:,} of the {self.above:,} better-resourced "
                 f"({self.share_above:.0%}); worst {self.worst}{flag}")
+        return [line, f"    why: {self.why}"] if self.flagged else [line]
 
 
 def learned(results: pa.Table, below: float) -> np.ndarray:
@@ -75,8 +77,30 @@ def pair_learning(results: pa.Table, system: str, arch: str, settings: Learning,
     worst_text = (f"{rows['task_id'][worst].as_py()} (nmae {nmae[worst]:.3g}, status {rows['status'][worst].as_py()}"
                   + (f", mean predictor {mean:.3g})" if mean is not None else ")"))
     not_above = int((failed & above).sum())
+    flagged = bool(above.sum()) and not_above > settings.flag_share * above.sum()
     return PairLearning(system, arch, rows.num_rows, int(failed.sum()), int(above.sum()), not_above, worst_text,
-                        bool(above.sum()) and not_above > settings.flag_share * above.sum())
+                        flagged, diagnosis(rows, failed & above, ~failed & above, nmae) if flagged else "")
+
+
+def diagnosis(rows: pa.Table, failed: np.ndarray, learned_too: np.ndarray, nmae: np.ndarray) -> str:
+    """Why the ``failed`` tasks of a flagged pair failed, against the ``learned_too`` ones beside them (masks over
+    ``rows``): scores that are not finite (diverged), fewer optimizer steps (the rows' ``steps``) than the tasks that
+    learned, or as many (the model, not its training)."""
+    diverged = int((failed & ~np.isfinite(nmae)).sum())
+    if diverged * 2 > failed.sum():
+        return (f"{diverged} of the {int(failed.sum())} diverged or did not finish with finite scores: lower "
+                "train.lr or train.grad_clip_norm, or check the scaling of the data")
+    steps = rows["steps"].to_numpy(zero_copy_only=False).astype(float) if "steps" in rows.column_names else None
+    if steps is None or not learned_too.any():
+        return ("none of its better-resourced tasks learned: check the architecture's layout and the system's data "
+                "(docs/fits.md, Did the models learn)")
+    few, many = float(np.median(steps[failed])), float(np.median(steps[learned_too]))
+    if few * 2 <= many:
+        return (f"the better-resourced tasks that failed trained a median of {few:,.0f} optimizer steps, those that "
+                f"learned {many:,.0f}: train longer (more epochs, or a larger iteration multiplier, in the grid)")
+    return (f"the better-resourced tasks that failed trained as long as those that learned (a median of {few:,.0f} "
+            f"optimizer steps against {many:,.0f}): the model, not its training length, fails here; check the "
+            "architecture's layout (docs/fits.md, Did the models learn)")
 
 
 def sweep_learning(results: pa.Table, nsl: Nsl) -> list[PairLearning]:
@@ -95,4 +119,4 @@ def learning_lines(pairs: Sequence[PairLearning]) -> list[str]:
     """The command output: one line per pair, flagged pairs marked."""
     if not pairs:
         return ["learning: the rows carry no mean predictor's score (mean_predictor_nmae): a sweep from before it"]
-    return [pair.line() for pair in pairs]
+    return [line for pair in pairs for line in pair.lines()]

@@ -186,7 +186,7 @@ def what_it_takes_html(entries: Sequence[Mapping[str, Any]], settings: ReportTar
     head = (f"<tr><th>system</th><th>arch</th><th>target {settings.metric}</th><th>best observed</th>"
             f"<th>{symbol} needed [90%]</th><th>smallest model / data on the envelope there</th></tr>")
     body = "".join("<tr>" + cells((
-        entry["system"], entry["arch"], f"{entry['target']:.3g}", f"{entry['best']:.3g}", format_need(entry["need"]),
+        entry["system"], entry["arch"], f"{entry['target']:.3g}", f"{entry['best']:.3g}", format_need(entry["need"], entry["best"]),
         f"{entry['model']:,.0f} parameters / {entry['data']:,.0f} points" if "model" in entry else "")) + "</tr>"
         for entry in entries)
     factors = ", ".join(f"{factor:g}" for factor in settings.factors)
@@ -243,7 +243,7 @@ def learning_html(pairs: Sequence[PairLearning], settings: Learning) -> str:
         ('<tr style="color:#b00">' if pair.flagged else "<tr>") + cells((
             pair.system, pair.arch, f"{pair.not_learned:,} of {pair.tasks:,} ({pair.share:.0%})",
             f"{pair.not_learned_above:,} of {pair.above:,} ({pair.share_above:.0%})", pair.worst,
-            "NOT LEARNING: its laws describe models that fail" if pair.flagged else "")) + "</tr>"
+            f"NOT LEARNING: its laws describe models that fail; {pair.why}" if pair.flagged else "")) + "</tr>"
         for pair in pairs)
     return (f"<p>A task did not learn where its nMAE is not below {settings.below:g} times the mean predictor's "
             f"(the constant output at its training data's mean) or it did not finish with finite scores. A pair is "
