@@ -23,7 +23,7 @@ from nsl_hpc.analysis.broken_law import (
     theta_of,
     trimmed_margin,
 )
-from nsl_hpc.analysis.prediction import need_for, resource_for
+from nsl_hpc.analysis.prediction import format_need, need_for, resource_for
 from nsl_hpc.analysis.published import comparison, gap_to_published, published_laws, step_envelope_at
 from nsl_hpc.nsl import backtest_nsl, default_settings, fit_nsl
 from tests.fit_clouds import (
@@ -276,7 +276,10 @@ def test_a_law_needs_its_own_inverse_and_says_when_it_cannot_reach_a_target():
     need = need_for(row, float(fit.predict(1e8)), 1.0, 12, 0.9)
     assert need.resource == pytest.approx(1e8, rel=1e-6) and need.extrapolation_decades == pytest.approx(2)
     assert need.low == pytest.approx(1e8, rel=1e-6) and need.high == pytest.approx(1e8, rel=1e-6)
-    assert not need_for(row, 0.0009, 1.0, 12, 0.9).reachable
+    unreachable = need_for(row, 0.0009, 1.0, 12, 0.9)
+    assert not unreachable.reachable
+    assert format_need(unreachable, 0.002) == "not reachable within the law"
+    assert format_need(unreachable, 0.0008).startswith("beyond the law's fitted range: a task already reached 0.0008")
 
 
 def test_published_laws_are_data_and_measured_on_our_envelope():

@@ -77,7 +77,11 @@ def envelope_mix(compute: np.ndarray, errors: np.ndarray, params: np.ndarray, da
     return float(params[near].min()), float(data[near].min()), where
 
 
-def format_need(need: Need) -> str:
+def format_need(need: Need, best: float) -> str:
+    """The resource ``need`` names, as a line reads it; ``best``: the pair's best observed error."""
+    if not need.reachable and best <= need.target:
+        return (f"beyond the law's fitted range: a task already reached {best:.3g}, and the law, fitted above the "
+                "envelope, stays above the target")
     if not need.reachable:
         return "not reachable within the law"
     interval = ("" if need.low == need.high else
@@ -118,7 +122,7 @@ def what_it_takes(results: pa.Table, fits: Sequence[Mapping[str, Any]], resource
 def describe_need(entry: Mapping[str, Any], symbol: str) -> str:
     """One line of what_it_takes."""
     text = (f"{entry['system']} / {entry['arch']}: {entry['target']:.3g} (best observed {entry['best']:.3g}) "
-            f"needs {symbol} = {format_need(entry['need'])}")
+            f"needs {symbol} = {format_need(entry['need'], entry['best'])}")
     if "model" in entry:
         text += (f"; {entry['mix_where']}: models from {entry['model']:,.0f} parameters, "
                  f"data from {entry['data']:,.0f} points")
