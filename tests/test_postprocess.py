@@ -14,7 +14,7 @@ import yaml
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.cards import core_hours
-from nsl_hpc.analysis.figures import power_label
+from nsl_hpc.analysis.figures import legend_kind, power_label
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.sweep.directory import sweep_lock
 from nsl_hpc.sweep.failures import record_failure
@@ -327,6 +327,17 @@ def test_a_fit_where_no_law_can_be_fitted_keeps_the_fits_it_would_replace(fitted
                                               (7e12, "7\u00d710\u00b9\u00b2"), (0.5, "5\u00d710\u207b\u00b9")])
 def test_log_tick_labels_are_powers_of_ten_in_unicode(value, label):
     assert power_label(value) == label
+
+
+@pytest.mark.parametrize(("label", "kind"), [
+    ("envelope (K=100, Definition 1)", "lower envelope"),
+    ("undetermined: the last segment stands on 3 envelope points", "undetermined segment (no law there)"),
+    ("interpolated envelope (the fitted one: the law may run below the steps)", "interpolated envelope (fitted)"),
+    ("L(c) = 0.1 c^-0.2\nM = 0.05", "fitted law"), ("90% band (200 resamples)", "band"),
+    ("published (b=2, M=0.04; M on ours 0.1)", "published law"), ("breaks", "breaks")])
+def test_every_line_of_a_panel_has_its_entry_in_the_overview_legend(label, kind):
+    """The grey dotted undetermined segments have their own entry (their label names the envelope too)."""
+    assert legend_kind(label) == kind
 
 
 def test_a_row_file_gone_while_merge_reads_is_no_corrupt_row(finished_sweep, tmp_path):

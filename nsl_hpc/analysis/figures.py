@@ -199,25 +199,41 @@ def overview_figure(sweep_dir: Path, results: pa.Table, rows: Sequence[Mapping[s
     if points is not None:
         fig.colorbar(points, ax=axes, label=nsl.resources[figures.colour[resource]].label, shrink=0.8,
                      format=FuncFormatter(power_label))
-    fig.legend(*overview_legend(axes), loc="outside lower center", fontsize=8, ncols=4)
+    # a legend no wider than the panels: two entries a row under one column of panels
+    fig.legend(*overview_legend(axes), loc="outside lower center", fontsize=8, ncols=2 if len(systems) == 1 else 4)
     if any(row.get("rehearsal") for row in rows):
         fig.suptitle(REHEARSAL_TITLE.rstrip(": "), color="purple")
     return save(fig, overview_stem(sweep_dir, resource, metric), figures)
 
 
 def overview_legend(axes: np.ndarray) -> tuple[list, list[str]]:
-    """One legend entry per kind of line in the panels (envelope, law, band, breaks, published law): the first
-    panel's of each; the formulas differ per panel and are in each panel's own figure."""
-    kinds = {"interpolated": "interpolated envelope (fitted)", "envelope": "lower envelope", "band": None,
-             "breaks": "breaks", "published": "published law", "M = ": "fitted law",
-             "undetermined": "undetermined segment", "planted": "planted law (rehearsal)"}
+    """One legend entry per kind of line in the panels (envelope, law, band, breaks, published law, undetermined
+    segments): the first panel's of each; the formulas differ per panel and are in each panel's own figure."""
     handles: dict[str, Any] = {}
     for ax in axes.flat:
         for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
-            kind = next((kind for kind in kinds if kind in label), None)
+            kind = legend_kind(label)
             if kind is not None and kind not in handles:
-                handles[kind] = (handle, kinds[kind] or label.split("(")[0].strip())
+                handles[kind] = (handle, label.split("(")[0].strip() if kind == "band" else kind)
     return [handle for handle, _ in handles.values()], [label for _, label in handles.values()]
+
+
+# A panel's label begins so (``draw_nsl``) -> its entry in an overview's legend; the fitted law's label is its
+# formula, which ends with its margin
+LEGEND_KINDS = {"undetermined": "undetermined segment (no law there)", "interpolated": "interpolated envelope (fitted)",
+                "envelope": "lower envelope", "published": "published law", "planted": "planted law (rehearsal)",
+                "breaks": "breaks"}
+
+
+def legend_kind(label: str) -> str | None:
+    """The overview legend's entry of a panel's line labelled ``label`` (None: not in the legend); 'band' for the
+    bootstrap band."""
+    kind = next((entry for start, entry in LEGEND_KINDS.items() if label.startswith(start)), None)
+    if kind is None and "band (" in label:
+        return "band"
+    if kind is None and "\nM = " in label:
+        return "fitted law"
+    return kind
 
 
 def draw_figures(sweep_dir: Path, results: pa.Table, rows: list[dict[str, Any]], nsl: Nsl,
