@@ -3,9 +3,11 @@
 line on stderr with exit status 2.
 """
 
+import dataclasses
 import errno
 import os
 import sys
+import typing
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -16,10 +18,12 @@ from nsl_hpc.config import (
     ConfigDoc,
     compose_config,
     config_dir,
+    config_dirs,
     config_groups,
     documented_config,
     user_config_dir,
 )
+from nsl_hpc.config.launchers import LAUNCHERS
 from nsl_hpc.config.schema import field_docs
 from nsl_hpc.diagnostics import log_command
 from nsl_hpc.errors import ConfigError, RunError
@@ -34,10 +38,11 @@ def schema_docs() -> dict[str, str]:
             for key, doc in field_docs(owner, group.name).items()}
 
 
-def usage(doc: str, config_name: str) -> str:
+def usage(doc: str, config_name: str, overrides: Sequence[str] = ()) -> str:
     """A command's --help: what it does (its module docstring, with examples), then every key it reads with its
     default and one line (a typed group's field documentation, else the comment of ``conf/<config_name>.yaml`` and
-    what it includes) and the config groups it selects."""
+    what it includes) and the config groups it selects; for a command that launches (its config selects a launcher),
+    the settings of the launcher ``overrides`` choose (``launcher_usage``) and every sweep (``sweep_usage``)."""
     lines, seen, groups, docs = [doc.strip(), ""], set(), config_groups(), schema_docs()
 
     def describe(config: ConfigDoc) -> None:
@@ -53,11 +58,51 @@ def usage(doc: str, config_name: str) -> str:
         for included in config.included:
             describe(included)
 
-    describe(documented_config(config_name))
+    config = documented_config(config_name)
+    describe(config)
+    if "launcher" in groups_of(config):  # a command that launches
+        lines += ["", *launcher_usage(overrides), "", *sweep_usage()]
     lines += ["", "--cfg prints the composed config with every value and exits. --config-dir DIR (or "
               f"${USER_CONFIG_DIR}) adds your own config directory, searched after the package's: your "
               "sweep/<name>.yaml, local/default.yaml (site settings: partition, account), nsl/, system/ ..."]
     return "\n".join(lines) + "\n"
+
+
+def groups_of(config: ConfigDoc) -> set[str]:
+    """The config groups ``config`` and what it includes select."""
+    return {*config.groups, *(group for included in config.included for group in groups_of(included))}
+
+
+def launcher_usage(overrides: Sequence[str]) -> list[str]:
+    """The settings of the launcher ``overrides`` choose (``launcher=<name>``, else the default local): each
+    ``launcher.<field>=<default>``, its type and one line."""
+    chosen = next((o.split("=", 1)[1] for o in overrides if o.startswith("launcher=")), "local")
+    schema = LAUNCHERS.get(chosen)
+    if schema is None:
+        return [f"launcher={chosen} is unknown; launchers: {', '.join(LAUNCHERS)}"]
+    lines = [f"launcher={chosen}: {' '.join((schema.__doc__ or '').split())} Its keys (launcher=<"
+             f"{'|'.join(LAUNCHERS)}> --help shows another's):"]
+    hints = typing.get_type_hints(schema)
+    for item in dataclasses.fields(schema):
+        if item.name == "name":
+            continue
+        default = item.default_factory() if item.default_factory is not dataclasses.MISSING else item.default
+        left = f"launcher.{item.name}={'null' if default is None else default}"
+        kind = str(hints[item.name]).replace("typing.", "").replace("<class '", "").replace("'>", "")
+        lines.append(f"  {left:<40} ({kind}) {item.metadata.get('doc', '')}")
+    return lines
+
+
+def sweep_usage() -> list[str]:
+    """Every sweep ``+sweep=<name>`` runs, the package's and the user's (``--config-dir``), with the first line of
+    its file's comment."""
+    lines = ["Sweeps (+sweep=<name>; yours: sweep/<name>.yaml in --config-dir):"]
+    for folder in config_dirs():
+        for path in sorted((folder / "sweep").glob("*.yaml")):
+            comment = next((line.lstrip("# ").strip() for line in path.read_text().splitlines()
+                            if line.startswith("#") and "@package" not in line), "")
+            lines.append(f"  {path.stem:<20} {comment}" + ("" if folder == config_dir() else f"  ({folder})"))
+    return lines
 
 
 def take_config_dir(args: Sequence[str]) -> list[str]:
@@ -95,7 +140,7 @@ def run(main: Callable[..., int | None], doc: str, argv: Sequence[str] | None = 
             raise ConfigError(f"unknown option {sorted(unknown)[0]}; options are --help, --cfg and --config-dir "
                               "DIR, everything else is key=value")
         if flags & {"-h", "--help"}:
-            print(usage(doc, config_name), end="")
+            print(usage(doc, config_name, overrides), end="")
             sys.exit(0)
         shared = [o for o in overrides if not o.lstrip("+~").startswith(tuple(per_pair))]
         cfg = compose_config([*composed_with, *shared], config_name)

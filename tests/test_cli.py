@@ -42,6 +42,24 @@ def test_help_says_what_the_command_does_with_two_examples_and_its_own_keys(verb
         assert "system=<" not in text and "launcher=<" not in text  # groups the command does not read
 
 
+def test_launch_help_shows_the_chosen_launchers_settings_and_every_sweep(tmp_path, monkeypatch):
+    """launch --help lists the keys of the launcher it would use (local by default, launcher=slurm's with it) with
+    their types and one line each, and every sweep by name, the user's too."""
+    (tmp_path / "sweep").mkdir()
+    (tmp_path / "sweep" / "my_grid.yaml").write_text("# @package _global_\n# My own grid of the motor.\n")
+    monkeypatch.setenv("NSL_HPC_CONFIG_DIR", str(tmp_path))
+    doc = importlib.import_module("nsl_hpc.launch").__doc__
+    local, slurm = usage(doc, "launch"), usage(doc, "launch", ["+sweep=demo", "launcher=slurm"])
+    assert "launcher.workers=null                    (int | None) processes at once" in local
+    assert "  launcher.partition=" not in local
+    for key in ("partition=null", "account=null", "qos=null", "mem=2G", "max_running=null", "extra_sbatch={}",
+                "setup=[]", "hold=False"):
+        assert f"  launcher.{key}" in slurm, key
+    for sweep in ("demo", "input_state", "input_output", "repro"):
+        assert re.search(rf"^  {sweep} +\S", slurm, re.MULTILINE), sweep
+    assert re.search(r"^  my_grid +My own grid of the motor\.", slurm, re.MULTILINE)
+
+
 @pytest.mark.parametrize(("overrides", "config_name", "message"), [
     (["sweep_dir=x", "wiat=true"], "status", "unknown key 'wiat' (did you mean 'wait'?)"),
     (["train.lrr=0.01"], "one_task", "unknown key 'train.lrr' (did you mean 'train.lr'?)"),

@@ -5,12 +5,13 @@ partition, an account) go in ``conf/local/default.yaml``."""
 import os
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, cast
 
 from omegaconf import OmegaConf
 
 from nsl_hpc.config.mapping import plain
+from nsl_hpc.config.schema import setting
 from nsl_hpc.errors import ConfigError, one_line, require_int, require_positive_int
 
 SBATCH_MEMORY = re.compile(r"[1-9][0-9]*[KMGT]?")  # sbatch --mem: megabytes, or with a unit
@@ -36,8 +37,8 @@ class LocalLauncher:
     """Parallel processes on this machine (submitit's local executor), in the foreground with a progress bar.
     The embedded default."""
 
-    name: str = "local"
-    workers: int | None = None  # processes at once; None = every CPU of this machine
+    name: str = setting("the launcher", default="local")
+    workers: int | None = setting("processes at once; null: every CPU of this machine", default=None)
 
     def check(self) -> None:
         if self.workers is not None:
@@ -51,34 +52,41 @@ class LocalLauncher:
 class DebugLauncher:
     """In-process, one job after another (submitit's debug executor): CI dry runs and debugging."""
 
-    name: str = "debug"
-    workers: int = 1  # jobs run one after another in the launching process
+    name: str = setting("the launcher", default="debug")
+    workers: int = setting("jobs run one after another in the launching process", default=1)
 
 
 @dataclass
 class SlurmLauncher:
     """SLURM job arrays of single-CPU jobs (submitit's SLURM executor); launch returns once they are submitted."""
 
-    name: str = "slurm"
-    partition: str | None = None  # --partition; None = the cluster's default
-    account: str | None = None  # --account
-    qos: str | None = None  # --qos
-    mem: str = "2G"  # --mem of one array element (the largest task needs < 1 GB)
-    array_parallelism: int = 512  # --array=0-N%K: at most K elements of one array run at once
-    max_running: int | None = None  # at most this many of the sweep's jobs run at once, over all its arrays: each
-    #   array's K is at most this and it starts once the sweep's arrays before it have ended (afterany); None = no cap
-    signal_delay_s: int = 120  # --signal: warn a job this long before its time limit (checkpoint and requeue)
-    max_time_minutes: int | None = None  # the site's cap on a job's time limit (e.g. 1440): a group predicted
-    #   longer runs as a chain of jobs (the job is requeued, each run continuing from the checkpoint)
-    max_array_size: int | None = None  # None = MaxArraySize from `scontrol show config`
-    max_job_count: int | None = None  # None = MaxJobCount from `scontrol show config`
-    max_submit_jobs: int | None = None  # None = the user's MaxSubmitJobs from sacctmgr (no limit when none is set)
-    feed_minutes: int | None = 10  # jobs the submit limits hold back are submitted by a job of this time limit
-    #   behind the first array (resubmit states=[missing]), and so on; None = by launching again by hand
-    hold: bool = False  # submit every job held (--hold): none starts until released (scontrol release <job id>)
-    extra_sbatch: dict[str, Any] = field(default_factory=dict)  # any sbatch flag the launcher does not set or plan
-    #   itself (PLANNED_FLAGS), e.g. {constraint: cpu}; a flag set to null is not passed (resubmit drops one so)
-    setup: list[str] = field(default_factory=list)  # shell lines run before each job (e.g. module load python)
+    name: str = setting("the launcher", default="slurm")
+    partition: str | None = setting("--partition; null: the cluster's default", default=None)
+    account: str | None = setting("--account", default=None)
+    qos: str | None = setting("--qos", default=None)
+    mem: str = setting("--mem of one array element (the largest task needs < 1 GB)", default="2G")
+    array_parallelism: int = setting("--array=0-N%K: at most K elements of one array run at once", default=512)
+    max_running: int | None = setting(
+        "at most this many of the sweep's jobs run at once, over all its arrays: each array's K is at most this and "
+        "it starts once the sweep's arrays before it have ended (afterany); null: no cap", default=None)
+    signal_delay_s: int = setting("--signal: warn a job this long before its time limit (checkpoint and requeue)",
+                                  default=120)
+    max_time_minutes: int | None = setting(
+        "the site's cap on a job's time limit (e.g. 1440): a group predicted longer runs as a chain of jobs (the job "
+        "is requeued, each run continuing from the checkpoint)", default=None)
+    max_array_size: int | None = setting("null: MaxArraySize from `scontrol show config`", default=None)
+    max_job_count: int | None = setting("null: MaxJobCount from `scontrol show config`", default=None)
+    max_submit_jobs: int | None = setting(
+        "null: the user's MaxSubmitJobs from sacctmgr (no limit when none is set)", default=None)
+    feed_minutes: int | None = setting(
+        "jobs the submit limits hold back are submitted by a job of this time limit behind the first array "
+        "(resubmit states=[missing]), and so on; null: by launching again by hand", default=10)
+    hold: bool = setting("submit every job held (--hold): none starts until released (scontrol release <job id>)",
+                         default=False)
+    extra_sbatch: dict[str, Any] = setting(
+        "any sbatch flag the launcher does not set or plan itself, e.g. {constraint: cpu}; a flag set to null is not "
+        "passed (resubmit drops one so)", default_factory=dict)
+    setup: list[str] = setting("shell lines run before each job (e.g. module load python)", default_factory=list)
 
     def check(self) -> None:
         """Refuse settings sbatch would refuse, that would submit nothing or break the batch script."""

@@ -20,12 +20,13 @@ T = TypeVar("T")
 
 def setting(doc: str, low: float | None = None, high: float | None = None, *, low_open: bool = False,
             high_open: bool = False, choices: tuple = (), nonempty: bool = False, also: str = "",
-            default: Any = dataclasses.MISSING) -> Any:
+            default: Any = dataclasses.MISSING, default_factory: Any = dataclasses.MISSING) -> Any:
     """A field of a typed group: ``doc`` (one line for --help), the range [low, high] of a number (an open end
     excludes it; for a list or mapping, of each of its values), the ``choices`` of a string, ``nonempty`` for a
     list or mapping that needs a value, ``also`` 'VALUE: meaning' for one number allowed outside the range (e.g.
-    '0: none'). A field with a ``default`` may be left out (a group the user writes, not one conf/ holds)."""
-    return dataclasses.field(default=default, metadata={
+    '0: none'). A field with a ``default`` (or ``default_factory``, a list's or a mapping's) may be left out (a
+    group the user writes, not one conf/ holds)."""
+    return dataclasses.field(default=default, default_factory=default_factory, metadata={
         "doc": doc, "low": low, "high": high, "low_open": low_open, "high_open": high_open, "choices": choices,
         "nonempty": nonempty, "also": also})
 
