@@ -74,9 +74,9 @@ def test_models_trained_packed_equal_them_trained_alone_by_the_plain_loop(arch, 
     """Eager, or compiled (``StepCompiler``, the first two models: one shape to compile; the compiled stack's
     shrinking is tests/test_checkpoints.py's), each model of the pack trains as the plain loop trains it alone,
     its activations stored either way (``train.feature_major_width``: the widths here are 3-6), NARX with and
-    without its bypass, SUBNET in the paper's layout (bypass in h and the encoder, residual f) and in deepSI's (``DEEPSI``).
-    Compiled SUBNET simulates T = 4 steps (Inductor takes a minute or more per shape to compile the study's
-    segments), in one graph or recomputed in segments of 3 and 1 steps (``train.rollout_segment``)."""
+    without its bypass, SUBNET in the paper's layout (bypass in h and the encoder, residual f) and in deepSI's
+    (``DEEPSI``). Compiled SUBNET simulates T = 4 steps (Inductor takes a minute or more per shape to compile the
+    study's segments), in one graph or recomputed in segments of 3 and 1 steps (``train.rollout_segment``)."""
     width = 8 if layout == "feature_major" else 0
     cfg = compose("study=input_output", "system=silverbox_sim", f"arch={arch}",
                   f"train.feature_major_width.{arch}={width}", f"train.rollout_segment.{layout}={segment}", *options)

@@ -186,7 +186,8 @@ def what_it_takes_html(entries: Sequence[Mapping[str, Any]], settings: ReportTar
     head = (f"<tr><th>system</th><th>arch</th><th>target {settings.metric}</th><th>best observed</th>"
             f"<th>{symbol} needed [90%]</th><th>smallest model / data on the envelope there</th></tr>")
     body = "".join("<tr>" + cells((
-        entry["system"], entry["arch"], f"{entry['target']:.3g}", f"{entry['best']:.3g}", format_need(entry["need"], entry["best"]),
+        entry["system"], entry["arch"], f"{entry['target']:.3g}", f"{entry['best']:.3g}",
+        format_need(entry["need"], entry["best"]),
         f"{entry['model']:,.0f} parameters / {entry['data']:,.0f} points" if "model" in entry else "")) + "</tr>"
         for entry in entries)
     factors = ", ".join(f"{factor:g}" for factor in settings.factors)

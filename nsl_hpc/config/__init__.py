@@ -117,6 +117,7 @@ def composed(overrides: Sequence[str], config_name: str) -> DictConfig:
         search = [f"hydra.searchpath=['file://{hydra_quoted(str(user))}']"] if user else []
         with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
             cfg = compose(config_name, overrides=[*search, *overrides])
+        require_one_study(cfg)  # before the interpolations, which read keys of the system's own study
         OmegaConf.resolve(cfg)
         missing = sorted(OmegaConf.missing_keys(cfg))
     except MissingConfigException as error:
@@ -128,6 +129,19 @@ def composed(overrides: Sequence[str], config_name: str) -> DictConfig:
     if missing:
         raise ConfigError(f"{missing[0]} is required: add {missing[0]}=<value>")
     return cfg
+
+
+def require_one_study(cfg: Any) -> None:
+    """Refuse a system or arch of another study than the config's ``study`` (a composed config, or its plain
+    values), in one line that names the study to add."""
+    if "study" not in cfg:
+        return
+    study = cfg["study"]["name"]
+    for group in ("system", "arch"):
+        member = cfg[group].get("study") if group in cfg else study
+        if member != study:
+            raise ConfigError(f"{group}={cfg[group]['name']} belongs to the {member} study, not {study}; "
+                              f"add study={member} (or pick a {group} of the {study} study)")
 
 
 def describe_missing_config(error: "MissingConfigException") -> str:

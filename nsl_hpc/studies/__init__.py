@@ -10,6 +10,7 @@ import importlib
 from collections.abc import Mapping
 from typing import Any
 
+from nsl_hpc.config import require_one_study
 from nsl_hpc.config.mapping import plain
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies.base import Pair, Study
@@ -43,11 +44,7 @@ def study_named(name: str) -> Study:
 def study_of(cfg: Mapping[str, Any]) -> Study:
     """The study of a composed config, refusing a system or arch of another study."""
     study = study_named(cfg["study"]["name"])
-    for group in ("system", "arch"):
-        member = cfg[group].get("study")
-        if member != study.name:
-            raise ConfigError(f"{group}={cfg[group]['name']} belongs to the {member} study, not {study.name}; "
-                              f"add study={member} (or pick a {group} of the {study.name} study)")
+    require_one_study(cfg)
     return study
 
 

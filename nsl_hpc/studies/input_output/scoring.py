@@ -97,7 +97,7 @@ def narx_parts(net: NumpyMLP, past_outputs: int) -> tuple[np.ndarray, np.ndarray
     without one), split into the rows of the past outputs and of the inputs: both parts of a regressor's
     contribution come from one product."""
     first = net.layers[0].weight
-    bypass = np.zeros(first.shape[:-1] + (1,)) if net.bypass is None else net.bypass
+    bypass = np.zeros((*first.shape[:-1], 1)) if net.bypass is None else net.bypass
     joined = np.concatenate([first, bypass], axis=-1)
     return joined[:, :past_outputs], joined[:, past_outputs:]
 
