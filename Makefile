@@ -4,6 +4,7 @@
 #   make test   start the two local SLURM clusters (cluster/up.sh) and run the test suite but its slow tier
 #   make test-slow  the slow tier: the tests over about 10 s of CPU that need no cluster (CI runs it after make test)
 #   make test-fast  the tests that need no cluster, run no command end to end and are not slow (README: its time)
+#   make test-without-slurm  make test-fast with SLURM's client commands off PATH, as on a laptop (CI runs it)
 #   make demo-io  the input-output demo (io_demo, 60 tasks on the simulated stand-ins), merge ... report.html
 #   make repro  the reduced-scale reproduction (docs/reproduction.md): the repro and repro_io sweeps (~1.8 predicted
 #               core-hours) into runs/repro/{input_state,input_output}, then the SUBNET laws' slices subnet_compute
@@ -28,7 +29,7 @@ REPRO_DIR ?= runs/repro
 REPRO_ARGS ?=
 MECHANISMS_ARGS ?=
 
-.PHONY: install demo demo-io repro repro-candidates mechanisms data test test-slow test-fast lint
+.PHONY: install demo demo-io repro repro-candidates mechanisms data test test-slow test-fast test-without-slurm lint
 
 install: $(INSTALLED)
 
@@ -112,6 +113,17 @@ test-slow: $(INSTALLED)
 test-fast: $(INSTALLED)
 	$(BYTECODE)
 	$(PY) -m pytest -n $(or $(TEST_WORKERS),2) -m "not slurm and not e2e and not slow" --ignore=tests/cluster
+
+# A PATH of links to everything on PATH but SLURM's client commands: test-fast must pass where SLURM is not installed.
+SLURM_COMMANDS := sbatch srun squeue sacct sacctmgr scontrol scancel sinfo salloc sattach sbcast sdiag sprio sreport \
+	sshare sstat strigger sview
+test-without-slurm: $(INSTALLED)
+	@bin=$$(mktemp -d); trap 'rm -rf "$$bin"' EXIT; \
+	  for dir in $$(echo "$$PATH" | tr : ' '); do for file in "$$dir"/*; do name=$${file##*/}; \
+	    case " $(SLURM_COMMANDS) " in *" $$name "*) ;; *) [ -e "$$bin/$$name" ] || ln -s "$$file" "$$bin/$$name";; esac; \
+	  done; done; \
+	  for name in $(SLURM_COMMANDS); do if PATH="$$bin" command -v $$name >/dev/null; then echo "error: $$name is still on PATH" >&2; exit 1; fi; done; \
+	  PATH="$$bin" $(MAKE) --no-print-directory test-fast
 
 lint: $(INSTALLED)
 	$(VENV)/bin/ruff check .

@@ -131,3 +131,13 @@ def test_text_that_would_break_a_batch_script_is_one_line_before_anything_is_wri
     assert result.returncode == 2 and len(result.stderr.splitlines()) == 1, result.stderr
     assert message in result.stderr
     assert not sweep_dir.exists()
+
+
+def test_a_system_of_the_other_study_is_one_line_naming_the_study_to_add(tmp_path):
+    """The README's one-task line with a measured system: what is missing is study=input_output, said before the
+    system's interpolations (they read the input-output study's data_dir) and before anything is written."""
+    result = nsl("train", "system=silverbox", "arch=narx", f"out_dir={tmp_path}")
+    assert result.returncode == 2 and result.stderr == (
+        "error: system=silverbox belongs to the input_output study, not input_state; add study=input_output (or "
+        "pick a system of the input_state study)\n")
+    assert not any(tmp_path.iterdir())
