@@ -25,7 +25,7 @@ from nsl_hpc.sweep.budget import BudgetSettings
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 from nsl_hpc.sweep.executors import run_jobs
 from nsl_hpc.sweep.groups import saved_groups
-from nsl_hpc.sweep.limits import cluster_limits, describe_fit, within_limits
+from nsl_hpc.sweep.limits import ClusterLimits, cluster_limits, describe_fit, within_limits
 from nsl_hpc.sweep.plan import Grouping, Pack
 from nsl_hpc.sweep.prepare import (
     PAIR_KEYS,
@@ -90,30 +90,32 @@ def tracked_laws(nsl: DictConfig) -> TrackedLaws:
 
 def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
     built = build_sweep(cfg, overrides)  # every check first: nothing is written for a refused launch
+    limits = cluster_limits(built.settings, cfg.dry_run)  # SLURM's commands and the cluster answer, or a refusal
     budget = typed(BudgetSettings, cfg.budget, "budget")
     budgeted = budgeted_rounds(built, Path(cfg.sweep_dir), budget, tracked_laws(cfg.nsl) if budget.requested else None)
     with private_umask():
         sweep_dir = usable_sweep_dir(cfg.sweep_dir)
         with sweep_lock(sweep_dir, "launch"):
             check_control_files(sweep_dir, cfg.compile_cache_dir, cfg.allow_shared_sweep_dir)
-            return launch(cfg, built, sweep_dir, budgeted, overrides)
+            return launch(cfg, built, sweep_dir, limits, budgeted, overrides)
 
 
-def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path, budgeted: Budgeted = None,
-           overrides: Sequence[str] = ()) -> int:
-    """Prepare the sweep directory, then run or submit its tasks to run: all of them, or with a budget round after
-    round (``launch_rounds``; ``overrides``: the command line's, for the job that launches the next round)."""
+def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path, limits: ClusterLimits | None,
+           budgeted: Budgeted = None, overrides: Sequence[str] = ()) -> int:
+    """Prepare the sweep directory, then run or submit its tasks to run within the cluster's ``limits`` (None: a
+    local launcher's, or not read): all of them, or with a budget round after round (``launch_rounds``;
+    ``overrides``: the command line's, for the job that launches the next round)."""
     prepared = prepare_sweep(cfg, built, sweep_dir)
+    run = functools.partial(run_tasks, limits=limits)
     if budgeted is None:
-        return run_tasks(cfg, built, prepared)
-    return launch_rounds(cfg, built, prepared, overrides, *budgeted, run_tasks)
+        return run(cfg, built, prepared)
+    return launch_rounds(cfg, built, prepared, overrides, *budgeted, run)
 
 
-def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep) -> int:
-    """Print the plan of ``prepared.todo`` within the cluster's limits and the sweep directory's file system, and
-    (unless a dry run) run or submit it."""
+def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, limits: ClusterLimits | None) -> int:
+    """Print the plan of ``prepared.todo`` within the cluster's ``limits`` and the sweep directory's file system,
+    and (unless a dry run) run or submit it."""
     settings, tasks = built.settings, prepared.todo.to_pylist()
-    limits = cluster_limits(settings, cfg.dry_run)
     packs = (within_limits(settings, limits) if limits else settings).plan(
         tasks, saved=[saved.task_ids for saved in saved_groups(prepared.sweep_dir)])
     print(describe_plan(prepared, packs, cfg.launcher.name))

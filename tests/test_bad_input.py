@@ -2,7 +2,10 @@
 grids (checked where the config is composed), text that would break a batch script, resubmit overrides that would
 change the tasks."""
 
+import os
 import re
+import subprocess
+import sys
 
 import pytest
 
@@ -141,3 +144,20 @@ def test_a_system_of_the_other_study_is_one_line_naming_the_study_to_add(tmp_pat
         "error: system=silverbox belongs to the input_output study, not input_state; add study=input_output (or "
         "pick a system of the input_state study)\n")
     assert not any(tmp_path.iterdir())
+
+
+def test_a_slurm_launch_where_slurm_is_not_installed_is_one_line_before_anything_is_written(tmp_path):
+    """No SLURM command on PATH (a laptop): launch launcher=slurm says where to run it and writes no sweep
+    directory; its dry run still prints the plan, saying the cluster's limits were not read."""
+    env = {**os.environ, "PATH": str(tmp_path / "empty")}  # python by its full path; nothing else on PATH
+    launch = [sys.executable, "-m", "nsl_hpc.launch", *TINY_GRID, "launcher=slurm", f"sweep_dir={tmp_path / 'sweep'}"]
+    refused = subprocess.run(launch, env=env, capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and refused.stderr == (
+        "error: scontrol not found: launcher=slurm needs SLURM's client commands; run this on the cluster's login "
+        "node (or use launcher=local on this machine)\n")
+    assert not (tmp_path / "sweep").exists()
+    planned = subprocess.run([*launch, "dry_run=true"], env=env, capture_output=True, text=True, timeout=120)
+    assert planned.returncode == 0, planned.stderr
+    assert "the cluster's limits were not read, the plan below does not fit them: scontrol not found" in \
+        planned.stdout + planned.stderr
+    assert "dry run: nothing submitted" in planned.stdout

@@ -191,16 +191,16 @@ def read_cluster_limits(launcher: SlurmLauncher) -> ClusterLimits:
 
 def cluster_limits(settings: LaunchSettings, dry_run: bool = False) -> ClusterLimits | None:
     """The cluster's limits a launch's SLURM jobs fit; None for the local launchers, and for a dry run on a machine
-    without SLURM's commands (said in a line)."""
+    without SLURM's commands or whose commands reach no cluster (said in a line: the plan is printed without them)."""
     launcher = settings.launcher
     if not isinstance(launcher, SlurmLauncher):
         return None
     try:
         return read_cluster_limits(launcher)
-    except SlurmMissing as error:
+    except (SlurmMissing, SlurmError) as error:
         if not dry_run:
             raise
-        LOG.info(f"  {error}: the cluster's limits were not read")
+        LOG.info(f"  the cluster's limits were not read, the plan below does not fit them: {error}")
         return None
 
 

@@ -20,7 +20,8 @@ def slurm_command(*args: str, retries: int = 3, backoff_s: float = 2.0) -> str:
         try:
             result = subprocess.run(args, capture_output=True, text=True, timeout=120)
         except FileNotFoundError:
-            raise SlurmMissing(f"{args[0]} not found: launcher=slurm needs the SLURM client commands") from None
+            raise SlurmMissing(f"{args[0]} not found: launcher=slurm needs SLURM's client commands; run this on the "
+                               "cluster's login node (or use launcher=local on this machine)") from None
         if result.returncode == 0:
             return result.stdout
         if attempt + 1 < retries:

@@ -3,7 +3,9 @@ exit, and a resubmit with the setting corrected runs the tasks (issue: a refused
 the cluster's job limits). An array size above the cluster's is refused before anything is submitted (a
 partition it lacks: tests/cluster/test_limits.py)."""
 
+import os
 import subprocess
+import sys
 
 import pytest
 
@@ -66,3 +68,19 @@ def test_an_array_size_above_the_clusters_is_refused_before_anything_is_submitte
     assert refused.stderr.strip() == (f"error: launcher.max_array_size={cluster + 1} is above the cluster's "
                                       f"MaxArraySize={cluster}: leave it unset (null) or lower it")
     assert not (sweep_dir / "submissions").exists() or not any((sweep_dir / "submissions").iterdir())
+
+
+def test_where_slurms_commands_reach_no_cluster_a_dry_run_plans_and_a_launch_writes_nothing(tmp_path):
+    """SLURM's real commands with no configuration to read (SLURM_CONF names no file: scontrol's "Could not
+    establish a configuration source"): the dry run prints the plan and says the limits were not read and why; a
+    launch is one line and writes no sweep directory."""
+    env = {**os.environ, "SLURM_CONF": str(tmp_path / "no-such-slurm.conf")}
+    launch = [sys.executable, "-m", "nsl_hpc.launch", *TINY_GRID, "launcher=slurm", f"sweep_dir={tmp_path / 'sweep'}"]
+    planned = subprocess.run([*launch, "dry_run=true"], env=env, capture_output=True, text=True, timeout=300)
+    assert planned.returncode == 0, planned.stderr
+    said = planned.stdout + planned.stderr
+    assert "the cluster's limits were not read, the plan below does not fit them: scontrol failed:" in said
+    assert "dry run: nothing submitted" in planned.stdout
+    refused = subprocess.run(launch, env=env, capture_output=True, text=True, timeout=300)
+    assert refused.returncode == 1 and refused.stderr.startswith("error: scontrol failed:")
+    assert refused.stderr.count("\n") == 1 and not (tmp_path / "sweep").exists()
