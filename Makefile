@@ -51,8 +51,12 @@ UV := $(PY) -m uv pip install --quiet --compile-bytecode --python $(PY)
 BYTECODE := $(PY) -m compileall -q nsl_hpc
 
 $(INSTALLED): pyproject.toml
+	@echo "make install: a virtual environment in $(VENV) with nsl_hpc and its dependencies (once; a minute or two)"
 	$(PYTHON) -m venv $(VENV) || { echo "error: $(PYTHON) -m venv failed; on Debian/Ubuntu: apt-get install python3-venv"; exit 1; }
+	@echo "  $(TORCH), the CPU build (about 200 MB; from pip's cache when it has it, else $(TORCH_INDEX))"
 	$(PIP) --no-deps --no-index $(TORCH) 2>/dev/null || $(PIP) --no-deps --index-url $(TORCH_INDEX) $(TORCH)
+	@echo "  numpy, scipy, submitit, hydra-core, mlflow, pyarrow, matplotlib, tqdm, nonlinear-benchmarks, and pytest, ruff,"
+	@echo "  mypy for the tests (a few hundred MB from PyPI, by uv where it installs)"
 	{ $(PIP) uv && $(UV) -e '.[test]'; } || $(PIP) -e '.[test]'
 	$(BYTECODE)
 	touch $@

@@ -21,13 +21,13 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
-from tqdm import tqdm
 
 from nsl_hpc.analysis.cards import core_hours
 from nsl_hpc.analysis.fitting import fittable, pair_outcomes
 from nsl_hpc.analysis.joint_law import VARIABLES, JointLaw, JointLawError, bootstrap_joint_laws, fit_joint_law
 from nsl_hpc.analysis.nsl_settings import Joint
 from nsl_hpc.errors import ConfigError
+from nsl_hpc.progress import progress
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import Pair, Study
@@ -240,7 +240,7 @@ def cheapest_configurations(sweep_dir: Path, results: pa.Table, launch: LaunchSe
     manifest = read_manifest(sweep_dir).to_pylist()
     found: list[Cheapest | str] = []
     pairs = dict.fromkeys(zip(results["system"].to_pylist(), results["arch"].to_pylist(), strict=True))
-    for system, arch in tqdm(pairs, desc="joint laws", unit="pair", disable=None):
+    for system, arch in progress(pairs, "joint laws", "pair"):
         template = next(task for task in manifest if task["system"] == system and task["arch"] == arch)
         try:
             found.append(cheapest_for(pair_outcomes(results, system, arch), metric, target, study,

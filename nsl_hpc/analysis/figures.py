@@ -17,7 +17,6 @@ from matplotlib.axes import Axes
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
-from tqdm import tqdm
 
 from nsl_hpc.analysis.bootstrap import band, thetas_of
 from nsl_hpc.analysis.broken_law import NSLFit, log_law, lower_envelope
@@ -26,6 +25,7 @@ from nsl_hpc.analysis.nsl_settings import Figures, Nsl
 from nsl_hpc.analysis.published import KEY as PUBLISHED_KEY
 from nsl_hpc.analysis.published import published_law
 from nsl_hpc.atomic import replacing
+from nsl_hpc.progress import progress
 from nsl_hpc.sweep import layout
 
 REHEARSAL_TITLE = "REHEARSAL, synthetic outcomes: "  # on every figure of a rehearsal
@@ -240,11 +240,11 @@ def draw_figures(sweep_dir: Path, results: pa.Table, rows: list[dict[str, Any]],
                  figures: Figures) -> dict[str, list[Path]]:
     """Every NSL figure and overview grid; returns their paths by kind ('nsl', 'overview')."""
     drawn: dict[str, list[Path]] = {"nsl": [], "overview": []}
-    for row in tqdm(rows, desc="figures", unit="NSL", disable=None):
+    for row in progress(rows, "figures", "NSL"):
         drawn["nsl"] += figure_for_nsl(sweep_dir, results, row, nsl, figures)
-    for resource in nsl.resources:
-        for metric in nsl.metrics:
-            group = [row for row in rows if row["resource"] == resource and row["metric"] == metric]
-            if group:
-                drawn["overview"] += overview_figure(sweep_dir, results, group, resource, metric, nsl, figures)
+    kinds = [(resource, metric) for resource in nsl.resources for metric in nsl.metrics]
+    for resource, metric in progress(kinds, "overview figures", "grid"):
+        group = [row for row in rows if row["resource"] == resource and row["metric"] == metric]
+        if group:
+            drawn["overview"] += overview_figure(sweep_dir, results, group, resource, metric, nsl, figures)
     return drawn

@@ -12,7 +12,6 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-from tqdm import tqdm
 
 from nsl_hpc.analysis.bootstrap import bootstrap_thetas, intervals
 from nsl_hpc.analysis.broken_law import (
@@ -26,6 +25,7 @@ from nsl_hpc.analysis.nsl_settings import Nsl
 from nsl_hpc.analysis.published import comparison
 from nsl_hpc.atomic import read_parquet, write_parquet, write_text
 from nsl_hpc.errors import ConfigError, RunError
+from nsl_hpc.progress import progress
 from nsl_hpc.seeding import stable_seed
 from nsl_hpc.studies.metrics import NORMALIZATIONS
 from nsl_hpc.sweep import layout
@@ -226,7 +226,7 @@ def fit_sweep(results: pa.Table, nsl: Nsl, workers: int | None, rehearse: Rehear
                     jobs.append((key, r, e, int((~keep).sum()), nsl, resource.symbol, rehearse, backtest))
     with ProcessPoolExecutor(workers or os.cpu_count()) as pool:
         futures = [pool.submit(fit_one, *job) for job in jobs]
-        return [future.result() for future in tqdm(futures, desc="NSL fits", unit="fit", disable=None)]
+        return [future.result() for future in progress(futures, "NSL fits (with their bootstrap refits)", "fit")]
 
 
 def last_slope_undetermined(row: Mapping[str, Any]) -> bool:

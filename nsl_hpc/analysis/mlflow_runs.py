@@ -25,6 +25,7 @@ from nsl_hpc.analysis.fitting import interval_columns, nsl_key
 from nsl_hpc.analysis.nsl_settings import MlflowSettings
 from nsl_hpc.config.mapping import flatten
 from nsl_hpc.errors import RunError, one_line
+from nsl_hpc.progress import progress
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import layout
@@ -110,9 +111,7 @@ def log_nsl_runs(client: MlflowClient, experiment: str, parent: str, rows: Seque
     """One child run per fitted NSL, reused while its law is unchanged, replaced otherwise."""
     children = find_runs(client, experiment, f"tags.`{PARENT_TAG}` = '{parent}'")
     existing = {run.data.tags[NSL_TAG]: run for run in children}
-    for row in rows:
-        if row["error"] is not None:
-            continue
+    for row in progress([row for row in rows if row["error"] is None], "MLflow runs", "NSL"):
         key = nsl_key(row)
         params = law_params(row)
         run = existing.pop(key, None)

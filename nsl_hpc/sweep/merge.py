@@ -17,6 +17,7 @@ import pyarrow.parquet as pq
 
 from nsl_hpc.atomic import create_parquet, make_durable, read_parquet, write_parquet, write_text
 from nsl_hpc.errors import ConfigError
+from nsl_hpc.progress import progress
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.decisions import read_decisions, skip_reasons
 from nsl_hpc.sweep.directory import sweep_lock
@@ -118,7 +119,8 @@ def read_shards(paths: list[str]) -> tuple[pa.Table, list[str]]:
 
     with ThreadPoolExecutor(os.cpu_count()) as pool:
         chunks = pool.map(read_chunk, [paths[start:start + READ_CHUNK] for start in range(0, len(paths), READ_CHUNK)])
-        tables = [table for chunk in chunks for table in chunk]
+        tables = [table for chunk in progress(chunks, f"reading {len(paths):,} row files", "chunk",
+                                              -(-len(paths) // READ_CHUNK)) for table in chunk]
     good = [(path, table) for path, table in zip(paths, tables, strict=True) if table is not None]
     unreadable = [path for path, table in zip(paths, tables, strict=True) if table is None]
     if not good:
