@@ -93,11 +93,11 @@ def quoted_figures(text: str) -> list[str]:
 
 
 def measurement_units() -> list[tuple[str, str]]:
-    """(where, text) of each place that quotes measured figures: the README Fidelity table's last column (the
-    alternatives and the evidence), and docs/reproduction.md's summary (its "In short" paragraphs)."""
-    readme = (ROOT / "README.md").read_text()
-    fidelity = readme.split("## Fidelity", 1)[1].split("\n## ", 1)[0]
-    units = [(f"README Fidelity, {cells[0].strip()}", cells[-1])
+    """(where, text) of each place that quotes measured figures: the Fidelity table's last column (the
+    alternatives and the evidence, docs/fidelity.md), and docs/reproduction.md's summary (its "In short"
+    paragraphs)."""
+    fidelity = (ROOT / "docs" / "fidelity.md").read_text()
+    units = [(f"docs/fidelity.md, {cells[0].strip()}", cells[-1])
              for cells in (line.strip("|").split(" | ") for line in fidelity.splitlines()
                            if line.startswith("| ") and not line.startswith(("| choice", "|---")))]
     reproduction = (ROOT / "docs" / "reproduction.md").read_text()
@@ -108,7 +108,7 @@ def measurement_units() -> list[tuple[str, str]]:
 
 @pytest.mark.parametrize(("where", "text"), measurement_units(), ids=[where for where, _ in measurement_units()])
 def test_every_quoted_figure_is_dated_or_in_the_output_it_names(where, text):
-    """A measured figure in the README's Fidelity table or the reproduction summary is either dated (the run's
+    """A measured figure in the Fidelity table or the reproduction summary is either dated (the run's
     date in the same cell or paragraph) or appears verbatim in the committed command output it names."""
     figures = quoted_figures(text)
     if not figures or DATE.search(text):

@@ -216,7 +216,7 @@ def science_settings(sweep_dir: Path, launch: LaunchSettings) -> dict[tuple[str,
 
 def configuration_html(settings: Mapping[tuple[str, str], Mapping[str, tuple[str, str]]]) -> str:
     """The settings a sweep trained with: its draws, MLP block, architecture options, loss and training, and
-    every value that differs from the study's configuration (README, Fidelity)."""
+    every value that differs from the study's configuration (docs/fidelity.md)."""
     first = next(iter(settings.values()))
     shown = [key for key in first
              if key.split(".")[0] in ("draws", "train", "metric") or key.startswith("system.test_set.")]
@@ -227,8 +227,8 @@ def configuration_html(settings: Mapping[tuple[str, str], Mapping[str, tuple[str
         for arch, pair in {arch: pair for (_, arch), pair in settings.items()}.items())
     changed = sorted({f"{key}={value} (the study's: {default})" for pair in settings.values()
                       for key, (value, default) in pair.items() if value != default})
-    verdict = ("<p>These are the study's settings (README, Fidelity).</p>" if not changed else
-               "<p>Settings that differ from the study's (README, Fidelity):</p><ul>"
+    verdict = ("<p>These are the study's settings (docs/fidelity.md).</p>" if not changed else
+               "<p>Settings that differ from the study's (docs/fidelity.md):</p><ul>"
                + "".join(f"<li><code>{html.escape(line)}</code></li>" for line in changed) + "</ul>")
     return f"<table>{rows}</table>{verdict}"
 
