@@ -17,7 +17,7 @@
 #   make mechanisms  the mechanism table (docs/reproduction.md, "One table for every candidate"): every candidate of
 #               conf/mechanisms.yaml trained on the slices mechanism_compute and mechanism_data into runs/mechanisms,
 #               scored on every published law they cover; runs/mechanisms/table.md. MECHANISMS_ARGS="only=[...]"
-#   make data   copy the measured Silverbox / Wiener-Hammerstein files from DATA_SOURCE into data/
+#   make data   the measured Silverbox / Wiener-Hammerstein files into data/: from DATA_SOURCE, else downloaded
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -86,8 +86,9 @@ repro-candidates: data
 mechanisms: $(INSTALLED)
 	$(PY) benchmarks/mechanisms.py $(MECHANISMS_ARGS)
 
+# From DATA_SOURCE where that folder exists, else downloaded by the benchmarks' loaders (docs/science.md)
 data: $(INSTALLED)
-	$(PY) -m nsl_hpc.place_data source=$(DATA_SOURCE) data_dir=data
+	$(PY) -m nsl_hpc.place_data $(if $(wildcard $(DATA_SOURCE)),source=$(DATA_SOURCE),) data_dir=data
 
 # The SLURM tests need the real single-node clusters; without root they are skipped (under CI=true,
 # a cluster that cannot start fails the run).

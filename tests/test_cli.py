@@ -27,7 +27,7 @@ COMMANDS = [
     ("resubmit", "resubmit", ["states=[failed, frozen, timeout, missing, corrupt]", "time_factor=1.0"]),
     ("merge", "merge", ["sweep_dir=???"]),
     ("clean", "clean", ["dry_run=false"]),
-    ("place_data", "place_data", ["source=???", "systems=[silverbox, wiener_hammerstein, "]),
+    ("place_data", "place_data", ["source=null", "download=true", "systems=[silverbox, wiener_hammerstein, "]),
 ]
 
 

@@ -67,6 +67,31 @@ def test_the_process_noise_benchmark_trains_on_its_realisations_in_turn_and_test
         assert np.array_equal(records.validation.u, estimation["u"][-1920:, 9])
 
 
+@MEASURED
+def test_placed_files_are_kept_and_a_benchmark_no_folder_holds_is_one_line_naming_its_page(tmp_path, capsys):
+    """A second placing keeps what is there; a system whose files no source folder holds and that is not
+    downloaded (download=false here; where the machine cannot reach the loader's server, the same line follows a
+    failed download) says where its files are published, and what was placed before it stays."""
+    place_data(compose_config([f"source={SHARED_DATA}", f"data_dir={tmp_path}", "systems=[wiener_hammerstein]"],
+                              "place_data"))
+    placed = tmp_path / "WienerHammerBenchMark" / "WienerHammerBenchMark.mat"
+    assert placed.is_file()
+    capsys.readouterr()
+    place_data(compose_config([f"source={SHARED_DATA}", f"data_dir={tmp_path}", "systems=[wiener_hammerstein]"],
+                              "place_data"))
+    assert capsys.readouterr().out == f"kept    {placed}\n"
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ConfigError) as refused:
+        place_data(compose_config([f"source={empty}", f"data_dir={tmp_path}", "systems=[silverbox]", "download=false"],
+                                  "place_data"))
+    assert str(refused.value) == (
+        f"silverbox: no file named SNLS80mV.mat under source={str(empty)!r}, and it is not downloaded "
+        "(download=false); get it from https://www.nonlinearbenchmark.org/benchmarks/silverbox and run again with "
+        "source=<its folder>")
+    assert placed.is_file() and not (tmp_path / "Silverbox").exists()
+
+
 def test_process_noise_records_of_the_wrong_shape_are_refused_with_the_file_named(tmp_path, cache):
     folder = tmp_path / "wh_process_noise"
     folder.mkdir()
