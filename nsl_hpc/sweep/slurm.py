@@ -44,9 +44,12 @@ def held_arrays(array_ids: Iterable[str]) -> list[str]:
     return [array_id for array_id in array_ids if array_id in held]
 
 
-# sacct states of a job that has not ended -> the state of the tasks it holds
-ACTIVE_JOB_STATES = {"RUNNING": "running", "COMPLETING": "running", "PENDING": "pending", "REQUEUED": "pending",
-                     "CONFIGURING": "running", "RESIZING": "running", "SUSPENDED": "pending"}
+# Every state in which SLURM still holds a job (it has not ended: sacct's and squeue's long names) -> the state of
+# the tasks it holds: a job that is stopped, suspended, held for a requeue or finishing its epilog still has them
+ACTIVE_JOB_STATES = {"RUNNING": "running", "COMPLETING": "running", "CONFIGURING": "running", "RESIZING": "running",
+                     "SIGNALING": "running", "STAGE_OUT": "running", "STOPPED": "running", "SUSPENDED": "pending",
+                     "PENDING": "pending", "REQUEUED": "pending", "REQUEUE_HOLD": "pending", "REQUEUE_FED": "pending",
+                     "RESV_DEL_HOLD": "pending", "SPECIAL_EXIT": "pending"}
 
 
 @dataclass(frozen=True)

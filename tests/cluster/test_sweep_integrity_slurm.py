@@ -2,6 +2,7 @@
 jobs (issue: launch and resubmit ignored what was queued)."""
 
 import subprocess
+import time
 
 import pytest
 
@@ -55,3 +56,37 @@ def test_a_job_trains_nothing_over_a_compile_cache_others_can_write(slurm_cluste
         assert not list((sweep_dir / "rows").rglob("*.parquet"))
     finally:
         subprocess.run(["scancel", "-n", "nsl-shared-cache"], check=False)
+
+
+def test_a_stopped_job_holds_its_tasks_and_nothing_is_queued_again(slurm_cluster, tmp_path):
+    """A job stopped by a signal (scancel --signal=STOP: squeue says STOPPED) still holds its tasks: status counts
+    them running, not missing, and resubmit queues none again (issue: they were submitted a second time, and after
+    SIGCONT both trained them)."""
+    sweep_dir = tmp_path / "sweep"
+    slow = [*TINY_GRID, "launcher=slurm", f"sweep_dir={sweep_dir}", "sweep.name=stopped", "sweep.grid.epochs=[640]",
+            "fault.kind=slow", "fault.heartbeat_s=0.25"]  # ~10 s of training, mostly asleep
+    launched = nsl("launch", *slow)
+    assert launched.returncode == 0, launched.stderr
+    try:
+        for _ in range(120):  # until the job runs
+            states = subprocess.run(["squeue", "-h", "-n", "nsl-stopped", "-o", "%i|%T"], capture_output=True,
+                                    text=True, check=True).stdout.split()
+            if any(state.endswith("|RUNNING") for state in states):
+                break
+            time.sleep(1)
+        running = next(state.split("|")[0] for state in states if state.endswith("|RUNNING"))
+        subprocess.run(["scancel", "--signal=STOP", running], check=True)
+        for _ in range(60):
+            state = subprocess.run(["squeue", "-h", "-j", running, "-o", "%T"], capture_output=True, text=True,
+                                   check=True).stdout.strip()
+            if state == "STOPPED":
+                break
+            time.sleep(1)
+        assert state == "STOPPED"
+        status = nsl("status", f"sweep_dir={sweep_dir}")
+        assert "missing 0" in status.stdout, status.stdout
+        resubmitted = nsl("resubmit", f"sweep_dir={sweep_dir}")
+        assert resubmitted.returncode == 0 and "nothing to resubmit" in resubmitted.stdout, resubmitted.stdout
+        assert len(queued_arrays("nsl-stopped")) == 1
+    finally:
+        subprocess.run(["scancel", "-n", "nsl-stopped"], check=False)
