@@ -158,8 +158,18 @@ def run(main: Callable[..., int | None], doc: str, argv: Sequence[str] | None = 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes
         sys.exit(1)
     except OSError as error:
-        if error.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
+        if error.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES):
             raise
-        print(f"error: {error.strerror} while writing {error.filename or 'a file'}; what was finished is kept: free "
-              "space (or point the command at a writable place) and run it again", file=sys.stderr)
+        print(f"error: {write_failure(error)}", file=sys.stderr)
         sys.exit(1)
+
+
+def write_failure(error: OSError) -> str:
+    """One line for a write the machine refused: a full disk or quota (free space), or a place that takes no
+    writes (a read-only file system, no permission: run where the sweep can be written)."""
+    where = error.filename or "a file"
+    if error.errno in (errno.ENOSPC, errno.EDQUOT):
+        return (f"{error.strerror} while writing {where}; what was finished is kept: free space (or point the "
+                "command at a writable place) and run it again")
+    return (f"{where} cannot be written ({error.strerror}); what was finished is kept: run the command where the "
+            "sweep directory is writable (or copy it to a writable place and point sweep_dir there)")

@@ -36,7 +36,7 @@ from nsl_hpc.sweep.plan import (
     predicted_seconds,
 )
 from nsl_hpc.sweep.run_settings import Cost
-from nsl_hpc.sweep.slurm import expand_array_ids, merged_states
+from nsl_hpc.sweep.slurm import expand_array_ids, merged_states, refused_flag
 from nsl_hpc.sweep.submissions import record_submission
 from nsl_hpc.sweep.task_states import ACCOUNTING_LAG_S, read_sweep_state, task_state
 from tests.sweeps import TINY_GRID, nsl
@@ -362,3 +362,14 @@ def test_a_packs_tasks_share_their_own_groups_prediction_and_the_jobs_start():
     pack = Pack((Group(tuple(f"t{i}" for i in range(8)), 100.0), Group(("lone",), 100.0)), 209.0, 10)
     assert pack.task_seconds() == pytest.approx([100 / 8 + 1] * 8 + [101.0])
     assert sum(pack.task_seconds()) == pytest.approx(pack.seconds)
+
+
+@pytest.mark.parametrize(("message", "flags", "flag"), [
+    ("sbatch: error: Invalid feature specification", ["constraint", "gres"], "constraint"),
+    ("sbatch: error: Invalid generic resource (gres) specification", ["constraint", "gres"], "gres"),
+    ("sbatch: unrecognized option '--no-such-flag=1'", ["exclusive", "no_such_flag"], "no_such_flag"),
+    ("sbatch: error: Batch job submission failed: Requested node configuration is not available", ["reservation"],
+     "reservation"),
+    ("sbatch: error: Batch job submission failed: something else", ["a", "b"], None)])
+def test_a_refused_sbatch_flag_is_named_where_the_refusal_tells_which(message, flags, flag):
+    assert refused_flag(message, flags) == flag

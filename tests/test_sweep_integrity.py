@@ -428,3 +428,19 @@ def test_a_local_worker_killed_or_stopped_is_recorded_and_the_others_finish(sent
     assert failure["status"] == state and reason in failure["reason"]
     status = nsl("status", f"sweep_dir={sweep_dir}").stdout
     assert "done 2 |" in status and f"{state} 1 |" in status and "missing 1 |" in status
+
+
+def test_a_sweep_on_a_read_only_file_system_is_one_line_that_says_so(finished_sweep, tmpfs):
+    """Every command that writes into a finished sweep on a file system remounted read-only says it cannot be
+    written (not to free space), in one line, and changes nothing."""
+    mount = tmpfs("size=64m")
+    sweep_dir = mount / "sweep"
+    shutil.copytree(finished_sweep, sweep_dir)
+    subprocess.run(["mount", "-o", "remount,ro", str(mount)], check=True)
+    before = {path: path.stat().st_mtime_ns for path in tree(sweep_dir)}
+    for verb, args in (("merge", []), ("clean", []), ("resubmit", []), ("report", ["mlflow.enabled=false"])):
+        result = nsl(verb, *args, f"sweep_dir={sweep_dir}")
+        assert result.returncode != 0, (verb, result.stdout)
+        assert len(result.stderr.splitlines()) == 1 and "Traceback" not in result.stderr, (verb, result.stderr)
+        assert "Read-only file system" in result.stderr and "free space" not in result.stderr, (verb, result.stderr)
+    assert {path: path.stat().st_mtime_ns for path in tree(sweep_dir)} == before

@@ -35,7 +35,7 @@ from nsl_hpc.sweep.manifest import write_run_settings
 from nsl_hpc.sweep.plan import Group, Pack
 from nsl_hpc.sweep.prepare import prepare_shared_data
 from nsl_hpc.sweep.rows import row_states
-from nsl_hpc.sweep.slurm import held_arrays, queued_jobs, refused_setting
+from nsl_hpc.sweep.slurm import held_arrays, queued_jobs, refused_flag, refused_setting
 from nsl_hpc.sweep.submissions import read_submissions, record_submission
 
 LOG = logging.getLogger(__name__)
@@ -292,7 +292,7 @@ def dispatch(sweep_dir: Path, packs: Sequence[Pack], launcher: Launcher, name: s
             LOG.info(f"the user's job limits are unknown ({submission.unaccounted[:160]}): submitted without them (set "
                   "launcher.max_submit_jobs to stay within a submit limit)")
         if submission.refusal:
-            refuse_for_setting(sweep_dir, submission)
+            refuse_for_setting(sweep_dir, submission, list(launcher.sbatch_flags()))
         LOG.info(f"submitted {elements:,} jobs in {len(submission.arrays)} arrays: {', '.join(submission.arrays)}")
         if submission.refusal:
             LOG.info(f"sbatch refused the next array: {submission.refusal}")
@@ -322,17 +322,23 @@ def held_back_line(sweep_dir: Path, submission: Submission, launcher: SlurmLaunc
     return f"{held}: job {feeder} submits them once array {first} has ended, and so on until all are in"
 
 
-def refuse_for_setting(sweep_dir: Path, submission: Submission) -> None:
+def refuse_for_setting(sweep_dir: Path, submission: Submission, flags: list[str]) -> None:
     """Raise a ConfigError when sbatch refused an array for one of the launcher's settings (a partition, an
-    account, an array size the cluster does not take): one line with its reason, what went in before, and the
-    resubmit that runs the rest with the setting corrected. A refusal for room (job limits) returns."""
+    account, an array size the cluster does not take; of ``flags``, launcher.extra_sbatch's, the one it is about):
+    one line with its reason, what went in before, and the resubmit that runs the rest with the setting corrected.
+    A refusal for room (job limits) returns."""
     assert submission.refusal is not None
     setting = refused_setting(submission.refusal, queued_jobs(user_only=True))
     if setting is None:
         return
     went_in = (f"{sum(submission.arrays.values()):,} jobs in {', '.join(submission.arrays)} went in before it"
                if submission.arrays else "nothing was submitted")
-    corrected = f"+{setting}.<flag>=<value or null>" if setting == "launcher.extra_sbatch" else f"{setting}=<value>"
+    if setting == "launcher.extra_sbatch":
+        flag = refused_flag(submission.refusal, flags)
+        setting = f"{setting}.{flag}" if flag else setting
+        corrected = f"+launcher.extra_sbatch.{flag or '<flag>'}=<value or null>"
+    else:
+        corrected = f"{setting}=<value>"
     raise ConfigError(f"sbatch refused the jobs ({submission.refusal.replace('sbatch: error: ', '')}): change "
                       f"{setting}; {went_in}: python -m nsl_hpc.resubmit sweep_dir={sweep_dir} {corrected} "
                       "runs the rest")

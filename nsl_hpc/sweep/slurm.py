@@ -131,6 +131,20 @@ REFUSED_SETTINGS = (("account", "launcher.account"), ("partition", "launcher.par
 ROOM_REFUSALS = ("temporarily", "job submit limit", "maxsubmit", "maxjobcount", "job count")
 
 
+# fragments of an sbatch refusal -> the flag of launcher.extra_sbatch it is about
+REFUSED_FLAGS = (("feature specification", "constraint"), ("gres", "gres"), ("node count", "nodes"),
+                 ("node configuration", "constraint"))
+
+
+def refused_flag(message: str, flags: list[str]) -> str | None:
+    """The flag of ``flags`` (launcher.extra_sbatch's) an sbatch refusal of one of them is about: the one it names
+    (--flag), the one its reason belongs to, or the only one; None where that cannot be told."""
+    named = [flag for flag in flags if re.search(rf"--{re.escape(flag.replace('_', '-'))}\b", message)]
+    kinds = [flag for fragment, flag in REFUSED_FLAGS if fragment in message.lower() and flag in flags]
+    candidates = named or kinds or (flags if len(flags) == 1 else [])
+    return candidates[0] if candidates else None
+
+
 def refused_setting(message: str, user_queued: int) -> str | None:
     """The launcher setting an sbatch refusal names, None for a refusal for room. A QOS or association policy
     refusal counts as room only while the user has jobs queued (with none, the size or time of the job broke it:

@@ -38,8 +38,8 @@ def test_a_qos_sbatch_refuses_is_one_line_and_resubmit_corrects_it(slurm_cluster
 
 @pytest.mark.parametrize(("override", "reason", "setting", "corrected"), [
     ("launcher.account=nope", "Invalid account", "launcher.account", "launcher.account=<value>"),
-    ("+launcher.extra_sbatch.constraint=nope", "Invalid feature specification", "launcher.extra_sbatch",
-     "+launcher.extra_sbatch.<flag>=<value or null>"),
+    ("+launcher.extra_sbatch.constraint=nope", "Invalid feature specification", "launcher.extra_sbatch.constraint",
+     "+launcher.extra_sbatch.constraint=<value or null>"),
 ])
 def test_each_refusal_names_its_own_setting_and_its_correction_parses(slurm_cluster, tmp_path, override, reason,
                                                                        setting, corrected):
@@ -50,7 +50,7 @@ def test_each_refusal_names_its_own_setting_and_its_correction_parses(slurm_clus
     line = refused.stderr.strip()
     assert "\n" not in line and reason in line and f"change {setting}; nothing was submitted" in line, line
     assert f"python -m nsl_hpc.resubmit sweep_dir={sweep_dir} {corrected} runs the rest" in line
-    if setting == "launcher.extra_sbatch":  # the correction the line names, as written, drops the flag
+    if setting.startswith("launcher.extra_sbatch"):  # the correction the line names, as written, drops the flag
         try:
             dropped = nsl("resubmit", f"sweep_dir={sweep_dir}", "+launcher.extra_sbatch.constraint=null")
             assert dropped.returncode == 0 and "submitted 1 jobs in 1 arrays" in dropped.stdout, dropped.stderr
