@@ -4,6 +4,7 @@ time cap makes a long group a chain of jobs."""
 
 import copy
 import dataclasses
+import json
 import math
 import multiprocessing
 import os
@@ -26,6 +27,7 @@ from nsl_hpc.studies.input_state.data import build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
 from nsl_hpc.studies.training import StepCompiler
+from nsl_hpc.sweep import groups
 from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.groups import GroupLock, checkpoint_path
 from nsl_hpc.sweep.job import JobRunner
@@ -247,6 +249,40 @@ def test_a_live_jobs_lock_keeps_a_second_job_off_the_group_and_a_dead_ones_is_ta
     assert GroupLock(tmp_path, ["a", "b"]).acquire() == f"job {os.getpid()} on {socket.gethostname()}"
     second.release()
     assert not second.path.exists()
+
+
+def test_a_requeued_job_waits_for_its_earlier_run_while_that_run_renews_the_lock(tmp_path, monkeypatch):
+    """SLURM requeues the job of a lost node while that node's processes may still train: the new run of job 7_1
+    (another host) waits while the earlier run renews its lock, takes the group once it is released, and takes
+    over a lock its earlier run stopped renewing (issue: it took over at once and the group trained twice)."""
+    monkeypatch.setattr(groups, "RENEW_S", 0.05)
+    monkeypatch.setattr(groups, "STALE_S", 0.5)
+    earlier = GroupLock(tmp_path, ["a", "b"])
+    earlier.record = {**earlier.record, "job": "7_1", "host": "lost-node"}
+    assert earlier.acquire() is None
+    monkeypatch.setenv("SLURM_JOB_ID", "7_1")  # this_job() of the requeued run
+    monkeypatch.setenv("SLURM_ARRAY_JOB_ID", "7")
+    monkeypatch.setenv("SLURM_ARRAY_TASK_ID", "1")
+    requeued = GroupLock(tmp_path, ["a", "b"])
+    assert requeued.record["job"] == "7_1"
+
+    def renew_then_release() -> None:
+        for _ in range(10):  # 0.5 s of renewals, then released
+            time.sleep(0.05)
+            os.utime(earlier.path)
+        earlier.path.unlink()
+
+    renewing = threading.Thread(target=renew_then_release)
+    started = time.monotonic()
+    renewing.start()
+    assert requeued.acquire() is None
+    renewing.join()
+    assert time.monotonic() - started >= 0.5  # it waited for the release
+    assert json.loads(requeued.path.read_text())["host"] == socket.gethostname()
+    requeued.release()
+    assert earlier.acquire() is None  # the earlier run again, now silent: stale once not renewed for STALE_S
+    os.utime(earlier.path, (time.time() - 1, time.time() - 1))
+    assert GroupLock(tmp_path, ["a", "b"]).acquire() is None
 
 
 def test_a_job_runner_leaves_a_group_that_a_live_job_trains_then_trains_it_once_that_job_is_gone(tmp_path):

@@ -6,12 +6,14 @@ the group of the task ids whose hash is ``key``, in training order; ``<key>.lock
 (job, node, pid and the task ids: ``status`` and ``merge`` call them running).
 A job takes the lock before it trains a group and renews it as long as the group trains; a second job that finds
 a live lock leaves the group to its holder. A lock is stale (taken over) when its job runs no more: its process
-is gone (same node), it is an earlier run of the same SLURM job (requeued), or it was not renewed for
-``STALE_S`` seconds (a lost node).
+is gone (same node), or it was not renewed for ``STALE_S`` seconds (a lost node, a killed job). An earlier run of
+the same SLURM job (requeued) is waited for while it renews its lock: SLURM requeues the job of a lost node while
+that node's processes may still train the group, and two runs must not train it twice.
 """
 
 import contextlib
 import json
+import logging
 import os
 import socket
 import time
@@ -26,6 +28,7 @@ from nsl_hpc.seeding import stable_hash
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.directory import process_alive
 
+LOG = logging.getLogger(__name__)
 RENEW_S = 15.0  # a running group's lock is renewed this often
 STALE_S = 120.0  # a lock not renewed for this long belongs to a job that is gone (8 missed renewals)
 
@@ -130,10 +133,30 @@ class GroupLock:
             except FileExistsError:
                 pass
             holder, text = self.holder()
+            if holder is not None and self.earlier_run(holder):
+                holder, text = self.wait_for(holder, text)
+                if holder is None:  # released: take it as any free lock
+                    continue
             if holder is not None and not self.stale(holder):
                 return f"job {holder['job'] or holder['pid']} on {holder['host']}"
             self.take_over(text)
         return "a job that keeps taking it (retried 3 times)"
+
+    def earlier_run(self, holder: dict[str, Any]) -> bool:
+        """Whether ``holder`` is another run of this SLURM job (it was requeued)."""
+        return bool(holder["job"]) and holder["job"] == self.record["job"] and \
+            (holder["host"], holder["pid"]) != (self.record["host"], self.record["pid"])
+
+    def wait_for(self, earlier: dict[str, Any], text: str) -> tuple[dict[str, Any] | None, str]:
+        """Wait while ``earlier``, a run of this job, renews the lock (whose text is ``text``); the holder then
+        (None: released) and its text."""
+        LOG.info("an earlier run of job %s holds the lock of %s on %s: waiting until it releases it or stops "
+                 "renewing it", earlier["job"], self.path.name, earlier["host"])
+        holder: dict[str, Any] | None = earlier
+        while holder is not None and holder["job"] == self.record["job"] and not self.stale(holder):
+            time.sleep(RENEW_S)
+            holder, text = self.holder()
+        return holder, text
 
     def holder(self) -> tuple[dict[str, Any] | None, str]:
         """The lock's record and text (None, '' when it is gone or unreadable)."""
@@ -146,8 +169,6 @@ class GroupLock:
     def stale(self, holder: dict[str, Any]) -> bool:
         if holder["host"] == self.record["host"] and not process_alive(holder["pid"]):
             return True
-        if holder["job"] and holder["job"] == self.record["job"]:
-            return True  # an earlier run of this SLURM job (requeued): SLURM runs one at a time
         try:
             return time.time() - self.path.stat().st_mtime > STALE_S
         except FileNotFoundError:

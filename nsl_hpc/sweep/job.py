@@ -240,6 +240,10 @@ class JobRunner:
             LOG.info("%s is trained by %s: left to it", name, holder)
             counts["busy"] += len(todo)
             return None
+        if any(state == "done" for state in row_states(sweep, ids).values()):  # written by the run it waited for
+            lock.release()
+            counts["skipped"] += len(todo)
+            return None
         try:
             outcome = self.run_watched(sweep, todo, group, launch, lock)
         finally:

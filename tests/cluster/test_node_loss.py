@@ -5,6 +5,7 @@ own (its controller, nodes and job ids), so this test runs beside the other SLUR
 
 import json
 import os
+import re
 import subprocess
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from tests.cluster.long_jobs import (
     group_finished,
     launch,
     outcome_rows,
+    running_for,
     running_with_checkpoint,
     slow,
     wait_until,
@@ -78,3 +80,23 @@ def test_a_lost_nodes_job_moves_to_another_node_and_continues_from_the_checkpoin
     assert outcome_rows(sweep_dir) == uninterrupted()
     status = nsl("status", f"sweep_dir={sweep_dir}").stdout  # from the queue alone: this cluster keeps no accounting
     assert "done 2 |" in status and "accounting did not answer" in status, status
+
+
+def test_a_lost_nodes_job_that_goes_on_training_there_trains_its_group_once(three_nodes, tmp_path):
+    """Only the node's slurmd is lost (kill -9): its job's processes go on training while SLURM requeues the job onto
+    another node. The new run waits while the earlier one renews the group's lock and leaves the group to it: the
+    group trains once, its rows are written once (issue: both runs trained it and the row was written twice)."""
+    sweep_dir = tmp_path / "still" / "sweep"
+    launch(sweep_dir, "still-training", *slow(40))
+    wait_until(running_for("still-training", 5), "still-training")
+    ((job_id, _, _),) = jobs("nsl-still-training")
+    first = subprocess.run(["squeue", "-h", "-j", job_id, "-o", "%N"], capture_output=True, text=True,
+                           check=True).stdout.strip()
+    config = Path(os.environ["SLURM_CONF"])
+    subprocess.run(["kill", "-9", (config.parent / f"slurmd-{first}.pid").read_text().strip()], check=True)
+    subprocess.run(["scontrol", "update", f"NodeName={first}", "State=DOWN", "Reason=lost"], check=True)
+    wait_until(group_finished(sweep_dir, "still-training"), "still-training")
+    logs = "".join(path.read_text(errors="replace") for path in (sweep_dir / "submitit").rglob("*_log.*"))
+    trained = re.findall(r"group \w+(?: \+\d+ tasks)?: ok", logs)
+    assert len(trained) == 1, logs[-3000:]
+    assert "an earlier run of job" in logs  # the requeued run waited for it
