@@ -69,7 +69,7 @@ def submit_to_slurm(sweep_dir: Path, packs: Sequence[Pack], launcher: SlurmLaunc
              if launcher.max_running is not None else [])
     for index, chunk in enumerate(chunks):
         try:
-            array_id = submit_array(sweep_dir, chunk, chunk[0].time_limit_min, launcher, name, after)
+            array_id = submit_array(sweep_dir, chunk, chunk[0].time_limit_min, launcher, name, limits.cluster, after)
             arrays[array_id] = len(chunk)
         except submitit.core.utils.FailedJobError as error:  # e.g. the controller is full: keep what went in
             refused = [pack for later in chunks[index:] for pack in later]
@@ -151,15 +151,15 @@ def submit_feeder(sweep_dir: Path, launcher: SlurmLauncher, name: str, after: st
 
 
 def submit_array(sweep_dir: Path, packs: Sequence[Pack], time_limit_min: int, launcher: SlurmLauncher,
-                 name: str, after: Sequence[str] = ()) -> str:
+                 name: str, cluster: str, after: Sequence[str] = ()) -> str:
     """One array of single-CPU elements, element i running ``packs[i]``, starting once the jobs ``after`` have
-    ended; returns the array job id."""
+    ended, on the cluster named ``cluster`` (recorded with it); returns the array job id."""
     executor = slurm_executor(sweep_dir, time_limit_min, launcher, name, max(pack.chain for pack in packs), after)
     with contextlib.redirect_stderr(io.StringIO()):  # submitit prints a refusal's sbatch lines: the error has them
         jobs = executor.map_array(JobRunner(), [str(sweep_dir)] * len(packs), [list(pack.groups) for pack in packs])
     array_id = jobs[0].job_id.split("_")[0]  # a single element is a plain job: its id has no _<index>
     record_submission(sweep_dir, array_id, time_limit_min, [job.job_id for job in jobs],
-                      [pack.task_ids for pack in packs], [pack.task_seconds() for pack in packs])
+                      [pack.task_ids for pack in packs], [pack.task_seconds() for pack in packs], cluster)
     return array_id
 
 

@@ -55,6 +55,7 @@ class ClusterLimits:
     qos: str | None
     unaccounted: str | None = None
     max_running: int | None = None  # the sweep's own cap on its running jobs (launcher.max_running)
+    cluster: str = ""  # the cluster's ClusterName, recorded with each array submitted to it
 
     def describe(self) -> list[str]:
         """The lines a dry run prints."""
@@ -186,7 +187,7 @@ def read_cluster_limits(launcher: SlurmLauncher) -> ClusterLimits:
                 running += [own(cpus_of(row[key]), f"QOS {name} {key} cpu") for key in ("GrpTRES", "MaxTRESPerUser")]
     assert array is not None and jobs is not None
     return ClusterLimits(array, jobs, partition, smallest(*wall), smallest(*submit), smallest(*running), qos,
-                         unaccounted, launcher.max_running)
+                         unaccounted, launcher.max_running, scontrol.get("ClusterName", ""))
 
 
 def cluster_limits(settings: LaunchSettings, dry_run: bool = False) -> ClusterLimits | None:

@@ -1,6 +1,7 @@
 """The one seam to SLURM's commands: cluster limits, queue size and accounting (``sacct``)."""
 
 import getpass
+import os
 import re
 import subprocess
 import time
@@ -28,6 +29,32 @@ def slurm_command(*args: str, retries: int = 3, backoff_s: float = 2.0) -> str:
             time.sleep(backoff_s * 2**attempt)
     lines = [line.strip() for line in result.stderr.splitlines() if line.strip()] or ["no message"]
     raise SlurmError(f"{args[0]} failed: {lines[-1].removeprefix(f'{args[0]}: ').removeprefix('error: ')}")
+
+
+def cluster_name() -> str:
+    """The ClusterName of the cluster this machine's SLURM commands answer for (SLURM_CONF names another's)."""
+    for line in slurm_command("scontrol", "show", "config").splitlines():
+        key, _, value = line.partition("=")
+        if key.strip() == "ClusterName":
+            return value.strip()
+    return ""
+
+
+def require_cluster(submitted: set[str]) -> None:
+    """Refuse, in one line, to read or submit a sweep's jobs through another cluster than the one they were
+    submitted to (``submitted``: their ClusterNames); nothing to check without SLURM's commands."""
+    if not submitted:
+        return
+    try:
+        here = cluster_name()
+    except (SlurmMissing, SlurmError):
+        return  # no cluster answers here: the queue is reported unknown where it is read
+    if here and here not in submitted:
+        conf = os.environ.get("SLURM_CONF")
+        raise ConfigError(f"this sweep's jobs were submitted to cluster {', '.join(sorted(submitted))}, and SLURM here "
+                          f"answers for cluster {here}" + (f" (SLURM_CONF={conf})" if conf else "") + ": run this "
+                          f"where SLURM answers for {', '.join(sorted(submitted))} (set SLURM_CONF to its "
+                          "configuration)")
 
 
 def queued_jobs(user_only: bool) -> int:

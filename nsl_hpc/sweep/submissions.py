@@ -14,12 +14,13 @@ from nsl_hpc.sweep import layout
 
 
 def record_submission(sweep_dir: Path, array_id: str, time_limit_min: int, element_ids: Sequence[str],
-                      elements: Sequence[Sequence[str]], seconds: Sequence[Sequence[float]]) -> None:
+                      elements: Sequence[Sequence[str]], seconds: Sequence[Sequence[float]], cluster: str = "") -> None:
     """Record an array whose element ``element_ids[i]`` runs the tasks ``elements[i]``, predicted to take
-    ``seconds[i][j]`` for task j (its share of its lockstep group's prediction and of the job's start)."""
+    ``seconds[i][j]`` for task j (its share of its lockstep group's prediction and of the job's start), submitted
+    to the cluster named ``cluster`` (its ClusterName)."""
     record = {"array_id": array_id, "time_limit_min": time_limit_min, "submitted": time.time(),
               "element_ids": list(element_ids), "elements": [list(task_ids) for task_ids in elements],
-              "task_seconds": [list(shares) for shares in seconds]}
+              "task_seconds": [list(shares) for shares in seconds], "cluster": cluster}
     write_text(json.dumps(record), layout.submission_path(sweep_dir, array_id))
 
 
@@ -33,6 +34,12 @@ def read_submissions(sweep_dir: Path) -> list[dict[str, Any]]:
         except (OSError, ValueError, KeyError, TypeError) as error:
             raise damaged_file(path, error) from None
     return [record for _, record in sorted(records, key=lambda pair: pair[0])]
+
+
+def submitted_clusters(records: Sequence[Mapping[str, Any]]) -> set[str]:
+    """The clusters ``records`` (read_submissions's) were submitted to (those recorded before the cluster was
+    name none)."""
+    return {record["cluster"] for record in records if record.get("cluster")}
 
 
 def predicted_shares(records: Sequence[Mapping[str, Any]]) -> dict[str, float]:

@@ -14,8 +14,8 @@ from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.groups import running_task_ids
 from nsl_hpc.sweep.manifest import read_manifest
 from nsl_hpc.sweep.rows import row_states
-from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES, job_states
-from nsl_hpc.sweep.submissions import predicted_shares, read_submissions
+from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES, job_states, require_cluster
+from nsl_hpc.sweep.submissions import predicted_shares, read_submissions, submitted_clusters
 
 ACCOUNTING_LAG_S = 30  # without the queue's answer, a just-submitted job may take a while to appear in sacct
 STATES = ("done", "running", "pending", "failed", "frozen", "timeout", "missing", "corrupt", "skipped", "waiting")
@@ -60,6 +60,7 @@ def read_sweep_state(sweep_dir: Path, queue_required: bool = True) -> SweepState
     failures = read_failures(sweep_dir)
     latest: dict[str, tuple[str, float]] = {}  # task -> (array element, submission time)
     submissions = read_submissions(sweep_dir)
+    require_cluster(submitted_clusters(submissions))  # another cluster's queue knows none of its jobs
     for record in submissions:
         for element, task_ids in zip(record["element_ids"], record["elements"], strict=True):
             for task_id in task_ids:
