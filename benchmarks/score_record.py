@@ -13,6 +13,7 @@ from omegaconf import OmegaConf
 from nsl_hpc.analysis.reproduction import envelope_factors, factor_text, largest_factor, resource_text
 from nsl_hpc.atomic import write_text
 from nsl_hpc.config import config_dir, plain
+from nsl_hpc.sweep import layout
 
 
 def main() -> None:
@@ -28,7 +29,7 @@ def main() -> None:
     for law in spec["laws"]:
         slice_name, at = cfg["laws"][law]["slice"], cfg["laws"][law]["at"]
         sweep_dir = Path(cfg["root"]) / slice_name
-        if not (sweep_dir / "results.parquet").exists():
+        if not (sweep_dir / layout.RESULTS).exists():
             sys.exit(f"error: {sweep_dir}/results.parquet does not exist; run make repro (or that slice) first")
         for record in spec["records"]:
             outcomes, ratios = envelope_factors(sweep_dir, law, at, f"nmae_free_run_{record}")
