@@ -13,7 +13,8 @@
 #               (benchmarks/reproduction_status.py). REPRO_DIR=...
 #               REPRO_ARGS="sweep_seed=1 repro.seeds=[0]": the cheaper check run of the first two.
 #   make repro-candidates  the other settings the status table sets beside the defaults (conf/reproduction.yaml,
-#               candidates), into REPRO_DIR/<slice>__<name>, then the table again
+#               candidates) into REPRO_DIR/<slice>__<name>, and the slices that decide the remaining gaps (gap_slices)
+#               into REPRO_DIR/<slice>, then the table again
 #   make mechanisms  the mechanism table (docs/reproduction.md, "One table for every candidate"): every candidate of
 #               conf/mechanisms.yaml trained on the slices mechanism_compute and mechanism_data into runs/mechanisms,
 #               scored on every published law they cover; runs/mechanisms/table.md. MECHANISMS_ARGS="only=[...]"
