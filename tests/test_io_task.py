@@ -13,7 +13,7 @@ from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.input_output.data import load_benchmark
 from nsl_hpc.sweep.rows import read_row
-from nsl_hpc.sweep.task import resolve_task, run_task
+from nsl_hpc.sweep.task import resolve_task, run_task, task_id
 from tests.sweeps import nsl
 
 pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
@@ -27,7 +27,9 @@ SUBNET_TASK = ["study=input_output", "system=silverbox_sim", "arch=subnet", "ite
 @pytest.mark.slow
 def test_a_narx_task_writes_one_row_with_the_study_resources(compose):
     row = run_task(compose(*NARX_TASK)).row
-    assert row["task_id"] == "263fa82d4ea22077"  # NARX's ids are those of every sweep since draws=per_task
+    # a NARX without the linear path (the layout before it) keeps the id of every sweep since draws=per_task
+    assert task_id(compose(*NARX_TASK, "arch.bypass=false", "arch.zero_bias=false")) == "263fa82d4ea22077"
+    assert row["task_id"] == task_id(compose(*NARX_TASK)) != "263fa82d4ea22077"
     assert row["status"] == "ok" and np.isfinite([row["nmae"], row["nmse"], row["rmse_mv"]]).all()
     assert 313 <= row["train_points"] <= 625 and 8 <= row["width"] <= 16 and row["depth"] == 1
     assert row["steps"] == 2 * row["train_points"]  # n_i = m n_l
