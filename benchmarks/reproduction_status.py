@@ -91,8 +91,9 @@ def main() -> None:
         statuses = collect(laws, Path(cfg["root"]), cfg["candidates"], mechanisms, before, cfg["halves"])
         write_text(statuses_json(statuses), status_path)
         if any((Path(cfg["root"]) / slice_name).exists() for slice_name in cfg["candidates"]):
-            write_text(candidates_table(laws, Path(cfg["root"]), cfg["candidates"], cfg["learned_below"]),
-                       Path(cfg["candidates_output"]))
+            output = Path(cfg["candidates_output"])
+            write_text(candidates_table(laws, Path(cfg["root"]), cfg["candidates"], cfg["learned_below"],
+                                        output.read_text() if output.exists() else ""), output)
         if any((Path(cfg["root"]) / reading.slice).exists() for gap in gaps.values() for reading in gap.readings):
             write_text(gaps_table(gaps, Path(cfg["root"])), Path(cfg["gaps_output"]))
         for slice_name in cfg["sweeps"]:  # each slice's fits beside the published laws, as its report wrote them

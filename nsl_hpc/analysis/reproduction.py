@@ -111,7 +111,8 @@ def collect(laws: Mapping[str, LawSlice], root: Path, candidates: Mapping[str, M
     """Each law's status from ``root``/<slice> (and ``root``/<slice>__<candidate> for the slice's ``candidates``;
     ``mechanism_factors``: law -> candidate -> largest factor, from the mechanism table; ``halves``: random halves
     of ``half_task_rise``); a law whose slice is not under ``root`` keeps its entry of ``before`` (with its
-    config's ``decided_by``), or is not run, with its config's ``why``."""
+    config's ``decided_by``), or is not run, with its config's ``why``; a candidate not under ``root`` keeps its
+    factor of ``before``."""
     today = datetime.date.today().isoformat()
     statuses = []
     for law, spec in laws.items():
@@ -125,10 +126,13 @@ def collect(laws: Mapping[str, LawSlice], root: Path, candidates: Mapping[str, M
         r, e = law_outcomes(sweep_dir, law)
         outcomes, ratios = len(r), gap_to_published(tuple(law.split("/")), r, e, np.asarray(at))
         scored, where = dict(mechanism_factors.get(law, {})), "make mechanisms" if law in mechanism_factors else ""
+        kept = before.get(law)
         for name in candidates.get(spec.slice, {}):
             other = root / f"{spec.slice}__{name}"
             if (other / layout.RESULTS).exists():
                 scored[name], where = largest_factor(envelope_factors(other, law, at)[1]), spec.slice
+            elif kept is not None and name in kept.candidates:  # measured before, not on this machine
+                scored[name], where = kept.candidates[name], kept.candidates_on
         statuses.append(LawStatus(law, at, spec.slice, today, outcomes, [float(x) for x in ratios],
                                   largest_factor(ratios), scored, where,
                                   half_tasks=[float(x) for x in half_task_rise(r, e, at, halves)],
@@ -137,23 +141,26 @@ def collect(laws: Mapping[str, LawSlice], root: Path, candidates: Mapping[str, M
 
 
 def candidates_table(laws: Mapping[str, LawSlice], root: Path, candidates: Mapping[str, Mapping[str, Sequence[str]]],
-                     below: float) -> str:
+                     below: float, before: str = "") -> str:
     """Per slice with candidates, a Markdown table of its default run and each candidate run under ``root``: the
     overrides, the outcomes, how many learned (nMAE below ``below`` times the mean predictor's) and, per law of the
-    slice, the envelope over the law at its resources and the largest factor ('' where no slice has candidates)."""
+    slice, the envelope over the law at its resources and the largest factor ('' where no slice has candidates). A
+    run not under ``root`` keeps its row of ``before`` (the table as committed), else it is said not run."""
     lines: list[str] = []
     for slice_name, runs in candidates.items():
         slice_laws = [law for law, spec in laws.items() if spec.slice == slice_name]
         for law in slice_laws:
             at = [float(value) for value in laws[law].at]
-            lines += [f"**{law}** on `{slice_name}` (envelope / published law)", "",
-                      "| settings | outcomes | learned | " + " | ".join(map(resource_text, at))
+            heading = f"**{law}** on `{slice_name}` (envelope / published law)"
+            committed = before.split(heading, 1)[1].split("\n\n**", 1)[0] if heading in before else ""
+            lines += [heading, "", "| settings | outcomes | learned | " + " | ".join(map(resource_text, at))
                       + " | largest factor |", "|---|---:|---:|" + "---:|" * (len(at) + 1)]
             for name, overrides in {"default": [], **runs}.items():
                 sweep_dir = root / (slice_name if name == "default" else f"{slice_name}__{name}")
                 label = f"{name}" + (f" (`{' '.join(overrides)}`)" if overrides else "")
                 if not (sweep_dir / layout.RESULTS).exists():
-                    lines.append(f"| {label} | not run | | " + " | ".join("" for _ in at) + " | |")
+                    kept = [line for line in committed.splitlines() if line.startswith(f"| {label} |")]
+                    lines.append(kept[0] if kept else f"| {label} | not run | | " + " | ".join("" for _ in at) + " | |")
                     continue
                 pair = pair_outcomes(pq.read_table(sweep_dir / layout.RESULTS), *law.split("/")[:2])
                 ratios = envelope_factors(sweep_dir, law, at)[1]
