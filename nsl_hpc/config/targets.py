@@ -69,13 +69,15 @@ def located(group: str, spec: Built) -> Callable[..., Any]:
 def source_of(group: str, spec: Built) -> str | None:
     """What identifies the code a target outside the package runs: the file of the module that defines it and the
     SHA-256 of its bytes ('tanks.py sha256:1a2b3c4d5e6f7a8b'; that module only, not what it imports); None for the
-    package's own targets (its version identifies them)."""
-    if str(spec._target_).startswith(PACKAGE_PREFIX):
+    package's own targets (its version identifies them) and for a group that names none (an input-output system:
+    records, not code)."""
+    target = getattr(spec, TARGET, None)
+    if target is None or str(target).startswith(PACKAGE_PREFIX):
         return None
     module = inspect.getmodule(located(group, spec))
     path = inspect.getsourcefile(module) if module is not None else None
     if path is None:
-        return f"{spec._target_} (no source file)"
+        return f"{target} (no source file)"
     return f"{Path(path).name} sha256:{hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]}"
 
 
