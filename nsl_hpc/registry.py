@@ -18,7 +18,7 @@ OUTCOME, GRID, RUN, POST, TEST = "outcome", "grid", "run", "post", "test"
 
 
 @dataclass(frozen=True)
-class Group:
+class ConfigGroup:
     """A config group (``name``; "" for top-level keys) of ``kind``, typed by one of ``owners`` (a group whose
     owner depends on the study or the architecture has several)."""
 
@@ -27,7 +27,7 @@ class Group:
     owners: tuple[type, ...]
 
 
-def groups() -> tuple[Group, ...]:
+def groups() -> tuple[ConfigGroup, ...]:
     """Every config group with its owners and kind."""
     from nsl_hpc.analysis.nsl_settings import Figures, MlflowSettings, Nsl
     from nsl_hpc.config.arch import ARCH_SCHEMAS, Arch
@@ -41,19 +41,19 @@ def groups() -> tuple[Group, ...]:
     from nsl_hpc.sweep.rehearsal import Rehearse
     from nsl_hpc.sweep.run_settings import RUN_GROUPS, Fault
 
-    return (Group("train", OUTCOME, (InputStateTrain, InputOutputTrain)),
-            Group("system", OUTCOME, (InputStateSystem, InputOutputSystem)),
-            Group("arch", OUTCOME, (Arch, *ARCH_SCHEMAS.values())),
-            Group("metric", OUTCOME, (Metric,)),
-            Group("rehearse", OUTCOME, (Rehearse,)),
-            Group("sweep", GRID, (SweepSettings,)),
-            Group("budget", GRID, (BudgetSettings,)),
-            Group("tiers", GRID, (InputStateTiers, Tiers)),
-            Group("launcher", RUN, tuple(LAUNCHERS.values())),
-            *(Group(name, RUN, (owner,)) for name, owner in RUN_GROUPS.items()),
-            Group("", RUN, (Runtime,)),
-            Group("nsl", POST, (Nsl,)),
-            Group("figures", POST, (Figures,)),
-            Group("mlflow", POST, (MlflowSettings,)),
-            Group("fault", TEST, (Fault,)))
+    return (ConfigGroup("train", OUTCOME, (InputStateTrain, InputOutputTrain)),
+            ConfigGroup("system", OUTCOME, (InputStateSystem, InputOutputSystem)),
+            ConfigGroup("arch", OUTCOME, (Arch, *ARCH_SCHEMAS.values())),
+            ConfigGroup("metric", OUTCOME, (Metric,)),
+            ConfigGroup("rehearse", OUTCOME, (Rehearse,)),
+            ConfigGroup("sweep", GRID, (SweepSettings,)),
+            ConfigGroup("budget", GRID, (BudgetSettings,)),
+            ConfigGroup("tiers", GRID, (InputStateTiers, Tiers)),
+            ConfigGroup("launcher", RUN, tuple(LAUNCHERS.values())),
+            *(ConfigGroup(name, RUN, (owner,)) for name, owner in RUN_GROUPS.items()),
+            ConfigGroup("", RUN, (Runtime,)),
+            ConfigGroup("nsl", POST, (Nsl,)),
+            ConfigGroup("figures", POST, (Figures,)),
+            ConfigGroup("mlflow", POST, (MlflowSettings,)),
+            ConfigGroup("fault", TEST, (Fault,)))
 

@@ -27,6 +27,7 @@ from nsl_hpc import cli
 from nsl_hpc.config.schema import field_names, setting, typed
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.studies import study_named
+from nsl_hpc.sweep.code import require_same_code
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock
 from nsl_hpc.sweep.executors import run_jobs
 from nsl_hpc.sweep.groups import saved_groups
@@ -51,6 +52,8 @@ class ResubmitSettings:
     states: list[str] = setting("which tasks without a valid row to run again", choices=RESUBMITTABLE, nonempty=True)
     time_factor: float = setting("multiply the time limits (e.g. 2 after timeouts)", 1, 1000)
     allow_shared_sweep_dir: bool = setting("true: run although others can write the sweep's control files")
+    allow_code_change: bool = setting("true: run although the code of a system or arch of yours changed since its "
+                                      "rows were made (each row's code column says which code made it)")
 
 
 OWN_KEYS = field_names(ResubmitSettings)
@@ -98,6 +101,7 @@ def main(config: DictConfig, overrides: Sequence[str]) -> int:
         selected = manifest.filter(pc.is_in(manifest["task_id"], value_set=pa.array(wanted, type=pa.string())))
         configs = {pair: read_pair(sweep_dir, *pair)
                    for pair in set(zip(selected["system"].to_pylist(), selected["arch"].to_pylist(), strict=True))}
+        require_same_code(sweep_dir, configs, cfg.allow_code_change)
         runnable, infeasible = split_runnable(selected, study_named(settings.study.name), configs)
         if infeasible:
             print(describe_infeasible(sweep_dir, infeasible, record=True))

@@ -101,6 +101,7 @@ def test_your_own_system_and_model_train_fit_and_report_from_a_wheel(study, site
     assert "tank_mlp: one model per group, priced alone" in launched.stdout  # a plain module trains alone
     manifest = pq.read_table(study / "runs/own_study/manifest.parquet").to_pandas()
     assert (manifest["stackable"] == (manifest["arch"] != "tank_mlp")).all()
+    assert_code_changes_are_refused_then_recorded(study, site)
     reported = run(study, site, "report", "sweep_dir=runs/own_study", *LIGHT_FITS, "figures.formats=[png]",
                    "mlflow.enabled=false")  # merge, fit, figures, report.html (MLflow: tests/test_postprocess.py)
     assert reported.returncode == 0, reported.stderr
@@ -111,6 +112,31 @@ def test_your_own_system_and_model_train_fit_and_report_from_a_wheel(study, site
     assert (best < 0.5 * results.groupby("arch")["mean_predictor_nmae"].median()).all(), best  # each learns
     predicted = run(study, site, "predict", "sweep_dir=runs/own_study", "target=0.2", *LIGHT_FITS)
     assert predicted.returncode == 0, predicted.stderr
+
+
+def assert_code_changes_are_refused_then_recorded(study: Path, site: Path) -> None:
+    """The user's module edited after its rows were made: resubmit (and a launch into the sweep) refuse in one line,
+    naming the pair and both hashes, and run nothing; with allow_code_change=true the task runs, and the rows say
+    which code made each (issue: the edited code's rows were mixed in silently)."""
+    rows = sorted((study / "runs/own_study/rows").rglob("*.parquet"))
+    codes = {pq.read_table(path).to_pylist()[0]["arch"]: pq.read_table(path).to_pylist()[0]["code"] for path in rows}
+    assert codes["unstructured"].startswith("nsl_hpc ") and "; system two_tank: tanks.py sha256:" in \
+        codes["unstructured"] and "; arch" not in codes["unstructured"]  # the package's arch: its version says it
+    assert "; arch cascade_net: tanks.py sha256:" in codes["cascade_net"]
+    lost = next(path for path in rows if pq.read_table(path).to_pylist()[0]["arch"] == "cascade_net")
+    lost.unlink()  # a task to run again
+    with open(study / "tanks.py", "a") as module:
+        module.write("# an edit after the sweep was launched\n")
+    for verb, args in (("resubmit", []), ("launch", ["+sweep=own_study", *SMALL_STUDY, "launcher.workers=1"])):
+        refused = run(study, site, verb, "sweep_dir=runs/own_study", *args)
+        assert refused.returncode == 2 and refused.stderr.count("\n") == 1, refused.stderr
+        assert refused.stderr.startswith("error: the code of two_tank/") and "changed since its rows were made" in \
+            refused.stderr and "allow_code_change=true" in refused.stderr, refused.stderr
+    assert not lost.exists()
+    allowed = run(study, site, "resubmit", "sweep_dir=runs/own_study", "allow_code_change=true")
+    assert allowed.returncode == 0 and "resubmitting 1 tasks" in allowed.stdout, allowed.stdout + allowed.stderr
+    again = pq.read_table(lost).to_pylist()[0]["code"]
+    assert again != codes["cascade_net"] and again.split("; ")[0] == codes["cascade_net"].split("; ")[0]
 
 
 def test_a_plain_module_trains_as_the_package_trains_the_same_model(compose, cache, monkeypatch):

@@ -345,6 +345,9 @@ def test_a_full_disk_during_a_sweep_and_during_merge_is_one_line_and_keeps_the_r
     result = nsl("launch", *LOCAL, f"sweep_dir={sweep_dir}", *cache)  # two more tasks
     assert result.returncode == 1 and len(result.stderr.strip().splitlines()) == 1, result.stderr
     assert "a local job ended without its result" in result.stderr and "MiB free where it writes" in result.stderr
+    logs = "".join(path.read_text(errors="replace") for path in (sweep_dir / "submitit").rglob("*_log.*"))
+    assert "Traceback" not in logs, logs[-3000:]  # the job that could not write its failure records says so
+    assert "No space left on device while writing" in logs and "have no failure record" in logs, logs[-3000:]
     merged = nsl("merge", f"sweep_dir={sweep_dir}")
     assert merged.returncode == 1 and "No space left on device" in merged.stderr, merged.stderr
     assert len(merged.stderr.strip().splitlines()) == 1

@@ -86,3 +86,10 @@ def test_the_check_finds_a_read_by_key():
     source = 'def f(cfg, row):\n    return cfg["train"]["lr"], cfg.get("x"), row["flops"], cfg.train.lr\n'
     reads.visit(ast.parse(source))
     assert reads.found == {"m.py:f": 3}  # cfg["train"], cfg["train"]["lr"], cfg.get("x"); not the row's
+
+
+def test_no_class_name_is_defined_twice_in_the_package():
+    """One name per concept: two classes of one name make every reader ask which one they hold."""
+    defined = Counter(node.name for path in PACKAGE.rglob("*.py") for node in ast.walk(ast.parse(path.read_text()))
+                      if isinstance(node, ast.ClassDef))
+    assert [name for name, count in defined.items() if count > 1] == []

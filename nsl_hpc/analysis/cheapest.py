@@ -111,7 +111,7 @@ def cheapest_index(law: JointLaw, configurations: Configurations, target: float)
 
 
 @dataclass(frozen=True)
-class Backtest:
+class JointBacktest:
     """A joint law fitted on a pair's cheaper configurations, predicting the dearer ones: the cheapest by the
     planner's seconds up to ``share`` of the pair's predicted core-hours are fitted. ``best_ratio``: its
     predicted best error of the dearer ones over the observed best; ``cost_ratio``: the seconds of the cheapest
@@ -134,7 +134,7 @@ def cheaper_share(seconds: np.ndarray, share: float) -> np.ndarray:
 
 
 def backtest(configurations: Configurations, errors: np.ndarray, share: float, settings: Joint
-             ) -> Backtest:
+             ) -> JointBacktest:
     cheap = cheaper_share(configurations.seconds, share)
     law = fit_joint_law({k: v[cheap] for k, v in configurations.sizes.items()}, errors[cheap], settings)
     dear, dear_errors = configurations.subset(~cheap), errors[~cheap]
@@ -142,7 +142,7 @@ def backtest(configurations: Configurations, errors: np.ndarray, share: float, s
     predicted_best = float(np.exp(law.log_predict(dear.sizes).min()))
     chosen = cheapest_index(law, dear, float(dear_errors[best]))
     cost_ratio = None if chosen is None else float(dear.seconds[chosen] / dear.seconds[best])
-    return Backtest(share, int(cheap.sum()), int((~cheap).sum()), predicted_best / float(dear_errors[best]),
+    return JointBacktest(share, int(cheap.sum()), int((~cheap).sum()), predicted_best / float(dear_errors[best]),
                     cost_ratio)
 
 
@@ -169,7 +169,7 @@ class Cheapest:
     high: float
     runs: int
     best_predicted: float
-    backtest: Backtest | None
+    backtest: JointBacktest | None
     observed: tuple[dict[str, Any], float] | None
 
 

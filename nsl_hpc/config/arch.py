@@ -52,7 +52,7 @@ class OwnArch(Arch):
 
 
 @dataclass(frozen=True)
-class Unstructured(Arch):
+class UnstructuredSettings(Arch):
     """dx/dt = f(x, u), y = g(x) (3a)."""
 
     form: str = setting("joint: one MLP from (x, u) to (dx/dt, y); split: f and g", choices=FORMS)
@@ -60,7 +60,7 @@ class Unstructured(Arch):
 
 
 @dataclass(frozen=True)
-class InputAffine(Arch):
+class InputAffineSettings(Arch):
     """dx/dt = h(x) + j(x) u, y = k(x) (3b)."""
 
     width_factor: float = setting("the MLPs' width is this times n_h", 0, low_open=True)
@@ -68,7 +68,7 @@ class InputAffine(Arch):
 
 
 @dataclass(frozen=True)
-class PortHamiltonian(Arch):
+class PortHamiltonianSettings(Arch):
     """dx/dt = (J(x) - R(x)) grad H(x) + G(x) u, y = G(x)^T grad H(x) (3c)."""
 
     hamiltonian: str = setting("H = |MLP(x)|, MLP(x), or ||MLP(x)||^2 / 2", choices=HAMILTONIANS)
@@ -76,7 +76,7 @@ class PortHamiltonian(Arch):
 
 
 @dataclass(frozen=True)
-class Narx(Arch):
+class NarxSettings(Arch):
     """y_t = F(y_{t-1..t-n_y}, u_{t..t-n_u}), F an MLP (plus a linear map of its input: ``bypass``)."""
 
     past_outputs: int = setting("n_y", 1)
@@ -87,7 +87,7 @@ class Narx(Arch):
 
 
 @dataclass(frozen=True)
-class Subnet(Arch):
+class SubnetSettings(Arch):
     """SUBNET: encoder (past u, y) -> x; x_{k+1} = x_k + f(x_k, u_k) (or f(x_k, u_k)); y_k = h(x_k)."""
 
     past: int = setting("samples the encoder reads", 1)
@@ -102,8 +102,9 @@ class Subnet(Arch):
                                     "n_l - P simulated steps (counted so in the flops); false: such a task is refused")
 
 
-ARCH_SCHEMAS: dict[str, type[Arch]] = {"unstructured": Unstructured, "input_affine": InputAffine,
-                                       "port_hamiltonian": PortHamiltonian, "narx": Narx, "subnet": Subnet}
+ARCH_SCHEMAS: dict[str, type[Arch]] = {"unstructured": UnstructuredSettings, "input_affine": InputAffineSettings,
+                                       "port_hamiltonian": PortHamiltonianSettings, "narx": NarxSettings,
+                                       "subnet": SubnetSettings}
 
 
 BASE_KEYS = ("name", TARGET, "study", "block")  # the keys every architecture has; the others are its options

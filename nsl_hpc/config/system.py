@@ -17,7 +17,7 @@ SIMULATED_KINDS = ("duffing", "wiener_hammerstein")  # the measured systems' sim
 
 
 @dataclass(frozen=True)
-class Multisine:
+class MultisineSettings:
     """The input: a random-phase multisine per input channel."""
 
     amplitude: float = setting("peak amplitude", 0, low_open=True)
@@ -54,7 +54,7 @@ class InputStateSystem:
     study: str = setting("its study", choices=STUDIES)
     params: dict[str, Any] = setting("the constants (keyword arguments of _target_)")
     initial_box: list[list[float]] = setting("uniform initial state: [low, high] per state", nonempty=True)
-    input: Multisine = setting("the input signal")
+    input: MultisineSettings = setting("the input signal")
     simulation: Simulation = setting("the simulation")
     test_set: TestSet = setting("the test set")
     constants: str | None = setting("which of variants the params are", default=None)

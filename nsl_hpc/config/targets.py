@@ -5,9 +5,11 @@ in one line that names the config file and key; both take the group's typed sett
 and a ``_target_``: ``config.system.InputStateSystem``, ``config.arch.Arch``). ``outcome_values`` is what of a
 group's plain values changes an outcome."""
 
+import hashlib
 import importlib
 import inspect
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from typing import Any, Protocol
 
 import yaml
@@ -62,6 +64,21 @@ def located(group: str, spec: Built) -> Callable[..., Any]:
             raise ConfigError(f"{labelled(group, spec)} is no class or function")
         return found
     raise ConfigError(f"{labelled(group, spec)} does not import")
+
+
+def source_of(group: str, spec: Built) -> str | None:
+    """What identifies the code a target outside the package runs: the file of the module that defines it and the
+    SHA-256 of its bytes ('tanks.py sha256:1a2b3c4d5e6f7a8b'; that module only, not what it imports); None for the
+    package's own targets (its version identifies them) and for a group that names none (an input-output system:
+    records, not code)."""
+    target = getattr(spec, TARGET, None)
+    if target is None or str(target).startswith(PACKAGE_PREFIX):
+        return None
+    module = inspect.getmodule(located(group, spec))
+    path = inspect.getsourcefile(module) if module is not None else None
+    if path is None:
+        return f"{target} (no source file)"
+    return f"{Path(path).name} sha256:{hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]}"
 
 
 def called(group: str, spec: Built, builder: Callable[..., Any], *args: Any, arg_names: Sequence[str] = (),

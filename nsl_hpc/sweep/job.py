@@ -24,6 +24,7 @@ one) leaves a group that a live job trains to it.
 
 import contextlib
 import ctypes
+import errno
 import logging
 import multiprocessing
 import os
@@ -186,7 +187,16 @@ class JobRunner:
         returns counts by outcome (per task): ok, skipped (a row exists), failed, frozen, busy (another job
         trains the group), stopped (asked to stop; the job ends)."""
         with job_records(sys.stdout, f"job {this_job() or os.getpid()}"):
-            return self.run_groups(Path(sweep_dir), groups)
+            try:
+                return self.run_groups(Path(sweep_dir), groups)
+            except OSError as error:
+                if error.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
+                    raise
+                LOG.error("%s while writing %s: the job stops, and its tasks without a row have no failure record "
+                          "(none can be written there): status counts them missing, resubmit runs them once the "
+                          "sweep's file system takes writes again", error.strerror, error.filename or "a file")
+                sys.stdout.flush()
+                os._exit(1)  # submitit's own result file cannot be written either: no traceback after the line
 
     def run_groups(self, sweep: Path, groups: Sequence[Group]) -> dict[str, int]:
         launch = launch_settings(read_launch_config(sweep))

@@ -59,12 +59,14 @@ MLFLOW_DB = "mlflow.db"
 MLFLOW_ARTIFACTS = "mlartifacts"
 BUDGET = "budget"
 REHEARSAL = "rehearsal"  # a rehearsal's own records (the jobs it killed once)
+CODE = "code.json"  # the code the sweep's rows are made by: the package's version and each user module's hash
 MERGE_CACHE = ".merge_cache.parquet"  # merge's read rows, so a second merge reads only new ones
 
 CONTROL = (SUBMITIT, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, MANIFEST)  # what decides the code a sweep's jobs run
 # what clean keeps
-RECORDS = (MANIFEST, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, ROWS, CORRUPT, SUBMISSIONS, LOCK, BUDGET, REHEARSAL, RESULTS,
-           DROPPED, FITS, FITS_TEXT, LAW_CARDS, REPORT, COMPARISON, FIGURES, MLFLOW_DB, MLFLOW_ARTIFACTS, MERGE_CACHE)
+RECORDS = (MANIFEST, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, CODE, ROWS, CORRUPT, SUBMISSIONS, LOCK, BUDGET, REHEARSAL,
+           RESULTS, DROPPED, FITS, FITS_TEXT, LAW_CARDS, REPORT, COMPARISON, FIGURES, MLFLOW_DB, MLFLOW_ARTIFACTS,
+           MERGE_CACHE)
 
 
 def bucketed(folder: str | os.PathLike, name: str, suffix: str) -> Path:

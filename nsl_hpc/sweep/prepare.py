@@ -18,6 +18,7 @@ from nsl_hpc.errors import ConfigError, require_non_negative_int, require_positi
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import Pair, Study
 from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.code import require_same_code
 from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.grid import Grid, build_manifest, grid_size, sub_grids, validate_grid
 from nsl_hpc.sweep.launch_settings import LaunchSettings, check_run_settings
@@ -188,12 +189,14 @@ def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Prepar
             raise ConfigError(f"sweep_dir={str(sweep_dir)!r} holds a different grid ({len(existing):,} tasks, "
                               f"this one has {len(manifest):,}; {'; '.join(changed) or 'other draws'}): choose "
                               "another sweep_dir or launch with the same sweep and overrides")
+        read_launch_config(sweep_dir)  # a damaged one is refused here, before any work
+        require_same_code(sweep_dir, built.configs, cfg.allow_code_change)
         for (system, arch), pair in built.configs.items():  # a deleted one is restored: it is the same
             if not base_config_path(sweep_dir, system, arch).exists():
                 write_yaml(pair.values, base_config_path(sweep_dir, system, arch), sweep_dir)
-        read_launch_config(sweep_dir)  # a damaged one is refused here, before any work
     else:
         write_sweep(sweep_dir, manifest, {key: pair.values for key, pair in built.configs.items()}, plain(cfg))
+        require_same_code(sweep_dir, built.configs, cfg.allow_code_change)
     without_row, aside = tasks_without_row(sweep_dir, manifest)
     queued = queued_tasks(sweep_dir)
     queued_ids = pa.array(sorted(queued), type=pa.string())

@@ -32,7 +32,7 @@ class Fault:
 
 
 @dataclass(frozen=True)
-class Lockstep:
+class LockstepSettings:
     """Tasks of one system, arch and depth trained up to ``size`` at a time in one process, each as if alone."""
 
     enabled: bool = setting("false: one task per process")
@@ -104,7 +104,7 @@ class Watchdog:
 class RunSettings:
     """The run-setting groups of a launch config (the launcher's aside: ``config.launchers``)."""
 
-    lockstep: Lockstep = setting("tasks trained together in one process")
+    lockstep: LockstepSettings = setting("tasks trained together in one process")
     packing: Packing = setting("short tasks packed into one job")
     cost: Cost = setting("what the planner predicts wall time from")
     checkpoint: Checkpoint = setting("training checkpoints")

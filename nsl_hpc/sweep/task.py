@@ -22,6 +22,7 @@ from nsl_hpc.seeding import stable_hash
 from nsl_hpc.studies import study_of
 from nsl_hpc.studies.base import Pair, Study, Task
 from nsl_hpc.studies.settings import Runtime
+from nsl_hpc.sweep.code import code_of
 from nsl_hpc.sweep.formats import package_version
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.rehearsal import Rehearse, rehearsed_group
@@ -176,6 +177,7 @@ def run_tasks(tasks: Sequence[ResolvedTask], on_progress: Callable[[], None] = l
     else:
         outcomes, torch_version = trained_group([tasks[i] for i in todo], on_progress,
                                                 checkpoint if len(todo) == len(tasks) else None)
+    code = code_of(tasks[todo[0]].task.pair)  # the tasks of a group are of one (system, arch)
     for i, outcome in zip(todo, outcomes, strict=True):
         finite = outcome.pop("finite") and all(math.isfinite(outcome[key]) for key in ("nmae", "nmse"))
         task = tasks[i].task
@@ -189,6 +191,7 @@ def run_tasks(tasks: Sequence[ResolvedTask], on_progress: Callable[[], None] = l
             "status": "ok" if finite else "diverged",
             "wall_seconds": (time.perf_counter() - started) / len(todo),
             "package_version": package_version(),
+            "code": code,
             "torch_version": torch_version,
             "python_version": platform.python_version(),
             "host": socket.gethostname(),

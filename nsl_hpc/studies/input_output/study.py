@@ -24,7 +24,7 @@ from omegaconf import DictConfig
 
 from nsl_hpc.cache import ArrayCache
 from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
-from nsl_hpc.config.arch import IO_ARCHITECTURES, Arch, Narx, Subnet
+from nsl_hpc.config.arch import IO_ARCHITECTURES, Arch, NarxSettings, SubnetSettings
 from nsl_hpc.config.schema import setting
 from nsl_hpc.config.system import FileRecords, InputOutputSystem, MeasuredSource
 from nsl_hpc.config.targets import labelled, located
@@ -59,9 +59,9 @@ def built_io_model(arch: Arch, state_dim: int, width: int, depth: int) -> "NARX 
     from nsl_hpc.models.subnet import SUBNET
 
     builder = located("arch", arch)
-    if isinstance(arch, Narx) and builder is NARX:
+    if isinstance(arch, NarxSettings) and builder is NARX:
         return NARX(arch.past_outputs, arch.past_inputs, width, depth, arch.block, arch.bypass, arch.zero_bias)
-    if isinstance(arch, Subnet) and builder is SUBNET:
+    if isinstance(arch, SubnetSettings) and builder is SUBNET:
         return SUBNET(state_dim, arch.past, width, depth, arch.block, tuple(arch.bypass), arch.residual,
                       arch.zero_bias, arch.zero_f_output)
     raise ConfigError(f"{labelled('arch', arch)}: the input_output study trains the package's narx and subnet (its "
@@ -70,7 +70,7 @@ def built_io_model(arch: Arch, state_dim: int, width: int, depth: int) -> "NARX 
 
 def subnet_state_dim(arch: Arch, system: InputOutputSystem) -> int:
     """SUBNET's n_x: the arch's ``state_dim``, or the system's (``system.subnet.state_dim``) where that is null."""
-    return (arch.state_dim if isinstance(arch, Subnet) else None) or system.subnet.state_dim
+    return (arch.state_dim if isinstance(arch, SubnetSettings) else None) or system.subnet.state_dim
 
 
 PARAMETERS: dict[tuple, int] = {}  # (arch, n_x, n_h, n_d) -> model_parameters' answer, each built once
@@ -86,16 +86,16 @@ def model_parameters(arch: Arch, state_dim: int, width: int, depth: int) -> int:
 
 def past_window(arch: Arch) -> int:
     """P: the samples before t a model reads (its regressors, or its encoder's window)."""
-    if isinstance(arch, Narx):
+    if isinstance(arch, NarxSettings):
         return max(arch.past_outputs, arch.past_inputs)
-    return arch.past if isinstance(arch, Subnet) else 0
+    return arch.past if isinstance(arch, SubnetSettings) else 0
 
 
 def horizon(pair: "InputOutputPair", train_points: int | None = None) -> int:
     """Simulated steps per training window: SUBNET's T (``system.subnet.horizon``), or, with
     ``arch.shorten_horizon``, the n_l - P steps a training prefix of ``train_points`` samples holds where that
     is fewer (its one window; None: T); 1 for NARX (one step ahead)."""
-    if not isinstance(pair.arch, Subnet):
+    if not isinstance(pair.arch, SubnetSettings):
         return 1
     steps = pair.system.subnet.horizon
     if train_points is None or not pair.arch.shorten_horizon:
@@ -109,7 +109,7 @@ def training_memory_mb(pair: "InputOutputPair", width: int, depth: int) -> float
     its T steps), plus the NARX regressors. Measured: a lockstep group of 16 SUBNETs at n_h 32, n_d 3, T 150 holds
     2.6 GB, 165 MB each (estimate 177)."""
     batch, dtype_bytes = pair.train.batch_size, np.dtype(pair.train.dtype).itemsize
-    if isinstance(pair.arch, Narx):
+    if isinstance(pair.arch, NarxSettings):
         values = 6 * width * depth + past_window(pair.arch) + 2
     else:
         values = horizon(pair) * 2 * 6 * width * depth
@@ -188,7 +188,7 @@ class InputOutput(Study[InputOutputPair]):
             raise ConfigError(f"{arch.name} reads {past} past samples, more than the {system.init_samples} "
                               f"that initialise a test simulation (system.init_samples)")
         if steps < 1 or sizes["train_points"] < past + steps:
-            shorten = " or arch.shorten_horizon=true" if isinstance(arch, Subnet) else ""
+            shorten = " or arch.shorten_horizon=true" if isinstance(arch, SubnetSettings) else ""
             steps = max(steps, 1)
             raise ConfigError(f"the training subset (n_l={sizes['train_points']} samples, data_tier="
                               f"{task['data_tier']}) is shorter than one {arch.name} window of {past + steps} "

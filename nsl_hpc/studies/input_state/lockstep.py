@@ -156,7 +156,7 @@ def stack_of(models: Sequence[nn.Module], dtype: torch.dtype, state_dim: int, in
     return ModuleStack(list(models), dtype, state_dim, input_dim)
 
 
-class Lockstep(LockstepRun):
+class InputStateLockstep(LockstepRun):
     """The models still training: their rows of the stack and of Adam's moments, their data and batch plans
     (``member`` maps a row to its member's index), and what each member has so far: its snapshots, its
     outcome once settled and the epochs it is still to be kept after."""
@@ -308,7 +308,7 @@ def train_lockstep(members: Sequence[Member], train: InputStateTrain, on_progres
     end of a block, so the stack holds the models that trained longest. ``on_progress``, ``checkpoint``: as
     ``drive_lockstep`` takes them. With an enabled ``compiler`` the step is compiled, and the stack keeps static
     shapes (``stack_rows``)."""
-    run = Lockstep(members, train, compiler)
+    run = InputStateLockstep(members, train, compiler)
     drive_lockstep(run, on_progress, checkpoint)
     return run.stack, [[with_divergence(snapshot, outcome) for snapshot in member_snapshots]
                        for member_snapshots, outcome in zip(run.snapshots, run.outcomes, strict=True)]
