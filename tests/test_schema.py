@@ -83,7 +83,8 @@ def test_system_and_arch_groups_are_checked_by_their_kind():
     with pytest.raises(ConfigError, match=r"^system.initial_box\[0\]=\[2.0, -0.5\] must be \[low, high\]"):
         typed(InputStateSystem, {**ball, "initial_box": [[2.0, -0.5], *ball["initial_box"][1:]]}, "system")
     assert arch_settings({"name": "narx", "_target_": "nsl_hpc.models.narx.NARX", "study": "input_output",
-                          "block": "tanh", "past_outputs": 50, "past_inputs": 50}).past_inputs == 50
+                          "block": "tanh", "bypass": True, "zero_bias": True, "past_outputs": 50,
+                          "past_inputs": 50}).past_inputs == 50
     with pytest.raises(ConfigError, match=r"^arch.hamiltonian='square' is unknown; choose one of: abs, plain"):
         arch_settings({"name": "port_hamiltonian", "_target_": "nsl_hpc.models.port_hamiltonian.PortHamiltonian",
                        "study": "input_state", "block": "tanh", "hamiltonian": "square", "dissipation": "square"})
