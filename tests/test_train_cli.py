@@ -21,7 +21,7 @@ ROW_COLUMNS = {
     "nmae_per_column", "nmse_per_column", "nmae_scalar", "nmse_scalar", "compiled",
     "params", "stackable", "flops", "flops_paper", "test_points", "steps", "final_loss", "train_nmae",
     "mean_predictor_nmae", "status", "milestone", "repeat",
-    "package_version", "torch_version", "python_version", "host", *TIMING_COLUMNS,
+    "package_version", "code", "torch_version", "python_version", "host", *TIMING_COLUMNS,
 }
 
 

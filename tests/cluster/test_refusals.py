@@ -76,7 +76,8 @@ def test_where_slurms_commands_reach_no_cluster_a_dry_run_plans_and_a_launch_wri
     launch is one line and writes no sweep directory."""
     env = {**os.environ, "SLURM_CONF": str(tmp_path / "no-such-slurm.conf")}
     launch = [sys.executable, "-m", "nsl_hpc.launch", *TINY_GRID, "launcher=slurm", f"sweep_dir={tmp_path / 'sweep'}"]
-    planned = subprocess.run([*launch, "dry_run=true"], env=env, capture_output=True, text=True, timeout=300)
+    planned = subprocess.run([*launch, f"sweep_dir={tmp_path / 'planned'}", "dry_run=true"], env=env,
+                             capture_output=True, text=True, timeout=300)
     assert planned.returncode == 0, planned.stderr
     said = planned.stdout + planned.stderr
     assert "the cluster's limits were not read, the plan below does not fit them: scontrol failed:" in said
