@@ -4,17 +4,22 @@ figures, report and MLflow runs that are updated, not duplicated."""
 import json
 import shutil
 import time
+from types import SimpleNamespace
 
 import matplotlib.image
+import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
 import yaml
+from matplotlib.colors import LogNorm
+from matplotlib.figure import Figure
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.cards import core_hours
-from nsl_hpc.analysis.figures import legend_kind, power_label
+from nsl_hpc.analysis.figures import draw_nsl, legend_kind, power_label
+from nsl_hpc.analysis.nsl_settings import Figures
 from nsl_hpc.seeding import stable_hash
 from nsl_hpc.sweep.directory import sweep_lock
 from nsl_hpc.sweep.failures import record_failure
@@ -365,3 +370,20 @@ def test_report_with_a_tracking_server_that_does_not_answer_stops_before_writing
     assert result.returncode == 1 and len(result.stderr.splitlines()) == 1, result.stderr
     assert result.stderr.startswith(f"error: no MLflow tracking server answers at {uri} (mlflow.timeout_s=2; ")
     assert fits.read_bytes() == b"the fits of an earlier report" and not (sweep_dir / "results.parquet").exists()
+
+
+def test_a_diverged_outcome_is_drawn_at_the_edge_not_stretching_the_range():
+    """A free run that diverged (nMAE 1e36) keeps the plotted range within figures.decades_above_envelope of the
+    envelope's highest step and is drawn at its edge, named in the legend."""
+    figures = Figures(formats=["png"], dpi=50, colour={}, size={}, marker_size=[3, 40], formula_width=70,
+                      decades_above_envelope=2)
+    r = np.geomspace(1e3, 1e6, 40)
+    e = 0.5 * (r / 1e3) ** -0.3
+    e[7] = 1e36
+    data = {"r": r, "e": e, "c": r, "s": r}
+    row = {"system": "toy", "arch": "toy", "resource": "compute", "metric": "nmae", "error": "not fitted"}
+    ax = Figure().subplots()
+    draw_nsl(ax, data, row, SimpleNamespace(K=100), figures, LogNorm(r.min(), r.max()), legend=False)
+    assert ax.get_ylim()[1] <= 0.5 * 100 * 1.001
+    labels = ax.get_legend_handles_labels()[1]
+    assert any(label.startswith("1 beyond the plotted range (up to 1e+36)") for label in labels)

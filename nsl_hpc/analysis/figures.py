@@ -102,7 +102,12 @@ def draw_nsl(ax: Axes, data: Mapping[str, np.ndarray], row: Mapping[str, Any], n
                             label=f"{nsl.bootstrap_level:.0%} band ({len(thetas)} resamples)")
         for i, (sigma, _, _) in enumerate(fit.breaks):
             ax.axvline(sigma, color="crimson", ls=":", lw=1, label="breaks" if i == 0 else None)
-    low, high = data["e"].min() / 2, data["e"].max() * 2  # a band far off stays out of the way
+    low = data["e"].min() / 2
+    high = min(data["e"].max() * 2, grid_e.max() * 10 ** figures.decades_above_envelope)
+    beyond = data["e"] > high
+    if beyond.any():  # diverged free runs: at the edge, not stretching the range by decades
+        ax.scatter(data["r"][beyond], np.full(beyond.sum(), high / 1.3), marker="^", color="grey", s=18,
+                   label=f"{beyond.sum()} beyond the plotted range (up to {data['e'][beyond].max():.2g})")
     published = published_law(tuple(row[k] for k in PUBLISHED_KEY))
     if published is not None:
         on_ours, law = row.get("paper_margin_on_ours"), published.law.predict(dense)

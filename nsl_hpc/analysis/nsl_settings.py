@@ -125,6 +125,9 @@ class Figures:
     size: dict[str, str] = setting("NSL resource -> resource that sizes the markers")
     marker_size: list[float] = setting("smallest and largest marker area (points^2)", 0, low_open=True)
     formula_width: int = setting("characters per line of the formula in legends", 20)
+    decades_above_envelope: float = setting("the plotted range ends this many decades above the envelope's highest "
+                                            "step; outcomes beyond it (diverged free runs) are drawn at its edge",
+                                            0, low_open=True)
 
     def check(self) -> None:
         from matplotlib.figure import Figure  # matplotlib's import is a second of a command's start
