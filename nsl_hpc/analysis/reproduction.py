@@ -92,9 +92,10 @@ def envelope_factors(sweep_dir: Path, law: str, at: Sequence[float], column: str
 
 
 def half_task_rise(r: np.ndarray, e: np.ndarray, at: Sequence[float], halves: int, seed: int = 0) -> np.ndarray:
-    """At each resource of ``at`` (m,), the median over ``halves`` random halves of the outcomes (r, e) (n,) of the
-    half's step envelope over the envelope of all: how much an envelope of half the tasks rises (NaN where the
-    halves hold no outcome at or below it)."""
+    """At each resource of ``at`` (m,), the geometric mean over ``halves`` random halves of the outcomes (r, e) (n,)
+    of the half's step envelope over the envelope of all: how much an envelope of half the tasks rises, on average
+    (a median would read 1 wherever the best outcome is alone: half the halves hold it). NaN where the halves hold
+    no outcome at or below it."""
     points = np.asarray(at, dtype=float)
     full = step_envelope_at(r, e, points)
     rng = np.random.default_rng(seed)
@@ -102,7 +103,7 @@ def half_task_rise(r: np.ndarray, e: np.ndarray, at: Sequence[float], halves: in
              for kept in (rng.permutation(len(r))[:len(r) // 2] for _ in range(halves))]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a resource no half reaches: NaN, as documented
-        return np.nanmedian(np.array(rises), axis=0) if rises else np.full(len(points), math.nan)
+        return np.exp(np.nanmean(np.log(np.array(rises)), axis=0)) if rises else np.full(len(points), math.nan)
 
 
 def collect(laws: Mapping[str, LawSlice], root: Path, candidates: Mapping[str, Mapping[str, str]],
