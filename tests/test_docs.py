@@ -9,7 +9,16 @@ import pytest
 from omegaconf import OmegaConf
 
 from nsl_hpc.analysis.published import published_laws
-from nsl_hpc.analysis.reproduction import BEGIN, read_statuses, status_table, table_in
+from nsl_hpc.analysis.reproduction import (
+    BEGIN,
+    FIGURES_BEGIN,
+    FIGURES_END,
+    figure_name,
+    figures_block,
+    read_statuses,
+    status_table,
+    table_in,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -135,6 +144,11 @@ def test_the_reproduction_status_table_is_the_one_its_committed_numbers_give():
     document = (ROOT / cfg.document).read_text()
     assert table_in(document) == expected, "run python benchmarks/reproduction_status.py collect=false"
     assert document.index(BEGIN) < document.index("\n## ")  # the table comes before the first section
+    folder = ROOT / cfg.comparisons
+    present = sorted(path.name for path in folder.glob("*.png"))
+    assert set(present) <= {figure_name(law) for law in cfg.laws}  # figures of published laws only
+    shown = table_in(document, FIGURES_BEGIN, FIGURES_END)
+    assert shown == figures_block([statuses[law] for law in cfg.laws], "reproduction", present)
 
 
 def layout_tree() -> dict[Path, set[str]]:
@@ -160,3 +174,17 @@ def test_the_layout_lists_every_module_and_only_modules_that_exist():
         modules = {path.stem for path in folder.glob("*.py")}
         assert names <= modules, f"{folder}: {sorted(names - modules)} listed but not there"
         assert modules - {"__init__"} <= names, f"{folder}: {sorted(modules - {'__init__'} - names)} not listed"
+
+
+def test_the_glossary_names_definitions_the_code_has():
+    """Each term of docs/layout.md's glossary points at a definition (class, function or attribute) by its module:
+    the names a reader meets in the code."""
+    glossary = (ROOT / "docs" / "layout.md").read_text().split("## Glossary", 1)[1]
+    references = re.findall(r"`([\w/]+\.py): ([\w.]+)`", glossary)
+    assert len(references) >= 20
+    for module, name in references:
+        source = (ROOT / "nsl_hpc" / module).read_text()
+        first, _, attribute = name.partition(".")
+        assert re.search(rf"^(class|def) {first}\b", source, re.MULTILINE), f"{module} defines no {first}"
+        if attribute:
+            assert re.search(rf"^    {attribute}\b", source, re.MULTILINE), f"{module}: {first} has no {attribute}"
