@@ -16,21 +16,16 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from nsl_hpc.analysis.published import gap_to_published, resource_columns
 from nsl_hpc.atomic import write_text
-from nsl_hpc.config import config_dir
+from nsl_hpc.config import tool_settings
 
 
 def settings(argv: list[str]) -> DictConfig:
     """conf/mechanisms.yaml with ``key=value`` overrides (a key it does not have is refused)."""
-    cfg = OmegaConf.load(config_dir() / "mechanisms.yaml")
-    OmegaConf.set_struct(cfg, True)
-    try:
-        return OmegaConf.merge(cfg, OmegaConf.from_dotlist(argv))
-    except Exception as error:  # OmegaConf's errors name the key; one line, no traceback
-        sys.exit(f"error: {str(error).splitlines()[0]}")
+    return tool_settings("mechanisms", argv)
 
 
 def chosen(cfg: DictConfig) -> list[DictConfig]:

@@ -16,13 +16,12 @@ from typing import Any
 import numpy as np
 import pyarrow.parquet as pq
 import torch
-from omegaconf import OmegaConf
 
 from nsl_hpc.analysis.published import published_law, step_envelope_at
 from nsl_hpc.analysis.reproduction import factor_text, resource_text
 from nsl_hpc.atomic import write_text
 from nsl_hpc.cache import ArrayCache
-from nsl_hpc.config import compose_config, config_dir, plain
+from nsl_hpc.config import compose_config, plain, tool_settings
 from nsl_hpc.config.schema import typed
 from nsl_hpc.config.system import InputStateSystem, TestSet
 from nsl_hpc.studies.input_state.data import Dataset, build_test_set
@@ -34,12 +33,7 @@ from nsl_hpc.sweep.manifest import read_manifest
 
 
 def settings(argv: list[str]) -> dict[str, Any]:
-    cfg = OmegaConf.load(config_dir() / "nmse_tail.yaml")
-    OmegaConf.set_struct(cfg, True)
-    try:
-        return plain(OmegaConf.merge(cfg, OmegaConf.from_dotlist(argv)))
-    except Exception as error:  # OmegaConf's errors name the key; one line, no traceback
-        sys.exit(f"error: {str(error).splitlines()[0]}")
+    return plain(tool_settings("nmse_tail", argv))
 
 
 def near_envelope(rows: Sequence[Mapping[str, Any]], cfg: Mapping[str, Any]) -> list[Mapping[str, Any]]:

@@ -13,8 +13,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-from omegaconf import OmegaConf
-
 from nsl_hpc.analysis.reproduction import (
     FIGURES_BEGIN,
     FIGURES_END,
@@ -32,7 +30,7 @@ from nsl_hpc.analysis.reproduction import (
     with_table,
 )
 from nsl_hpc.atomic import replacing, write_text
-from nsl_hpc.config import config_dir, plain
+from nsl_hpc.config import plain, tool_settings
 from nsl_hpc.config.schema import typed
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.sweep import layout
@@ -71,12 +69,7 @@ def train_missing(cfg: dict) -> None:
 def main() -> None:
     if {"-h", "--help"} & set(sys.argv[1:]):
         sys.exit(print(__doc__) or 0)
-    cfg = OmegaConf.load(config_dir() / "reproduction.yaml")
-    OmegaConf.set_struct(cfg, True)
-    try:
-        cfg = plain(OmegaConf.merge(cfg, OmegaConf.from_dotlist(sys.argv[1:])))
-    except Exception as error:  # OmegaConf's errors name the key; one line, no traceback
-        sys.exit(f"error: {str(error).splitlines()[0]}")
+    cfg = plain(tool_settings("reproduction", sys.argv[1:]))
     status_path, document = Path(cfg["status"]), Path(cfg["document"])
     try:
         laws = {law: typed(LawSlice, spec, f"laws.{law}") for law, spec in cfg["laws"].items()}

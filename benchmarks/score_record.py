@@ -8,21 +8,14 @@ free-run envelope over each published Silverbox law (conf/reproduction.yaml, ``s
 import sys
 from pathlib import Path
 
-from omegaconf import OmegaConf
-
 from nsl_hpc.analysis.reproduction import envelope_factors, factor_text, largest_factor, resource_text
 from nsl_hpc.atomic import write_text
-from nsl_hpc.config import config_dir, plain
+from nsl_hpc.config import plain, tool_settings
 from nsl_hpc.sweep import layout
 
 
 def main() -> None:
-    cfg = OmegaConf.load(config_dir() / "reproduction.yaml")
-    OmegaConf.set_struct(cfg, True)
-    try:
-        cfg = plain(OmegaConf.merge(cfg, OmegaConf.from_dotlist(sys.argv[1:])))
-    except Exception as error:  # OmegaConf's errors name the key; one line, no traceback
-        sys.exit(f"error: {str(error).splitlines()[0]}")
+    cfg = plain(tool_settings("reproduction", sys.argv[1:]))
     spec = cfg["score_record"]
     lines = ["| published law | slice | record (free run) | outcomes | envelope / law | largest factor |",
              "|---|---|---|---:|---|---:|"]

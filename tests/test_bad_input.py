@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from nsl_hpc.config import compose_config
+from nsl_hpc.config import compose_config, tool_settings
 from nsl_hpc.errors import ConfigError
 from nsl_hpc.resubmit import refuse_task_overrides
 from nsl_hpc.sweep.launch_settings import check_run_settings
@@ -161,3 +161,16 @@ def test_a_slurm_launch_where_slurm_is_not_installed_is_one_line_before_anything
     assert "the cluster's limits were not read, the plan below does not fit them: scontrol not found" in \
         planned.stdout + planned.stderr
     assert "dry run: nothing submitted" in planned.stdout
+
+
+@pytest.mark.parametrize(("name", "override", "said"), [
+    ("reproduction", "no_such=1", "error: Key 'no_such' is not in struct"),
+    ("mechanisms", "only=[a", "error: while parsing a flow sequence"),
+    ("nmse_tail", "tail=1", "error: Key 'tail' is not in struct"),
+])
+def test_a_tools_bad_override_is_one_line(name, override, said):
+    """The tools' own files (benchmarks/reproduction_status.py, score_record.py, mechanisms.py, nmse_tail.py): a key
+    the file does not have or a value that does not parse is one line, before any work."""
+    with pytest.raises(SystemExit) as refused:
+        tool_settings(name, [override])
+    assert str(refused.value.code).startswith(said) and "\n" not in str(refused.value.code)

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import yaml
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -30,6 +31,19 @@ def config_dir() -> Path:
 
 
 USER_CONFIG_DIR = "NSL_HPC_CONFIG_DIR"  # the environment variable that names the user's config directory
+
+
+def tool_settings(name: str, argv: Sequence[str]) -> DictConfig:
+    """conf/<name>.yaml (a benchmark's or tool's own file, outside Hydra's groups) with ``key=value`` overrides; a
+    key it does not have, or a value that does not parse, is one line (SystemExit), before any work."""
+    cfg = OmegaConf.load(config_dir() / f"{name}.yaml")
+    OmegaConf.set_struct(cfg, True)
+    try:
+        merged = OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(argv)))
+    except (OmegaConfBaseException, yaml.YAMLError) as error:  # its first line names the key or the value
+        raise SystemExit(f"error: {str(error).splitlines()[0]}") from None
+    assert isinstance(merged, DictConfig)  # a tool's file is a mapping
+    return merged
 
 
 def user_config_dir() -> Path | None:
