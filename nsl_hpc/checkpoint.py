@@ -111,6 +111,13 @@ class Checkpointer:
         self.writes, self.write_seconds = 0, 0.0
         self.made_for: dict[str, Any] = {"format": FORMAT}
         self.trained: tuple[Callable[[], dict[str, Any]], int] | None = None  # the end of training: state, steps
+        self.blocks = 0  # blocks of training this run has ended
+
+    @property
+    def progressed(self) -> bool:
+        """Whether this run has trained anything to write: before its first block ends (data loading, kernels
+        compiling) what it would write is what the file already holds."""
+        return self.blocks > 0 or self.trained is not None
 
     def ask_to_stop(self, *_: Any) -> None:
         """Write a checkpoint at the next block boundary and stop (a signal handler)."""
@@ -148,6 +155,7 @@ class Checkpointer:
     def block_done(self, state: Callable[[], dict[str, Any]], step: int, total_steps: int) -> None:
         """After a block of training (``step`` of ``total_steps`` of the longest member): write ``state()`` when
         due; stop (TrainingStopped) when asked to."""
+        self.blocks += 1
         if self.stop_asked or time.monotonic() - self.last_write >= self.every_s:
             self.save(state(), step, total_steps)
         if self.stop_asked:

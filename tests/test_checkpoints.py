@@ -15,6 +15,7 @@ import threading
 import time
 
 import pytest
+import submitit
 import torch
 
 from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info, scoring_progress
@@ -30,7 +31,7 @@ from nsl_hpc.studies.training import StepCompiler
 from nsl_hpc.sweep import groups
 from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.groups import GroupLock, checkpoint_path
-from nsl_hpc.sweep.job import JobRunner
+from nsl_hpc.sweep.job import EXIT_STOPPED, JobRunner, leave_warnings_to_the_runner, runner_signals_blocked
 from nsl_hpc.sweep.launch_settings import check_run_settings, launch_settings
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import Group, make_packs
@@ -332,7 +333,7 @@ def test_a_warned_job_keeps_its_timeout_record_and_stops_even_when_the_warnings_
     sweep_dir = tmp_path / "sweep"
     assert nsl("launch", *TINY_GRID, "sweep.grid.seed=[0,1]", ALONE, "launcher=slurm",
                f"sweep_dir={sweep_dir}", "packing.time_classes_minutes=[1]", "launcher.signal_delay_s=2",
-               "fault.kind=hang", "dry_run=true").returncode == 0
+               "checkpoint.every_minutes=0", "fault.kind=hang", "dry_run=true").returncode == 0
     settings = launch_settings(read_launch_config(sweep_dir))
     groups = [group for pack in settings.plan(read_manifest(sweep_dir).to_pylist())
               for group in pack.groups]
@@ -386,3 +387,70 @@ def test_time_is_measured_over_resumes(tmp_path):
     third.load({})
     assert second.trained_before_s + 0.05 <= third.trained_before_s <= second.trained_before_s + second_s
     assert third.resumes == 2
+
+
+def stop_asked_in_a_fork(blocks: int, path) -> int:
+    """The exit status of a forked task process whose checkpointer ended ``blocks`` blocks, asked to stop (SIGUSR1)
+    while it works on (data loading, a block compiling); it is forked with the runner's signals held back."""
+    def body() -> None:
+        checkpoint = Checkpointer(path, 60, ["a"])
+        for _ in range(blocks):
+            checkpoint.block_done(lambda: {"x": torch.ones(1)}, 1, 4)
+        leave_warnings_to_the_runner(checkpoint)
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:  # working, outside any block boundary
+            time.sleep(0.01)
+        os._exit(0 if checkpoint.stop_asked else 1)
+
+    child = multiprocessing.get_context("fork").Process(target=body)
+    with runner_signals_blocked():
+        child.start()
+        os.kill(child.pid, signal.SIGUSR1)  # before the fork has its handlers: held until it has them
+    child.join()
+    return child.exitcode
+
+
+def test_a_stop_before_the_first_block_ends_the_task_process_at_once_as_stopped(tmp_path):
+    """SLURM's warning can come while a group loads its data or compiles (22 s into a job): with nothing to write
+    yet, the task process ends at once as stopped, so the runner requeues the group instead of killing it and
+    recording timeout; after a block it writes its checkpoint at the next boundary as before. The signal sent as
+    it is forked waits for its handlers."""
+    assert stop_asked_in_a_fork(0, tmp_path / "loading") == EXIT_STOPPED
+    assert not (tmp_path / "loading").exists()
+    assert stop_asked_in_a_fork(1, tmp_path / "training") == 0  # asked: it stops at the next block boundary
+
+
+def test_a_warning_with_nothing_left_to_requeue_ends_the_job_as_it_is_not_failed(tmp_path):
+    """The warning comes when the job's last group cannot be requeued (no checkpoints; or it finished, its row
+    written): submitit raises UncompletedJobError ("checkpoint function returned None") into the job, which SLURM
+    records FAILED. The runner ends as warned instead; any other reason not to requeue still fails it."""
+    sweep_dir = tmp_path / "sweep"
+    assert nsl("launch", *TINY_GRID, ALONE, "launcher=slurm", f"sweep_dir={sweep_dir}",
+               "packing.time_classes_minutes=[1]", "launcher.signal_delay_s=2", "checkpoint.every_minutes=0",
+               "fault.kind=hang", "dry_run=true").returncode == 0
+    settings = launch_settings(read_launch_config(sweep_dir))
+    last = [group for pack in settings.plan(read_manifest(sweep_dir).to_pylist()) for group in pack.groups][:1]
+    runner = JobRunner()
+
+    def submitit_like(*_) -> None:  # submitit's handler: no requeue is an exception into the job
+        if runner.checkpoint(str(sweep_dir), last) is None:
+            raise submitit.core.utils.UncompletedJobError("Job not requeued")
+    previous = signal.signal(signal.SIGUSR2, submitit_like)
+    timer = threading.Timer(3.0, os.kill, (os.getpid(), signal.SIGUSR2))
+    timer.start()
+    try:
+        assert runner(str(sweep_dir), last) == {"stopped": 1}  # its one group hung: timeout, nothing left
+        assert {failure["status"] for failure in read_failures(sweep_dir).values()} == {"timeout"}
+
+        def too_often(*_) -> None:  # a group left to requeue, but submitit requeued the job too often
+            raise submitit.core.utils.UncompletedJobError("Job not requeued because: timed-out too many times")
+        signal.signal(signal.SIGUSR2, too_often)
+        other = JobRunner()
+        other.end_cleanly_when_nothing_is_left()
+        with pytest.raises(submitit.core.utils.UncompletedJobError):
+            signal.getsignal(signal.SIGUSR2)(signal.SIGUSR2, None)
+        other.nothing_left = True
+        signal.getsignal(signal.SIGUSR2)(signal.SIGUSR2, None)  # nothing left: the job goes on to its end
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGUSR2, previous)

@@ -33,7 +33,7 @@ import signal
 import sys
 import time
 from collections import Counter
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import replace
 from multiprocessing.process import BaseProcess
 from pathlib import Path
@@ -61,6 +61,7 @@ LOG = logging.getLogger(__name__)
 POLL_SECONDS = 0.2
 PR_SET_PDEATHSIG = 1  # prctl(2)
 EXIT_STOPPED = 75  # a child's exit status after it wrote its checkpoint and stopped, as asked (EX_TEMPFAIL)
+RUNNER_SIGNALS = {signal.SIGUSR2, signal.SIGTERM, signal.SIGUSR1}  # SLURM's warning, a requeue, the runner's request
 
 
 def manifest_rows(sweep_dir: Path, task_ids: Sequence[str]) -> list[dict[str, Any]]:
@@ -124,12 +125,34 @@ def leave_warnings_to_the_runner(checkpoint: Checkpointer | None) -> None:
     the default SIGCONT, and on SIGUSR1 (the runner's request) or SIGTERM write the ``checkpoint`` and stop
     (without one: SIGTERM ends the process). The fork inherits submitit's handlers; a child running them
     checkpoints and requeues the job too, racing the runner's own checkpoint ("A temporary saved file already
-    exists": the job fails and its unstarted groups are lost)."""
+    exists": the job fails and its unstarted groups are lost). A stop asked before the run's first block ends
+    (data loading, kernels compiling: nothing to write) ends the process at once, stopped. The runner forks with
+    these signals blocked (``runner_signals_blocked``); they are taken from here on."""
     signal.signal(signal.SIGUSR2, signal.SIG_IGN)
     signal.signal(signal.SIGCONT, signal.SIG_DFL)
-    stop = signal.SIG_DFL if checkpoint is None else checkpoint.ask_to_stop
-    signal.signal(signal.SIGTERM, stop)
-    signal.signal(signal.SIGUSR1, signal.SIG_IGN if checkpoint is None else stop)
+    if checkpoint is None:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        signal.signal(signal.SIGUSR1, signal.SIG_IGN)
+    else:
+        def stop(*_: Any) -> None:
+            if not checkpoint.progressed:
+                os._exit(EXIT_STOPPED)
+            checkpoint.ask_to_stop()
+
+        signal.signal(signal.SIGTERM, stop)
+        signal.signal(signal.SIGUSR1, stop)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, RUNNER_SIGNALS)
+
+
+@contextlib.contextmanager
+def runner_signals_blocked() -> Iterator[None]:
+    """SLURM's warning, SIGTERM and the runner's stop request held back while a task process is forked: the fork
+    takes them only once it has its own handlers (``leave_warnings_to_the_runner``), the runner as it leaves."""
+    signal.pthread_sigmask(signal.SIG_BLOCK, RUNNER_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, RUNNER_SIGNALS)
 
 
 def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], configs: TaskConfigs, compiled: bool, heartbeat,
@@ -177,6 +200,7 @@ class JobRunner:
         self.started: set[Group] = set()
         self.checkpointing, self.stop_wait_s = False, 30.0
         self.warned = False  # SLURM's warning came: checkpoint() has dealt with the running group
+        self.nothing_left = False  # checkpoint() found nothing to requeue
         self.configs: TaskConfigs | None = None  # the sweep's task configs, once called
 
     def launcher_gone(self) -> bool:
@@ -198,12 +222,33 @@ class JobRunner:
                 sys.stdout.flush()
                 os._exit(1)  # submitit's own result file cannot be written either: no traceback after the line
 
+    def end_cleanly_when_nothing_is_left(self) -> None:
+        """Wrap submitit's handler of SLURM's warning (SIGUSR2): where ``checkpoint`` leaves nothing to requeue
+        (the last group finished, or stopped without checkpoints; the last row written), submitit raises
+        UncompletedJobError into whatever the job was doing and SLURM records it FAILED. Caught here, the job goes
+        on to its end as warned (it starts no group) and exits 0; any other reason not to requeue (requeued too
+        often) still fails the job."""
+        submitits = signal.getsignal(signal.SIGUSR2)
+        if not callable(submitits):  # not under submitit's SLURM environment: nothing to wrap
+            return
+
+        def on_warning(signum: int, frame: Any) -> None:
+            try:
+                submitits(signum, frame)
+            except submitit.core.utils.UncompletedJobError:
+                if not self.nothing_left:
+                    raise
+                LOG.info("SLURM's warning came with nothing left to run: the job ends, not requeued")
+
+        signal.signal(signal.SIGUSR2, on_warning)
+
     def run_groups(self, sweep: Path, groups: Sequence[Group]) -> dict[str, int]:
         launch = launch_settings(read_launch_config(sweep))
         self.configs = TaskConfigs(sweep)
         # SLURM sends SIGCONT with its warning; submitit's handler for it logs, and logging swallows the exception
         # a warning handler nested in it raises (the job would go on as if not warned)
         signal.signal(signal.SIGCONT, signal.SIG_DFL)
+        self.end_cleanly_when_nothing_is_left()
         if refusal := unsafe_refusal(list(tree(compile_cache(launch.compile_cache_dir))),  # Inductor unpickles from it
                                      launch.allow_shared_sweep_dir):
             return self.refuse(sweep, groups, refusal)
@@ -296,7 +341,8 @@ class JobRunner:
         child = context.Process(target=run_child, args=(sweep, group, self.configs, planned.compiled, heartbeat,
                                                         every_s), daemon=True)
         started = time.time()
-        child.start()
+        with runner_signals_blocked():
+            child.start()
         self.running = (sweep, ids, child)
         try:
             while child.is_alive():
@@ -359,6 +405,7 @@ class JobRunner:
                                         if self.checkpointing else ""))
         remaining = resumed + [group for group in groups if group not in self.started]
         if not remaining:
+            self.nothing_left = True
             return None
         return submitit.helpers.DelayedSubmission(JobRunner(self.launcher_pid), sweep_dir, remaining)
 
