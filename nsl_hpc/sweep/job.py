@@ -16,7 +16,9 @@ preemption without warning, ``scancel``) makes the child write its state and sto
 its group continues where it stopped when the job runs again or is resubmitted; asked while its models are
 scored, the child writes the end of training, and the group only scores when it runs again. A group that does not
 stop that way (it hangs, or it is scoring an input-output test set), and any group without checkpoints, is
-recorded as timeout at the warning and the job is requeued with the groups it has not started.
+recorded as timeout at the warning and the job is requeued with the groups it has not started. A child asked
+before its first block ends (loading data, compiling) has nothing to write and stops at once; a warning with
+nothing left to requeue ends the job as it is (``JobRunner.end_cleanly_when_nothing_is_left``).
 
 A job trains a group only while it holds the group's lock: a second job (a resubmitted one beside a requeued
 one) leaves a group that a live job trains to it.
