@@ -31,7 +31,7 @@ from nsl_hpc.studies.training import StepCompiler
 from nsl_hpc.sweep import groups
 from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.groups import GroupLock, checkpoint_path
-from nsl_hpc.sweep.job import EXIT_STOPPED, JobRunner, leave_warnings_to_the_runner, runner_signals_blocked
+from nsl_hpc.sweep.job import EXIT_UNSTARTED, JobRunner, leave_warnings_to_the_runner, runner_signals_blocked
 from nsl_hpc.sweep.launch_settings import check_run_settings, launch_settings
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest
 from nsl_hpc.sweep.plan import Group, make_packs
@@ -412,10 +412,11 @@ def stop_asked_in_a_fork(blocks: int, path) -> int:
 
 def test_a_stop_before_the_first_block_ends_the_task_process_at_once_as_stopped(tmp_path):
     """SLURM's warning can come while a group loads its data or compiles (22 s into a job): with nothing to write
-    yet, the task process ends at once as stopped, so the runner requeues the group instead of killing it and
-    recording timeout; after a block it writes its checkpoint at the next boundary as before. The signal sent as
-    it is forked waits for its handlers."""
-    assert stop_asked_in_a_fork(0, tmp_path / "loading") == EXIT_STOPPED
+    yet, the task process ends at once, stopped before training (EXIT_UNSTARTED), so the runner requeues the group
+    once instead of killing it and recording timeout (a second time it is taken to hang:
+    tests/cluster/test_sweep_on_slurm.py's hanging tasks); after a block it writes its checkpoint at the next
+    boundary as before. The signal sent as it is forked waits for its handlers."""
+    assert stop_asked_in_a_fork(0, tmp_path / "loading") == EXIT_UNSTARTED
     assert not (tmp_path / "loading").exists()
     assert stop_asked_in_a_fork(1, tmp_path / "training") == 0  # asked: it stops at the next block boundary
 

@@ -63,6 +63,7 @@ LOG = logging.getLogger(__name__)
 POLL_SECONDS = 0.2
 PR_SET_PDEATHSIG = 1  # prctl(2)
 EXIT_STOPPED = 75  # a child's exit status after it wrote its checkpoint and stopped, as asked (EX_TEMPFAIL)
+EXIT_UNSTARTED = 76  # stopped as asked before its first block ended: nothing written, nothing trained
 RUNNER_SIGNALS = {signal.SIGUSR2, signal.SIGTERM, signal.SIGUSR1}  # SLURM's warning, a requeue, the runner's request
 
 
@@ -138,7 +139,7 @@ def leave_warnings_to_the_runner(checkpoint: Checkpointer | None) -> None:
     else:
         def stop(*_: Any) -> None:
             if not checkpoint.progressed:
-                os._exit(EXIT_STOPPED)
+                os._exit(EXIT_UNSTARTED)
             checkpoint.ask_to_stop()
 
         signal.signal(signal.SIGTERM, stop)
@@ -161,7 +162,8 @@ def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], configs: Task
               every_s: float) -> None:
     """Child process body: output to the first task's log, train the group (manifest rows ``group``, their
     configs from ``configs``, compiled as planned) from its checkpoint, writing one every ``every_s`` seconds (0:
-    none); exit status 1 on an exception, EXIT_STOPPED once stopped as asked."""
+    none); exit status 1 on an exception, EXIT_STOPPED once stopped as asked (EXIT_UNSTARTED before its first
+    block ended)."""
     ids = [task["task_id"] for task in group]
     checkpoint = Checkpointer(checkpoint_path(sweep_dir, ids), every_s, ids) if every_s > 0 else None
     leave_warnings_to_the_runner(checkpoint)
@@ -195,8 +197,9 @@ class JobRunner:
     launcher, the runner stops its task and exits as soon as that process is gone (the local executor's
     processes would otherwise finish the sweep as orphans)."""
 
-    def __init__(self, launcher_pid: int | None = None) -> None:
+    def __init__(self, launcher_pid: int | None = None, unstarted: frozenset[Group] = frozenset()) -> None:
         self.launcher_pid = launcher_pid
+        self.unstarted = unstarted  # groups an earlier run of this job stopped before their first block ended
         self.running: tuple[Path, list[str], BaseProcess] | None = None
         self.current: Group | None = None  # the group being run (from before its process starts to its end)
         self.started: set[Group] = set()
@@ -367,7 +370,7 @@ class JobRunner:
                 log.parent.rmdir()
             remove_checkpoint(checkpoint_path(sweep, ids))
             return "ok"
-        if child.exitcode == EXIT_STOPPED or self.warned:  # warned: checkpoint() recorded its outcome (timeout)
+        if child.exitcode in (EXIT_STOPPED, EXIT_UNSTARTED) or self.warned:  # warned: checkpoint() recorded it
             return "stopped"
         exitcode = child.exitcode if child.exitcode is not None else -signal.SIGKILL  # None: it has not ended
         reason = (f"exit status {exitcode}" if exitcode >= 0 else f"killed by signal {signal.Signals(-exitcode).name}")
@@ -386,9 +389,12 @@ class JobRunner:
         """On SLURM's warning signal (time limit or preemption): with checkpoints, have the running group write
         its state and stop, and requeue it with the groups not started; a group that does not stop so (it hangs,
         or it is scoring an input-output test set), and any without checkpoints, is recorded as
-        timeout and not requeued (none left: no requeue, which SLURM would delay by minutes for nothing)."""
+        timeout and not requeued (none left: no requeue, which SLURM would delay by minutes for nothing). A group
+        stopped before its first block ended (loading data, compiling) is requeued once so; stopped so again in
+        the requeued run, it is taken to hang and recorded timeout."""
         self.warned = True
         resumed = [self.current] if self.current is not None else []  # stopped, or not started yet
+        unstarted = set(self.unstarted)
         if self.running is not None:
             sweep, ids, child = self.running
             if self.checkpointing and child.pid is not None:
@@ -398,18 +404,23 @@ class JobRunner:
             with contextlib.suppress(ProcessLookupError):
                 child.kill()
             child.join()
-            if child.exitcode != EXIT_STOPPED:
+            stuck = child.exitcode == EXIT_UNSTARTED and self.current in self.unstarted  # again: it hangs
+            if child.exitcode not in (EXIT_STOPPED, EXIT_UNSTARTED) or stuck:
                 resumed = []
                 if all_done(sweep, ids):
                     remove_checkpoint(checkpoint_path(sweep, ids))  # it finished as the warning came
                 record_group_failure(sweep, ids, "timeout", "the job reached its time limit while this task ran"
+                                     + (" (twice before its first block of training ended)" if stuck else "")
                                      + ("; its checkpoint, if any, is kept: resubmit continues from it"
                                         if self.checkpointing else ""))
+            elif child.exitcode == EXIT_UNSTARTED:
+                unstarted.update(resumed)
         remaining = resumed + [group for group in groups if group not in self.started]
         if not remaining:
             self.nothing_left = True
             return None
-        return submitit.helpers.DelayedSubmission(JobRunner(self.launcher_pid), sweep_dir, remaining)
+        return submitit.helpers.DelayedSubmission(JobRunner(self.launcher_pid, frozenset(unstarted)), sweep_dir,
+                                                  remaining)
 
 
 def compile_allowance(launch: LaunchSettings, arch: str) -> float:
