@@ -92,7 +92,7 @@ def main() -> None:
         for slice_name in cfg["sweeps"]:  # each slice's fits beside the published laws, as its report wrote them
             comparison = Path(cfg["root"]) / slice_name / "comparison.md"
             if comparison.exists():
-                write_text(comparison.read_text(), Path(cfg["comparisons"]) / f"comparison__{slice_name}.md")
+                copy_file(comparison, Path(cfg["comparisons"]) / f"comparison__{slice_name}.md")
         for law, spec in laws.items():  # each law's figure, as its slice's report drew it
             drawn = Path(cfg["root"]) / str(spec.slice) / layout.FIGURES / "nsl" / figure_name(law)
             if spec.slice and drawn.exists():
