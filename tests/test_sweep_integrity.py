@@ -13,6 +13,7 @@ import sys
 import time
 from pathlib import Path
 
+import pyarrow.parquet as pq
 import pytest
 from mlflow.tracking import MlflowClient
 
@@ -390,6 +391,23 @@ def test_a_row_copied_over_another_tasks_path_is_corrupt_not_done(tmp_path):
     row_path(tmp_path, other).parent.mkdir(parents=True)
     shutil.copy(row_path(tmp_path, mine), row_path(tmp_path, other))
     assert row_state(row_path(tmp_path, other)) == "corrupt"
+
+
+# A rehearsal's job writes its rows without pandas (pyarrow converts the values itself): the same row.
+def test_a_row_written_without_pandas_is_the_same_row(tmp_path):
+    row = {"task_id": "0123456789abcdef", "nmae": 0.1, "steps": 3, "note": None, "finite": True,
+           "curve": [0.5, 0.25], "compiled": False}
+    write = ("import sys; from pathlib import Path; from nsl_hpc.sweep.rows import prepare_row_writes, "
+             "write_row_atomically; prepare_row_writes(pandas=sys.argv[2] == 'yes'); "
+             f"write_row_atomically({row!r}, Path(sys.argv[1])); print('pandas' in sys.modules)")
+    imported = {}
+    for pandas in ("yes", "no"):
+        done = subprocess.run([sys.executable, "-c", write, str(tmp_path / f"{pandas}.parquet"), pandas],
+                              capture_output=True, text=True, check=True)
+        imported[pandas] = done.stdout.strip()
+    assert imported == {"yes": "True", "no": "False"}
+    assert read_row(tmp_path / "no.parquet") == read_row(tmp_path / "yes.parquet") == row
+    assert pq.read_schema(tmp_path / "no.parquet") == pq.read_schema(tmp_path / "yes.parquet")
 
 
 # A local worker killed or stopped: its group recorded, the other workers finish, the launch says what happened.

@@ -259,7 +259,7 @@ class JobRunner:
             return self.refuse(sweep, groups, refusal)
         if not launch.rehearsal:  # a rehearsal trains nothing
             import_training_code()  # once, not in each group's forked process
-        prepare_row_writes()
+        prepare_row_writes(pandas=not launch.rehearsal)
         self.checkpointing = checkpoint_seconds(launch) > 0
         self.stop_wait_s = (launch.signal_delay_s or 60) / 2  # SLURM's warning; local launchers: 60
         rows = manifest_rows(sweep, [task_id for group in groups for task_id in group.task_ids])

