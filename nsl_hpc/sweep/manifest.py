@@ -60,7 +60,7 @@ class StoredYamlLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: 
 def read_yaml(path: Path, sweep_dir: Path) -> DictConfig:
     """A config written by ``write_yaml``, resolved against where the sweep directory is now."""
     try:
-        cfg = OmegaConf.create(yaml.load(Path(path).read_text(), Loader=StoredYamlLoader))  # noqa: S506 (safe)
+        cfg = OmegaConf.create(yaml.load(Path(path).read_text(), Loader=StoredYamlLoader))
         cfg.sweep_dir = str(Path(sweep_dir).resolve())
         OmegaConf.resolve(cfg)
     except FileNotFoundError:
