@@ -99,7 +99,10 @@ def main() -> None:
     if args.root.exists() and any(args.root.iterdir()):
         sys.exit(f"--root {args.root} is not empty: rehearse into a new directory")
     started = time.perf_counter()
-    results = {study: rehearse(study, args.root, args.look_s) for study in args.studies}
+    results = {}
+    for study in args.studies:
+        results[study] = rehearse(study, args.root, args.look_s)
+        print(f"{study}: " + "; ".join(f"{key}: {value}" for key, value in results[study].items()), flush=True)
     print("| | " + " | ".join(results) + " |\n|---|" + "---|" * len(results))
     for key in next(iter(results.values())):
         print(f"| {key} | " + " | ".join(result[key] for result in results.values()) + " |")

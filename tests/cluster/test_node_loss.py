@@ -7,10 +7,13 @@ import json
 import os
 import re
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
 
+from nsl_hpc.sweep.submissions import read_submissions
+from nsl_hpc.sweep.task_states import read_sweep_state
 from tests.cluster.long_jobs import (
     group_finished,
     launch,
@@ -20,7 +23,7 @@ from tests.cluster.long_jobs import (
     slow,
     wait_until,
 )
-from tests.cluster.requeues import jobs
+from tests.cluster.requeues import Releaser, jobs
 from tests.sweeps import nsl
 
 pytestmark = pytest.mark.slurm
@@ -100,3 +103,73 @@ def test_a_lost_nodes_job_that_goes_on_training_there_trains_its_group_once(thre
     trained = re.findall(r"group \w+(?: \+\d+ tasks)?: ok", logs)
     assert len(trained) == 1, logs[-3000:]
     assert "an earlier run of job" in logs  # the requeued run waited for it
+
+
+def queued_elements(name: str) -> set[str]:
+    """The array elements (``<array>_<index>``) the queue holds of the jobs named ``name``, pending ones one by one."""
+    out = subprocess.run(["squeue", "-h", "-r", "-n", name, "-o", "%i"], capture_output=True, text=True,
+                         check=True).stdout
+    return set(out.split())
+
+
+def test_a_rehearsal_on_three_nodes_with_a_node_lost_and_elements_cancelled_accounts_for_every_task_once(
+        three_nodes, tmp_path):
+    """The demo's 216 tasks rehearsed on the 3-node cluster (no accounting): mid-way a node is lost with its jobs'
+    processes, a running and two pending elements are cancelled. No status calls a task missing while the queue
+    held its element before and after the look, a task once done stays done; resubmit runs exactly what is left;
+    every task ends done or with its planted fault, and no group trains twice."""
+    name, sweep_dir = "nsl-three-nodes", tmp_path / "rehearsal"
+    launched = nsl("launch", "+sweep=demo", "launcher=slurm", "rehearsal=true", "sweep.name=three-nodes",
+                   "packing.pack_minutes=0.02", f"sweep_dir={sweep_dir}")
+    assert launched.returncode == 0, launched.stderr
+    releaser, looks, done, disturbed = Releaser(name), 0, set(), False
+    deadline = time.time() + 420
+    try:
+        for round_ in ("launch", "resubmit"):
+            while time.time() < deadline:
+                releaser.poll()
+                before = queued_elements(name)
+                state = read_sweep_state(sweep_dir)
+                after = queued_elements(name)
+                looks += 1
+                submitted = {task: element for record in read_submissions(sweep_dir)
+                             for element, tasks in zip(record["element_ids"], record["elements"], strict=True)
+                             for task in tasks}
+                wrong = [task for task, task_state in state.states.items()
+                         if task_state == "missing" and submitted.get(task) in before & after]
+                assert not wrong, f"look {looks}: {len(wrong)} tasks called missing while queued: {wrong[:3]}"
+                now_done = {task for task, task_state in state.states.items() if task_state == "done"}
+                assert done <= now_done, f"look {looks}: done tasks no longer done: {sorted(done - now_done)[:3]}"
+                done = now_done
+                if not disturbed and len(done) >= 30 and lose_a_running_node_and_cancel_elements(name):
+                    disturbed = True
+                if not before and not after:
+                    break
+                time.sleep(0.5)
+            if round_ == "launch":
+                assert disturbed, "the jobs ended before a node could be lost"
+                resubmitted = nsl("resubmit", f"sweep_dir={sweep_dir}")
+                assert resubmitted.returncode == 0, resubmitted.stderr
+    finally:
+        subprocess.run(["scancel", "-n", name], check=False)
+    final = read_sweep_state(sweep_dir).counts()
+    assert final["done"] + final["frozen"] + final["failed"] == 216 and final["done"] > 150, final
+    logs = "".join(path.read_text(errors="replace") for path in (sweep_dir / "submitit").rglob("*_log.*"))
+    trained = re.findall(r"(group \w+)(?: \+\d+ tasks)?: ok", logs)
+    assert trained and len(trained) == len(set(trained)), f"groups trained twice: {len(trained) - len(set(trained))}"
+    print(f"\n{looks} looks, none wrong; {final['done']} done, {final['frozen']} frozen, {final['failed']} failed")
+
+
+def lose_a_running_node_and_cancel_elements(name: str) -> bool:
+    """Lose the node of a running element of ``name``, cancel another running element and two pending ones;
+    False where fewer than two run and two wait."""
+    out = subprocess.run(["squeue", "-h", "-r", "-n", name, "-o", "%i %T %N"], capture_output=True, text=True,
+                         check=True).stdout
+    running = [line.split() for line in out.splitlines() if " RUNNING " in line]
+    pending = [line.split()[0] for line in out.splitlines() if " PENDING " in line]
+    if len(running) < 2 or len(pending) < 2:
+        return False
+    (_, _, node), (other, _, _) = running[0], next((job for job in running if job[2] != running[0][2]), running[1])
+    lose_node(node)
+    subprocess.run(["scancel", other, *pending[-2:]], check=True)
+    return True
