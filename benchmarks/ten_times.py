@@ -26,7 +26,7 @@ from nsl_hpc.sweep.submissions import read_submissions
 
 STUDY = ["+sweep=input_state", "launcher=slurm", "launcher.hold=true"]
 SCALES = {1: [], 10: ["sweep.grid.seed=[" + ",".join(map(str, range(35))) + "]",
-                      "sweep.grid.width_tier=[2,4,8,16,32,64,128,256]"]}
+                      "sweep.grid.width_tier=[2,4,8,16,32,64,128,256]", "max_tasks=1000000"]}
 
 
 def command(*args: str) -> tuple[str, float, float]:

@@ -96,7 +96,7 @@ def main(config: DictConfig, overrides: Sequence[str]) -> int:
         state = read_sweep_state(sweep_dir)
         if note := state.accounting_note():
             print(note)
-        wanted = [task["task_id"] for task in state.manifest if state.states[task["task_id"]] in cfg.states]
+        wanted = [task_id for task_id, task_state in state.states.items() if task_state in cfg.states]
         manifest = read_manifest(sweep_dir)
         selected = manifest.filter(pc.is_in(manifest["task_id"], value_set=pa.array(wanted, type=pa.string())))
         configs = {pair: read_pair(sweep_dir, *pair)

@@ -99,7 +99,7 @@ def checkpoint_report(sweep_dir, state: SweepState, limit: int) -> str:
 
 
 def failure_report(state: SweepState, limit: int) -> str:
-    failed = [task for task in state.manifest if state.states[task["task_id"]] in ("failed", "frozen", "timeout")]
+    failed = state.tasks_in(("failed", "frozen", "timeout"))
     lines = []
     for task in failed[:limit]:
         record = state.failures[task["task_id"]]

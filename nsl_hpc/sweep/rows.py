@@ -25,6 +25,9 @@ from nsl_hpc.sweep import layout
 
 PARQUET_MAGIC = b"PAR1"  # the first and last four bytes of every Parquet file
 TAIL_BYTES = 64 * 1024  # what row_state reads of a file's end: a row's footer and end magic (a row is a few KB)
+PART_IDS: dict[Path, tuple[tuple[int, int, int], frozenset[str]]] = {}  # compacted file: (its stat key, its ids)
+
+
 def write_row_atomically(row: Mapping[str, Any], path: Path) -> None:
     """Write ``row`` as a one-row Parquet file: a temporary file in the same directory, then a rename."""
     write_parquet(pa.Table.from_pylist([dict(row)]), path)
@@ -63,11 +66,13 @@ def row_state(path: str | Path) -> str:
     except FileNotFoundError:
         return "missing"
     try:
-        size = os.fstat(fd).st_size
+        tail = os.pread(fd, TAIL_BYTES, 0)  # a row's whole file, without asking its size first
+        size = chunk = len(tail)
+        if chunk == TAIL_BYTES:  # a larger file: its end
+            size = os.fstat(fd).st_size
+            tail = os.pread(fd, chunk, size - chunk)
         if size < 12:
             return "corrupt"
-        chunk = min(size, TAIL_BYTES)
-        tail = os.pread(fd, chunk, size - chunk)
         head = tail[:4] if chunk == size else os.pread(fd, 4, 0)
         footer_size = int.from_bytes(tail[-8:-4], "little")
         if head != PARQUET_MAGIC or tail[-4:] != PARQUET_MAGIC or footer_size > size - 12:
@@ -85,25 +90,34 @@ def compacted_parts(out_dir: str | os.PathLike) -> list[Path]:
     return sorted(folder.glob("*.parquet")) if folder.is_dir() else []
 
 
-def compacted_ids(out_dir: str | os.PathLike) -> set[str]:
-    """The task ids whose rows the compacted files hold (one that is no Parquet file holds none: merge sets it
-    aside; an I/O error is raised, not taken for missing rows, which would run again)."""
-    ids: set[str] = set()
+def compacted_ids(out_dir: str | os.PathLike) -> list[frozenset[str]]:
+    """The task ids whose rows each compacted file holds (one that is no Parquet file holds none: merge sets it
+    aside; an I/O error is raised, not taken for missing rows, which would run again). A file's ids are read once
+    per process while its size, time and inode stand (a job asks before each group)."""
+    held = []
     for part in compacted_parts(out_dir):
         with contextlib.suppress(pa.ArrowInvalid, FileNotFoundError):
-            ids.update(read_parquet(part, columns=["task_id"])["task_id"].to_pylist())
-    return ids
+            stat = part.stat()
+            key = (stat.st_size, stat.st_mtime_ns, stat.st_ino)
+            if part not in PART_IDS or PART_IDS[part][0] != key:
+                PART_IDS[part] = (key, frozenset(read_parquet(part, columns=["task_id"])["task_id"].to_pylist()))
+            held.append(PART_IDS[part][1])
+    return held
 
 
 def row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str, str]:
-    """Each task's row state (``done``, ``missing``, ``corrupt``): its own file's (``row_state``), ``done``
-    where a compacted file holds its row. The compacted files are read after the own files, and only where one
-    is not done."""
-    states = {task_id: row_state(layout.row_file(out_dir, task_id)) for task_id in task_ids}
+    """Each task's row state (``done``, ``missing``, ``corrupt``): ``done`` where a compacted file holds its row,
+    else its own file's (``row_state``). Read in an order that misses no row a merge moves meanwhile (merge syncs
+    the compacted file before it removes the own files): the compacted files, the own files of the tasks they do
+    not hold, then the compacted files again for the tasks still without a row."""
+    compacted = compacted_ids(out_dir)
+    states = {task_id: "done" if any(task_id in ids for ids in compacted)
+              else row_state(layout.row_file(out_dir, task_id)) for task_id in task_ids}
     if all(state == "done" for state in states.values()):
         return states
-    compacted = compacted_ids(out_dir)
-    return {task_id: "done" if task_id in compacted else state for task_id, state in states.items()}
+    since = compacted_ids(out_dir)
+    return {task_id: "done" if state != "done" and any(task_id in ids for ids in since) else state
+            for task_id, state in states.items()}
 
 
 def all_done(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> bool:

@@ -3,10 +3,12 @@
 
 import time
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import pyarrow as pa
 
 from nsl_hpc.sweep.decisions import budget_states, without_row_state
 from nsl_hpc.sweep.directory import launch_running
@@ -28,13 +30,19 @@ class SweepState:
 
     states: dict[str, str]
     failures: dict[str, dict[str, Any]]
-    manifest: list[dict[str, Any]]
+    manifest: pa.Table  # task_id, system, arch, seed, width, depth, steps, params
     element_states: dict[str, str]
     unaccounted: str | None = None
     predicted_s: dict[str, float] = field(default_factory=dict)  # submitted tasks' predicted seconds
 
     def counts(self) -> Counter[str]:
         return Counter(self.states.values())
+
+    def tasks_in(self, wanted: Collection[str]) -> list[dict[str, Any]]:
+        """The manifest rows of the tasks in one of the ``wanted`` states, in the manifest's order."""
+        ids = self.manifest["task_id"].to_pylist()
+        return self.manifest.take(pa.array([index for index, task_id in enumerate(ids)
+                                            if self.states[task_id] in wanted], pa.int64())).to_pylist()
 
     def accounting_note(self) -> str | None:
         """One line on what the states cannot tell apart without accounting; None with it."""
@@ -78,7 +86,7 @@ def read_sweep_state(sweep_dir: Path, queue_required: bool = True) -> SweepState
                                      elements.states.get(element or ""), now, elements.queue_answered)
         if states[task_id] == "missing":
             states[task_id] = without_row_state(budgeted, task_id, launching)
-    return SweepState(states, failures, manifest.to_pylist(), elements.states, elements.unaccounted,
+    return SweepState(states, failures, manifest, elements.states, elements.unaccounted,
                       predicted_shares(submissions))
 
 

@@ -15,7 +15,7 @@ pytestmark = pytest.mark.slurm
 # the demo's 216 tasks, with faults planted often enough to strike a grid this small
 REHEARSAL = ["+sweep=demo", "launcher=slurm", "rehearsal=true", "rehearse.frozen_share=0.15",
              "rehearse.failed_share=0.1", "rehearse.killed_jobs=2", "sweep.name=rehearsal",
-             "packing.pack_minutes=0.1",]  # 10 jobs, 2 of them killed
+             "packing.pack_minutes=0.1"]  # 10 jobs, 2 of them killed
 
 
 def counts(status: str) -> dict[str, int]:
