@@ -3,7 +3,8 @@ merge, on a sweep written as a real one would be. Prints figures, asserts nothin
 
     python benchmarks/ten_times.py --root runs/ten_times [--scales 1 10]
 
-Scale 10 is 635,040 tasks: 35 seeds (not 7) and 8 width tiers (2-256, not 2-16). Each scale is launched on the
+Scale 10 is 635,040 tasks: 70 seeds, not 7 (the width, depth and data tiers are those the study's systems
+have). Each scale is launched on the
 SLURM cluster its commands find (`cluster/up.sh`) with every job held (`launcher.hold=true`: the queue holds its
 arrays as a real sweep's, nothing runs), then filled as its jobs would have left it: a row for 97% of the tasks
 (one Parquet file each, written atomically) and a failure record for the rest. Then, each timed as its command:
@@ -25,8 +26,7 @@ from nsl_hpc.sweep.layout import MANIFEST, SUBMISSIONS
 from nsl_hpc.sweep.submissions import read_submissions
 
 STUDY = ["+sweep=input_state", "launcher=slurm", "launcher.hold=true"]
-SCALES = {1: [], 10: ["sweep.grid.seed=[" + ",".join(map(str, range(35))) + "]",
-                      "sweep.grid.width_tier=[2,4,8,16,32,64,128,256]", "max_tasks=1000000"]}
+SCALES = {1: [], 10: ["sweep.grid.seed=[" + ",".join(map(str, range(70))) + "]", "max_tasks=1000000"]}
 
 
 def command(*args: str) -> tuple[str, float, float]:
