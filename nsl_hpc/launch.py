@@ -120,7 +120,7 @@ def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, limit
         tasks, saved=[saved.task_ids for saved in saved_groups(prepared.sweep_dir)])
     print(describe_plan(prepared, packs, cfg.launcher.name))
     for line in describe_fit(limits, read_storage(prepared.sweep_dir), packs, len(tasks),
-                             cfg.checkpoint.every_minutes > 0, cfg.launcher.get("feed_minutes")):
+                             settings.checkpoint.every_minutes > 0, settings.feed_minutes):
         print(f"  {line}")
     if built.above_max_flops:
         sweep = settings.sweep

@@ -118,7 +118,7 @@ def main(config: DictConfig, overrides: Sequence[str]) -> int:
         print(f"resubmitting {len(tasks):,} tasks ({', '.join(cfg.states)}) in {len(packs):,} jobs "
               f"({launch.launcher.name})")
         for line in describe_fit(limits, read_storage(sweep_dir), packs, len(tasks),
-                                 launch.checkpoint.every_minutes > 0, launch.launcher.get("feed_minutes")):
+                                 settings.checkpoint.every_minutes > 0, settings.feed_minutes):
             print(f"  {line}")
         return run_jobs(sweep_dir, settings, packs, tasks, configs, limits)
 

@@ -64,6 +64,12 @@ class LaunchSettings(RunSettings, Runtime):
         return self.launcher.signal_delay_s if isinstance(self.launcher, SlurmLauncher) else None
 
     @property
+    def feed_minutes(self) -> int | None:
+        """The time limit of the job that submits what the cluster's submit limits held back (None: none, or a
+        local launcher)."""
+        return self.launcher.feed_minutes if isinstance(self.launcher, SlurmLauncher) else None
+
+    @property
     def job_startup_s(self) -> float:
         """A job's predicted start-up: ``cost.startup_s`` where each job is its own process (SLURM); 0 for local
         workers, which start once each, not once per pack."""
