@@ -11,25 +11,16 @@ SLURM's commands find (`cluster/up.sh`: this machine's). docs/operations.md stat
 import argparse
 import re
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pyarrow.parquet as pq
+from commands import timed_command
 
 STUDIES = {"input_state": "+sweep=input_state", "input_output": "+sweep=input_output",
            "demo": "+sweep=demo"}  # the demo's 216 tasks: a check of this script in a minute
 ACTIVE = re.compile(r"running ([\d,]+) \| pending ([\d,]+)")
-
-
-def command(*args: str) -> tuple[str, float]:
-    """Run ``python -m nsl_hpc.<args>``; its stdout and wall seconds (a failure stops the benchmark)."""
-    started = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True)
-    if done.returncode:
-        sys.exit(f"{' '.join(args)} exited {done.returncode}: {done.stderr.strip()[-2000:]}")
-    return done.stdout, time.perf_counter() - started
 
 
 def watch(sweep_dir: Path, look_s: float) -> tuple[float, list[float], str]:
@@ -37,7 +28,7 @@ def watch(sweep_dir: Path, look_s: float) -> tuple[float, list[float], str]:
     seconds, its last output."""
     started, calls = time.perf_counter(), []
     while True:
-        out, seconds = command("nsl_hpc.status", f"sweep_dir={sweep_dir}")
+        out, seconds, _ = timed_command("nsl_hpc.status", f"sweep_dir={sweep_dir}")
         calls.append(seconds)
         running, pending = (int(value.replace(",", "")) for value in ACTIVE.search(out).groups())
         if not running and not pending:
@@ -52,18 +43,18 @@ def files(sweep_dir: Path) -> int:
 def rehearse(study: str, root: Path, look_s: float) -> dict[str, str]:
     sweep_dir = root / study
     started = time.perf_counter()
-    out, launch_s = command("nsl_hpc.launch", STUDIES[study], "launcher=slurm", "rehearsal=true",
+    out, launch_s, _ = timed_command("nsl_hpc.launch", STUDIES[study], "launcher=slurm", "rehearsal=true",
                             f"sweep_dir={sweep_dir}")
     tasks = re.search(r"([\d,]+) tasks", out).group(1)
     jobs = re.search(r"submitted ([\d,]+) jobs in (\d+) arrays", out)
     jobs_s, calls, _ = watch(sweep_dir, look_s)
-    out, resubmit_s = command("nsl_hpc.resubmit", f"sweep_dir={sweep_dir}")
+    out, resubmit_s, _ = timed_command("nsl_hpc.resubmit", f"sweep_dir={sweep_dir}")
     again = re.search(r"submitted ([\d,]+) jobs", out)
     rerun_s, more_calls, last = watch(sweep_dir, look_s)
     calls += more_calls
-    merged, merge_s = command("nsl_hpc.merge", f"sweep_dir={sweep_dir}")
-    _, merge_again_s = command("nsl_hpc.merge", f"sweep_dir={sweep_dir}")
-    _, fit_s = command("nsl_hpc.fit", f"sweep_dir={sweep_dir}")
+    merged, merge_s, _ = timed_command("nsl_hpc.merge", f"sweep_dir={sweep_dir}")
+    _, merge_again_s, _ = timed_command("nsl_hpc.merge", f"sweep_dir={sweep_dir}")
+    _, fit_s, _ = timed_command("nsl_hpc.fit", f"sweep_dir={sweep_dir}")
     total_s = time.perf_counter() - started
     fits = pq.read_table(sweep_dir / "nsl_fits.parquet").to_pylist()
     planted = [row for row in fits if row.get("planted_formula") is not None]

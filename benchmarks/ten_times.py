@@ -16,10 +16,10 @@ MinJobAge (600 s on cluster/): on this machine's cluster, leave 10 minutes befor
 import argparse
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
+from commands import timed_command
 from synthetic import fill_sweep
 
 from nsl_hpc.sweep.layout import MANIFEST, SUBMISSIONS
@@ -29,19 +29,6 @@ STUDY = ["+sweep=input_state", "launcher=slurm", "launcher.hold=true"]
 SCALES = {1: [], 10: ["sweep.grid.seed=[" + ",".join(map(str, range(70))) + "]", "max_tasks=1000000"]}
 
 
-def command(*args: str) -> tuple[str, float, float]:
-    """Run ``python -m nsl_hpc.<args>``: its stdout, wall seconds and peak resident memory (GiB, GNU time's)."""
-    with tempfile.NamedTemporaryFile("r") as peak:
-        started = time.perf_counter()
-        done = subprocess.run(["/usr/bin/time", "-f", "%M", "-o", peak.name, sys.executable, "-m", *args],
-                              capture_output=True, text=True)
-        seconds = time.perf_counter() - started
-        kib = int(peak.read().split()[-1])
-    if done.returncode:
-        sys.exit(f"{' '.join(args)} exited {done.returncode}: {done.stderr.strip()[-2000:]}")
-    return done.stdout, seconds, kib / 2**20
-
-
 def size_mib(path: Path) -> float:
     files = [path] if path.is_file() else [file for file in path.rglob("*") if file.is_file()]
     return sum(file.stat().st_size for file in files) / 2**20
@@ -49,19 +36,20 @@ def size_mib(path: Path) -> float:
 
 def measure(scale: int, root: Path) -> dict[str, str]:
     sweep_dir = root / f"x{scale}"
-    out, plan_s, _ = command("nsl_hpc.launch", *STUDY, *SCALES[scale], f"sweep_dir={sweep_dir}", "dry_run=true")
+    out, plan_s, _ = timed_command("nsl_hpc.launch", *STUDY, *SCALES[scale], f"sweep_dir={sweep_dir}",
+                                   "dry_run=true")
     tasks = next(line for line in out.splitlines() if " tasks, " in line).split(": ", 1)[1].split(" tasks")[0]
     jobs = next(line.strip() for line in out.splitlines() if line.strip().startswith("jobs: ")).split(" (")[0]
-    out, launch_s, launch_gib = command("nsl_hpc.launch", *STUDY, *SCALES[scale], f"sweep_dir={sweep_dir}")
+    out, launch_s, launch_gib = timed_command("nsl_hpc.launch", *STUDY, *SCALES[scale], f"sweep_dir={sweep_dir}")
     try:
         arrays = len(read_submissions(sweep_dir))
         started = time.perf_counter()
         rows, failures = fill_sweep(sweep_dir)
         fill_s = time.perf_counter() - started
-        _, status_s, status_gib = command("nsl_hpc.status", f"sweep_dir={sweep_dir}")
-        merged, merge_s, merge_gib = command("nsl_hpc.merge", f"sweep_dir={sweep_dir}")
-        _, status_again_s, _ = command("nsl_hpc.status", f"sweep_dir={sweep_dir}")
-        _, merge_again_s, _ = command("nsl_hpc.merge", f"sweep_dir={sweep_dir}")
+        _, status_s, status_gib = timed_command("nsl_hpc.status", f"sweep_dir={sweep_dir}")
+        merged, merge_s, merge_gib = timed_command("nsl_hpc.merge", f"sweep_dir={sweep_dir}")
+        _, status_again_s, _ = timed_command("nsl_hpc.status", f"sweep_dir={sweep_dir}")
+        _, merge_again_s, _ = timed_command("nsl_hpc.merge", f"sweep_dir={sweep_dir}")
     finally:  # held jobs: cancel them whatever happened
         subprocess.run(["scancel", *(record["array_id"] for record in read_submissions(sweep_dir))], check=False)
     return {
