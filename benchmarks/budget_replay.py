@@ -43,7 +43,7 @@ from nsl_hpc.analysis.nsl_settings import nsl_settings
 from nsl_hpc.analysis.widths import decided, law_state, widths_of
 from nsl_hpc.config import compose_config, plain
 from nsl_hpc.config.schema import typed
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.sweep.budget import WIDTHS, Budget, BudgetSettings, budget_of, planned_seconds, stopped_resources
 from nsl_hpc.sweep.prepare import build_sweep
 from nsl_hpc.sweep.rounds import Rounds, first_round_levels, next_round

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import torch
 
-from nsl_hpc.cache import ArrayCache
-from nsl_hpc.checkpoint import Checkpointer, read_info
 from nsl_hpc.config import compose_config
+from nsl_hpc.core.cache import ArrayCache
+from nsl_hpc.core.checkpoint import Checkpointer, read_info
 from nsl_hpc.models import build_model
 from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.input_state.data import build_training_set

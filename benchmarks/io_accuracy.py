@@ -17,7 +17,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from nsl_hpc.config import compose_config
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.sweep.task import run_task
 
 ANCHORS_MV = {"silverbox": {"arrow_full": 1.41, "arrow_no_extrapolation": 0.316}, "wiener_hammerstein": {"test": 0.241}}

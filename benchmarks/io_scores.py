@@ -16,7 +16,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from nsl_hpc.config import compose_config
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.sweep.task import run_task
 
 POINTS = {"narx": {"iter_multiplier": 4, "width_tier": 16, "depth": 1},

@@ -19,8 +19,8 @@ import pyarrow.parquet as pq
 from omegaconf import DictConfig
 
 from nsl_hpc.analysis.published import gap_to_published, resource_columns
-from nsl_hpc.atomic import write_text
 from nsl_hpc.config import tool_settings
+from nsl_hpc.core.atomic import write_text
 
 
 def settings(argv: list[str]) -> DictConfig:

@@ -19,11 +19,11 @@ import torch
 
 from nsl_hpc.analysis.published import published_law, step_envelope_at
 from nsl_hpc.analysis.reproduction import factor_text, resource_text
-from nsl_hpc.atomic import write_text
-from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config, plain, tool_settings
 from nsl_hpc.config.schema import typed
 from nsl_hpc.config.system import InputStateSystem, TestSet
+from nsl_hpc.core.atomic import write_text
+from nsl_hpc.core.cache import ArrayCache
 from nsl_hpc.studies.input_state.data import Dataset, build_test_set
 from nsl_hpc.studies.input_state.lockstep import predict_derivatives, train_lockstep
 from nsl_hpc.studies.input_state.study import InputState

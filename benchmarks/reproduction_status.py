@@ -29,10 +29,10 @@ from nsl_hpc.analysis.reproduction import (
     statuses_json,
     with_table,
 )
-from nsl_hpc.atomic import replacing, write_text
 from nsl_hpc.config import plain, tool_settings
 from nsl_hpc.config.schema import typed
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.atomic import replacing, write_text
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.sweep import layout
 
 

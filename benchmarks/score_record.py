@@ -9,8 +9,8 @@ import sys
 from pathlib import Path
 
 from nsl_hpc.analysis.reproduction import envelope_factors, factor_text, largest_factor, resource_text
-from nsl_hpc.atomic import write_text
 from nsl_hpc.config import plain, tool_settings
+from nsl_hpc.core.atomic import write_text
 from nsl_hpc.sweep import layout
 
 

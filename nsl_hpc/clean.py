@@ -24,8 +24,8 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.atomic import TEMPORARY, leftover_temporaries
-from nsl_hpc.checkpoint import info_path
+from nsl_hpc.core.atomic import TEMPORARY, leftover_temporaries
+from nsl_hpc.core.checkpoint import info_path
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.directory import process_alive, sweep_lock
 from nsl_hpc.sweep.groups import STALE_S, lock_path, saved_groups

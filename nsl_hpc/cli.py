@@ -25,8 +25,8 @@ from nsl_hpc.config import (
 )
 from nsl_hpc.config.launchers import LAUNCHERS
 from nsl_hpc.config.schema import field_docs
-from nsl_hpc.diagnostics import log_command
-from nsl_hpc.errors import ConfigError, RunError
+from nsl_hpc.core.diagnostics import log_command
+from nsl_hpc.core.errors import ConfigError, RunError
 
 
 def schema_docs() -> dict[str, str]:

@@ -21,9 +21,9 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
-from nsl_hpc.atomic import replacing
 from nsl_hpc.config import config_dir
-from nsl_hpc.errors import ConfigError, one_line
+from nsl_hpc.core.atomic import replacing
+from nsl_hpc.core.errors import ConfigError, one_line
 
 
 def find_file(source: Path | None, name: str) -> Path | None:

@@ -26,8 +26,8 @@ from nsl_hpc.analysis.cheapest import calibration_of, cheapest_configurations, d
 from nsl_hpc.analysis.fitting import fits_path, read_results
 from nsl_hpc.analysis.nsl_settings import Nsl, check_target, nsl_settings
 from nsl_hpc.analysis.prediction import describe_need, what_it_takes
-from nsl_hpc.atomic import read_parquet
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.atomic import read_parquet
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.launch_settings import launch_settings
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep

@@ -22,8 +22,8 @@ from nsl_hpc.analysis.learning import learning_lines
 from nsl_hpc.analysis.nsl_settings import MlflowSettings, figure_settings, nsl_settings
 from nsl_hpc.analysis.prediction import what_it_takes
 from nsl_hpc.analysis.report import comparison_markdown, report_html, scores_note, what_it_takes_html
-from nsl_hpc.atomic import write_text
 from nsl_hpc.config.schema import typed
+from nsl_hpc.core.atomic import write_text
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.launch_settings import launch_settings
 from nsl_hpc.sweep.manifest import read_launch_config, require_sweep

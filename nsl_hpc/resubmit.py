@@ -25,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc import cli
 from nsl_hpc.config.schema import field_names, setting, typed
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.code import require_same_code
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock

@@ -15,8 +15,8 @@ import torch  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 from xdist.scheduler import LoadScopeScheduling  # noqa: E402
 
-from nsl_hpc.cache import ArrayCache  # noqa: E402
 from nsl_hpc.config import compose_config  # noqa: E402
+from nsl_hpc.core.cache import ArrayCache  # noqa: E402
 from tests import clusters  # noqa: E402
 from tests.sweeps import SHARED_CACHE  # noqa: E402
 

@@ -27,7 +27,7 @@ from nsl_hpc.analysis.broken_law import (
     theta_of,
 )
 from nsl_hpc.analysis.published import published_laws
-from nsl_hpc.atomic import replacing
+from nsl_hpc.core.atomic import replacing
 from nsl_hpc.nsl import default_settings
 
 

@@ -10,7 +10,7 @@ import sys
 import pytest
 
 from nsl_hpc.config import compose_config, tool_settings
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.resubmit import refuse_task_overrides
 from nsl_hpc.sweep.launch_settings import check_run_settings
 from tests.sweeps import TINY_GRID, nsl

@@ -18,9 +18,9 @@ import pytest
 import submitit
 import torch
 
-from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info, scoring_progress
 from nsl_hpc.config import compose_config
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.checkpoint import Checkpointer, TrainingStopped, read_info, scoring_progress
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.models import build_model
 from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.input_output import lockstep as io_lockstep

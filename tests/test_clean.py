@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from nsl_hpc.checkpoint import Checkpointer, info_path
+from nsl_hpc.core.checkpoint import Checkpointer, info_path
 from nsl_hpc.sweep.groups import GroupLock, checkpoint_path
 from nsl_hpc.sweep.rows import read_row
 from tests.sweeps import ALONE, OWN_CACHE, TINY_GRID, manifest_ids, nsl, row_files
@@ -89,7 +89,7 @@ def test_a_compiled_sweep_shares_its_kernel_cache_and_clean_removes_it_once_done
 KILLED_WRITER = """
 import os, signal, sys
 from pathlib import Path
-from nsl_hpc.atomic import replacing
+from nsl_hpc.core.atomic import replacing
 with replacing(Path(sys.argv[1])) as temporary:
     temporary.write_bytes(b"half a checkpoint")
     os.kill(os.getpid(), signal.SIGKILL)  # as scancel's SIGKILL or a lost node: no clean-up runs

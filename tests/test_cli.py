@@ -13,7 +13,7 @@ import pytest
 import nsl_hpc
 from nsl_hpc.cli import usage
 from nsl_hpc.config import compose_config
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from tests.sweeps import TINY_GRID, nsl
 
 # verb, its config, keys its help must name (its own ones, not every key of every config)

@@ -6,8 +6,8 @@ import multiprocessing
 import numpy as np
 import pytest
 
-from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import system as system_groups
+from nsl_hpc.core.cache import ArrayCache
 from nsl_hpc.studies.input_state.data import (
     build_test_set,
     build_training_set,

@@ -176,6 +176,16 @@ def test_the_layout_lists_every_module_and_only_modules_that_exist():
         assert modules - {"__init__"} <= names, f"{folder}: {sorted(modules - {'__init__'} - names)} not listed"
 
 
+def test_the_top_level_shows_the_commands():
+    """Directly under nsl_hpc/ sit the commands (each runs as ``python -m nsl_hpc.<verb>``) and what users and the
+    commands share at their level (cli, registry, the public fit API): no more than 20 modules; the shared base
+    is core/."""
+    top = {path.stem: path.read_text() for path in (ROOT / "nsl_hpc").glob("*.py") if path.stem != "__init__"}
+    commands = {name for name, source in top.items() if 'if __name__ == "__main__":' in source}
+    assert set(top) - commands == {"cli", "registry", "nsl"}
+    assert len(top) <= 20
+
+
 def test_the_glossary_names_definitions_the_code_has():
     """Each term of docs/layout.md's glossary points at a definition (class, function or attribute) by its module:
     the names a reader meets in the code."""

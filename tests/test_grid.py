@@ -6,7 +6,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from nsl_hpc.config import compose_config
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.settings import batch_count
 from nsl_hpc.sweep.grid import build_manifest, expand_grid, grid_size

@@ -9,7 +9,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.input_output.data import load_benchmark
 from nsl_hpc.sweep.rows import read_row

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.sweep.directory import sweep_lock, sweep_lock_holder
 from nsl_hpc.sweep.limits import ClusterLimits, Limit, cpus_of, describe_fit, slurm_minutes, smallest
 from nsl_hpc.sweep.plan import Group, Pack

@@ -8,7 +8,7 @@ import torch
 
 from nsl_hpc.config import compose_config
 from nsl_hpc.config.arch import Arch, arch_settings
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import mlp, parameter_count
 from nsl_hpc.models.tensor_layout import BATCH_MAJOR, FEATURE_MAJOR

@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 from nsl_hpc.config import compose_config, config_dir, config_groups
 from nsl_hpc.config.launchers import DebugLauncher, SlurmLauncher, launcher_from
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.status import remaining_seconds, running_cores, summary
 from nsl_hpc.sweep.executors import array_chunks, balance, slurm_executor
 from nsl_hpc.sweep.groups import GroupLock

@@ -16,7 +16,7 @@ import torch
 import yaml
 
 import nsl_hpc
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.models import build_model, stackable
 from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set

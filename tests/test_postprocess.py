@@ -20,7 +20,7 @@ from mlflow.tracking import MlflowClient
 from nsl_hpc.analysis.cards import core_hours
 from nsl_hpc.analysis.figures import draw_nsl, legend_kind, power_label
 from nsl_hpc.analysis.nsl_settings import Figures
-from nsl_hpc.seeding import stable_hash
+from nsl_hpc.core.seeding import stable_hash
 from nsl_hpc.sweep.directory import sweep_lock
 from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.launch_settings import launch_settings

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import scipy.io
 
-from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config
 from nsl_hpc.config.system import InputOutputSystem
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.cache import ArrayCache
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.place_data import main as place_data
 from nsl_hpc.studies.input_output.data import load_benchmark
 from tests.helpers import system_settings

@@ -12,7 +12,7 @@ from nsl_hpc.config import compose_config, config_dir
 from nsl_hpc.config.arch import STUDIES, arch_settings
 from nsl_hpc.config.schema import field_names, typed
 from nsl_hpc.config.system import InputOutputSystem, InputStateSystem
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.studies import studies
 from nsl_hpc.studies.settings import InputOutputTrain, InputStateTrain, RolloutSegment
 from nsl_hpc.sweep.run_settings import RUN_GROUPS, Checkpoint, Cost, Watchdog, run_settings

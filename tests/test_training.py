@@ -11,7 +11,7 @@ from torch._dynamo.utils import counters
 
 from nsl_hpc.config import config_dir
 from nsl_hpc.config.schema import typed
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.models import build_model
 from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.input_state.data import Dataset, build_test_set, build_training_set

@@ -7,7 +7,7 @@ import math
 import pytest
 
 from nsl_hpc.analysis.widths import decided, describe_law_records, law_state, narrowing, widths_of
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.sweep.budget import StopWhen, stop_when_of, stopped_resources
 from tests.fit_clouds import law
 from tests.test_budget import TASKS, round_two

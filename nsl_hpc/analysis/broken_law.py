@@ -33,8 +33,8 @@ from scipy.optimize import least_squares, lsq_linear
 from scipy.special import expit
 
 from nsl_hpc.config.schema import field_names, setting, typed
-from nsl_hpc.errors import require_number
-from nsl_hpc.law import NSLFit, log_law, log_power, slopes, softplus
+from nsl_hpc.core.errors import require_number
+from nsl_hpc.core.law import NSLFit, log_law, log_power, slopes, softplus
 
 OBJECTIVES = ("margin", "study")
 ENVELOPES = ("step", "interpolated")

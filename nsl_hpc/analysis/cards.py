@@ -17,8 +17,8 @@ import pyarrow as pa
 
 from nsl_hpc.analysis.fitting import fit_note, nsl_key
 from nsl_hpc.analysis.nsl_settings import Nsl
-from nsl_hpc.atomic import write_text
-from nsl_hpc.seeding import stable_hash
+from nsl_hpc.core.atomic import write_text
+from nsl_hpc.core.seeding import stable_hash
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.formats import package_version
 from nsl_hpc.sweep.launch_settings import LaunchSettings

@@ -26,9 +26,9 @@ from nsl_hpc.analysis.cards import core_hours
 from nsl_hpc.analysis.fitting import fittable, pair_outcomes
 from nsl_hpc.analysis.joint_law import VARIABLES, JointLaw, JointLawError, bootstrap_joint_laws, fit_joint_law
 from nsl_hpc.analysis.nsl_settings import Joint
-from nsl_hpc.errors import ConfigError
-from nsl_hpc.progress import progress
-from nsl_hpc.seeding import stable_seed
+from nsl_hpc.core.errors import ConfigError
+from nsl_hpc.core.progress import progress
+from nsl_hpc.core.seeding import stable_seed
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import Pair, Study
 from nsl_hpc.sweep.launch_settings import LaunchSettings

@@ -24,8 +24,8 @@ from nsl_hpc.analysis.fitting import fit_from_row, fittable, pair_outcomes
 from nsl_hpc.analysis.nsl_settings import Figures, Nsl
 from nsl_hpc.analysis.published import KEY as PUBLISHED_KEY
 from nsl_hpc.analysis.published import published_law
-from nsl_hpc.atomic import replacing
-from nsl_hpc.progress import progress
+from nsl_hpc.core.atomic import replacing
+from nsl_hpc.core.progress import progress
 from nsl_hpc.sweep import layout
 
 REHEARSAL_TITLE = "REHEARSAL, synthetic outcomes: "  # on every figure of a rehearsal

@@ -23,10 +23,10 @@ from nsl_hpc.analysis.broken_law import (
 )
 from nsl_hpc.analysis.nsl_settings import Nsl
 from nsl_hpc.analysis.published import comparison
-from nsl_hpc.atomic import read_parquet, write_parquet, write_text
-from nsl_hpc.errors import ConfigError, RunError
-from nsl_hpc.progress import progress
-from nsl_hpc.seeding import stable_seed
+from nsl_hpc.core.atomic import read_parquet, write_parquet, write_text
+from nsl_hpc.core.errors import ConfigError, RunError
+from nsl_hpc.core.progress import progress
+from nsl_hpc.core.seeding import stable_seed
 from nsl_hpc.studies.metrics import NORMALIZATIONS
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.launch_settings import LaunchSettings

@@ -24,9 +24,9 @@ from mlflow.tracking import MlflowClient
 from nsl_hpc.analysis.fitting import interval_columns, nsl_key
 from nsl_hpc.analysis.nsl_settings import MlflowSettings
 from nsl_hpc.config.mapping import flatten
-from nsl_hpc.errors import RunError, one_line
-from nsl_hpc.progress import progress
-from nsl_hpc.seeding import stable_hash
+from nsl_hpc.core.errors import RunError, one_line
+from nsl_hpc.core.progress import progress
+from nsl_hpc.core.seeding import stable_hash
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.launch_settings import LaunchSettings

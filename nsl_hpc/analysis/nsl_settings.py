@@ -9,7 +9,7 @@ from typing import Any
 
 from nsl_hpc.analysis.broken_law import FitSettings
 from nsl_hpc.config.schema import setting, typed
-from nsl_hpc.errors import ConfigError, require_choice, require_number
+from nsl_hpc.core.errors import ConfigError, require_choice, require_number
 
 INTERVALS = ("basic", "percentile")
 

@@ -24,8 +24,8 @@ import pyarrow as pa
 
 from nsl_hpc.analysis.fitting import fit_from_row, fit_sweep, nsl_key
 from nsl_hpc.analysis.nsl_settings import Nsl
-from nsl_hpc.atomic import write_text
-from nsl_hpc.errors import damaged_file
+from nsl_hpc.core.atomic import write_text
+from nsl_hpc.core.errors import damaged_file
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.budget import WIDTHS, StopWhen, stopped_resources
 

@@ -16,11 +16,11 @@ import torch
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.atomic import write_text
 from nsl_hpc.bench.compiled import compiled_part
 from nsl_hpc.bench.input_output import input_output_part
 from nsl_hpc.bench.input_state import input_state_part
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.atomic import write_text
+from nsl_hpc.core.errors import ConfigError
 
 MARKERS = {"input_state": ("<!-- bench:start -->", "<!-- bench:end -->"),
            "input_output": ("<!-- bench-io:start -->", "<!-- bench-io:end -->"),

@@ -36,8 +36,8 @@ from omegaconf import DictConfig
 from torch.profiler import ProfilerActivity, profile
 
 from nsl_hpc.bench.measure import matmul_peak_flops
-from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config
+from nsl_hpc.core.cache import ArrayCache
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
 from nsl_hpc.studies import pair_of

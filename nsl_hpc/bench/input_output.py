@@ -26,11 +26,11 @@ import torch
 from omegaconf import DictConfig
 
 from nsl_hpc.bench.measure import TASK_IMPORTS, interpolate, planner_core_hours, study_manifest, timed
-from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config, plain
 from nsl_hpc.config.schema import typed
 from nsl_hpc.config.system import InputOutputSystem
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.cache import ArrayCache
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.studies.input_output.data import load_benchmark
 from nsl_hpc.studies.input_output.lockstep import IOMember, train_lockstep
 from nsl_hpc.studies.input_output.scoring import numpy_mlps, score_records

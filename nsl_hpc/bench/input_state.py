@@ -39,11 +39,11 @@ from nsl_hpc.bench.measure import (
     study_manifest,
     timed,
 )
-from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config import compose_config
 from nsl_hpc.config.arch import arch_settings
 from nsl_hpc.config.schema import typed
 from nsl_hpc.config.system import InputStateSystem
+from nsl_hpc.core.cache import ArrayCache
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set

@@ -14,7 +14,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from nsl_hpc.config.launchers import LAUNCHERS, register_launchers
 from nsl_hpc.config.mapping import plain
-from nsl_hpc.errors import ConfigError, one_line
+from nsl_hpc.core.errors import ConfigError, one_line
 
 if TYPE_CHECKING:
     from hydra.errors import MissingConfigException

@@ -9,7 +9,7 @@ from typing import Any
 from nsl_hpc.config.mapping import plain
 from nsl_hpc.config.schema import setting, typed
 from nsl_hpc.config.targets import PACKAGE_PREFIX, TARGET
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 
 BLOCKS = ("layernorm_silu", "tanh")  # an MLP's hidden layer: Linear -> LayerNorm -> SiLU, or Linear -> tanh
 STUDIES = ("input_state", "input_output")

@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 
 from nsl_hpc.config.mapping import plain
 from nsl_hpc.config.schema import setting
-from nsl_hpc.errors import ConfigError, one_line, require_int, require_positive_int
+from nsl_hpc.core.errors import ConfigError, one_line, require_int, require_positive_int
 
 SBATCH_MEMORY = re.compile(r"[1-9][0-9]*[KMGT]?")  # sbatch --mem: megabytes, or with a unit
 SBATCH_FLAG = re.compile(r"[A-Za-z][A-Za-z0-9_-]*")  # a long option's name (submitit writes _ as -)

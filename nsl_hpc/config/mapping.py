@@ -5,7 +5,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 
 
 def plain(node: Any, resolve: bool = True) -> dict[str, Any]:

@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from typing import Any, TypeVar
 
 from nsl_hpc.config.mapping import plain
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 
 T = TypeVar("T")
 

@@ -9,7 +9,7 @@ from typing import Any
 
 from nsl_hpc.config.arch import STUDIES
 from nsl_hpc.config.schema import setting, typed
-from nsl_hpc.errors import ConfigError, require_choice
+from nsl_hpc.core.errors import ConfigError, require_choice
 
 MEASURED_KINDS = ("benchmark", "records", "files")  # read from files: a nonlinear_benchmarks loader, .npz records of
 #   realisations, records of your own (.csv, .npz, .mat columns: FileRecords)

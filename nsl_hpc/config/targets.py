@@ -14,7 +14,7 @@ from typing import Any, Protocol
 
 import yaml
 
-from nsl_hpc.errors import ConfigError, one_line
+from nsl_hpc.core.errors import ConfigError, one_line
 
 TARGET = "_target_"
 PACKAGE_PREFIX = "nsl_hpc."  # a target inside the package: identified by the package's version, as before targets

@@ -9,7 +9,7 @@ from torch import nn
 
 from nsl_hpc.config.arch import Arch
 from nsl_hpc.config.targets import called, labelled, located
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.models.state_space import StateSpaceArchitecture, StateSpaceModel
 
 

@@ -11,7 +11,7 @@ import torch
 from torch import nn
 
 from nsl_hpc.config.arch import BLOCKS
-from nsl_hpc.errors import ConfigError, require_choice
+from nsl_hpc.core.errors import ConfigError, require_choice
 
 LAYER_NORM_EPS = 1e-5  # torch.nn.LayerNorm's default
 

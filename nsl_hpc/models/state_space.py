@@ -13,7 +13,7 @@ from collections.abc import Mapping
 import torch
 from torch import nn
 
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.models.blocks import Head, mlp
 from nsl_hpc.models.tensor_layout import BATCH_MAJOR, Layout
 

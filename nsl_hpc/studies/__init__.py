@@ -12,7 +12,7 @@ from typing import Any
 
 from nsl_hpc.config import require_one_study
 from nsl_hpc.config.mapping import plain
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.studies.base import Pair, Study
 from nsl_hpc.studies.input_output.study import InputOutput
 from nsl_hpc.studies.input_state.study import InputState

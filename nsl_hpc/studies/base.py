@@ -11,13 +11,13 @@ from typing import Any, Generic, TypeVar
 
 from omegaconf import DictConfig
 
-from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.config.arch import Arch
 from nsl_hpc.config.mapping import plain
 from nsl_hpc.config.schema import field_names, setting, typed
 from nsl_hpc.config.targets import TARGET, outcome_values, package_target
-from nsl_hpc.errors import require_positive_int
-from nsl_hpc.seeding import stable_hash, stable_seed
+from nsl_hpc.core.checkpoint import Checkpointer
+from nsl_hpc.core.errors import require_positive_int
+from nsl_hpc.core.seeding import stable_hash, stable_seed
 
 DRAWS = ("per_task", "shared_across_epochs")
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from nsl_hpc.config.arch import IO_ARCHITECTURES, STUDIES
 from nsl_hpc.config.schema import setting
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.studies.metrics import NORMALIZATIONS
 
 SCHEDULES = ("warmup_cosine", "constant")

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from nsl_hpc.checkpoint import Checkpointer
+from nsl_hpc.core.checkpoint import Checkpointer
 
 LOG = logging.getLogger(__name__)
 

@@ -36,7 +36,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from nsl_hpc.config.schema import setting, typed
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.sweep.decisions import describe_rounds
 from nsl_hpc.sweep.launch_settings import LaunchSettings
 

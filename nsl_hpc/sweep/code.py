@@ -8,9 +8,9 @@ import json
 from collections.abc import Mapping
 from pathlib import Path
 
-from nsl_hpc.atomic import write_text
 from nsl_hpc.config.targets import source_of
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.atomic import write_text
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.studies.base import Pair
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.formats import package_version

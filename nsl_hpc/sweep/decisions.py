@@ -11,8 +11,8 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from nsl_hpc.atomic import write_parquet, write_text
-from nsl_hpc.errors import ConfigError, damaged_file
+from nsl_hpc.core.atomic import write_parquet, write_text
+from nsl_hpc.core.errors import ConfigError, damaged_file
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.formats import upgrade_decisions
 from nsl_hpc.sweep.slurm import ACTIVE_JOB_STATES, job_states, slurm_command

@@ -21,7 +21,7 @@ import submitit
 from tqdm import tqdm
 
 from nsl_hpc.config.launchers import DebugLauncher, Launcher, LocalLauncher, SlurmLauncher
-from nsl_hpc.errors import ConfigError, RunError, one_line
+from nsl_hpc.core.errors import ConfigError, RunError, one_line
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import Pair
 from nsl_hpc.sweep import layout

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from nsl_hpc.atomic import write_text
+from nsl_hpc.core.atomic import write_text
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.layout import failure_path, task_log_path
 

@@ -15,7 +15,7 @@ from typing import Any
 import pyarrow as pa
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.sweep.groups import STALE_S
 
 FORMAT = 2

@@ -11,7 +11,7 @@ from typing import Any
 
 import pyarrow as pa
 
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.studies.base import Pair, Study
 from nsl_hpc.sweep.task import task_id_from
 

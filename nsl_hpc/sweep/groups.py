@@ -1,7 +1,7 @@
 """Where a sweep keeps the training checkpoints of its lockstep groups, and the lock that lets one job at a time
 train a group.
 
-``<sweep_dir>/checkpoints/<key[:2]>/<key>.pt`` (with ``<key>.json``, ``nsl_hpc.checkpoint``) holds the state of
+``<sweep_dir>/checkpoints/<key[:2]>/<key>.pt`` (with ``<key>.json``, ``nsl_hpc.core.checkpoint``) holds the state of
 the group of the task ids whose hash is ``key``, in training order; ``<key>.lock`` says which job trains it now
 (job, node, pid and the task ids: ``status`` and ``merge`` call them running).
 A job takes the lock before it trains a group and renews it as long as the group trains; a second job that finds
@@ -22,9 +22,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from nsl_hpc.atomic import replacing
-from nsl_hpc.checkpoint import read_info
-from nsl_hpc.seeding import stable_hash
+from nsl_hpc.core.atomic import replacing
+from nsl_hpc.core.checkpoint import read_info
+from nsl_hpc.core.seeding import stable_hash
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.directory import process_alive
 

@@ -43,9 +43,9 @@ from typing import Any
 
 import submitit
 
-from nsl_hpc.checkpoint import Checkpointer, TrainingStopped, read_info, remove_checkpoint
 from nsl_hpc.config import plain
-from nsl_hpc.diagnostics import job_records, log_job
+from nsl_hpc.core.checkpoint import Checkpointer, TrainingStopped, read_info, remove_checkpoint
+from nsl_hpc.core.diagnostics import job_records, log_job
 from nsl_hpc.studies import import_training_code, study_of
 from nsl_hpc.studies.base import Pair, Study
 from nsl_hpc.sweep.directory import compile_cache, process_alive, tree, unsafe_refusal

@@ -11,7 +11,7 @@ from typing import Any
 from nsl_hpc.config import plain
 from nsl_hpc.config.launchers import LocalLauncher, SlurmLauncher, check_batch_text, launcher_from
 from nsl_hpc.config.schema import setting, typed
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.settings import Runtime, StudyName
 from nsl_hpc.sweep.plan import (

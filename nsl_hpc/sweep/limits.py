@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 from nsl_hpc.config.launchers import SlurmLauncher
-from nsl_hpc.errors import ConfigError, SlurmError
+from nsl_hpc.core.errors import ConfigError, SlurmError
 from nsl_hpc.sweep.launch_settings import LaunchSettings
 from nsl_hpc.sweep.plan import Pack
 from nsl_hpc.sweep.slurm import SlurmMissing, slurm_command

@@ -23,9 +23,9 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf._utils import get_yaml_loader
 from omegaconf.errors import OmegaConfBaseException
 
-from nsl_hpc.atomic import create_parquet, read_parquet, write_text
 from nsl_hpc.config import plain
-from nsl_hpc.errors import ConfigError, damaged_file
+from nsl_hpc.core.atomic import create_parquet, read_parquet, write_text
+from nsl_hpc.core.errors import ConfigError, damaged_file
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import Pair
 from nsl_hpc.sweep import layout

@@ -15,9 +15,9 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from nsl_hpc.atomic import create_parquet, make_durable, read_parquet, write_parquet, write_text
-from nsl_hpc.errors import ConfigError
-from nsl_hpc.progress import progress
+from nsl_hpc.core.atomic import create_parquet, make_durable, read_parquet, write_parquet, write_text
+from nsl_hpc.core.errors import ConfigError
+from nsl_hpc.core.progress import progress
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.decisions import read_decisions, skip_reasons
 from nsl_hpc.sweep.directory import sweep_lock

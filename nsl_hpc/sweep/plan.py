@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from nsl_hpc.config.launchers import Launcher, SlurmLauncher
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.studies.base import model_of
 from nsl_hpc.sweep.run_settings import Cost, Packing
 

@@ -14,7 +14,7 @@ import pyarrow.compute as pc
 from omegaconf import DictConfig, OmegaConf
 
 from nsl_hpc.config import compose_config, plain, unknown_key
-from nsl_hpc.errors import ConfigError, require_non_negative_int, require_positive_int
+from nsl_hpc.core.errors import ConfigError, require_non_negative_int, require_positive_int
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import Pair, Study
 from nsl_hpc.sweep import layout

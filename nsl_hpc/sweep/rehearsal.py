@@ -13,7 +13,7 @@ only on its config):
   group, once: resubmit runs what they left.
 
 Every row says ``rehearsal: true``; fit and report set the planted law beside the fitted one and say so on
-every figure. The law is the fits' (``nsl_hpc.law``): the rehearsal plants what they fit.
+every figure. The law is the fits' (``nsl_hpc.core.law``): the rehearsal plants what they fit.
 """
 
 import math
@@ -28,9 +28,9 @@ from typing import Any
 import numpy as np
 
 from nsl_hpc.config.schema import setting
-from nsl_hpc.errors import ConfigError
-from nsl_hpc.law import NSLFit
-from nsl_hpc.seeding import stable_seed
+from nsl_hpc.core.errors import ConfigError
+from nsl_hpc.core.law import NSLFit
+from nsl_hpc.core.seeding import stable_seed
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.plan import Pack
 from nsl_hpc.sweep.run_settings import DAY_S

@@ -17,7 +17,7 @@ import pyarrow.compute as pc
 from omegaconf import DictConfig
 
 from nsl_hpc.config.launchers import SlurmLauncher
-from nsl_hpc.errors import ConfigError, RunError
+from nsl_hpc.core.errors import ConfigError, RunError
 from nsl_hpc.studies.base import Study
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.budget import (

@@ -20,7 +20,7 @@ from typing import Any
 
 import pyarrow as pa
 
-from nsl_hpc.atomic import read_parquet, write_parquet
+from nsl_hpc.core.atomic import read_parquet, write_parquet
 from nsl_hpc.sweep import layout
 
 PARQUET_MAGIC = b"PAR1"  # the first and last four bytes of every Parquet file

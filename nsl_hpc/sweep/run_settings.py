@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from nsl_hpc.config.schema import setting, typed
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.sweep.groups import RENEW_S
 
 DAY_S, WEEK_MINUTES, YEAR_MINUTES = 86400, 10080, 525600

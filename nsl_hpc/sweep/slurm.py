@@ -8,7 +8,7 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from nsl_hpc.errors import ConfigError, SlurmError
+from nsl_hpc.core.errors import ConfigError, SlurmError
 
 
 class SlurmMissing(ConfigError):

@@ -8,8 +8,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from nsl_hpc.atomic import write_text
-from nsl_hpc.errors import damaged_file
+from nsl_hpc.core.atomic import write_text
+from nsl_hpc.core.errors import damaged_file
 from nsl_hpc.sweep import layout
 
 

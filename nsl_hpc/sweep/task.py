@@ -14,11 +14,11 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.config import plain
 from nsl_hpc.config.schema import field_names, setting, typed
-from nsl_hpc.errors import ConfigError, require_non_negative_int
-from nsl_hpc.seeding import stable_hash
+from nsl_hpc.core.checkpoint import Checkpointer
+from nsl_hpc.core.errors import ConfigError, require_non_negative_int
+from nsl_hpc.core.seeding import stable_hash
 from nsl_hpc.studies import study_of
 from nsl_hpc.studies.base import Pair, Study, Task
 from nsl_hpc.studies.settings import Runtime

@@ -8,7 +8,7 @@ import numpy as np
 
 from nsl_hpc.config.system import InputStateSystem
 from nsl_hpc.config.targets import called, labelled, located
-from nsl_hpc.errors import ConfigError, one_line
+from nsl_hpc.core.errors import ConfigError, one_line
 
 
 @runtime_checkable

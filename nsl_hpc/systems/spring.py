@@ -3,7 +3,7 @@ on the momenta (the paper's appendix) or on the positions (the authors' code).""
 
 import numpy as np
 
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.systems.port_hamiltonian import PortHamiltonianSystem, constant, diagonal
 
 J = [[0, 1, 0, 0], [-1, 0, 1, 0], [0, -1, 0, 1], [0, 0, -1, 0]]

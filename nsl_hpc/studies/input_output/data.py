@@ -20,7 +20,6 @@ from typing import Any
 
 import numpy as np
 
-from nsl_hpc.cache import ArrayCache
 from nsl_hpc.config.system import (
     BenchmarkSource,
     FileRecords,
@@ -29,8 +28,9 @@ from nsl_hpc.config.system import (
     RecordsSource,
     SimulatedSource,
 )
-from nsl_hpc.errors import ConfigError, one_line
-from nsl_hpc.seeding import stable_seed
+from nsl_hpc.core.cache import ArrayCache
+from nsl_hpc.core.errors import ConfigError, one_line
+from nsl_hpc.core.seeding import stable_seed
 from nsl_hpc.systems.duffing import simulate_duffing
 from nsl_hpc.systems.wiener_hammerstein import simulate_wiener_hammerstein
 

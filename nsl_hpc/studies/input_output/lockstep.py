@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from nsl_hpc.checkpoint import Checkpointer
+from nsl_hpc.core.checkpoint import Checkpointer
 from nsl_hpc.models.narx import NARX
 from nsl_hpc.models.subnet import SUBNET
 from nsl_hpc.studies.input_output.data import Signals

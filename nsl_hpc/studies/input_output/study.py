@@ -22,13 +22,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from omegaconf import DictConfig
 
-from nsl_hpc.cache import ArrayCache
-from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
 from nsl_hpc.config.arch import IO_ARCHITECTURES, Arch, NarxSettings, SubnetSettings
 from nsl_hpc.config.schema import setting
 from nsl_hpc.config.system import FileRecords, InputOutputSystem, MeasuredSource
 from nsl_hpc.config.targets import labelled, located
-from nsl_hpc.errors import ConfigError, require_member
+from nsl_hpc.core.cache import ArrayCache
+from nsl_hpc.core.checkpoint import Checkpointer, scoring_progress, trained_before
+from nsl_hpc.core.errors import ConfigError, require_member
 from nsl_hpc.studies.base import Pair, Study, Task, draw_tier
 from nsl_hpc.studies.input_output.data import Benchmark, load_benchmark, read_files, require_files
 from nsl_hpc.studies.settings import InputOutputTrain

@@ -23,10 +23,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from nsl_hpc.checkpoint import Checkpointer
 from nsl_hpc.config.arch import Arch
 from nsl_hpc.config.targets import labelled
-from nsl_hpc.errors import ConfigError, one_line
+from nsl_hpc.core.checkpoint import Checkpointer
+from nsl_hpc.core.errors import ConfigError, one_line
 from nsl_hpc.models import build_model
 from nsl_hpc.models.state_space import StateSpaceModel
 from nsl_hpc.studies.input_state.data import Dataset

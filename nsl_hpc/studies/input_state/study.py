@@ -16,12 +16,12 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from nsl_hpc.cache import ArrayCache
-from nsl_hpc.checkpoint import Checkpointer, scoring_progress, trained_before
 from nsl_hpc.config.arch import Arch
 from nsl_hpc.config.schema import setting
 from nsl_hpc.config.system import InputStateSystem
-from nsl_hpc.errors import ConfigError, require_member
+from nsl_hpc.core.cache import ArrayCache
+from nsl_hpc.core.checkpoint import Checkpointer, scoring_progress, trained_before
+from nsl_hpc.core.errors import ConfigError, require_member
 from nsl_hpc.studies.base import Pair, Study, Task, Tiers, draw_tier, model_of
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set, points_per_trajectory, training_points
 from nsl_hpc.studies.settings import InputStateTrain, Metric, batch_count

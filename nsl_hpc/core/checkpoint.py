@@ -24,7 +24,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from nsl_hpc.atomic import replacing, write_text
+from nsl_hpc.core.atomic import replacing, write_text
 
 LOG = logging.getLogger(__name__)
 

@@ -10,7 +10,7 @@ import os
 from collections.abc import Iterator
 from typing import TextIO
 
-from nsl_hpc.errors import ConfigError
+from nsl_hpc.core.errors import ConfigError
 
 LOGGER = logging.getLogger("nsl_hpc")
 JOB_FORMAT = "%(asctime)s %(levelname)s [%(where)s] %(message)s"

@@ -1,6 +1,6 @@
 """A content-addressed on-disk store of numpy arrays, safe under many concurrent readers and writers.
 
-Each entry is one ``.npz`` file named by the hash of its key, written atomically (``nsl_hpc.atomic``), so a
+Each entry is one ``.npz`` file named by the hash of its key, written atomically (``nsl_hpc.core.atomic``), so a
 reader sees either nothing or a whole file; two writers of the same key write identical content, so the
 last rename winning is harmless.
 """
@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from nsl_hpc.atomic import replacing
-from nsl_hpc.seeding import stable_hash
+from nsl_hpc.core.atomic import replacing
+from nsl_hpc.core.seeding import stable_hash
 
 Arrays = dict[str, np.ndarray]
 
