@@ -18,7 +18,7 @@ SETTINGS = {"cfg", "config", "base", "launch", "values", "settings", "system_cfg
             "joint"}
 # where a plain config is typed (config/: the owners themselves) or hashed for task ids and caches
 BOUNDARIES = {"config", "studies/__init__.py:study_of", "studies/base.py:shared_identity",
-              "studies/base.py:with_neutral_settings", "studies/input_output/study.py:shared_identity",
+              "studies/base.py:with_stored_defaults",
               "sweep/manifest.py:read_pair", "sweep/prepare.py:require_costs",
               "sweep/launch_settings.py:launch_settings", "sweep/launch_settings.py:check_run_settings"}
 def holder(node: ast.AST) -> str | None:

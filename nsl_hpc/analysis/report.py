@@ -13,8 +13,8 @@ from nsl_hpc.analysis.learning import PairLearning
 from nsl_hpc.analysis.nsl_settings import Learning, Nsl, ReportTargets
 from nsl_hpc.analysis.prediction import format_need
 from nsl_hpc.config import compose_config, plain
+from nsl_hpc.config.identity import outcome_values
 from nsl_hpc.config.mapping import flatten
-from nsl_hpc.config.targets import outcome_values
 from nsl_hpc.studies import study_named
 from nsl_hpc.sweep.grid import sub_grids
 from nsl_hpc.sweep.launch_settings import LaunchSettings

@@ -2,13 +2,12 @@
 an architecture) by its import path, the package's own as ``nsl_hpc.systems.spring.Spring`` and a user's as
 ``tanks.TwoTank`` (a module on PYTHONPATH). ``located`` imports it and ``called`` builds with it, each refusing
 in one line that names the config file and key; both take the group's typed settings (anything with a ``name``
-and a ``_target_``: ``config.system.InputStateSystem``, ``config.arch.Arch``). ``outcome_values`` is what of a
-group's plain values changes an outcome."""
+and a ``_target_``: ``config.system.InputStateSystem``, ``config.arch.Arch``)."""
 
 import hashlib
 import importlib
 import inspect
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -112,12 +111,3 @@ def package_target(group: str, name: str) -> str | None:
     path = config_dir() / group / f"{name}.yaml"
     return yaml.safe_load(path.read_text()).get(TARGET) if path.is_file() else None
 
-
-def outcome_values(value: Any) -> Any:
-    """``value`` without what cannot change an outcome: ``data_dir`` entries (where data lies) and a ``_target_``
-    inside the package (its code is the package's version, as the group's name was before targets). A user's
-    ``_target_`` stays: two of them are two systems or models."""
-    if isinstance(value, Mapping):
-        return {key: outcome_values(item) for key, item in value.items()
-                if key != "data_dir" and not (key == TARGET and str(item).startswith(PACKAGE_PREFIX))}
-    return value

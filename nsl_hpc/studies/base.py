@@ -12,9 +12,10 @@ from typing import Any, Generic, TypeVar
 from omegaconf import DictConfig
 
 from nsl_hpc.config.arch import Arch
+from nsl_hpc.config.identity import identity_values, with_stored_defaults
 from nsl_hpc.config.mapping import plain
 from nsl_hpc.config.schema import field_names, setting, typed
-from nsl_hpc.config.targets import TARGET, outcome_values, package_target
+from nsl_hpc.config.targets import TARGET, package_target
 from nsl_hpc.core.checkpoint import Checkpointer
 from nsl_hpc.core.errors import require_positive_int
 from nsl_hpc.core.seeding import stable_hash, stable_seed
@@ -83,11 +84,6 @@ class Study(Generic[P]):
     shared_keys: tuple[str, ...]  # config groups and keys that change the outcome of every task of a pair
     lockstep: bool = False  # train_and_score_group trains same-shape tasks together (in lockstep)
     pair_schema: type[P]  # the typed settings of a (system, arch): system, arch, train, ...
-    # (shared group, key, value): settings added after task ids existed, at the value that trains as before
-    neutral: tuple[tuple[str, str, Any], ...] = ()
-    # (shared group, key, value): settings that change only float rounding (how a step is computed), in no task's
-    # id at any value; a config stored before one existed runs with ``value``
-    rounding_only: tuple[tuple[str, str, Any], ...] = ()
 
     @property
     def size_axes(self) -> tuple[str, ...]:
@@ -129,27 +125,19 @@ class Study(Generic[P]):
         return stable_seed(purpose, *(task[key] for key in self.draw_keys(draws)))
 
     def shared_identity(self, values: Mapping[str, Any]) -> str:
-        """Hash of the shared outcome-changing groups of a plain config dict (``outcome_values``: paths and the
-        package's own ``_target_`` left out, and the settings of ``neutral`` at their neutral value: a sweep made
-        before such a setting existed keeps its task ids; the ``rounding_only`` ones at any value), with a
-        rehearsal's settings in a rehearsal."""
-        shared = {key: outcome_values(values[key]) for key in self.shared_keys}
+        """Hash of what a pair's plain config ``values`` gives each of its tasks' ids (``config.identity``: its
+        ``shared_keys`` groups less the one list of excluded settings), with a rehearsal's settings in a
+        rehearsal."""
+        shared = identity_values(self.name, self.shared_keys, values)
         if values.get("rehearsal"):  # a rehearsal's synthetic outcomes: never a real sweep's tasks
             shared["rehearsal"] = values["rehearse"]
-        for group, key, value in self.neutral:
-            if shared[group].get(key, value) == value:
-                shared[group].pop(key, None)
-        for group, key, _ in self.rounding_only:
-            shared[group].pop(key, None)
         return stable_hash(shared)
 
-    def with_neutral_settings(self, cfg: DictConfig) -> DictConfig:
-        """``cfg``, a pair's stored config, with the ``neutral`` and ``rounding_only`` settings it lacks (it was
-        stored before they existed) at their stated value, and a system or arch stored before targets with the
-        package's ``_target_`` of its name (``package_target``)."""
-        for group, key, value in (*self.neutral, *self.rounding_only):
-            if key not in cfg[group]:
-                cfg[group][key] = value
+    def with_stored_defaults(self, cfg: DictConfig) -> DictConfig:
+        """``cfg``, a pair's stored config, with the excluded settings it lacks (stored before they existed) at the
+        value every task had then (``config.identity.with_stored_defaults``), and a system or arch stored before
+        targets with the package's ``_target_`` of its name (``package_target``)."""
+        cfg = with_stored_defaults(self.name, cfg)
         for group in ("system", "arch"):
             target = package_target(group, cfg[group]["name"])
             if TARGET not in cfg[group] and target is not None:

@@ -4,7 +4,7 @@ launch.yaml records the ``format`` it was written in (``FORMAT``). A sweep launc
 ``format`` key) may lack settings added since, in launch.yaml and run.yaml; ``upgrade_launch`` gives each the value
 such a sweep ran with, so every reader of a sweep's launch config sees one shape; ``upgrade_decisions`` does the
 same for a budgeted sweep's decisions. The settings added to the pairs'
-task configs are upgraded by ``Study.with_neutral_settings`` (they also keep the task ids). A sweep written in a
+task configs are upgraded by ``Study.with_stored_defaults`` (they also keep the task ids). A sweep written in a
 later format, by a newer nsl_hpc, is refused in one line.
 """
 

@@ -95,10 +95,10 @@ def read_manifest(sweep_dir: Path, columns: list[str] | None = None) -> pa.Table
 
 
 def read_base_config(sweep_dir: Path, system: str, arch: str) -> DictConfig:
-    """The task config shared by the tasks of (system, arch), with the settings added since it was stored at
-    their neutral value (``Study.neutral``)."""
+    """The task config shared by the tasks of (system, arch), with the settings added since it was stored at the
+    value every task had before them (``Study.with_stored_defaults``, from ``config.identity``)."""
     cfg = read_yaml(base_config_path(sweep_dir, system, arch), sweep_dir)
-    return study_named(cfg.study.name).with_neutral_settings(cfg)
+    return study_named(cfg.study.name).with_stored_defaults(cfg)
 
 
 def read_pair(sweep_dir: Path, system: str, arch: str) -> Pair:

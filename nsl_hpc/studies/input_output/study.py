@@ -20,9 +20,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from omegaconf import DictConfig
 
-from nsl_hpc.config.arch import IO_ARCHITECTURES, Arch, NarxSettings, SubnetSettings
+from nsl_hpc.config.arch import Arch, NarxSettings, SubnetSettings
 from nsl_hpc.config.schema import setting
 from nsl_hpc.config.system import FileRecords, InputOutputSystem, MeasuredSource
 from nsl_hpc.config.targets import labelled, located
@@ -116,9 +115,6 @@ def training_memory_mb(pair: "InputOutputPair", width: int, depth: int) -> float
     return dtype_bytes * batch * values / 2**20
 
 
-# NARX's layout options at the values every NARX task had before they existed (no bypass, PyTorch's biases)
-NARX_NEUTRAL = {"bypass": False, "zero_bias": False}
-
 VALIDATION = "validation"  # the record name of the validation split (the training record after the pool)
 
 
@@ -140,32 +136,6 @@ class InputOutput(Study[InputOutputPair]):
     lockstep = True
     pair_schema = InputOutputPair
     shared_keys = ("system", "arch", "train", "draws")
-    rounding_only = (("train", "rollout_segment", {"feature_major": 10, "batch_major": 10}),)
-    neutral = (("train", "schedule", dict.fromkeys(IO_ARCHITECTURES, "warmup_cosine")),)
-
-    def shared_identity(self, values: Mapping[str, Any]) -> str:
-        """``Study.shared_identity`` with the train group's per-architecture schedule reduced to the pair's own, left
-        out where that is warmup_cosine, the schedule of every task before the setting, and NARX's layout options
-        left out at ``NARX_NEUTRAL``, the layout of every NARX task before them: their ids stay."""
-        train = dict(values["train"])
-        own = dict(train.pop("schedule", {})).get(values["arch"]["name"], "warmup_cosine")
-        if own != "warmup_cosine":
-            train["schedule"] = own
-        arch = dict(values["arch"])
-        if arch["name"] == "narx":
-            for key, value in NARX_NEUTRAL.items():
-                if arch.get(key, value) == value:
-                    arch.pop(key, None)
-        return super().shared_identity({**values, "train": train, "arch": arch})
-
-    def with_neutral_settings(self, cfg: DictConfig) -> DictConfig:
-        """``Study.with_neutral_settings``, and a NARX stored before its layout options with ``NARX_NEUTRAL``."""
-        cfg = super().with_neutral_settings(cfg)
-        if cfg.arch.name == "narx":
-            for key, value in NARX_NEUTRAL.items():
-                if key not in cfg.arch:
-                    cfg.arch[key] = value
-        return cfg
 
     def check_size(self, label: str, key: str, value: Any, pair: InputOutputPair) -> None:
         allowed = {"data_tier": pair.system.data_tiers, "width_tier": pair.tiers.width, "depth": pair.tiers.depth}

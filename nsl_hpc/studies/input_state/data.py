@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from nsl_hpc.config.identity import outcome_values
 from nsl_hpc.config.system import InputStateSystem
-from nsl_hpc.config.targets import outcome_values
 from nsl_hpc.core.cache import ArrayCache
 from nsl_hpc.core.seeding import stable_seed
 from nsl_hpc.systems import build_system

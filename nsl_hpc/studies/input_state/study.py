@@ -85,7 +85,6 @@ class InputState(Study[InputStatePair]):
     axes = ("system", "arch", "seed", "epochs", "data_tier", "width_tier", "depth_tier")
     length_axis = "epochs"
     shared_keys = ("system", "arch", "train", "data_per_trajectory", "draws", "metric")
-    neutral = (("train", "repeat", 1), ("train", "weight_decay", 0.0), ("train", "repeat_by_trajectories", None))
     lockstep = True
     pair_schema = InputStatePair
 
