@@ -44,7 +44,8 @@ from nsl_hpc.analysis.widths import decided, law_state, widths_of
 from nsl_hpc.config import compose_config, plain
 from nsl_hpc.config.schema import typed
 from nsl_hpc.core.errors import ConfigError
-from nsl_hpc.sweep.budget import WIDTHS, Budget, BudgetSettings, budget_of, planned_seconds, stopped_resources
+from nsl_hpc.sweep.budget import WIDTHS, Budget, BudgetSettings, budget_of, stopped_resources
+from nsl_hpc.sweep.launch_settings import check_run_settings, planned_seconds
 from nsl_hpc.sweep.prepare import build_sweep
 from nsl_hpc.sweep.rounds import Rounds, first_round_levels, next_round
 
@@ -55,7 +56,7 @@ def sweep_of(full: pa.Table, overrides: list[str]) -> tuple[Any, Any, dict[str, 
     """(launch config, study, manifest by task id, the planner's seconds of any of its tasks) of ``overrides``,
     whose every task must have a row in ``full``."""
     cfg = compose_config(overrides, "launch")
-    built = build_sweep(cfg, overrides)
+    built = build_sweep(check_run_settings(cfg), overrides)
     manifest = {task["task_id"]: task for task in built.manifest.to_pylist()}
     if missing := len(set(manifest) - set(full["task_id"].to_pylist())):
         raise ConfigError(f"{missing:,} of the {len(manifest):,} tasks of these overrides have no row in the full "
@@ -73,12 +74,12 @@ def replay(full: pa.Table, overrides: list[str]) -> tuple[list[dict], list[dict]
     rows = {row["task_id"]: row for row in ok.to_pylist()}
     nsl = nsl_settings(cfg.nsl)
     columns = {name: resource.column for name, resource in nsl.resources.items()}
-    budget = budget_of(typed(BudgetSettings, cfg.budget, "budget"), planned_s(list(manifest)), list(columns.values()),
-                       list(nsl.metrics))
+    budget = budget_of(typed(BudgetSettings, cfg.budget, "budget"), planned_s(list(manifest)),
+                       list(columns.values()), list(nsl.metrics))
     if budget is None:
         raise ConfigError("give a budget below the whole sweep: budget.share=<0..1) or budget.core_hours=<B>")
     tasks = list(manifest.values())
-    rounds = Rounds(tasks, study, first_round_levels(tasks, study, budget, planned_s), budget.levels_per_round)
+    rounds = Rounds(tasks, study, first_round_levels(tasks, study, budget, planned_s), budget.settings.levels_per_round)
     decisions: list[dict] = []
     states: list[dict] = []
     state: list[dict] = []
@@ -89,7 +90,7 @@ def replay(full: pa.Table, overrides: list[str]) -> tuple[list[dict], list[dict]
             fits = fit_sweep(ok.filter(pc.is_in(ok["task_id"], value_set=ran)), nsl, None, backtest=False)
             states.append({"round": number - 1, "committed_s": sum(d["cost_s"] for d in decisions), "fits": fits})
             state = law_state(fits, state)
-            stopped = stopped_resources(state, budget.stop_when, columns)
+            stopped = stopped_resources(state, budget.settings.stop_when, columns)
         if number <= rounds.count:
             decisions += next_round(number, rounds, manifest, decisions, rows, planned_s, budget, stopped)
     return decisions, states, budget

@@ -24,7 +24,8 @@ from nsl_hpc.bench.measure import timed
 from nsl_hpc.config import compose_config
 from nsl_hpc.launch import main as launch
 from nsl_hpc.status import summary
-from nsl_hpc.sweep.prepare import prepare_sweep
+from nsl_hpc.sweep.launch_settings import check_run_settings
+from nsl_hpc.sweep.prepare import build_sweep, prepare_sweep
 from nsl_hpc.sweep.submissions import read_submissions
 from nsl_hpc.sweep.task_states import read_sweep_state
 
@@ -37,7 +38,8 @@ SUBMISSION_GRID = [*INPUT_STATE, "sweep.grid.seed=[0,1,2,3,4,5,6,7]", "sweep.gri
 def bench_expansion(root: Path) -> Path:
     overrides = [*INPUT_STATE, f"sweep_dir={root / 'input_state'}", "dry_run=true"]
     cfg, compose_s = timed(compose_config, overrides, "launch")
-    prepared, prepare_s = timed(prepare_sweep, cfg, overrides)
+    prepared, prepare_s = timed(lambda: prepare_sweep(build_sweep(check_run_settings(cfg), overrides),
+                                                      Path(cfg.sweep_dir)))
     print(f"expansion: {prepared.manifest.num_rows:,} tasks, configs composed in {compose_s:.2f} s, grid expanded "
           f"and manifest written in {prepare_s:.2f} s (target 5 s)")
     return prepared.sweep_dir

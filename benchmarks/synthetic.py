@@ -54,9 +54,10 @@ def corrupt_rows(sweep_dir: Path, count: int) -> list[Path]:
 def synthetic_input_state_sweep(sweep_dir: Path) -> Path:
     """The input-state grid's manifest (a dry-run launch) in ``sweep_dir``, not yet filled."""
     from nsl_hpc.config import compose_config
+    from nsl_hpc.sweep.launch_settings import check_run_settings
     from nsl_hpc.sweep.prepare import build_sweep, prepare_sweep
 
     overrides = ["+sweep=input_state", f"sweep_dir={sweep_dir}", "dry_run=true"]
     cfg = compose_config(overrides, "launch")
     sweep_dir.mkdir(parents=True)
-    return prepare_sweep(cfg, build_sweep(cfg, overrides), sweep_dir).sweep_dir
+    return prepare_sweep(build_sweep(check_run_settings(cfg), overrides), sweep_dir).sweep_dir

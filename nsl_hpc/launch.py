@@ -19,12 +19,11 @@ from typing import Any
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
-from nsl_hpc.config.schema import typed
 from nsl_hpc.studies.base import model_of
-from nsl_hpc.sweep.budget import BudgetSettings
 from nsl_hpc.sweep.directory import check_control_files, private_umask, sweep_lock, usable_sweep_dir
 from nsl_hpc.sweep.executors import run_jobs
 from nsl_hpc.sweep.groups import saved_groups
+from nsl_hpc.sweep.launch_settings import check_run_settings
 from nsl_hpc.sweep.limits import ClusterLimits, cluster_limits, describe_fit, within_limits
 from nsl_hpc.sweep.plan import Grouping, Pack
 from nsl_hpc.sweep.prepare import (
@@ -89,36 +88,37 @@ def tracked_laws(nsl: DictConfig) -> TrackedLaws:
 
 
 def main(cfg: DictConfig, overrides: Sequence[str]) -> int:
-    built = build_sweep(cfg, overrides)  # every check first: nothing is written for a refused launch
-    limits = cluster_limits(built.settings, cfg.dry_run)  # SLURM's commands and the cluster answer, or a refusal
-    budget = typed(BudgetSettings, cfg.budget, "budget")
-    budgeted = budgeted_rounds(built, Path(cfg.sweep_dir), budget, tracked_laws(cfg.nsl) if budget.requested else None)
+    settings = check_run_settings(cfg)  # the launch's settings, typed once; every check first: nothing is written
+    built = build_sweep(settings, overrides)  # for a refused launch
+    limits = cluster_limits(settings, settings.dry_run)  # SLURM's commands and the cluster answer, or a refusal
+    laws = tracked_laws(cfg.nsl) if settings.budget is not None and settings.budget.requested else None
+    budgeted = budgeted_rounds(built, Path(cfg.sweep_dir), laws)
     with private_umask():
         sweep_dir = usable_sweep_dir(cfg.sweep_dir)
         with sweep_lock(sweep_dir, "launch"):
-            check_control_files(sweep_dir, cfg.compile_cache_dir, cfg.allow_shared_sweep_dir)
-            return launch(cfg, built, sweep_dir, limits, budgeted, overrides)
+            check_control_files(sweep_dir, settings.compile_cache_dir, settings.allow_shared_sweep_dir)
+            return launch(built, sweep_dir, limits, budgeted, overrides)
 
 
-def launch(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path, limits: ClusterLimits | None,
-           budgeted: Budgeted = None, overrides: Sequence[str] = ()) -> int:
+def launch(built: BuiltSweep, sweep_dir: Path, limits: ClusterLimits | None, budgeted: Budgeted = None,
+           overrides: Sequence[str] = ()) -> int:
     """Prepare the sweep directory, then run or submit its tasks to run within the cluster's ``limits`` (None: a
     local launcher's, or not read): all of them, or with a budget round after round (``launch_rounds``;
     ``overrides``: the command line's, for the job that launches the next round)."""
-    prepared = prepare_sweep(cfg, built, sweep_dir)
+    prepared = prepare_sweep(built, sweep_dir)
     run = functools.partial(run_tasks, limits=limits)
     if budgeted is None:
-        return run(cfg, built, prepared)
-    return launch_rounds(cfg, built, prepared, overrides, *budgeted, run)
+        return run(built, prepared)
+    return launch_rounds(built, prepared, overrides, *budgeted, run)
 
 
-def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, limits: ClusterLimits | None) -> int:
+def run_tasks(built: BuiltSweep, prepared: PreparedSweep, limits: ClusterLimits | None) -> int:
     """Print the plan of ``prepared.todo`` within the cluster's ``limits`` and the sweep directory's file system,
     and (unless a dry run) run or submit it."""
     settings, tasks = built.settings, prepared.todo.to_pylist()
     packs = (within_limits(settings, limits) if limits else settings).plan(
         tasks, saved=[saved.task_ids for saved in saved_groups(prepared.sweep_dir)])
-    print(describe_plan(prepared, packs, cfg.launcher.name))
+    print(describe_plan(prepared, packs, settings.launcher.name))
     for line in describe_fit(limits, read_storage(prepared.sweep_dir), packs, len(tasks),
                              settings.checkpoint.every_minutes > 0, settings.feed_minutes):
         print(f"  {line}")
@@ -129,12 +129,12 @@ def run_tasks(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, limit
     if tasks and (settings.grouping.size > 1 or settings.grouping.model_keys):
         print(describe_lockstep(tasks, packs, settings.grouping))
     if prepared.infeasible:
-        print(describe_infeasible(prepared.sweep_dir, prepared.infeasible, record=not cfg.dry_run))
-    if cfg.dry_run or not packs:
-        print("dry run: nothing submitted" if cfg.dry_run else "nothing to run: every task has a row"
+        print(describe_infeasible(prepared.sweep_dir, prepared.infeasible, record=not settings.dry_run))
+    if settings.dry_run or not packs:
+        print("dry run: nothing submitted" if settings.dry_run else "nothing to run: every task has a row"
               + (" or is queued" if prepared.queued else ""))
         return 0
-    if cfg.rehearsal:  # the jobs this launch's lost nodes kill
+    if settings.rehearsal:  # the jobs this launch's lost nodes kill
         plant_job_deaths(prepared.sweep_dir, settings.rehearse, packs)
     return run_jobs(prepared.sweep_dir, settings, packs, tasks, prepared.configs, limits)
 

@@ -18,14 +18,13 @@ import time
 from collections import Counter
 from dataclasses import dataclass
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.config.schema import setting, typed
-from nsl_hpc.sweep.budget import stop_when_of
 from nsl_hpc.sweep.decisions import describe_rounds, read_decisions, round_job_queued
 from nsl_hpc.sweep.groups import held_locks, saved_groups
-from nsl_hpc.sweep.launch_settings import launch_settings
+from nsl_hpc.sweep.launch_settings import LaunchSettings, launch_settings
 from nsl_hpc.sweep.manifest import read_launch_config, read_manifest, require_sweep
 from nsl_hpc.sweep.task_states import STATES, SweepState, read_sweep_state
 
@@ -45,7 +44,7 @@ class StatusSettings:
     show_failures: int = setting("failed / frozen / timeout tasks listed with the end of their logs", 0)
 
 
-def remaining_seconds(sweep_dir, state: SweepState, launch: DictConfig) -> float:
+def remaining_seconds(sweep_dir, state: SweepState, launch: LaunchSettings) -> float:
     """Predicted core-seconds of the tasks without a row: a submitted task's share of what its array element was
     predicted to take, the others in the lockstep groups the planner makes of them; a group with a checkpoint:
     the share of its steps still to train."""
@@ -57,7 +56,7 @@ def remaining_seconds(sweep_dir, state: SweepState, launch: DictConfig) -> float
     never_submitted = todo - shares.keys()
     unplanned = [task for task in read_manifest(sweep_dir).to_pylist()
                  if task["task_id"] in never_submitted] if never_submitted else []
-    groups = launch_settings(launch).groups(unplanned, list(saved)) if unplanned else []
+    groups = launch.groups(unplanned, list(saved)) if unplanned else []
     return (sum(shares[task_id] * left.get(task_id, 1.0) for task_id in todo if task_id in shares)
             + sum(group.seconds * left.get(group.task_ids[0], 1.0) for group in groups))
 
@@ -114,7 +113,7 @@ def failure_report(state: SweepState, limit: int) -> str:
 def main(config: DictConfig) -> int:
     cfg = typed(StatusSettings, config, "")
     sweep_dir = require_sweep(cfg.sweep_dir)
-    launch = read_launch_config(sweep_dir)
+    launch = launch_settings(read_launch_config(sweep_dir))
     interval, confirming = cfg.interval_s, False
     while True:
         state = read_sweep_state(sweep_dir)
@@ -126,7 +125,7 @@ def main(config: DictConfig) -> int:
             from nsl_hpc.analysis.widths import describe_law_records, law_records  # scipy: a budget's only
 
             print(f"budget: {describe_rounds(decisions)}", flush=True)
-            stop_when = stop_when_of(OmegaConf.select(launch, "budget.stop_when", default=None))
+            stop_when = launch.budget.stop_when if launch.budget is not None else None
             for line in describe_law_records(law_records(sweep_dir), stop_when):
                 print(line, flush=True)
         active = state.counts()["running"] + state.counts()["pending"] + (

@@ -9,9 +9,9 @@ import pytest
 
 from nsl_hpc.config import compose_config
 from nsl_hpc.studies import study_named
-from nsl_hpc.sweep.budget import Budget, decide_round, planned_seconds
+from nsl_hpc.sweep.budget import Budget, BudgetSettings, decide_round
 from nsl_hpc.sweep.decisions import DECISION_SCHEMA, read_decisions
-from nsl_hpc.sweep.launch_settings import LaunchSettings, launch_settings
+from nsl_hpc.sweep.launch_settings import LaunchSettings, launch_settings, planned_seconds
 from nsl_hpc.sweep.rounds import Rounds, first_round_levels
 from tests.sweeps import OWN_CACHE, nsl, row_files
 
@@ -26,9 +26,13 @@ def line(seed: int, width_tier: int) -> list[dict]:
             for epochs in (2, 4, 8)]
 
 
-def budget(seconds: float = 1e9) -> Budget:
-    return Budget(seconds, 2e9, first_levels=1, first_share=0.25, levels_per_round=1, margin=2.0,
-                  resources=("flops", "params"), metrics=("nmae",))
+def budget(seconds: float = 1e9, first_levels: int = 1, first_share: float = 0.25,
+           resources: tuple[str, ...] = ("flops", "params")) -> Budget:
+    """A budget of ``seconds`` of the sweep's 2e9 with the tests' rule: one level a round, margin 2."""
+    settings = BudgetSettings(core_hours=None, share=None, first_levels=first_levels, first_share=first_share,
+                              levels_per_round=1, margin=2.0, spread=True, round_job_minutes=30, track_laws=False,
+                              stop_when=None)
+    return Budget(seconds, 2e9, settings, resources, ("nmae",))
 
 
 TASKS = [task for seed in (0, 1) for width_tier in (2, 4) for task in line(seed, width_tier)]
@@ -59,8 +63,8 @@ def test_rounds_follow_the_cost_axis_and_each_task_continues_its_line():
 def test_round_one_takes_the_cheapest_levels_that_fit_its_share_of_the_budget_and_at_least_one():
     """4 tasks a level at 10 predicted seconds each: 40 s for the cheapest level, 80 s for two, 120 s for all."""
     def first(seconds: float, first_levels: int = 3, share: float = 0.25) -> int:
-        settings = Budget(seconds, 2e9, first_levels, share, 1, 2.0, ("flops",), ("nmae",))
-        return first_round_levels(TASKS, STUDY, settings, lambda ids: 10.0 * len(ids))
+        return first_round_levels(TASKS, STUDY, budget(seconds, first_levels, share, ("flops",)),
+                                  lambda ids: 10.0 * len(ids))
 
     assert first(400.0) == 2 and first(480.0) == 3 and first(480.0, first_levels=2) == 2
     assert first(100.0) == 1 and first(400.0, share=1.0) == 3

@@ -10,12 +10,25 @@ from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.settings import batch_count
 from nsl_hpc.sweep.grid import build_manifest, expand_grid, grid_size
-from nsl_hpc.sweep.prepare import build_sweep, pair_configs, prepare_sweep
+from nsl_hpc.sweep.launch_settings import check_run_settings
+from nsl_hpc.sweep.prepare import BuiltSweep, build_sweep, pair_configs, prepare_sweep
 from nsl_hpc.sweep.task import task_id
 
 INPUT_STATE = study_named("input_state")
 INPUT_OUTPUT = study_named("input_output")
 INPUT_STATE_TIERS = [2**k for k in range(1, 10)]
+
+
+def grid_of(cfg) -> list | dict:
+    """A launch config's sweep.grid as plain data, interpolations resolved (as its typed settings hold it)."""
+    return OmegaConf.to_container(cfg.sweep.grid, resolve=True)
+
+
+def built_sweep(overrides: list[str], composed: list[str] | None = None) -> BuiltSweep:
+    """``build_sweep`` as launch calls it: the launch config of ``composed`` (else ``overrides``) typed once, and
+    ``overrides`` as its command line."""
+    return build_sweep(check_run_settings(compose_config(overrides if composed is None else composed, "launch")),
+                       overrides)
 
 
 def input_state_grid():
@@ -38,13 +51,13 @@ def test_input_state_grid_has_63504_tasks_with_documented_marginals():
 @pytest.fixture(scope="module")
 def demo_manifest():
     cfg = compose_config(["+sweep=demo"], "launch")
-    return cfg, build_manifest(cfg.sweep.grid, INPUT_STATE, pair_configs(cfg, ["+sweep=demo"], INPUT_STATE),
+    return cfg, build_manifest(cfg.sweep.grid, INPUT_STATE, pair_configs(grid_of(cfg), ["+sweep=demo"], INPUT_STATE),
                                cfg.sweep_seed)
 
 
 def test_manifest_draws_are_reproducible_and_independent_of_order(demo_manifest):
     cfg, manifest = demo_manifest
-    configs = pair_configs(cfg, ["+sweep=demo"], INPUT_STATE)
+    configs = pair_configs(grid_of(cfg), ["+sweep=demo"], INPUT_STATE)
     again = build_manifest(cfg.sweep.grid, INPUT_STATE, configs, cfg.sweep_seed)
     assert manifest.equals(again)
     reversed_grid = {axis: list(reversed(list(cfg.sweep.grid[axis]))) for axis in INPUT_STATE.axes}
@@ -116,7 +129,7 @@ def test_every_input_state_task_draws_its_own_sizes():
     the 4,536 sets of 14 that differ only in epochs have 14 distinct data sizes each (d is a float), so a
     (system, arch) has 7,056 distinct draws instead of 504."""
     cfg = compose_config(["+sweep=input_state"], "launch")
-    rows = build_manifest(cfg.sweep.grid, INPUT_STATE, pair_configs(cfg, ["+sweep=input_state"], INPUT_STATE),
+    rows = build_manifest(cfg.sweep.grid, INPUT_STATE, pair_configs(grid_of(cfg), ["+sweep=input_state"], INPUT_STATE),
                           cfg.sweep_seed).to_pylist()
     groups = sizes_by_all_but_epochs(rows)
     assert len(groups) == 4_536
@@ -129,7 +142,7 @@ def test_every_input_state_task_draws_its_own_sizes():
 def test_shared_draws_keep_the_sizes_of_tasks_that_differ_only_in_epochs():
     overrides = ["+sweep=demo", "draws=shared_across_epochs"]
     cfg = compose_config(overrides, "launch")
-    rows = build_manifest(cfg.sweep.grid, INPUT_STATE, pair_configs(cfg, overrides, INPUT_STATE),
+    rows = build_manifest(cfg.sweep.grid, INPUT_STATE, pair_configs(grid_of(cfg), overrides, INPUT_STATE),
                           cfg.sweep_seed).to_pylist()
     assert all(len(set(sizes)) == 1 for sizes in sizes_by_all_but_epochs(rows).values())
 
@@ -188,9 +201,8 @@ def test_the_subnet_and_long_epoch_presets_hold_the_slices_they_document():
     stand-in, whose draws and counts are the same); subnet_data.yaml: one model size at every Wiener-Hammerstein
     data tier; long_epochs.yaml: ball / pH at data tier 64 to the study's 16,384 epochs."""
     stand_in = ["sweep.grid.0.system=[silverbox_sim]"]
-    cut = build_sweep(compose_config(["+sweep=subnet_compute", *stand_in], "launch"), ["+sweep=subnet_compute"])
-    whole = build_sweep(compose_config(["+sweep=subnet_compute", *stand_in, "sweep.max_flops=null"], "launch"),
-                        ["+sweep=subnet_compute"])
+    cut = built_sweep(["+sweep=subnet_compute"], ["+sweep=subnet_compute", *stand_in])
+    whole = built_sweep(["+sweep=subnet_compute"], ["+sweep=subnet_compute", *stand_in, "sweep.max_flops=null"])
     assert whole.manifest.num_rows == 12 * 9 * 5 * 2
     below = {row["task_id"] for row in whole.manifest.to_pylist() if row["flops"] < 5e9}
     assert set(cut.manifest["task_id"].to_pylist()) == below and cut.above_max_flops > 0
@@ -211,7 +223,7 @@ def test_input_output_manifest_sizes_follow_the_draw_rules_and_the_single_task_p
                  "sweep.grid.0.width_tier=[4,64]"]
     cfg = compose_config(overrides, "launch")
     grid = OmegaConf.to_container(cfg.sweep.grid)[:1]
-    configs = pair_configs(cfg, overrides, INPUT_OUTPUT)
+    configs = pair_configs(grid_of(cfg), overrides, INPUT_OUTPUT)
     rows = build_manifest(grid, INPUT_OUTPUT, configs, cfg.sweep_seed).to_pylist()
     assert len(rows) == 9 * 2 * 2 * 3
     for row in rows:
@@ -227,8 +239,8 @@ def test_input_output_manifest_sizes_follow_the_draw_rules_and_the_single_task_p
 def test_the_plateau_preset_holds_every_task_of_the_grid_below_its_compute_cap():
     """conf/sweep/plateau.yaml: ball / input-affine, seeds 0-1, the study's grid cut at sweep.max_flops = 3e7: the
     tasks kept are exactly those of the uncut grid below the cap."""
-    cut = build_sweep(compose_config(["+sweep=plateau"], "launch"), ["+sweep=plateau"])
-    whole = build_sweep(compose_config(["+sweep=plateau", "sweep.max_flops=null"], "launch"), ["+sweep=plateau"])
+    cut = built_sweep(["+sweep=plateau"])
+    whole = built_sweep(["+sweep=plateau"], ["+sweep=plateau", "sweep.max_flops=null"])
     assert whole.manifest.num_rows == 14 * 9 * 4 * 2 * 2 and whole.above_max_flops == 0
     below = {row["task_id"] for row in whole.manifest.to_pylist() if row["flops"] < 3e7}
     assert set(cut.manifest["task_id"].to_pylist()) == below
@@ -237,9 +249,9 @@ def test_the_plateau_preset_holds_every_task_of_the_grid_below_its_compute_cap()
         assert row["flops_paper"] == 4 * row["depth"] * row["width"] ** 2 * row["epochs"] * row["train_points"]
         assert row["test_points"] == 100 * 1000  # test_set 100x10s
     with pytest.raises(ConfigError, match=r"sweep.max_flops=1 leaves no task of the grid"):
-        build_sweep(compose_config(["+sweep=plateau", "sweep.max_flops=1"], "launch"), [])
+        built_sweep([], ["+sweep=plateau", "sweep.max_flops=1"])
     with pytest.raises(ConfigError, match=r"sweep.max_flops=-1 must be a finite number"):
-        build_sweep(compose_config(["+sweep=plateau", "sweep.max_flops=-1"], "launch"), [])
+        built_sweep([], ["+sweep=plateau", "sweep.max_flops=-1"])
 
 
 def test_the_mechanism_slices_cap_on_either_compute_column_and_count_each_tasks_passes():
@@ -247,35 +259,34 @@ def test_the_mechanism_slices_cap_on_either_compute_column_and_count_each_tasks_
     paper's flops_paper); with train.repeat_by_trajectories each task's steps take its own R passes per epoch."""
     for column in ("flops", "flops_paper"):
         overrides = ["+sweep=mechanism_compute", f"sweep.max_flops_column={column}"]
-        cut = build_sweep(compose_config(overrides, "launch"), overrides)
-        whole = build_sweep(compose_config([*overrides, "sweep.max_flops=null"], "launch"), overrides)
+        cut = built_sweep(overrides)
+        whole = built_sweep(overrides, [*overrides, "sweep.max_flops=null"])
         below = {row["task_id"] for row in whole.manifest.to_pylist() if row[column] < 2e7}
         assert set(cut.manifest["task_id"].to_pylist()) == below and cut.above_max_flops > 0
     with pytest.raises(ConfigError, match=r"sweep.max_flops_column='params' is not a compute column.*flops_paper"):
-        build_sweep(compose_config(["+sweep=mechanism_compute", "sweep.max_flops_column=params"], "launch"), [])
+        built_sweep([], ["+sweep=mechanism_compute", "sweep.max_flops_column=params"])
     rule = "train.repeat_by_trajectories=[[1,50],[3,20],[10,10],[30,5]]"
     overrides = ["+sweep=mechanism_data", "sweep.grid.0.epochs=[2]", rule]
-    rows = build_sweep(compose_config(overrides, "launch"), overrides).manifest.to_pylist()
+    rows = built_sweep(overrides).manifest.to_pylist()
     for row in rows:
         passes = 50 if row["n_traj"] < 3 else 20
         assert row["steps"] == row["epochs"] * batch_count(row["train_points"] * passes, 256)
     assert {row["n_traj"] >= 3 for row in rows} == {False, True}  # both rules' pairs are in the slice
     with pytest.raises(ConfigError, match="both set"):
-        build_sweep(compose_config([*overrides, "train.repeat=2"], "launch"), [*overrides, "train.repeat=2"])
+        built_sweep([*overrides, "train.repeat=2"])
 
 
 def test_an_arch_option_applies_to_the_pairs_that_have_it_and_a_relaunch_with_it_names_it(tmp_path):
     """arch.feedthrough=true on a grid of two architectures sets the input-affine pair's option only; a key no
     pair has is refused with the closest; relaunching into the sweep without it names the difference."""
     grid = ["+sweep=demo", "sweep.grid.system=[ball]", "sweep.grid.arch=[input_affine,port_hamiltonian]"]
-    cfg = compose_config(grid, "launch")
-    built = build_sweep(cfg, [*grid, "arch.feedthrough=true"])
+    built = built_sweep([*grid, "arch.feedthrough=true"], grid)
     assert built.configs["ball", "input_affine"].arch.feedthrough is True
     assert not hasattr(built.configs["ball", "port_hamiltonian"].arch, "feedthrough")
     with pytest.raises(ConfigError, match=r"unknown key 'arch.feedthruogh' \(did you mean 'arch.feedthrough'\?\); "
                                           r"no \(system, arch\) of the grid has it"):
-        build_sweep(cfg, [*grid, "arch.feedthruogh=true"])
-    prepare_sweep(cfg, build_sweep(cfg, grid), tmp_path)
+        built_sweep([*grid, "arch.feedthruogh=true"], grid)
+    prepare_sweep(built_sweep(grid), tmp_path)
     with pytest.raises(ConfigError, match=r"holds a different grid \(72 tasks, this one has 72; "
                                           r"arch.feedthrough False -> True\)"):
-        prepare_sweep(cfg, built, tmp_path)
+        prepare_sweep(built, tmp_path)

@@ -342,7 +342,8 @@ def test_status_time_left_is_the_planned_groups_work_over_the_cores_training(tmp
     s1, s2, s3 = sorted(manifest["steps"].to_pylist())
     by_hand = 1000 * (2 * s1 + 1.5 * (s2 - s1) + (s3 - s2))
     state = read_sweep_state(sweep_dir)
-    assert remaining_seconds(sweep_dir, state, read_launch_config(sweep_dir)) == pytest.approx(by_hand, rel=1e-6)
+    launch = launch_settings(read_launch_config(sweep_dir))
+    assert remaining_seconds(sweep_dir, state, launch) == pytest.approx(by_hand, rel=1e-6)
     assert running_cores(sweep_dir, state) == 0
     lock = GroupLock(sweep_dir, ["a", "group", "trained", "now"])
     assert lock.acquire() is None
@@ -353,7 +354,7 @@ def test_status_time_left_is_the_planned_groups_work_over_the_cores_training(tmp
     # (the queue of a machine with SLURM holds no job 7: its tasks are missing either way)
     record_submission(sweep_dir, "7", 60, ["7_0"], [manifest["task_id"].to_pylist()], [[2 * by_hand / 3] * 3])
     state = read_sweep_state(sweep_dir, queue_required=False)  # it reads the submissions (and SLURM's queue, where
-    assert remaining_seconds(sweep_dir, state, read_launch_config(sweep_dir)) == pytest.approx(2 * by_hand)
+    assert remaining_seconds(sweep_dir, state, launch) == pytest.approx(2 * by_hand)
 
 
 def test_a_packs_tasks_share_their_own_groups_prediction_and_the_jobs_start():

@@ -5,10 +5,13 @@ import json
 import math
 
 import pytest
+from omegaconf import OmegaConf
 
 from nsl_hpc.analysis.widths import decided, describe_law_records, law_state, narrowing, widths_of
+from nsl_hpc.config import config_dir
+from nsl_hpc.config.schema import typed
 from nsl_hpc.core.errors import ConfigError
-from nsl_hpc.sweep.budget import StopWhen, stop_when_of, stopped_resources
+from nsl_hpc.sweep.budget import BudgetSettings, StopWhen, stopped_resources
 from tests.fit_clouds import law
 from tests.test_budget import TASKS, round_two
 
@@ -42,6 +45,12 @@ def test_a_budgeted_law_is_decided_when_its_slope_breaks_and_prediction_lie_insi
     assert not decided(row(law(0.01, 1.0, -0.1, (1e6, 0.2, -0.4))), FULL_ROW)  # the break 10x later
     assert not decided(row(law(0.03, 1.0, -0.1, (1e5, 0.2, -0.4))), FULL_ROW)  # its floor 3x higher at 10x
     assert not decided(None, FULL_ROW) and not decided({**FULL_ROW, "error": "no fit"}, FULL_ROW)
+
+
+def stop_when_of(stop_when: dict | None) -> StopWhen | None:
+    """``budget.stop_when`` as a launch types it: in conf/launch.yaml's budget group."""
+    budget = {**OmegaConf.to_container(OmegaConf.load(config_dir() / "launch.yaml").budget), "stop_when": stop_when}
+    return typed(BudgetSettings, budget, "budget").stop_when
 
 
 def test_stop_when_is_checked_in_one_line():

@@ -19,8 +19,8 @@ from nsl_hpc import cli
 from nsl_hpc.bench.compiled import compiled_part
 from nsl_hpc.bench.input_output import input_output_part
 from nsl_hpc.bench.input_state import input_state_part
+from nsl_hpc.bench.settings import bench_settings
 from nsl_hpc.core.atomic import write_text
-from nsl_hpc.core.errors import ConfigError
 
 MARKERS = {"input_state": ("<!-- bench:start -->", "<!-- bench:end -->"),
            "input_output": ("<!-- bench-io:start -->", "<!-- bench-io:end -->"),
@@ -41,20 +41,18 @@ PARTS = {"input_state": input_state_part, "input_output": input_output_part, "co
 
 
 def main(cfg: DictConfig) -> int:
-    unknown = [part for part in cfg.parts if part not in PARTS]
-    if unknown:
-        raise ConfigError(f"parts={list(cfg.parts)} names unknown parts {unknown}; choose from: {', '.join(PARTS)}")
+    settings = bench_settings(cfg)
     torch.set_num_threads(1)
     headline = {}
     with tempfile.TemporaryDirectory() as folder:
-        for part in cfg.parts:
-            table, figures = PARTS[part](cfg, Path(folder))
+        for part in settings.parts:
+            table, figures = PARTS[part](settings, Path(folder))
             print(table, end="\n\n")
-            if cfg.readme:
-                write_readme(Path(cfg.readme), table, part)
+            if settings.readme:
+                write_readme(Path(settings.readme), table, part)
             headline.update(figures)
-    if cfg.out:
-        write_text(json.dumps(headline, indent=2), Path(cfg.out))
+    if settings.out:
+        write_text(json.dumps(headline, indent=2), Path(settings.out))
     return 0
 
 

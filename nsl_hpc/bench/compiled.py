@@ -32,10 +32,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig
 from torch.profiler import ProfilerActivity, profile
 
 from nsl_hpc.bench.measure import matmul_peak_flops
+from nsl_hpc.bench.settings import BenchSettings
 from nsl_hpc.config import compose_config
 from nsl_hpc.core.cache import ArrayCache
 from nsl_hpc.models import build_model
@@ -69,7 +69,7 @@ class Shape:
     depth: int
     models: int
     system: str
-    n_traj: int
+    n_traj: float
     io_system: str
     io_points: int
     data_dir: str
@@ -203,11 +203,10 @@ def cost_values(rows: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
     return {"compile_speedup": speedup, "compile_s": compile_s}
 
 
-def report(rows: list[dict[str, Any]], costs: Mapping[str, Mapping[str, float]], peak: float,
-           cfg: DictConfig) -> str:
+def report(rows: list[dict[str, Any]], costs: Mapping[str, Mapping[str, float]], peak: float, blocks: int) -> str:
     """The figures as markdown (docs/performance.md's compiled table)."""
     lines = [f"Measured by `python -m nsl_hpc.bench parts=[compiled]` on one core (1 thread), torch "
-             f"{torch.__version__}; eager and compiled in one process, the fastest of {cfg.compiled.blocks} blocks "
+             f"{torch.__version__}; eager and compiled in one process, the fastest of {blocks} blocks "
              f"each; compile seconds cold (an empty kernel cache) and warm (a second process on the cache the first "
              f"filled). Dense float32 matmul peak: {peak / 1e9:.1f} GFLOP/s.", "",
              "| arch | K | n_h x n_d | eager ms / step | compiled ms / step | ratio | compile cold s | warm s | "
@@ -231,20 +230,20 @@ def report(rows: list[dict[str, Any]], costs: Mapping[str, Mapping[str, float]],
     return "\n".join(lines)
 
 
-def compiled_part(cfg: DictConfig, root: Path) -> tuple[str, dict[str, Any]]:
+def compiled_part(bench: BenchSettings, root: Path) -> tuple[str, dict[str, Any]]:
     """The compiled table and its headline figures (``compiled_*`` keys)."""
-    peak = matmul_peak_flops(cfg.matmul_size)
+    peak, compiled, io = matmul_peak_flops(bench.matmul_size), bench.compiled, bench.io
     rows = []
-    for arch, shapes in cfg.compiled.shapes.items():
+    for arch, shapes in compiled.shapes.items():
         for width, depth, models in shapes:
-            shape = Shape(arch, width, depth, models, cfg.system.name, cfg.n_traj, cfg.io.system, cfg.io.train_points,
-                          cfg.io.data_dir, str(root / "data"), cfg.compiled.blocks,
-                          [arch, width, depth, models] == list(cfg.compiled.profile))
+            shape = Shape(arch, width, depth, models, bench.system.name, bench.n_traj, io.system, io.train_points,
+                          io.data_dir, str(root / "data"), compiled.blocks,
+                          [arch, width, depth, models] == compiled.profile)
             rows.append(shape_row(shape, root, peak))
             print(f"compiled: {arch} {width} x {depth}, K {models}: {rows[-1]['ratio']:.2f}x", file=sys.stderr,
                   flush=True)
     costs = cost_values(rows)
-    return report(rows, costs, peak, cfg), {"compiled": rows, "compiled_cost": costs}
+    return report(rows, costs, peak, compiled.blocks), {"compiled": rows, "compiled_cost": costs}
 
 
 if __name__ == "__main__":  # a measuring process: python -m nsl_hpc.bench.compiled '<spec as JSON>'

@@ -13,6 +13,7 @@ Everything on the simulated Silverbox stand-in (``io.system``), one thread.
 """
 
 import copy
+import dataclasses
 import math
 import subprocess
 import sys
@@ -23,14 +24,13 @@ from typing import Any
 
 import numpy as np
 import torch
-from omegaconf import DictConfig
 
 from nsl_hpc.bench.measure import TASK_IMPORTS, interpolate, planner_core_hours, study_manifest, timed
+from nsl_hpc.bench.settings import BenchSettings, IoBench
 from nsl_hpc.config import compose_config, plain
-from nsl_hpc.config.schema import typed
-from nsl_hpc.config.system import InputOutputSystem
 from nsl_hpc.core.cache import ArrayCache
 from nsl_hpc.core.errors import ConfigError
+from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.input_output.data import load_benchmark
 from nsl_hpc.studies.input_output.lockstep import IOMember, train_lockstep
 from nsl_hpc.studies.input_output.scoring import numpy_mlps, score_records
@@ -43,9 +43,9 @@ from nsl_hpc.sweep.plan import lockstep_groups, training_segments, with_compile
 class IOBench:
     """Models and data of the input-output benchmark, built once."""
 
-    def __init__(self, cfg: DictConfig, cache: ArrayCache):
-        self.io = cfg.io
-        self.launch = compose_config(["+sweep=input_output", f"data_dir={cfg.io.data_dir}"], "launch")
+    def __init__(self, io: IoBench, cache: ArrayCache):
+        self.io = io
+        self.launch = launch_settings(compose_config(["+sweep=input_output", f"data_dir={io.data_dir}"], "launch"))
         self.bases = {arch: InputOutput().pair(plain(compose_config(
             ["study=input_output", f"system={self.io.system}", f"arch={arch}"], "one_task"))) for arch in self.io.archs}
         self.benchmark = load_benchmark(self.bases[self.io.archs[0]].system, cache)
@@ -106,19 +106,20 @@ def speed_rows(bench: IOBench) -> list[dict[str, Any]]:
             runs = [bench.iteration_seconds(arch, shape.width, shape.depth, io.iterations[arch])
                     for _ in range(io.repeats)]
             seconds = {key: min(run[key] for run in runs) for key in runs[0]}
-            rows.append({"arch": arch, "size": size, **shape, **seconds,
+            rows.append({"arch": arch, "size": size, **dataclasses.asdict(shape), **seconds,
                          "single_ratio": seconds["reference"] / seconds["single"],
                          "packed_ratio": seconds["reference"] * seconds["pack"] / seconds["packed"]})
     return rows
 
 
-def study_systems(launch: DictConfig, systems: set[str]) -> dict[str, tuple[int, int]]:
-    """Per system of the study: the samples scored per model (all its test records) and SUBNET's T."""
+def study_systems(data_dir: str, cache_dir: str, systems: set[str]) -> dict[str, tuple[int, int]]:
+    """Per system of the study (its records in ``data_dir``, read through the cache in ``cache_dir``): the samples
+    scored per model (all its test records) and SUBNET's T."""
     facts = {}
     for system in sorted(systems):
-        settings = typed(InputOutputSystem, compose_config([f"data_dir={launch.data_dir}", "study=input_output",
-                                                            f"system={system}"], "one_task").system, "system")
-        records = load_benchmark(settings, ArrayCache(launch.cache_dir)).tests.values()
+        pair = pair_of(compose_config([f"data_dir={data_dir}", "study=input_output", f"system={system}"], "one_task"))
+        settings = pair.system
+        records = load_benchmark(settings, ArrayCache(cache_dir)).tests.values()
         facts[system] = sum(len(record) for record in records), settings.subnet.horizon
     return facts
 
@@ -137,28 +138,28 @@ def projection(bench: IOBench, process_s: float) -> dict[str, Any]:
                 for key, value in bench.iteration_seconds(arch, width, depth, grid.iterations[arch]).items():
                     table[key][width, depth] = value
         measured[arch] = table
-    scoring = {arch: bench.scoring_seconds(arch, launch.lockstep.size) for arch in io.archs}
-    systems = study_systems(launch, {task["system"] for task in manifest})
+    launched = launch_settings(launch)
+    scoring = {arch: bench.scoring_seconds(arch, launched.lockstep.size) for arch in io.archs}
+    systems = study_systems(io.data_dir, launch.cache_dir, {task["system"] for task in manifest})
     samples = {system: facts[0] for system, facts in systems.items()}
     stand_in_horizon = horizon(bench.bases["subnet"]) if "subnet" in bench.bases else 1
 
     def cost(task: Mapping[str, Any], key: str, width: int | None = None) -> float:
         arch = task["arch"]
         table = measured[arch][key]
-        value = interpolate(table, list(grid.widths[arch]), list(grid.depths), width or task["width"], task["depth"])
+        value = interpolate(table, grid.widths[arch], grid.depths, width or task["width"], task["depth"])
         return value * systems[task["system"]][1] / stand_in_horizon if arch == "subnet" else value
 
     reference = sum(process_s + task["steps"] * cost(task, "reference")
                     + samples[task["system"]] * scoring[task["arch"]]["alone"] for task in manifest)
-    launched = launch_settings(launch)
     settings, cost_values = launched.grouping, launched.cost
     groups = lockstep_groups(manifest, settings)
     ours = eager = len(groups) * process_s
     for group in groups:
         first, width = group[0], max(task["width"] for task in group)
         single, packed = cost(first, "single", width), cost(first, "packed", width)
-        pack = interpolate(measured[first["arch"]]["pack"], list(grid.widths[first["arch"]]), list(grid.depths),
-                           width, first["depth"])
+        pack = interpolate(measured[first["arch"]]["pack"], grid.widths[first["arch"]], grid.depths, width,
+                           first["depth"])
         per_model = (packed - single) / max(1.0, pack - 1)
         training = sum(steps * (single + per_model * (models - 1))
                        for steps, models in training_segments(group, settings))
@@ -195,7 +196,7 @@ def calibrated_cost(measured: Mapping[str, Mapping[str, Mapping[tuple[int, int],
     return fitted
 
 
-def report(rows: list[dict[str, Any]], projected: Mapping[str, Any], io: DictConfig) -> str:
+def report(rows: list[dict[str, Any]], projected: Mapping[str, Any], io: IoBench) -> str:
     """The input-output figures as markdown."""
     lines = [f"Input-output study, on {io.system} (the fastest of {io.repeats} runs; {io.train_points:,}-sample "
              "prefix, batch 256):", "",
@@ -220,13 +221,13 @@ def report(rows: list[dict[str, Any]], projected: Mapping[str, Any], io: DictCon
     return "\n".join(lines)
 
 
-def input_output_part(cfg: DictConfig, root: Path) -> tuple[str, dict[str, Any]]:
+def input_output_part(settings: BenchSettings, root: Path) -> tuple[str, dict[str, Any]]:
     """The input-output table and its headline figures."""
     python = [sys.executable, "-c"]
     _, process_s = timed(lambda: subprocess.run([*python, TASK_IMPORTS], check=True))
-    bench = IOBench(cfg, ArrayCache(root / "io-cache"))
+    bench = IOBench(settings.io, ArrayCache(root / "io-cache"))
     rows = speed_rows(bench)
     projected = projection(bench, process_s)
     headline = {"io_single_speedup_min": min(row["single_ratio"] for row in rows),
                 "io_packed_speedup": min(row["packed_ratio"] for row in rows), **projected, "io_speeds": rows}
-    return report(rows, projected, cfg.io), headline
+    return report(rows, projected, settings.io), headline

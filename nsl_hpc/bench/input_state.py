@@ -23,12 +23,11 @@ import resource
 import subprocess
 import sys
 from collections import defaultdict
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig
 from torch import nn
 
 from nsl_hpc.bench.measure import (
@@ -39,10 +38,9 @@ from nsl_hpc.bench.measure import (
     study_manifest,
     timed,
 )
+from nsl_hpc.bench.settings import BenchSettings, TypicalTask
 from nsl_hpc.config import compose_config
 from nsl_hpc.config.arch import arch_settings
-from nsl_hpc.config.schema import typed
-from nsl_hpc.config.system import InputStateSystem
 from nsl_hpc.core.cache import ArrayCache
 from nsl_hpc.models import build_model
 from nsl_hpc.models.blocks import parameter_count
@@ -109,15 +107,13 @@ def authors_loop(model: nn.Module, member: Member, steps: int, train: InputState
 class Bench:
     """Models and data of the benchmark's system, built once."""
 
-    def __init__(self, cfg: DictConfig, cache: ArrayCache):
-        self.cfg = cfg
-        self.train = typed(InputStateTrain, cfg.train, "train")
-        self.system = typed(InputStateSystem, cfg.system, "system")
-        self.data = build_training_set(self.system, 0, cfg.n_traj, cache)
+    def __init__(self, settings: BenchSettings, cache: ArrayCache):
+        self.train, self.system = settings.train, settings.system
+        self.data = build_training_set(self.system, 0, settings.n_traj, cache)
         self.scaling = Scaling.fit(self.data, self.train.rescale_targets)
         self.batches = batch_count(len(self.data), self.train.batch_size)
         self.archs = {arch: arch_settings(compose_config([f"arch={arch}"]).arch)
-                      for arch in {*cfg.archs, cfg.typical_task.arch}}  # composed once, not per model
+                      for arch in {*settings.archs, settings.typical_task.arch}}  # composed once, not per model
 
     def model(self, arch: str, width: int, depth: int, seed: int) -> nn.Module:
         torch.manual_seed(seed)
@@ -142,26 +138,25 @@ class Bench:
                 "params": parameter_count(member.model)}
 
 
-def speed_table(bench: Bench, cfg: DictConfig) -> list[dict[str, Any]]:
-    for arch in cfg.archs:  # warm-up: the first passes through a code path pay one-off costs
+def speed_table(bench: Bench, settings: BenchSettings) -> list[dict[str, Any]]:
+    for arch in settings.archs:  # warm-up: the first passes through a code path pay one-off costs
         bench.step_seconds(arch, 2, 1, 16, 2)
-    rows = []
-    for arch in cfg.archs:
-        for size, shape in cfg.sizes.items():
-            runs = [bench.step_seconds(arch, shape.width, shape.depth, cfg.steps, cfg.pack_size)
-                    for _ in range(cfg.repeats)]  # interleaved; the fastest of each: the least disturbed
+    rows, pack = [], settings.pack_size
+    for arch in settings.archs:
+        for size, shape in settings.sizes.items():
+            runs = [bench.step_seconds(arch, shape.width, shape.depth, settings.steps, pack)
+                    for _ in range(settings.repeats)]  # interleaved; the fastest of each: the least disturbed
             seconds = {method: min(run[method] for run in runs) for method in runs[0]}
-            rows.append({"arch": arch, "size": size, **shape, **seconds,
+            rows.append({"arch": arch, "size": size, **dataclasses.asdict(shape), **seconds,
                          "single_ratio": seconds["reference"] / seconds["single"],
-                         "packed_ratio": seconds["reference"] * cfg.pack_size / seconds["packed"],
+                         "packed_ratio": seconds["reference"] * pack / seconds["packed"],
                          "authors_single_ratio": seconds["authors"] / seconds["single"],
-                         "authors_packed_ratio": seconds["authors"] * cfg.pack_size / seconds["packed"]})
+                         "authors_packed_ratio": seconds["authors"] * pack / seconds["packed"]})
     return rows
 
 
-def task_breakdown(bench: Bench, cfg: DictConfig, root: Path) -> dict[str, float]:
-    """Seconds spent by one typical task in each phase (``cfg.typical_task``)."""
-    task = cfg.typical_task
+def task_breakdown(bench: Bench, task: TypicalTask, root: Path) -> dict[str, float]:
+    """Seconds spent by one typical ``task`` in each phase."""
     python = [sys.executable, "-c"]
     _, interpreter_s = timed(lambda: subprocess.run([*python, "pass"], check=True))
     _, imports_s = timed(lambda: subprocess.run([*python, TASK_IMPORTS], check=True))
@@ -181,24 +176,24 @@ def task_breakdown(bench: Bench, cfg: DictConfig, root: Path) -> dict[str, float
             "data (hit)": hit_s, "training": train_s, "scoring": score_s, "writing": write_s}
 
 
-def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, float]) -> dict[str, float]:
+def projected_core_hours(bench: Bench, settings: BenchSettings, breakdown: Mapping[str, float]) -> dict[str, float]:
     """Core-hours of the input-state study: each reference loop (each task its own process: interpreter,
     imports, simulated data, its steps, scoring, writing) and ours (the launcher's lockstep groups of
     ``pack_size``: a step costs the step time of its widest member for the models still training, between the
     measured K = 1 and K = ``pack_size``; per task data from the cache, scoring and writing); ours with epoch
     milestones (shared draws); and the planner's prediction."""
     launch, manifest = study_manifest("input_state")
-    grid = cfg.projection
+    grid, pack = settings.projection, settings.pack_size
     costs = {}
     for arch in sorted({task["arch"] for task in manifest}):
         measured: dict[str, dict[tuple[int, int], float]] = defaultdict(dict)
         for width in grid.widths:
             for depth in grid.depths:
-                for method, seconds in bench.step_seconds(arch, width, depth, grid.steps, cfg.pack_size).items():
+                for method, seconds in bench.step_seconds(arch, width, depth, grid.steps, pack).items():
                     measured[method][width, depth] = seconds
         costs[arch] = measured
     step_cost = lambda arch, method, width, depth: interpolate(  # noqa: E731
-        costs[arch][method], list(grid.widths), list(grid.depths), width, depth)
+        costs[arch][method], grid.widths, grid.depths, width, depth)
     per_task = breakdown["data (hit)"] + breakdown["scoring"] + breakdown["writing"]
     process = breakdown["interpreter"] + breakdown["imports"] + breakdown["data (miss)"] - breakdown["data (hit)"]
 
@@ -214,45 +209,46 @@ def projected_core_hours(bench: Bench, cfg: DictConfig, breakdown: Mapping[str, 
             arch, width, depth = group[0]["arch"], max(t["width"] for t in group), group[0]["depth"]
             single, packed = step_cost(arch, "single", width, depth), step_cost(arch, "packed", width, depth)
             seconds += with_compile(arch, sum(
-                steps * (single + (packed - single) * (models - 1) / max(1, cfg.pack_size - 1))
+                steps * (single + (packed - single) * (models - 1) / max(1, pack - 1))
                 for steps, models in training_segments(group, settings)), cost, mode)[0]
         return seconds, len(groups)
 
     launched = launch_settings(launch)
-    cost, settings = launched.cost, dataclasses.replace(launched.grouping, size=cfg.pack_size)
-    faithful, groups = ours(manifest, settings, settings.compile)
-    eager, _ = ours(manifest, settings, "never")
+    cost, grouping = launched.cost, dataclasses.replace(launched.grouping, size=pack)
+    faithful, groups = ours(manifest, grouping, grouping.compile)
+    eager, _ = ours(manifest, grouping, "never")
     shared_launch, shared = study_manifest("input_state", "draws=shared_across_epochs", "train.schedule_epochs=16384")
-    milestones, _ = ours(shared, dataclasses.replace(launch_settings(shared_launch).grouping, size=cfg.pack_size),
-                         settings.compile)
+    milestones, _ = ours(shared, dataclasses.replace(launch_settings(shared_launch).grouping, size=pack),
+                         grouping.compile)
     return {"core_hours_reference": one_process_per_task("reference") / 3600,
             "core_hours_authors": one_process_per_task("authors") / 3600, "core_hours_ours": faithful / 3600,
             "core_hours_ours_eager": eager / 3600, "core_hours_milestones": milestones / 3600,
             "core_hours_planner": planner_core_hours(launch, manifest), "tasks": len(manifest), "groups": groups,
-            "compile": settings.compile}
+            "compile": grouping.compile}
 
 
-def largest_task_peak_memory(cfg: DictConfig, root: Path) -> float:
-    """Peak resident memory (GiB) of `python -m nsl_hpc.train` on the largest input-state task."""
+def largest_task_peak_memory(largest_task: Sequence[str], root: Path) -> float:
+    """Peak resident memory (GiB) of `python -m nsl_hpc.train` on the largest input-state task (``largest_task``:
+    its key=value arguments)."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    subprocess.run([sys.executable, "-m", "nsl_hpc.train", *cfg.largest_task, f"out_dir={root / 'largest'}",
+    subprocess.run([sys.executable, "-m", "nsl_hpc.train", *largest_task, f"out_dir={root / 'largest'}",
                     f"cache_dir={root / 'largest-cache'}"], check=True, capture_output=True)
     peak_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     return max(peak_kib, before) / 2**20
 
 
 def report(speeds: list[dict], breakdown: Mapping[str, float], peak: float, projection: Mapping[str, float],
-           memory_gib: float, cfg: DictConfig) -> str:
+           memory_gib: float, settings: BenchSettings) -> str:
     """The figures as markdown (docs/performance.md's table)."""
+    batch, pack = settings.train.batch_size, settings.pack_size
     lines = [f"Measured by `python -m nsl_hpc.bench` on one core ({torch.get_num_threads()} thread), "
-             f"{cfg.steps} steps of batch {cfg.train.batch_size} on {cfg.system.name} (the fastest of {cfg.repeats} "
-             f"interleaved runs), K = {cfg.pack_size} packed models.", "",
+             f"{settings.steps} steps of batch {batch} on {settings.system.name} (the fastest of {settings.repeats} "
+             f"interleaved runs), K = {pack} packed models.", "",
              "| arch | n_h | n_d | p | plain loop samples/s | authors' loop | ours alone | ratio (authors') | "
              "ours packed, per model | ratio (authors') | GFLOP/s packed (% of peak) |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    batch = cfg.train.batch_size
     for row in speeds:
-        packed_rate = batch * cfg.pack_size / row["packed"]
+        packed_rate = batch * pack / row["packed"]
         flops = 6 * row["params"] * packed_rate
         share = 100 * flops / peak
         lines.append(f"| {row['arch']} | {row['width']} | {row['depth']} | {row['params']:,} | "
@@ -262,7 +258,8 @@ def report(speeds: list[dict], breakdown: Mapping[str, float], peak: float, proj
                      f"{row['packed_ratio']:.1f}x ({row['authors_packed_ratio']:.0f}x) | "
                      f"{flops / 1e9:.2f} ({share:.1f}%) |")
     lines += ["", f"Dense float32 matmul peak of this core: {peak / 1e9:.1f} GFLOP/s.", "",
-              "| one task (" + ", ".join(f"{k}={v}" for k, v in cfg.typical_task.items()) + ") | seconds |",
+              "| one task (" + ", ".join(f"{k}={v}" for k, v in dataclasses.asdict(settings.typical_task).items())
+              + ") | seconds |",
               "|---|---:|"]
     lines += [f"| {phase} | {seconds:.3f} |" for phase, seconds in breakdown.items()]
     reference, ours = projection["core_hours_reference"], projection["core_hours_ours"]
@@ -270,7 +267,7 @@ def report(speeds: list[dict], breakdown: Mapping[str, float], peak: float, proj
               f"plain loop {reference:,.0f}, authors' loop {projection['core_hours_authors']:,.0f}; ours "
               f"{ours:,.0f} ({reference / ours:.1f}x fewer than the plain loop, "
               f"{projection['core_hours_authors'] / ours:.1f}x fewer than the authors'; {projection['groups']:,} "
-              f"lockstep groups of up to K = {cfg.pack_size}; compile={projection['compile']}: the groups the planner "
+              f"lockstep groups of up to K = {pack}; compile={projection['compile']}: the groups the planner "
               "compiles at `cost.compile_speedup` and `cost.compile_s`, nsl_hpc.bench parts=[compiled]; eager "
               f"{projection['core_hours_ours_eager']:,.0f}). With epoch milestones (shared draws, "
               "train.schedule_epochs = the largest epoch count; rows of another meaning, see Epoch milestones) "
@@ -280,14 +277,14 @@ def report(speeds: list[dict], breakdown: Mapping[str, float], peak: float, proj
     return "\n".join(lines)
 
 
-def input_state_part(cfg: DictConfig, root: Path) -> tuple[str, dict[str, Any]]:
+def input_state_part(settings: BenchSettings, root: Path) -> tuple[str, dict[str, Any]]:
     """The input-state table (docs/performance.md) and its headline figures."""
-    bench = Bench(cfg, ArrayCache(root / "cache"))
-    speeds = speed_table(bench, cfg)
-    peak = matmul_peak_flops(cfg.matmul_size)
-    breakdown = task_breakdown(bench, cfg, root)
-    projection = projected_core_hours(bench, cfg, breakdown)
-    memory = largest_task_peak_memory(cfg, root)
+    bench = Bench(settings, ArrayCache(root / "cache"))
+    speeds = speed_table(bench, settings)
+    peak = matmul_peak_flops(settings.matmul_size)
+    breakdown = task_breakdown(bench, settings.typical_task, root)
+    projection = projected_core_hours(bench, settings, breakdown)
+    memory = largest_task_peak_memory(settings.largest_task, root)
     headline = {"single_speedup_min": min(row["single_ratio"] for row in speeds),
                 "packed_speedup": min(row["packed_ratio"] for row in speeds),
                 "authors_single_speedup_min": min(row["authors_single_ratio"] for row in speeds),
@@ -295,4 +292,4 @@ def input_state_part(cfg: DictConfig, root: Path) -> tuple[str, dict[str, Any]]:
                 **{k: v for k, v in projection.items() if k.startswith("core_hours")},
                 "largest_task_peak_gib": memory, "matmul_peak_gflops": peak / 1e9, "speeds": speeds,
                 "task_seconds": breakdown}
-    return report(speeds, breakdown, peak, projection, memory, cfg), headline
+    return report(speeds, breakdown, peak, projection, memory, settings), headline

@@ -41,9 +41,9 @@ def study_manifest(sweep: str, *overrides: str) -> tuple[DictConfig, list[dict[s
     """The launch config and manifest rows of a study's sweep (``+sweep=<sweep>`` and ``overrides``)."""
     arguments = [f"+sweep={sweep}", *overrides]
     launch = compose_config(arguments, "launch")
-    study = study_named(launch.study.name)
-    return launch, build_manifest(launch.sweep.grid, study, pair_configs(launch, arguments, study),
-                                  launch.sweep_seed).to_pylist()
+    settings = launch_settings(launch)
+    study, grid = study_named(settings.study.name), settings.sweep.grid
+    return launch, build_manifest(grid, study, pair_configs(grid, arguments, study), settings.sweep_seed).to_pylist()
 
 
 def planner_core_hours(launch: DictConfig, manifest: list[dict[str, Any]]) -> float:

@@ -26,7 +26,6 @@ on the rows of earlier rounds; a round's decisions are written (``budget/round-<
 run, so a launch that stops anywhere continues with the same decisions.
 """
 
-import functools
 import math
 from collections import defaultdict
 from collections.abc import Callable, Collection, Mapping, Sequence
@@ -35,10 +34,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from nsl_hpc.config.schema import setting, typed
+from nsl_hpc.config.schema import setting
 from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.sweep.decisions import describe_rounds
-from nsl_hpc.sweep.launch_settings import LaunchSettings
 
 WIDTHS = ("last_slope", "breaks", "prediction")
 
@@ -94,11 +92,6 @@ class BudgetSettings:
             raise ConfigError(f"budget.core_hours={self.core_hours} and budget.share={self.share}: set one of them")
 
 
-def stop_when_of(settings: Mapping[str, Any] | None) -> StopWhen | None:
-    """``budget.stop_when`` checked (None: the budget is spent whatever the laws' widths)."""
-    return None if settings is None else typed(StopWhen, settings, "budget.stop_when")
-
-
 def stopped_resources(state: Sequence[Mapping[str, Any]], stop_when: StopWhen | None,
                       resources: Mapping[str, str]) -> set[str]:
     """The result columns (of ``resources``: name -> column) of which at least ``stop_when.share`` of the laws in
@@ -114,20 +107,21 @@ def stopped_resources(state: Sequence[Mapping[str, Any]], stop_when: StopWhen | 
 
 @dataclass(frozen=True)
 class Budget:
-    """A sweep's budget: ``seconds`` of predicted core time (of ``full_seconds``, the whole sweep's) and the rule's
-    settings."""
+    """A sweep's budget: ``seconds`` of predicted core time (of ``full_seconds``, the whole sweep's), the budget
+    group's ``settings`` (the rule's), and the result columns of the fits' ``resources`` (flops, train_points,
+    params) and their ``metrics`` (nmae, nmse) whose envelopes the rule reads."""
 
     seconds: float
     full_seconds: float
-    first_levels: int  # round 1 takes at most this many levels ...
-    first_share: float  # ... as long as they cost at most this share of the budget (at least one level)
-    levels_per_round: int
-    margin: float
-    resources: tuple[str, ...]  # the result columns of the fits' resources (flops, train_points, params)
-    metrics: tuple[str, ...]  # and their metrics (nmae, nmse)
-    spread: bool = True  # a later round spends at most its equal share of what is left (else all it can)
-    stop_when: StopWhen | None = None  # the laws' widths at which spending on a resource stops
-    track_laws: bool = False  # fit the laws with their intervals before each round (status shows their widths)
+    settings: BudgetSettings
+    resources: tuple[str, ...]
+    metrics: tuple[str, ...]
+
+    @property
+    def track_laws(self) -> bool:
+        """Fit the laws with their intervals before each round (status shows their widths): asked for, or needed by
+        ``stop_when``."""
+        return self.settings.track_laws or self.settings.stop_when is not None
 
 
 def describe_budget(budget: Budget, decisions: Sequence[Mapping[str, Any]], rounds: int) -> str:
@@ -147,22 +141,7 @@ def budget_of(settings: BudgetSettings, full_seconds: float, resources: Sequence
     seconds = 3600 * hours if hours is not None else (share or 0.0) * full_seconds
     if seconds >= full_seconds:
         return None
-    return Budget(seconds, full_seconds, settings.first_levels, settings.first_share, settings.levels_per_round,
-                  settings.margin, tuple(resources), tuple(metrics), settings.spread, settings.stop_when,
-                  settings.track_laws or settings.stop_when is not None)
-
-
-def planned_seconds(tasks: Mapping[str, Mapping[str, Any]], settings: LaunchSettings
-                    ) -> Callable[[Sequence[str]], float]:
-    """The planner's predicted core-seconds of running some of ``tasks`` (by id) as one launch with ``settings``:
-    their lockstep groups' seconds (``cost.*``). Remembered per set of ids: a launch asks for round 1's to size it,
-    to refuse a budget below it and to print it."""
-
-    @functools.lru_cache(maxsize=8)
-    def seconds_of(task_ids: frozenset[str]) -> float:
-        return sum(group.seconds for group in settings.groups([tasks[t] for t in sorted(task_ids)]))
-
-    return lambda task_ids: seconds_of(frozenset(task_ids))
+    return Budget(seconds, full_seconds, settings, tuple(resources), tuple(metrics))
 
 
 class Envelopes:
@@ -261,7 +240,7 @@ def decide_round(number: int, ancestors: Mapping[str, str | None], tasks: Mappin
         ancestor = ancestors[task_id]
         row = rows.get(ancestor) if ancestor is not None else None
         value = Promise(math.inf, math.inf, None) if row is None or not open_resources else promise(
-            tasks[task_id], row, envelopes, budget.margin, open_resources, budget.metrics)
+            tasks[task_id], row, envelopes, budget.settings.margin, open_resources, budget.metrics)
         scored.append((value, task_id, "its ancestor did not finish" if row is None
                        else "laws narrow enough" if not open_resources else "far above the envelope"))
     scored.sort(key=lambda item: (item[0].ratio, item[0].spread, item[1]))

@@ -1,10 +1,12 @@
 """A launch config's settings as a sweep's planner, jobs and post-processing use them, typed once where a command or
-a job reads the config (``launch_settings``): the sweep (its name and grid), its study and seed, the run settings
-(``RunSettings``), the launcher, how a task's process runs (threads, compile), a rehearsal's settings, the sweep
-directory's compile cache and trust, and how tasks are grouped (``plan.Grouping``). ``check_run_settings`` refuses,
-before any work, the settings no job can run with."""
+a job reads the config (``launch_settings``): the sweep (its name and its grid, interpolations resolved), its study
+and seed, the run settings (``RunSettings``), the launcher, how a task's process runs (threads, compile), a
+rehearsal's settings, the sweep directory's compile cache and trust, how tasks are grouped (``plan.Grouping``), and
+what the launch itself was asked (a dry run, the cap on tasks, the budget, whether a code change may mix).
+``check_run_settings`` refuses, before any work, the settings no job can run with."""
 
-from collections.abc import Mapping, Sequence
+import functools
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -14,6 +16,7 @@ from nsl_hpc.config.schema import setting, typed
 from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.settings import Runtime, StudyName
+from nsl_hpc.sweep.budget import BudgetSettings
 from nsl_hpc.sweep.plan import (
     Group,
     Grouping,
@@ -54,6 +57,11 @@ class LaunchSettings(RunSettings, Runtime):
     rehearse: Rehearse = setting("a rehearsal's planted laws and faults")
     compile_cache_dir: str | None = setting("the jobs' compiled kernels (null: torch's default)")
     allow_shared_sweep_dir: bool = setting("true: control files others can write are accepted", default=False)
+    allow_code_change: bool = setting("true: a sweep may mix rows of changed user code", default=False)
+    dry_run: bool = setting("expand, write the manifest, print the plan, submit nothing", default=False)
+    max_tasks: int = setting("a larger grid is refused before it is expanded", 1, default=250_000)
+    budget: BudgetSettings | None = setting("a budgeted sweep's rounds (null: a sweep stored before budgets)",
+                                            default=None)
     grouping: Any = setting("how tasks are grouped (plan.Grouping, from lockstep, the study and compile)",
                             default=None)
     values: dict[str, Any] = field(default_factory=dict, compare=False, repr=False, kw_only=True)
@@ -103,9 +111,11 @@ def launch_settings(launch: Mapping[str, Any]) -> LaunchSettings:
 
 
 def check_run_settings(launch: Mapping[str, Any]) -> LaunchSettings:
-    """A launch config's settings (``launch_settings``), refusing (ConfigError) those no job can run with or that
-    would switch a protection off: each launcher's own rules, a site cap on time without checkpoints, a job name
-    or a SLURM warning that would break the jobs."""
+    """A launch config's settings (``launch_settings``), refusing (ConfigError) a launch without a sweep and the
+    settings no job can run with or that would switch a protection off: each launcher's own rules, a site cap on
+    time without checkpoints, a job name or a SLURM warning that would break the jobs."""
+    if "sweep" not in launch:
+        raise ConfigError("no sweep chosen: add +sweep=<name> (see conf/sweep/, e.g. +sweep=demo)")
     settings = launch_settings(launch)
     launcher = settings.launcher
     if isinstance(launcher, LocalLauncher | SlurmLauncher):
@@ -118,3 +128,16 @@ def check_run_settings(launch: Mapping[str, Any]) -> LaunchSettings:
         check_batch_text("sweep.name", settings.sweep.name, flag=True)  # the jobs' --job-name
         check_signal_delay(launcher.signal_delay_s, settings.packing_for().time_classes_minutes)
     return settings
+
+
+def planned_seconds(tasks: Mapping[str, Mapping[str, Any]], settings: LaunchSettings
+                    ) -> Callable[[Sequence[str]], float]:
+    """The planner's predicted core-seconds of running some of ``tasks`` (by id) as one launch with ``settings``:
+    their lockstep groups' seconds (``cost.*``). Remembered per set of ids: a launch asks for round 1's to size it,
+    to refuse a budget below it and to print it."""
+
+    @functools.lru_cache(maxsize=8)
+    def seconds_of(task_ids: frozenset[str]) -> float:
+        return sum(group.seconds for group in settings.groups([tasks[t] for t in sorted(task_ids)]))
+
+    return lambda task_ids: seconds_of(frozenset(task_ids))

@@ -7,11 +7,11 @@ import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import pyarrow as pa
 import pyarrow.compute as pc
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 
 from nsl_hpc.config import compose_config, plain, unknown_key
 from nsl_hpc.core.errors import ConfigError, require_non_negative_int, require_positive_int
@@ -21,7 +21,7 @@ from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.code import require_same_code
 from nsl_hpc.sweep.failures import record_failure
 from nsl_hpc.sweep.grid import Grid, build_manifest, grid_size, sub_grids, validate_grid
-from nsl_hpc.sweep.launch_settings import LaunchSettings, check_run_settings
+from nsl_hpc.sweep.launch_settings import LaunchSettings
 from nsl_hpc.sweep.layout import base_config_path, row_path
 from nsl_hpc.sweep.manifest import (
     manifest_path,
@@ -44,25 +44,16 @@ def override_key(override: str) -> str:
     return override.split("=", 1)[0].lstrip("+~")
 
 
-def validate_launch(cfg: DictConfig, overrides: Sequence[str]) -> LaunchSettings:
-    """Refuse, before any work, a launch without a sweep, with settings no job can run with (``check_run_settings``)
-    or with grid axes set outside the grid; returns its settings, typed."""
-    if "sweep" not in cfg:
-        raise ConfigError("no sweep chosen: add +sweep=<name> (see conf/sweep/, e.g. +sweep=demo)")
-    settings = check_run_settings(cfg)
+def validate_launch(settings: LaunchSettings, overrides: Sequence[str]) -> Study:
+    """Refuse, before any work, a launch with grid axes set outside the grid or a grid its study cannot expand;
+    returns its study."""
     study = study_named(settings.study.name)
     for override in overrides:
         if override_key(override) in study.axes:
             raise ConfigError(f"{override_key(override)} is a grid axis of the sweep; set "
                               f"sweep.grid.{override_key(override)}=[...] instead of {override}")
-    validate_grid(sweep_grid(cfg), study)
-    return settings
-
-
-def sweep_grid(cfg: DictConfig) -> Grid:
-    """The launch config's ``sweep.grid`` as plain data, interpolations resolved (a preset may share one list
-    between its sub-grids: ``seed: ${repro.seeds}``); a mapping or a list of them."""
-    return cast(Grid, OmegaConf.to_container(cfg.sweep.grid, resolve=True))
+    validate_grid(settings.sweep.grid, study)
+    return study
 
 
 def validate_grid_values(grid: Grid, study: Study, pairs: Mapping[tuple[str, str], Pair]) -> None:
@@ -81,12 +72,11 @@ def validate_grid_values(grid: Grid, study: Study, pairs: Mapping[tuple[str, str
 PAIR_KEYS = ("arch.", "system.")
 
 
-def pair_configs(cfg: DictConfig, overrides: Sequence[str], study: Study) -> dict[tuple[str, str], Pair]:
-    """The typed settings of every (system, arch) of the grid (``Study.pair``: its resolved plain config beside
-    them), with the launch's overrides (those of ``PAIR_KEYS`` where the pair has the key), each checked by its
+def pair_configs(grid: Grid, overrides: Sequence[str], study: Study) -> dict[tuple[str, str], Pair]:
+    """The typed settings of every (system, arch) of ``grid`` (``Study.pair``: its resolved plain config beside
+    them), composed with the launch's overrides (those of ``PAIR_KEYS`` where the pair has the key), each checked by its
     study (``Study.check_pair``) and priced (``require_costs``)."""
-    pairs = {(system, arch) for part in sub_grids(sweep_grid(cfg))
-             for system in part["system"] for arch in part["arch"]}
+    pairs = {(system, arch) for part in sub_grids(grid) for system in part["system"] for arch in part["arch"]}
     scoped = [o for o in overrides if o.lstrip("+~").startswith(PAIR_KEYS)]
     common = [o for o in overrides if o not in scoped]
     configs, used = {}, set()
@@ -153,12 +143,13 @@ def require_tasks_at_most(tasks: int, cap: Any) -> None:
                           "where that memory is yours")
 
 
-def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
-    """Validate everything a launch depends on and expand its grid; writes nothing."""
-    settings = validate_launch(cfg, overrides)
-    study, sweep, grid = study_named(settings.study.name), settings.sweep, sweep_grid(cfg)
-    require_tasks_at_most(grid_size(grid, study), cfg.max_tasks)
-    configs = pair_configs(cfg, overrides, study)
+def build_sweep(settings: LaunchSettings, overrides: Sequence[str]) -> BuiltSweep:
+    """Validate everything a launch (``settings``, typed by ``check_run_settings``; ``overrides``, its command line)
+    depends on and expand its grid; writes nothing."""
+    study = validate_launch(settings, overrides)
+    sweep, grid = settings.sweep, settings.sweep.grid
+    require_tasks_at_most(grid_size(grid, study), settings.max_tasks)
+    configs = pair_configs(grid, overrides, study)
     validate_grid_values(grid, study, configs)
     max_flops, column = sweep.max_flops, sweep.max_flops_column
     manifest = build_manifest(grid, study, configs, settings.sweep_seed)
@@ -175,28 +166,29 @@ def build_sweep(cfg: DictConfig, overrides: Sequence[str]) -> BuiltSweep:
     return BuiltSweep(kept, configs, study, settings, manifest.num_rows - kept.num_rows)
 
 
-def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> PreparedSweep:
+def prepare_sweep(built: BuiltSweep, sweep_dir: Path) -> PreparedSweep:
     """Write the sweep's files the first time (refusing a directory that holds another grid) and find the tasks
     to run: without a valid row (corrupt rows are set aside), not queued in SLURM. Call it holding the lock."""
-    manifest = built.manifest
+    manifest, settings = built.manifest, built.settings
     if manifest_path(sweep_dir).exists():
         existing = read_manifest(sweep_dir, columns=["task_id"])["task_id"]
         if existing.to_pylist() != manifest["task_id"].to_pylist():
-            stored = {pair: read_yaml(base_config_path(sweep_dir, *pair), sweep_dir) for pair in built.configs
+            stored = {pair: plain(read_yaml(base_config_path(sweep_dir, *pair), sweep_dir)) for pair in built.configs
                       if base_config_path(sweep_dir, *pair).exists()}
-            changed = changed_settings(read_yaml(sweep_dir / layout.LAUNCH_CONFIG, sweep_dir), cfg, built.study,
+            stored_launch = plain(read_yaml(sweep_dir / layout.LAUNCH_CONFIG, sweep_dir))
+            changed = changed_settings(stored_launch, settings.values, built.study,
                                        {pair: (stored[pair], built.configs[pair].values) for pair in stored})
             raise ConfigError(f"sweep_dir={str(sweep_dir)!r} holds a different grid ({len(existing):,} tasks, "
                               f"this one has {len(manifest):,}; {'; '.join(changed) or 'other draws'}): choose "
                               "another sweep_dir or launch with the same sweep and overrides")
         read_launch_config(sweep_dir)  # a damaged one is refused here, before any work
-        require_same_code(sweep_dir, built.configs, cfg.allow_code_change)
+        require_same_code(sweep_dir, built.configs, settings.allow_code_change)
         for (system, arch), pair in built.configs.items():  # a deleted one is restored: it is the same
             if not base_config_path(sweep_dir, system, arch).exists():
                 write_yaml(pair.values, base_config_path(sweep_dir, system, arch), sweep_dir)
     else:
-        write_sweep(sweep_dir, manifest, {key: pair.values for key, pair in built.configs.items()}, plain(cfg))
-        require_same_code(sweep_dir, built.configs, cfg.allow_code_change)
+        write_sweep(sweep_dir, manifest, {key: pair.values for key, pair in built.configs.items()}, settings.values)
+        require_same_code(sweep_dir, built.configs, settings.allow_code_change)
     without_row, aside = tasks_without_row(sweep_dir, manifest)
     queued = queued_tasks(sweep_dir)
     queued_ids = pa.array(sorted(queued), type=pa.string())
@@ -206,17 +198,16 @@ def prepare_sweep(cfg: DictConfig, built: BuiltSweep, sweep_dir: Path) -> Prepar
                          manifest.num_rows - without_row.num_rows)
 
 
-def changed_settings(stored: DictConfig, cfg: DictConfig, study: Study,
-                     pairs: Mapping[tuple[str, str], tuple[DictConfig, Mapping[str, Any]]], shown: int = 4
+def changed_settings(stored: Mapping[str, Any], launch: Mapping[str, Any], study: Study,
+                     pairs: Mapping[tuple[str, str], tuple[Mapping[str, Any], Mapping[str, Any]]], shown: int = 4
                      ) -> list[str]:
     """'train.lr 0.001 -> 0.01': the outcome-changing settings (the grid, the sweep seed and the study's shared
-    keys) in which the launch config ``cfg`` differs from the ``stored`` one, or a (system, arch)'s config from
-    its stored one (``pairs``: stored, new), the first ``shown`` of them."""
+    keys) in which the launch config ``launch`` differs from the ``stored`` one, or a (system, arch)'s config from
+    its stored one (``pairs``: stored, new), the first ``shown`` of them; all plain."""
     keys = ("sweep", "sweep_seed", *study.shared_keys)
-    compared = [(stored, cfg), *pairs.values()]
+    compared = [(stored, launch), *pairs.values()]
     changes: list[str] = []
-    for before_cfg, after_cfg in compared:
-        old, new = plain(before_cfg), plain(after_cfg)
+    for old, new in compared:
         changes += [change for key, before, after in
                     leaf_differences({k: old.get(k) for k in keys}, {k: new.get(k) for k in keys})
                     if (change := f"{key} {before!r} -> {after!r}") not in changes]

@@ -14,7 +14,6 @@ from typing import Any
 
 import pyarrow as pa
 import pyarrow.compute as pc
-from omegaconf import DictConfig
 
 from nsl_hpc.config.launchers import SlurmLauncher
 from nsl_hpc.core.errors import ConfigError, RunError
@@ -22,12 +21,10 @@ from nsl_hpc.studies.base import Study
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.budget import (
     Budget,
-    BudgetSettings,
     StopWhen,
     budget_of,
     decide_round,
     describe_budget,
-    planned_seconds,
 )
 from nsl_hpc.sweep.decisions import (
     cancel_round_job,
@@ -39,7 +36,7 @@ from nsl_hpc.sweep.decisions import (
 )
 from nsl_hpc.sweep.executors import submit_next_round
 from nsl_hpc.sweep.failures import read_failures
-from nsl_hpc.sweep.launch_settings import LaunchSettings
+from nsl_hpc.sweep.launch_settings import LaunchSettings, planned_seconds
 from nsl_hpc.sweep.prepare import BuiltSweep, PreparedSweep, prepare_sweep, queued_tasks
 from nsl_hpc.sweep.rows import read_task_rows
 from nsl_hpc.sweep.submissions import read_submissions
@@ -63,9 +60,9 @@ def first_round_levels(tasks: Sequence[Mapping[str, Any]], study: Study, budget:
     planner predicts within ``budget.first_share`` of the budget; at least one."""
     level = levels_of(tasks, study)
     count = 1
-    while count < min(budget.first_levels, len(level)) and planned_s(
+    while count < min(budget.settings.first_levels, len(level)) and planned_s(
             [task["task_id"] for task in tasks if level[task[study.length_axis]] <= count]) \
-            <= budget.first_share * budget.seconds:
+            <= budget.settings.first_share * budget.seconds:
         count += 1
     return count
 
@@ -115,7 +112,7 @@ def describe_first_round(budget: Budget, rounds: Rounds, planned_s: Callable[[Se
     line = (f"budget: round 1 is the {len(tasks):,} tasks at {rounds.axis} {values[0]}"
             + (f"-{values[-1]}" if len(values) > 1 else "")
             + f", {seconds / 3600:,.3g} predicted core-hours ({seconds / budget.seconds:.0%} of the budget)")
-    if seconds > max(budget.first_share, 0.5) * budget.seconds and rounds.count > 1:  # one level alone, most of it
+    if seconds > max(budget.settings.first_share, 0.5) * budget.seconds and rounds.count > 1:  # one level: most
         later = "round 2 gets" if rounds.count == 2 else f"rounds 2-{rounds.count} share"
         line += (f"; {later} the rest and will run few tasks: raise the budget (on a small grid the tasks' fixed "
                  "costs, start-up and scoring, dominate)")
@@ -136,11 +133,11 @@ def sweep_rounds(sweep_dir: Path, tasks: Sequence[Mapping[str, Any]], study: Stu
     """The rounds of a budgeted sweep: as already decided (a budget with other budget.levels_per_round is
     refused), else round 1 sized by ``first_round_levels``; a budget below round 1 is refused."""
     decided = decided_structure(sweep_dir)
-    if decided is not None and decided[1] != budget.levels_per_round:
+    if decided is not None and decided[1] != budget.settings.levels_per_round:
         raise ConfigError(f"the rounds of sweep_dir={str(sweep_dir)!r} were decided with budget.levels_per_round="
                           f"{decided[1]}: relaunch with it (the rounds of a budgeted sweep stay as decided)")
     first = decided[0] if decided is not None else first_round_levels(tasks, study, budget, planned_s)
-    rounds = Rounds(tasks, study, first, budget.levels_per_round)
+    rounds = Rounds(tasks, study, first, budget.settings.levels_per_round)
     refuse_small_budget(budget, rounds, planned_s)
     return rounds
 
@@ -166,7 +163,7 @@ def next_round(number: int, rounds: Rounds, manifest: Mapping[str, Mapping[str, 
     chosen = {d["task_id"] for d in decisions if d["run"]}
     rows = {task_id: {**manifest[task_id], **row} for task_id, row in rows.items() if task_id in chosen}
     left = budget.seconds - sum(d["cost_s"] for d in decisions)
-    if budget.spread and number > 1:  # this round's equal share of what is left to it and the rounds after it
+    if budget.settings.spread and number > 1:  # this round's equal share of what is left to it and the rounds after it
         left /= rounds.count - number + 1
     ancestors = {task_id: rounds.ancestor(task_id, chosen) for task_id in rounds.tasks_of(number)}
     return decide_round(number, ancestors, manifest, rows, planned_s, left, budget, stopped)
@@ -202,13 +199,13 @@ class TrackedLaws:
 Budgeted = tuple[Budget, Rounds, Callable[[Sequence[str]], float], TrackedLaws] | None
 
 
-def budgeted_rounds(built: BuiltSweep, sweep_dir: Path, settings: BudgetSettings, laws: TrackedLaws | None
-                    ) -> Budgeted:
-    """The launch's budget (``settings``, the laws its rounds look at ``laws``: None where no budget is set), the
-    rounds of its tasks and the planner's seconds of any of them; None without a budget or with one that covers the
-    whole sweep (``budget_of``). A budget below round 1's cost, with another budget.levels_per_round than the rounds
-    already decided, or none for a sweep whose rounds have begun, is refused; nothing is written."""
-    if laws is None:
+def budgeted_rounds(built: BuiltSweep, sweep_dir: Path, laws: TrackedLaws | None) -> Budgeted:
+    """The launch's budget (its settings' budget group; ``laws``, those its rounds look at: None where no budget is
+    set), the rounds of its tasks and the planner's seconds of any of them; None without a budget or with one that
+    covers the whole sweep (``budget_of``). A budget below round 1's cost, with another budget.levels_per_round than
+    the rounds already decided, or none for a sweep whose rounds have begun, is refused; nothing is written."""
+    settings = built.settings.budget
+    if laws is None or settings is None:
         if decision_files(sweep_dir):
             raise ConfigError(f"sweep_dir={str(sweep_dir)!r} is a budgeted sweep (its budget/ holds decided rounds): "
                               "launch it with budget.core_hours or budget.share (budget.share=1: every task left)")
@@ -222,9 +219,9 @@ def budgeted_rounds(built: BuiltSweep, sweep_dir: Path, settings: BudgetSettings
     return budget, rounds, planned_s, laws
 
 
-def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, overrides: Sequence[str],
-                  budget: Budget, rounds: Rounds, planned_s: Callable[[Sequence[str]], float], laws: TrackedLaws,
-                  run_tasks: Callable[[DictConfig, BuiltSweep, PreparedSweep], int]) -> int:
+def launch_rounds(built: BuiltSweep, prepared: PreparedSweep, overrides: Sequence[str], budget: Budget,
+                  rounds: Rounds, planned_s: Callable[[Sequence[str]], float], laws: TrackedLaws,
+                  run_tasks: Callable[[BuiltSweep, PreparedSweep], int]) -> int:
     """A budgeted sweep: decide the next round once the rounds before have run (the laws fitted on their rows
     first by ``laws.track``), run its tasks (``run_tasks``: plan, print and run or submit them), and go on (the
     local launchers) until the last round; on SLURM submit one round and, behind it, a job that launches again
@@ -239,18 +236,18 @@ def launch_rounds(cfg: DictConfig, built: BuiltSweep, prepared: PreparedSweep, o
         LOG.info(describe_budget(budget, decisions, rounds.count))
         if not decided:
             LOG.info(describe_first_round(budget, rounds, planned_s))
-        if cfg.dry_run:  # the round that runs next, as far as it is decided (round 1 always is)
-            return run_tasks(cfg, built, only(prepared, chosen if decisions else set(rounds.tasks_of(1))))
+        if built.settings.dry_run:  # the round that runs next, as far as it is decided (round 1 always is)
+            return run_tasks(built, only(prepared, chosen if decisions else set(rounds.tasks_of(1))))
         this_round = only(prepared, chosen - attempted)
         if this_round.todo.num_rows or prepared.queued:
             started = time.time()
-            worst = max(worst, run_tasks(cfg, built, this_round))
+            worst = max(worst, run_tasks(built, this_round))
             if prepared.queued or isinstance(built.settings.launcher, SlurmLauncher):
                 if decided < rounds.count:
-                    LOG.info(next_round_line(cfg, built.settings, sweep_dir, overrides, chosen, started, decided))
+                    LOG.info(next_round_line(built.settings, sweep_dir, overrides, chosen, started, decided))
                 return worst
             attempted |= set(this_round.todo["task_id"].to_pylist())
-            prepared = prepare_sweep(cfg, built, sweep_dir)
+            prepared = prepare_sweep(built, sweep_dir)
             continue
         if decided == rounds.count:
             LOG.info("budget: every round has run")
@@ -272,7 +269,7 @@ def track_round_laws(sweep_dir: Path, number: int, manifest: Mapping[str, Mappin
     committed = {"all": sum(d["cost_s"] for d in decisions if d["run"]) / 3600}
     for name, column in laws.columns.items():  # what the candidates promising on each resource's envelopes cost
         committed[name] = sum(d["cost_s"] for d in decisions if d["run"] and d["resource"] == column) / 3600
-    return laws.track(sweep_dir, number, rows, committed, budget.stop_when)
+    return laws.track(sweep_dir, number, rows, committed, budget.settings.stop_when)
 
 
 def only(prepared: PreparedSweep, task_ids: set[str]) -> PreparedSweep:
@@ -281,8 +278,8 @@ def only(prepared: PreparedSweep, task_ids: set[str]) -> PreparedSweep:
     return dataclasses.replace(prepared, todo=prepared.todo.filter(keep))
 
 
-def next_round_line(cfg: DictConfig, settings: LaunchSettings, sweep_dir: Path, overrides: Sequence[str],
-                    chosen: set[str], since: float, decided: int) -> str:
+def next_round_line(settings: LaunchSettings, sweep_dir: Path, overrides: Sequence[str], chosen: set[str],
+                    since: float, decided: int) -> str:
     """Submit the job that decides the next round once the arrays that hold this round's ``chosen`` tasks (those
     submitted since ``since``, or still queued from before) have ended, in place of one queued by an earlier
     launch (this launch's settings win), and say so."""
@@ -291,12 +288,12 @@ def next_round_line(cfg: DictConfig, settings: LaunchSettings, sweep_dir: Path, 
     arrays = [record["array_id"] for record in records
               if any(task_id in chosen and (record["submitted"] >= since or task_id in queued)
                      for element in record["elements"] for task_id in element)]
-    launcher = settings.launcher
-    if not arrays or not isinstance(launcher, SlurmLauncher):
+    launcher, budget = settings.launcher, settings.budget
+    if not arrays or not isinstance(launcher, SlurmLauncher) or budget is None:
         return (f"budget: round {decided} is queued or running in SLURM; launch again with launcher=slurm once it "
                 f"has run to decide round {decided + 1}")
     cancel_round_job(sweep_dir)
-    job = submit_next_round(sweep_dir, overrides, launcher, settings.sweep.name, arrays, cfg.budget.round_job_minutes)
+    job = submit_next_round(sweep_dir, overrides, launcher, settings.sweep.name, arrays, budget.round_job_minutes)
     record_round_job(sweep_dir, job)
     return (f"budget: round {decided} submitted; job {job} launches again once it has run (afterany), to decide "
             f"and submit round {decided + 1} (python -m nsl_hpc.status sweep_dir={sweep_dir})")
