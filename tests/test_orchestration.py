@@ -279,7 +279,7 @@ def test_launchers_are_schemas_and_a_wrong_one_is_one_line():
     assert isinstance(slurm, SlurmLauncher) and slurm.partition == "cpu" and slurm.mem == "2G" and slurm.hold
     with pytest.raises(ConfigError, match=r"launcher\.name=.pbs. is unknown"):
         launcher_from({"name": "pbs"})
-    with pytest.raises(ConfigError, match=r"launcher: .*nodes"):
+    with pytest.raises(ConfigError, match=r"launcher\.nodes is unknown; launcher has: name, partition"):
         launcher_from({"name": "slurm", "nodes": 2})
 
 

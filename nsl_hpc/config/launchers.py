@@ -1,6 +1,7 @@
 """Where a sweep's jobs run: one schema per launcher, registered as Hydra structured configs in the ``launcher``
-group (``launcher=local|debug|slurm``, fields overridden with ``launcher.<field>=...``). Site settings (a
-partition, an account) go in ``conf/local/default.yaml``."""
+group (``launcher=local|debug|slurm``, fields overridden with ``launcher.<field>=...``) and typed as every other
+group is (``config.schema.typed``: types and ranges); ``check_runnable`` adds what depends on this machine or
+would break the batch script. Site settings (a partition, an account) go in ``conf/local/default.yaml``."""
 
 import os
 import re
@@ -8,11 +9,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, cast
 
-from omegaconf import OmegaConf
-
 from nsl_hpc.config.mapping import plain
-from nsl_hpc.config.schema import setting
-from nsl_hpc.core.errors import ConfigError, one_line, require_int, require_positive_int
+from nsl_hpc.config.schema import setting, typed
+from nsl_hpc.core.errors import ConfigError, require_int
 
 SBATCH_MEMORY = re.compile(r"[1-9][0-9]*[KMGT]?")  # sbatch --mem: megabytes, or with a unit
 SBATCH_FLAG = re.compile(r"[A-Za-z][A-Za-z0-9_-]*")  # a long option's name (submitit writes _ as -)
@@ -40,7 +39,8 @@ class LocalLauncher:
     name: str = setting("the launcher", default="local")
     workers: int | None = setting("processes at once; null: every CPU of this machine", default=None)
 
-    def check(self) -> None:
+    def check_runnable(self) -> None:
+        """Refuse more workers than this machine has CPUs (checked where a launch or resubmit runs them)."""
         if self.workers is not None:
             try:
                 require_int("launcher.workers", self.workers, 1, len(os.sched_getaffinity(0)))
@@ -53,7 +53,7 @@ class DebugLauncher:
     """In-process, one job after another (submitit's debug executor): CI dry runs and debugging."""
 
     name: str = setting("the launcher", default="debug")
-    workers: int = setting("jobs run one after another in the launching process", default=1)
+    workers: int = setting("jobs run one after another in the launching process", 1, default=1)
 
 
 @dataclass
@@ -65,22 +65,22 @@ class SlurmLauncher:
     account: str | None = setting("--account", default=None)
     qos: str | None = setting("--qos", default=None)
     mem: str = setting("--mem of one array element (the largest task needs < 1 GB)", default="2G")
-    array_parallelism: int = setting("--array=0-N%K: at most K elements of one array run at once", default=512)
+    array_parallelism: int = setting("--array=0-N%K: at most K elements of one array run at once", 1, default=512)
     max_running: int | None = setting(
         "at most this many of the sweep's jobs run at once, over all its arrays: each array's K is at most this and "
-        "it starts once the sweep's arrays before it have ended (afterany); null: no cap", default=None)
+        "it starts once the sweep's arrays before it have ended (afterany); null: no cap", 1, default=None)
     signal_delay_s: int = setting("--signal: warn a job this long before its time limit (checkpoint and requeue)",
-                                  default=120)
+                                  1, default=120)
     max_time_minutes: int | None = setting(
         "the site's cap on a job's time limit (e.g. 1440): a group predicted longer runs as a chain of jobs (the job "
-        "is requeued, each run continuing from the checkpoint)", default=None)
-    max_array_size: int | None = setting("null: MaxArraySize from `scontrol show config`", default=None)
-    max_job_count: int | None = setting("null: MaxJobCount from `scontrol show config`", default=None)
+        "is requeued, each run continuing from the checkpoint)", 1, default=None)
+    max_array_size: int | None = setting("null: MaxArraySize from `scontrol show config`", 1, default=None)
+    max_job_count: int | None = setting("null: MaxJobCount from `scontrol show config`", 1, default=None)
     max_submit_jobs: int | None = setting(
-        "null: the user's MaxSubmitJobs from sacctmgr (no limit when none is set)", default=None)
+        "null: the user's MaxSubmitJobs from sacctmgr (no limit when none is set)", 1, default=None)
     feed_minutes: int | None = setting(
         "jobs the submit limits hold back are submitted by a job of this time limit behind the first array "
-        "(resubmit states=[missing]), and so on; null: by launching again by hand", default=10)
+        "(resubmit states=[missing]), and so on; null: by launching again by hand", 1, default=10)
     hold: bool = setting("submit every job held (--hold): none starts until released (scontrol release <job id>)",
                          default=False)
     extra_sbatch: dict[str, Any] = setting(
@@ -88,14 +88,9 @@ class SlurmLauncher:
         "passed (resubmit drops one so)", default_factory=dict)
     setup: list[str] = setting("shell lines run before each job (e.g. module load python)", default_factory=list)
 
-    def check(self) -> None:
-        """Refuse settings sbatch would refuse, that would submit nothing or break the batch script."""
-        require_positive_int("launcher.array_parallelism", self.array_parallelism)
-        require_positive_int("launcher.signal_delay_s", self.signal_delay_s)
-        for key in ("max_array_size", "max_job_count", "max_submit_jobs", "max_time_minutes", "max_running",
-                    "feed_minutes"):
-            if getattr(self, key) is not None:
-                require_positive_int(f"launcher.{key}", getattr(self, key))
+    def check_runnable(self) -> None:
+        """Refuse settings sbatch would refuse or that would break the batch script (checked where a launch or
+        resubmit submits them)."""
         if not SBATCH_MEMORY.fullmatch(self.mem):
             raise ConfigError(f"launcher.mem={self.mem!r} is no sbatch --mem: a positive integer with an optional "
                               "unit K, M, G or T (2G, 1500M)")
@@ -153,8 +148,5 @@ def launcher_from(values: Mapping[str, Any]) -> Launcher:
     schema = LAUNCHERS.get(str(given.get("name")))
     if schema is None:
         raise ConfigError(f"launcher.name={given.get('name')!r} is unknown; choose one of: {', '.join(LAUNCHERS)}")
-    try:
-        return cast(Launcher, OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema), given)))
-    except Exception as error:  # OmegaConf's validation errors: a key the schema lacks, a value of another type
-        raise ConfigError(f"launcher: {one_line(error)[:200]}") from None
+    return cast(Launcher, typed(schema, given, "launcher"))
 

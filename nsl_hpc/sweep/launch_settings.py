@@ -119,7 +119,7 @@ def check_run_settings(launch: Mapping[str, Any]) -> LaunchSettings:
     settings = launch_settings(launch)
     launcher = settings.launcher
     if isinstance(launcher, LocalLauncher | SlurmLauncher):
-        launcher.check()
+        launcher.check_runnable()
     if isinstance(launcher, SlurmLauncher):
         if launcher.max_time_minutes is not None and not settings.checkpoint.every_minutes:
             raise ConfigError(f"launcher.max_time_minutes={launcher.max_time_minutes} needs checkpoints "
