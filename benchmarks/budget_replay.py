@@ -171,7 +171,7 @@ def oracle(laws: Sequence[OracleLaw], costs: dict[str, float], goal: float) -> l
 def oracle_lines(full: pa.Table, full_fits: Sequence[dict], nsl: dict, overrides: list[str]) -> list[str]:
     """The ``oracle``'s tasks at goals 1.15, 1.5 and 2: their predicted seconds as a share of the whole sweep's,
     priced alone (what it minimises) and run together as one launch (lockstep groups: less), and where the 1.15x
-    one's tasks sit on the cost axis."""
+    one's tasks sit on the length axis."""
     _, study, manifest, planned_s = sweep_of(full, overrides)
     laws = oracle_laws(full, full_fits, nsl, manifest)
     costs = {task_id: planned_s([task_id]) for task_id in manifest}

@@ -20,7 +20,7 @@ submitted, run and accounted for.
     task_states  where every task stands (done, running, pending, failed, frozen, timeout, missing, corrupt)
     merge        the rows into results.parquet (compacted as it goes), and what was dropped and why
     budget       budgeted sweeps: the budget, and the rule that decides which of a round's tasks run
-    rounds       a budgeted sweep's rounds along the cost axis, deciding the next one, and the loop that runs them
+    rounds       a budgeted sweep's rounds along the length axis, deciding the next one, and the loop that runs them
     decisions    a budgeted sweep's decisions on disk, and the job that launches its next round
     rehearsal    the whole sweep through the real path with outcomes drawn from planted laws
 

@@ -1,12 +1,12 @@
 """Budgeted sweeps: the budget, and the rule that decides which tasks of each round run (the rounds, along the
-study's cost axis, input-state: epochs, input-output: iter_multiplier, are nsl_hpc/sweep/rounds.py), so that a
+study's length axis, input-state: epochs, input-output: iter_multiplier, are nsl_hpc/sweep/rounds.py), so that a
 budget is spent where the lower envelopes are decided.
 
-The rule. The grid's values of the cost axis are levels (2, 4, ..., 16384 epochs: 14 levels). Round 1 runs every
+The rule. The grid's values of the length axis are levels (2, 4, ..., 16384 epochs: 14 levels). Round 1 runs every
 task at the cheapest levels: as many as the planner predicts within ``budget.first_share`` of the budget, at most
 ``budget.first_levels`` and at least one (fixed when round 1 is decided); each later round takes the next
 ``budget.levels_per_round``. A task of a later round has a line (its task with every coordinate equal but the
-cost axis) and an ancestor: the line's latest task that an earlier round ran (a line the budget left out of a
+length axis) and an ancestor: the line's latest task that an earlier round ran (a line the budget left out of a
 round may come back in a later one). It runs only if its ancestor has a row (not failed) and, for some
 resource (compute, data, model) and metric that the sweep's fits use (conf/nsl), the ancestor's error divided
 by ``budget.margin`` is below the lower envelope (Definition 1's step envelope of every row of its (system,
@@ -68,12 +68,12 @@ class StopWhen:
 
 @dataclass(frozen=True)
 class BudgetSettings:
-    """A budgeted sweep: the grid's tasks in rounds along the cost axis while the budget lasts."""
+    """A budgeted sweep: the grid's tasks in rounds along the length axis while the budget lasts."""
 
     core_hours: float | None = setting("spend at most this many predicted core-hours", 0, low_open=True)
     share: float | None = setting("or this share of the planner's prediction for the whole sweep", 0, 1,
                                   low_open=True)
-    first_levels: int = setting("round 1: every task at up to this many cheapest values of the cost axis", 1)
+    first_levels: int = setting("round 1: every task at up to this many cheapest values of the length axis", 1)
     first_share: float = setting("as many as fit in this share of the budget", 0, 1, low_open=True)
     levels_per_round: int = setting("each later round: the next this many values", 1)
     margin: float = setting("a task runs if its ancestor's error / margin is below an envelope", 1)

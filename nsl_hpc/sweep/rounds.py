@@ -1,4 +1,4 @@
-"""A budgeted sweep's rounds: which tasks each round holds (levels of the study's cost axis), deciding the next
+"""A budgeted sweep's rounds: which tasks each round holds (levels of the study's length axis), deciding the next
 round from the rows of those before (the rule that decides is nsl_hpc/sweep/budget.py; the decisions on disk
 nsl_hpc/sweep/decisions.py), and the loop that runs them: round after round with the local launchers, or on SLURM
 one round and, behind it, the job that launches the next."""
@@ -45,12 +45,12 @@ LOG = logging.getLogger(__name__)
 
 
 def round_of_level(level: int, first_levels: int, levels_per_round: int) -> int:
-    """The round (1, 2, ...) that runs the tasks at ``level`` (0: the cheapest value of the cost axis)."""
+    """The round (1, 2, ...) that runs the tasks at ``level`` (0: the cheapest value of the length axis)."""
     return 1 if level < first_levels else 2 + (level - first_levels) // levels_per_round
 
 
 def levels_of(tasks: Sequence[Mapping[str, Any]], study: Study) -> dict[Any, int]:
-    """Each value of the study's cost axis among ``tasks`` -> its level (0: the cheapest)."""
+    """Each value of the study's length axis among ``tasks`` -> its level (0: the cheapest)."""
     return {value: index for index, value in enumerate(sorted({task[study.length_axis] for task in tasks}))}
 
 
@@ -68,7 +68,7 @@ def first_round_levels(tasks: Sequence[Mapping[str, Any]], study: Study, budget:
 
 
 class Rounds:
-    """The rounds of a sweep's tasks: round 1 the ``first_levels`` cheapest levels of the cost axis, each later
+    """The rounds of a sweep's tasks: round 1 the ``first_levels`` cheapest levels of the length axis, each later
     one the next ``levels_per_round``; each task's round and its line's tasks in earlier rounds (``earlier``:
     latest first, none in round 1)."""
 
@@ -76,7 +76,7 @@ class Rounds:
         self.first_levels, self.levels_per_round = first_levels, levels_per_round
         axis = self.axis = study.length_axis
         level = levels_of(tasks, study)
-        self.values = sorted(level)  # the cost axis's values, cheapest first
+        self.values = sorted(level)  # the length axis's values, cheapest first
         self.round = {task["task_id"]: round_of_level(level[task[axis]], first_levels, levels_per_round)
                       for task in tasks}
         self.count = max(self.round.values())
@@ -125,7 +125,7 @@ def refuse_small_budget(budget: Budget, rounds: Rounds, planned_s: Callable[[Seq
     if first > budget.seconds:
         raise ConfigError(f"the budget ({budget.seconds / 3600:.3g} core-hours) is less than its first round "
                           f"({first / 3600:.3g} predicted core-hours, the tasks at the {rounds.first_levels} "
-                          f"cheapest level{'s' * (rounds.first_levels > 1)} of the cost axis): raise it")
+                          f"cheapest level{'s' * (rounds.first_levels > 1)} of the length axis): raise it")
 
 
 def sweep_rounds(sweep_dir: Path, tasks: Sequence[Mapping[str, Any]], study: Study, budget: Budget,
