@@ -57,7 +57,7 @@ from nsl_hpc.sweep.manifest import read_base_config, read_launch_config, read_ma
 from nsl_hpc.sweep.plan import Group
 from nsl_hpc.sweep.rehearsal import die_if_planted
 from nsl_hpc.sweep.rows import all_done, prepare_row_writes, row_states, set_aside
-from nsl_hpc.sweep.task import ResolvedTask, describe, resolve_task, run_tasks, with_run
+from nsl_hpc.sweep.task import ResolvedTask, describe, pause_if_asked, resolve_task, run_tasks, with_run
 
 LOG = logging.getLogger(__name__)
 POLL_SECONDS = 0.2
@@ -178,6 +178,7 @@ def run_child(sweep_dir: Path, group: Sequence[Mapping[str, Any]], configs: Task
     log_job(sys.stderr, group_name(ids))
     try:
         tasks = [as_planned(sweep_dir, configs.of(task), compiled) for task in group]
+        pause_if_asked(tasks[0].run.fault, tasks[0].task.coordinates["seed"], "loading", sweep_dir)
         for result in run_tasks(tasks, lambda: setattr(heartbeat, "value", time.time()), checkpoint):
             LOG.info(describe(result.row) if result.row else f"skipped: {result.path} exists")
     except TrainingStopped:
@@ -264,18 +265,29 @@ class JobRunner:
         self.stop_wait_s = (launch.signal_delay_s or 60) / 2  # SLURM's warning; local launchers: 60
         rows = manifest_rows(sweep, [task_id for group in groups for task_id in group.task_ids])
         by_id = {task["task_id"]: task for task in rows}
+        first = self.configs.of(rows[0]) if rows else None
+
+        def pause(point: str) -> None:  # test-only (fault.kind=pause): where a test sends SLURM's warning
+            if first is not None:
+                pause_if_asked(first.run.fault, first.task.coordinates["seed"], point, sweep)
+
+        pause("start")
         counts: Counter[str] = Counter()
-        for group in groups:
+        for number, group in enumerate(groups):
             if self.launcher_gone():
                 os._exit(1)
+            if number == 1:
+                pause("between")
             if self.warned:
                 break
             self.started.add(group)
             self.current = group
-            if self.train_group(sweep, group, [by_id[task_id] for task_id in group.task_ids], launch,
-                                counts) == "stopped":
+            outcome = self.train_group(sweep, group, [by_id[task_id] for task_id in group.task_ids], launch, counts)
+            self.current = None
+            if outcome == "stopped":
                 break
-        self.current = None
+        if not self.warned:
+            pause("end")
         return dict(counts)
 
     def train_group(self, sweep: Path, group: Group, tasks: Sequence[Mapping[str, Any]], launch: LaunchSettings,

@@ -61,6 +61,7 @@ BUDGET = "budget"
 REHEARSAL = "rehearsal"  # a rehearsal's own records (the jobs it killed once)
 CODE = "code.json"  # the code the sweep's rows are made by: the package's version and each user module's hash
 MERGE_CACHE = ".merge_cache.parquet"  # merge's read rows, so a second merge reads only new ones
+PAUSED = "paused-{point}"  # test-only: where a job paused (fault.kind=pause), for the test that signals it there
 
 CONTROL = (SUBMITIT, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, MANIFEST)  # what decides the code a sweep's jobs run
 # what clean keeps
@@ -77,6 +78,11 @@ def bucketed(folder: str | os.PathLike, name: str, suffix: str) -> Path:
 def row_file(out_dir: str | os.PathLike, task_id: str) -> str:
     """``row_path`` as a string: status checks 63k rows, and a Path costs more than the check (15 us)."""
     return os.path.join(out_dir, ROWS, task_id[:2], task_id + ".parquet")
+
+
+def pause_marker(sweep_dir: str | os.PathLike, point: str) -> Path:
+    """Test-only: the file a job writes where it pauses (``fault.kind=pause``), before it sleeps."""
+    return Path(sweep_dir) / PAUSED.format(point=point)
 
 
 def row_path(out_dir: str | os.PathLike, task_id: str) -> Path:

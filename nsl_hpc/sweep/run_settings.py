@@ -17,18 +17,25 @@ from nsl_hpc.sweep.groups import RENEW_S
 DAY_S, WEEK_MINUTES, YEAR_MINUTES = 86400, 10080, 525600
 
 
-FAULT_KINDS = ("raise", "hang", "slow")
+FAULT_KINDS = ("raise", "hang", "slow", "pause")
+# where a job pauses (fault.kind=pause): before its first group, in a group's process before its first block (data
+# loading, compiling), after its first group, after its last row
+PAUSE_POINTS = ("start", "loading", "between", "end")
 
 
 @dataclass(frozen=True)
 class Fault:
-    """Test-only fault injection (``sweep.task.inject_fault``) for tasks of one seed."""
+    """Test-only fault injection (``sweep.task.inject_fault``, ``sweep.task.pause_if_asked``) for tasks of one
+    seed."""
 
-    kind: str | None = setting("raise: the task fails, hang: it freezes, slow: it sleeps at every heartbeat "
-                               "(null: none)", choices=FAULT_KINDS)
+    kind: str | None = setting("raise: the task fails, hang: it freezes, slow: it sleeps at every heartbeat, "
+                               "pause: its job sleeps once at pause_at (null: none)", choices=FAULT_KINDS)
     seed: int | None = setting("the seed whose tasks it strikes (null: every task)", 0)
     once: bool = setting("true: a task's first attempt only")
     heartbeat_s: float = setting("slow: seconds slept at every heartbeat", 0, DAY_S)
+    pause_at: str | None = setting("pause: where (start, loading, between, end)", choices=PAUSE_POINTS,
+                                   default=None)
+    pause_s: float = setting("pause: seconds slept there, once per sweep", 0, DAY_S, default=0.0)
 
 
 @dataclass(frozen=True)

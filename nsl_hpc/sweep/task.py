@@ -24,7 +24,7 @@ from nsl_hpc.studies.base import Pair, Study, Task
 from nsl_hpc.studies.settings import Runtime
 from nsl_hpc.sweep.code import code_of
 from nsl_hpc.sweep.formats import package_version
-from nsl_hpc.sweep.layout import row_path
+from nsl_hpc.sweep.layout import pause_marker, row_path
 from nsl_hpc.sweep.rehearsal import Rehearse, rehearsed_group
 from nsl_hpc.sweep.rows import write_row_atomically
 from nsl_hpc.sweep.run_settings import Fault
@@ -137,7 +137,20 @@ def inject_fault(fault: Fault, seed: int) -> float:
     if fault.kind == "hang":
         while True:
             time.sleep(3600)
-    return float(fault.heartbeat_s)  # slow (``Fault`` allows no other kind)
+    return float(fault.heartbeat_s) if fault.kind == "slow" else 0.0
+
+
+def pause_if_asked(fault: Fault, seed: int, point: str, sweep_dir: Path) -> None:
+    """Test-only (``fault.kind=pause``, for tasks of seed ``fault.seed``): at ``fault.pause_at`` (``point`` of a
+    job: start, loading, between, end), the first time in the sweep, write ``<sweep_dir>/paused-<point>`` (what a
+    test waits for before it signals the job) and sleep ``fault.pause_s``."""
+    if fault.kind != "pause" or fault.pause_at != point or fault.seed not in (None, seed):
+        return
+    marker = pause_marker(sweep_dir, point)
+    if marker.exists():
+        return
+    marker.touch()
+    time.sleep(fault.pause_s)
 
 
 def slowed(on_progress: Callable[[], None], seconds: float) -> Callable[[], None]:
