@@ -8,14 +8,13 @@ group is in the task ids, a RUN group is what a resubmit may change (``sweep.run
              compile) and the top-level threads and compile (``studies.settings.Runtime``)
     POST     post-processing: nsl, figures, mlflow
     TEST     test-only faults: fault
-    TOOL     a tool's own settings: the training-speed benchmark's (conf/bench.yaml, top-level keys)
 
 The owners are imported where the registry is read (``groups``): a command that does not ask starts without them.
 """
 
 from dataclasses import dataclass
 
-OUTCOME, GRID, RUN, POST, TEST, TOOL = "outcome", "grid", "run", "post", "test", "tool"
+OUTCOME, GRID, RUN, POST, TEST = "outcome", "grid", "run", "post", "test"
 
 
 @dataclass(frozen=True)
@@ -31,7 +30,6 @@ class ConfigGroup:
 def groups() -> tuple[ConfigGroup, ...]:
     """Every config group with its owners and kind."""
     from nsl_hpc.analysis.nsl_settings import Figures, MlflowSettings, Nsl
-    from nsl_hpc.bench.settings import BenchSettings
     from nsl_hpc.config.arch import ARCH_SCHEMAS, Arch
     from nsl_hpc.config.launchers import LAUNCHERS
     from nsl_hpc.config.system import InputOutputSystem, InputStateSystem
@@ -57,6 +55,5 @@ def groups() -> tuple[ConfigGroup, ...]:
             ConfigGroup("nsl", POST, (Nsl,)),
             ConfigGroup("figures", POST, (Figures,)),
             ConfigGroup("mlflow", POST, (MlflowSettings,)),
-            ConfigGroup("fault", TEST, (Fault,)),
-            ConfigGroup("", TOOL, (BenchSettings,)))
+            ConfigGroup("fault", TEST, (Fault,)))
 
