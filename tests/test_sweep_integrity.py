@@ -18,12 +18,13 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.mlflow_runs import sweep_run, tracking_uri
+from nsl_hpc.sweep import rows
 from nsl_hpc.sweep.directory import unsafe_refusal
 from nsl_hpc.sweep.failures import read_failures
 from nsl_hpc.sweep.groups import held_locks
 from nsl_hpc.sweep.job import leave_warnings_to_the_runner
 from nsl_hpc.sweep.layout import row_path
-from nsl_hpc.sweep.rows import read_row, read_task_rows, row_state, write_row_atomically
+from nsl_hpc.sweep.rows import listed_row_states, read_row, read_task_rows, row_state, write_row_atomically
 from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
 
 pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
@@ -391,6 +392,31 @@ def test_a_row_copied_over_another_tasks_path_is_corrupt_not_done(tmp_path):
     row_path(tmp_path, other).parent.mkdir(parents=True)
     shutil.copy(row_path(tmp_path, mine), row_path(tmp_path, other))
     assert row_state(row_path(tmp_path, other)) == "corrupt"
+
+
+# Status, launch and resubmit list the row folders and read only the row files changed since their last check: a
+# row damaged in place, replaced, copied over another task's path or removed is seen as it is now.
+def test_the_listed_row_states_read_only_changed_files_and_see_every_change(tmp_path, monkeypatch):
+    ids = [f"{n:02x}{'0' * 14}" for n in range(6)]
+    for task_id in ids[:5]:
+        write_row_atomically({"task_id": task_id, "nmae": 0.1}, row_path(tmp_path, task_id))
+    read = []
+    monkeypatch.setattr(rows, "row_state", lambda path: read.append(Path(path).stem) or row_state(path))
+    assert listed_row_states(tmp_path, ids) == {**dict.fromkeys(ids[:5], "done"), ids[5]: "missing"}
+    assert sorted(read) == ids[:5] and (tmp_path / ".row_checks.parquet").exists()
+    read.clear()
+    assert listed_row_states(tmp_path, ids) == {**dict.fromkeys(ids[:5], "done"), ids[5]: "missing"}
+    assert read == []  # none changed: none read
+    row_path(tmp_path, ids[0]).write_bytes(row_path(tmp_path, ids[0]).read_bytes()[:100])  # damaged in place
+    shutil.copyfile(row_path(tmp_path, ids[2]), row_path(tmp_path, ids[1]))  # another task's row, same size
+    write_row_atomically({"task_id": ids[3], "nmae": 0.2}, row_path(tmp_path, ids[3]))  # written again
+    row_path(tmp_path, ids[4]).unlink()
+    states = listed_row_states(tmp_path, ids)
+    assert states == {ids[0]: "corrupt", ids[1]: "corrupt", ids[2]: "done", ids[3]: "done", ids[4]: "missing",
+                      ids[5]: "missing"}
+    assert sorted(read) == [*ids[:2], ids[3]]
+    read.clear()
+    assert listed_row_states(tmp_path, ids) == states and read == []  # the new checks kept, the gone one dropped
 
 
 # A rehearsal's job writes its rows without pandas (pyarrow converts the values itself): the same row.

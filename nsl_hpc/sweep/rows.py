@@ -7,6 +7,11 @@ merge moves finished rows into a few files of many rows (``rows/compacted/``: a 
 otherwise keep 63k files, a parallel file system's inode quota). It writes such a file before it removes the
 rows' own files, and ``row_states`` reads the compacted files after the own files: a row being moved is found
 either way, never lost.
+
+Asked about many tasks (status, launch, resubmit), ``row_states`` lists the row folders instead of opening each
+task's file, and reads only the files it has not checked before as they are now: each check (the file's size,
+modification time and inode, and its state) is kept in ``<out_dir>/.row_checks.parquet``, so a sweep's status
+reads the rows written since it last looked (616k rows: their listing, not 616k files).
 """
 
 import contextlib
@@ -25,6 +30,8 @@ from nsl_hpc.sweep import layout
 
 PARQUET_MAGIC = b"PAR1"  # the first and last four bytes of every Parquet file
 TAIL_BYTES = 64 * 1024  # what row_state reads of a file's end: a row's footer and end magic (a row is a few KB)
+LISTED_FROM = 1000  # row_states lists the row folders for this many tasks or more, else opens each task's file
+CHECK_COLUMNS = ("task_id", "size", "mtime_ns", "ino", "state")
 PART_IDS: dict[Path, tuple[tuple[int, int, int], frozenset[str]]] = {}  # compacted file: (its stat key, its ids)
 
 
@@ -34,20 +41,26 @@ def write_row_atomically(row: Mapping[str, Any], path: Path) -> None:
 
 
 class _NoPandas(importlib.abc.MetaPathFinder):
-    """Refuses to import pandas (``prepare_row_writes(pandas=False)``)."""
+    """Refuses to import pandas (``refuse_pandas``)."""
 
     def find_spec(self, name: str, path: Any = None, target: Any = None) -> None:
         if name == "pandas" or name.startswith("pandas."):
-            raise ImportError("pandas is not imported in a rehearsal's job")
+            raise ImportError("pandas is not imported here (nsl_hpc.sweep.rows.refuse_pandas)")
+
+
+def refuse_pandas() -> None:
+    """From now on this process does not import pandas: pyarrow looks for it at its first conversion of Python
+    values and imports it where installed (0.35 s of CPU), else converts them itself (the same values). For a
+    process that runs no user code: a rehearsal's job, status."""
+    if "pandas" not in sys.modules and not any(isinstance(finder, _NoPandas) for finder in sys.meta_path):
+        sys.meta_path.insert(0, _NoPandas())
 
 
 def prepare_row_writes(pandas: bool = True) -> None:
     """Import what writing a row imports, once in a job's runner rather than in each group's process forked from
-    it. pyarrow looks for pandas at its first conversion of Python values and imports it where installed (0.35 s
-    of CPU); ``pandas=False`` (a rehearsal's job: no user code runs there) refuses that import, so pyarrow
-    converts the values itself (the same row)."""
-    if not pandas and "pandas" not in sys.modules:
-        sys.meta_path.insert(0, _NoPandas())
+    it; ``pandas=False`` (a rehearsal's job) writes it without pandas (``refuse_pandas``)."""
+    if not pandas:
+        refuse_pandas()
     pa.array([0])
 
 
@@ -107,17 +120,81 @@ def compacted_ids(out_dir: str | os.PathLike) -> list[frozenset[str]]:
 
 def row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str, str]:
     """Each task's row state (``done``, ``missing``, ``corrupt``): ``done`` where a compacted file holds its row,
-    else its own file's (``row_state``). Read in an order that misses no row a merge moves meanwhile (merge syncs
-    the compacted file before it removes the own files): the compacted files, the own files of the tasks they do
-    not hold, then the compacted files again for the tasks still without a row."""
+    else its own file's (``row_state``; for many tasks ``listed_row_states``). Read in an order that misses no row
+    a merge moves meanwhile (merge syncs the compacted file before it removes the own files): the compacted files,
+    the own files of the tasks they do not hold, then the compacted files again for the tasks still without a
+    row."""
     compacted = compacted_ids(out_dir)
-    states = {task_id: "done" if any(task_id in ids for ids in compacted)
-              else row_state(layout.row_file(out_dir, task_id)) for task_id in task_ids}
+    own = [task_id for task_id in task_ids if not any(task_id in ids for ids in compacted)]
+    states = dict.fromkeys(task_ids, "done")
+    if len(own) >= LISTED_FROM:
+        states.update(listed_row_states(out_dir, own))
+    else:
+        states.update((task_id, row_state(layout.row_file(out_dir, task_id))) for task_id in own)
     if all(state == "done" for state in states.values()):
         return states
     since = compacted_ids(out_dir)
     return {task_id: "done" if state != "done" and any(task_id in ids for ids in since) else state
             for task_id, state in states.items()}
+
+
+def listed_row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str, str]:
+    """The own row files' states of ``task_ids`` from a listing of the row folders: ``missing`` without a file, a
+    file as it was at its last check (its size, modification time and inode) that check's state, any other read
+    (``row_state``) and its check kept (``layout.ROW_CHECKS``, written back where the folder takes writes)."""
+    states = dict.fromkeys(task_ids, "missing")
+    checks = read_row_checks(out_dir)
+    changed = False
+    for folder in {task_id[:2] for task_id in states}:
+        with contextlib.suppress(FileNotFoundError, NotADirectoryError), \
+                os.scandir(os.path.join(out_dir, layout.ROWS, folder)) as entries:
+            for entry in entries:
+                name = entry.name
+                task_id = name[:-8]
+                if not name.endswith(".parquet") or task_id not in states:
+                    continue
+                try:
+                    stat = entry.stat(follow_symlinks=False)
+                except FileNotFoundError:  # moved by a merge meanwhile: row_states looks again
+                    continue
+                key = (stat.st_size, stat.st_mtime_ns, stat.st_ino)
+                check = checks.get(task_id)
+                if check is None or check[0] != key:
+                    check = checks[task_id] = (key, row_state(entry.path))
+                    changed = True
+                states[task_id] = check[1]
+    gone = [task_id for task_id, state in states.items() if state == "missing" and task_id in checks]
+    for task_id in gone:
+        del checks[task_id]
+    if changed or gone:
+        write_row_checks(out_dir, checks)
+    return states
+
+
+RowCheck = tuple[tuple[int, int, int], str]  # (size, modification time in ns, inode) of a row file, its state
+
+
+def read_row_checks(out_dir: str | os.PathLike) -> dict[str, RowCheck]:
+    """The kept checks of own row files by task id; none where the file is missing or unreadable (every row file is
+    then read)."""
+    try:
+        table = read_parquet(Path(out_dir) / layout.ROW_CHECKS)
+        columns = [table[name].to_pylist() for name in CHECK_COLUMNS]
+    except (FileNotFoundError, KeyError, pa.ArrowInvalid, OSError):
+        return {}
+    task_ids, sizes, times, inodes, states = columns
+    return dict(zip(task_ids, zip(zip(sizes, times, inodes, strict=True), states, strict=True), strict=True))
+
+
+def write_row_checks(out_dir: str | os.PathLike, checks: Mapping[str, RowCheck]) -> None:
+    """Keep ``checks`` (``read_row_checks``'s form) for the next listing; a folder that takes no writes keeps none."""
+    keys = [key for key, _ in checks.values()]
+    table = pa.table({"task_id": pa.array(list(checks), pa.string()),
+                      **{name: pa.array([key[index] for key in keys], pa.int64())
+                         for index, name in enumerate(CHECK_COLUMNS[1:4])},
+                      "state": pa.array([state for _, state in checks.values()], pa.string())})
+    with contextlib.suppress(OSError):
+        write_parquet(table, Path(out_dir) / layout.ROW_CHECKS)
 
 
 def all_done(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> bool:
