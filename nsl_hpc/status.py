@@ -130,9 +130,10 @@ def main(config: DictConfig) -> int:
             stop_when = launch.budget.stop_when if launch.budget is not None else None
             for line in describe_law_records(law_records(sweep_dir), stop_when):
                 print(line, flush=True)
-        active = state.counts()["running"] + state.counts()["pending"] + (
-            state.counts()["waiting"] if round_job_queued(sweep_dir) else 0)  # the next round comes
-        unsettled = state.counts()["missing"] + state.counts()["waiting"]
+        counts = state.counts()
+        active = counts["running"] + counts["pending"] + (
+            counts["waiting"] if round_job_queued(sweep_dir) else 0)  # the next round comes
+        unsettled = counts["missing"] + counts["waiting"]
         if not cfg.wait or (not active and (confirming or not unsettled)):
             break
         if not active:  # a job being requeued, or a round job sacct does not list yet, can look ended for a

@@ -125,7 +125,8 @@ def row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str,
     the own files of the tasks they do not hold, then the compacted files again for the tasks still without a
     row."""
     compacted = compacted_ids(out_dir)
-    own = [task_id for task_id in task_ids if not any(task_id in ids for ids in compacted)]
+    task_ids = list(task_ids)
+    own = [task_id for task_id in task_ids if not any(task_id in ids for ids in compacted)] if compacted else task_ids
     states = dict.fromkeys(task_ids, "done")
     if len(own) >= LISTED_FROM:
         states.update(listed_row_states(out_dir, own))
@@ -135,7 +136,7 @@ def row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str,
         return states
     since = compacted_ids(out_dir)
     return {task_id: "done" if state != "done" and any(task_id in ids for ids in since) else state
-            for task_id, state in states.items()}
+            for task_id, state in states.items()} if since else states
 
 
 def listed_row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str, str]:

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from nsl_hpc.sweep.decisions import budget_states, without_row_state
 from nsl_hpc.sweep.directory import launch_running
@@ -40,9 +41,8 @@ class SweepState:
 
     def tasks_in(self, wanted: Collection[str]) -> list[dict[str, Any]]:
         """The manifest rows of the tasks in one of the ``wanted`` states, in the manifest's order."""
-        ids = self.manifest["task_id"].to_pylist()
-        return self.manifest.take(pa.array([index for index, task_id in enumerate(ids)
-                                            if self.states[task_id] in wanted], pa.int64())).to_pylist()
+        ids = pa.array([task_id for task_id, state in self.states.items() if state in wanted], pa.string())
+        return self.manifest.filter(pc.is_in(self.manifest["task_id"], value_set=ids)).to_pylist()
 
     def accounting_note(self) -> str | None:
         """One line on what the states cannot tell apart without accounting; None with it."""
@@ -78,6 +78,9 @@ def read_sweep_state(sweep_dir: Path, queue_required: bool = True) -> SweepState
     running, launching = running_task_ids(sweep_dir), launch_running(sweep_dir)
     budgeted = budget_states(sweep_dir)
     for task_id, row in row_states(sweep_dir, manifest["task_id"].to_pylist()).items():
+        if row == "done":  # most of a sweep's tasks, at once
+            states[task_id] = row
+            continue
         element, submitted = latest.get(task_id, (None, 0.0))
         if row == "missing" and task_id in running:
             states[task_id] = "running"
