@@ -59,7 +59,7 @@ class LaunchSettings(RunSettings, Runtime):
     allow_shared_sweep_dir: bool = setting("true: control files others can write are accepted", default=False)
     allow_code_change: bool = setting("true: a sweep may mix rows of changed user code", default=False)
     dry_run: bool = setting("expand, write the manifest, print the plan, submit nothing", default=False)
-    max_tasks: int = setting("a larger grid is refused before it is expanded", 1, default=250_000)
+    max_tasks: int | None = setting("a larger grid is refused before it is expanded (null: no cap)", 1, default=None)
     budget: BudgetSettings | None = setting("a budgeted sweep's rounds (null: a sweep stored before budgets)",
                                             default=None)
     grouping: Any = setting("how tasks are grouped (plan.Grouping, from lockstep, the study and compile)",

@@ -14,7 +14,7 @@ import pyarrow.compute as pc
 from omegaconf import OmegaConf
 
 from nsl_hpc.config import compose_config, plain, unknown_key
-from nsl_hpc.core.errors import ConfigError, require_non_negative_int, require_positive_int
+from nsl_hpc.core.errors import ConfigError, require_non_negative_int
 from nsl_hpc.studies import study_named
 from nsl_hpc.studies.base import Pair, Study
 from nsl_hpc.sweep import layout
@@ -134,10 +134,9 @@ class PreparedSweep:
     done: int  # tasks with a valid row
 
 
-def require_tasks_at_most(tasks: int, cap: Any) -> None:
-    """Refuse, before the grid is expanded, a grid of more than ``cap`` tasks (``max_tasks``)."""
-    require_positive_int("max_tasks", cap)
-    if tasks > cap:
+def require_tasks_at_most(tasks: int, cap: int | None) -> None:
+    """Refuse, before the grid is expanded, a grid of more than ``cap`` tasks (``max_tasks``; None: no cap)."""
+    if cap is not None and tasks > cap:
         raise ConfigError(f"the grid has {tasks:,} tasks, more than max_tasks={cap:,} (expanding it takes about "
                           f"{tasks * 3e3 / 2**30:.1f} GB of memory here): shrink sweep.grid, or raise max_tasks "
                           "where that memory is yours")
