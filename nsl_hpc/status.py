@@ -49,7 +49,7 @@ def remaining_seconds(sweep_dir, state: SweepState, launch: LaunchSettings) -> f
     """Predicted core-seconds of the tasks without a row: a submitted task's share of what its array element was
     predicted to take, the others in the lockstep groups the planner makes of them; a group with a checkpoint:
     the share of its steps still to train."""
-    todo = {task_id for task_id, task_state in state.states.items() if task_state not in ("done", "skipped", "waiting")}
+    todo = {task_id for task_id in state.not_done if state.states[task_id] not in ("skipped", "waiting")}
     shares = state.predicted_s
     saved = {group.task_ids: group for group in saved_groups(sweep_dir)}
     left = {task_id: 1 - group.step / max(group.total_steps, 1)
@@ -70,7 +70,7 @@ def running_cores(sweep_dir, state: SweepState) -> int:
 
 def summary(state: SweepState, seconds: float, cores: int) -> str:
     """The counts by state, a progress bar and the time left: ``seconds`` of predicted work on ``cores``."""
-    counts = state.counts()
+    counts = state.counts
     total = len(state.states)
     bar_width = 40
     filled = round(bar_width * counts["done"] / total)
@@ -130,7 +130,7 @@ def main(config: DictConfig) -> int:
             stop_when = launch.budget.stop_when if launch.budget is not None else None
             for line in describe_law_records(law_records(sweep_dir), stop_when):
                 print(line, flush=True)
-        counts = state.counts()
+        counts = state.counts
         active = counts["running"] + counts["pending"] + (
             counts["waiting"] if round_job_queued(sweep_dir) else 0)  # the next round comes
         unsettled = counts["missing"] + counts["waiting"]

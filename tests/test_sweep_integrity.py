@@ -18,13 +18,13 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.mlflow_runs import sweep_run, tracking_uri
-from nsl_hpc.sweep import rows
+from nsl_hpc.sweep import failures, rows
 from nsl_hpc.sweep.directory import unsafe_refusal
-from nsl_hpc.sweep.failures import read_failures
+from nsl_hpc.sweep.failures import read_failures, read_record, record_failure
 from nsl_hpc.sweep.groups import held_locks
 from nsl_hpc.sweep.job import leave_warnings_to_the_runner
 from nsl_hpc.sweep.layout import row_path
-from nsl_hpc.sweep.rows import listed_row_states, read_row, read_task_rows, row_state, write_row_atomically
+from nsl_hpc.sweep.rows import listed_row_states, read_row, read_task_rows, row_state, row_states, write_row_atomically
 from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
 
 pytestmark = pytest.mark.e2e  # runs the commands end to end (make test-fast leaves it out)
@@ -394,9 +394,10 @@ def test_a_row_copied_over_another_tasks_path_is_corrupt_not_done(tmp_path):
     assert row_state(row_path(tmp_path, other)) == "corrupt"
 
 
-# Status, launch and resubmit list the row folders and read only the row files changed since their last check: a
-# row damaged in place, replaced, copied over another task's path or removed is seen as it is now.
-def test_the_listed_row_states_read_only_changed_files_and_see_every_change(tmp_path, monkeypatch):
+# Status, launch and resubmit list the row folders and read only the row files that are not the files they read
+# before (a new inode): a row written again, another file put in its place or a removed row is seen as it is now;
+# a row changed in place keeps its reading there, and a look at fewer tasks (a job's) reads it.
+def test_the_listed_row_states_read_only_new_files_and_see_each_file_put_in_place(tmp_path, monkeypatch):
     ids = [f"{n:02x}{'0' * 14}" for n in range(6)]
     for task_id in ids[:5]:
         write_row_atomically({"task_id": task_id, "nmae": 0.1}, row_path(tmp_path, task_id))
@@ -407,8 +408,12 @@ def test_the_listed_row_states_read_only_changed_files_and_see_every_change(tmp_
     read.clear()
     assert listed_row_states(tmp_path, ids) == {**dict.fromkeys(ids[:5], "done"), ids[5]: "missing"}
     assert read == []  # none changed: none read
-    row_path(tmp_path, ids[0]).write_bytes(row_path(tmp_path, ids[0]).read_bytes()[:100])  # damaged in place
-    shutil.copyfile(row_path(tmp_path, ids[2]), row_path(tmp_path, ids[1]))  # another task's row, same size
+    damaged = tmp_path / "damaged"
+    damaged.write_bytes(row_path(tmp_path, ids[0]).read_bytes()[:100])
+    os.replace(damaged, row_path(tmp_path, ids[0]))  # a truncated copy put in its place
+    copied = tmp_path / "copied"
+    shutil.copyfile(row_path(tmp_path, ids[2]), copied)
+    os.replace(copied, row_path(tmp_path, ids[1]))  # another task's row, same size
     write_row_atomically({"task_id": ids[3], "nmae": 0.2}, row_path(tmp_path, ids[3]))  # written again
     row_path(tmp_path, ids[4]).unlink()
     states = listed_row_states(tmp_path, ids)
@@ -417,6 +422,25 @@ def test_the_listed_row_states_read_only_changed_files_and_see_every_change(tmp_
     assert sorted(read) == [*ids[:2], ids[3]]
     read.clear()
     assert listed_row_states(tmp_path, ids) == states and read == []  # the new checks kept, the gone one dropped
+    row_path(tmp_path, ids[2]).write_bytes(row_path(tmp_path, ids[2]).read_bytes()[:100])  # changed in place
+    assert listed_row_states(tmp_path, ids)[ids[2]] == "done" and read == []
+    assert row_states(tmp_path, [ids[2]]) == {ids[2]: "corrupt"}
+
+
+# Failure records are read once each while they are the same file: a record written again is read again.
+def test_failure_records_are_read_once_while_they_stand(tmp_path, monkeypatch):
+    record_failure(tmp_path, "ab" + "0" * 14, "failed", "first")
+    record_failure(tmp_path, "cd" + "0" * 14, "frozen", "no heartbeat")
+    assert {task_id: record["reason"] for task_id, record in read_failures(tmp_path).items()} == {
+        "ab" + "0" * 14: "first", "cd" + "0" * 14: "no heartbeat"}
+    opened = []
+    monkeypatch.setattr(failures, "read_record", lambda path: opened.append(path) or read_record(path))
+    assert read_failures(tmp_path)["ab" + "0" * 14]["status"] == "failed" and opened == []
+    record_failure(tmp_path, "ab" + "0" * 14, "timeout", "second")
+    (tmp_path / "failures" / "cd" / f"{'cd' + '0' * 14}.json").unlink()
+    assert {task_id: (record["status"], record["reason"]) for task_id, record in read_failures(tmp_path).items()
+            } == {"ab" + "0" * 14: ("timeout", "second")}
+    assert len(opened) == 1
 
 
 # A rehearsal's job writes its rows without pandas (pyarrow converts the values itself): the same row.

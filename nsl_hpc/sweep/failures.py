@@ -12,11 +12,16 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pyarrow as pa
+
 from nsl_hpc.core.atomic import write_text
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.layout import failure_path, task_log_path
+from nsl_hpc.sweep.listing import read_listed
 
 FAILURE_STATES = ("failed", "frozen", "timeout")
+RECORD_SCHEMA = pa.schema([("status", pa.string()), ("reason", pa.string()), ("host", pa.string()),
+                           ("job_id", pa.string()), ("time", pa.float64()), ("log_tail", pa.string())])
 
 
 def log_tail(path: Path, lines: int = 20) -> str:
@@ -37,11 +42,17 @@ def record_failure(sweep_dir: Path, task_id: str, status: str, reason: str) -> N
 
 
 def read_failures(sweep_dir: Path) -> dict[str, dict[str, Any]]:
-    """Every failure record of a sweep by task id (unreadable records are skipped)."""
-    records = {}
-    for path in (Path(sweep_dir) / layout.FAILURES).glob("*/*.json"):
-        try:
-            records[path.stem] = json.loads(path.read_text())
-        except (OSError, ValueError):
-            continue
-    return records
+    """Every failure record of a sweep by task id (unreadable records are skipped), each file read once while it
+    is the same file (``listing.read_listed``)."""
+    table = read_listed(os.path.join(sweep_dir, layout.FAILURES), ".json", Path(sweep_dir) / layout.FAILURE_CHECKS,
+                        RECORD_SCHEMA, read_record)
+    return {record["task_id"]: record for record in table.drop_columns(["ino"]).to_pylist()}
+
+
+def read_record(path: str) -> dict[str, Any] | None:
+    """The failure record at ``path``; None where it is unreadable."""
+    try:
+        with open(path, encoding="utf-8") as file:
+            return json.load(file)
+    except (OSError, ValueError):
+        return None

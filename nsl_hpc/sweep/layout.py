@@ -61,14 +61,15 @@ BUDGET = "budget"
 REHEARSAL = "rehearsal"  # a rehearsal's own records (the jobs it killed once)
 CODE = "code.json"  # the code the sweep's rows are made by: the package's version and each user module's hash
 MERGE_CACHE = ".merge_cache.parquet"  # merge's read rows, so a second merge reads only new ones
-ROW_CHECKS = ".row_checks.parquet"  # each own row file's last check (its size, time, inode and state): read once
+ROW_CHECKS = ".row_checks.parquet"  # each own row file's state, with its inode: read once (sweep/listing.py)
+FAILURE_CHECKS = ".failure_checks.parquet"  # each failure record, with its file's inode: read once
 PAUSED = "paused-{point}"  # test-only: where a job paused (fault.kind=pause), for the test that signals it there
 
 CONTROL = (SUBMITIT, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, MANIFEST)  # what decides the code a sweep's jobs run
 # what clean keeps
 RECORDS = (MANIFEST, LAUNCH_CONFIG, RUN_SETTINGS, CONFIGS, CODE, ROWS, CORRUPT, SUBMISSIONS, LOCK, BUDGET, REHEARSAL,
            RESULTS, DROPPED, FITS, FITS_TEXT, LAW_CARDS, REPORT, COMPARISON, FIGURES, MLFLOW_DB, MLFLOW_ARTIFACTS,
-           MERGE_CACHE, ROW_CHECKS)
+           MERGE_CACHE, ROW_CHECKS, FAILURE_CHECKS)
 
 
 def bucketed(folder: str | os.PathLike, name: str, suffix: str) -> Path:

@@ -9,9 +9,8 @@ rows' own files, and ``row_states`` reads the compacted files after the own file
 either way, never lost.
 
 Asked about many tasks (status, launch, resubmit), ``row_states`` lists the row folders instead of opening each
-task's file, and reads only the files it has not checked before as they are now: each check (the file's size,
-modification time and inode, and its state) is kept in ``<out_dir>/.row_checks.parquet``, so a sweep's status
-reads the rows written since it last looked (616k rows: their listing, not 616k files).
+task's file, and reads only the files written since it last looked (``nsl_hpc.sweep.listing``: 616k rows, their
+listing, not 616k files).
 """
 
 import contextlib
@@ -24,14 +23,16 @@ from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from nsl_hpc.core.atomic import read_parquet, write_parquet
 from nsl_hpc.sweep import layout
+from nsl_hpc.sweep.listing import read_listed
 
 PARQUET_MAGIC = b"PAR1"  # the first and last four bytes of every Parquet file
 TAIL_BYTES = 64 * 1024  # what row_state reads of a file's end: a row's footer and end magic (a row is a few KB)
 LISTED_FROM = 1000  # row_states lists the row folders for this many tasks or more, else opens each task's file
-CHECK_COLUMNS = ("task_id", "size", "mtime_ns", "ino", "state")
+CHECK_SCHEMA = pa.schema([("state", pa.string())])  # what a row file's check keeps
 PART_IDS: dict[Path, tuple[tuple[int, int, int], frozenset[str]]] = {}  # compacted file: (its stat key, its ids)
 
 
@@ -127,11 +128,15 @@ def row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str,
     compacted = compacted_ids(out_dir)
     task_ids = list(task_ids)
     own = [task_id for task_id in task_ids if not any(task_id in ids for ids in compacted)] if compacted else task_ids
-    states = dict.fromkeys(task_ids, "done")
     if len(own) >= LISTED_FROM:
-        states.update(listed_row_states(out_dir, own))
+        listed = listed_row_states(out_dir, own)
     else:
-        states.update((task_id, row_state(layout.row_file(out_dir, task_id))) for task_id in own)
+        listed = {task_id: row_state(layout.row_file(out_dir, task_id)) for task_id in own}
+    if compacted:
+        states = dict.fromkeys(task_ids, "done")
+        states.update(listed)
+    else:
+        states = listed
     if all(state == "done" for state in states.values()):
         return states
     since = compacted_ids(out_dir)
@@ -140,62 +145,14 @@ def row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str,
 
 
 def listed_row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str, str]:
-    """The own row files' states of ``task_ids`` from a listing of the row folders: ``missing`` without a file, a
-    file as it was at its last check (its size, modification time and inode) that check's state, any other read
-    (``row_state``) and its check kept (``layout.ROW_CHECKS``, written back where the folder takes writes)."""
-    states = dict.fromkeys(task_ids, "missing")
-    checks = read_row_checks(out_dir)
-    changed = False
-    for folder in {task_id[:2] for task_id in states}:
-        with contextlib.suppress(FileNotFoundError, NotADirectoryError), \
-                os.scandir(os.path.join(out_dir, layout.ROWS, folder)) as entries:
-            for entry in entries:
-                name = entry.name
-                task_id = name[:-8]
-                if not name.endswith(".parquet") or task_id not in states:
-                    continue
-                try:
-                    stat = entry.stat(follow_symlinks=False)
-                except FileNotFoundError:  # moved by a merge meanwhile: row_states looks again
-                    continue
-                key = (stat.st_size, stat.st_mtime_ns, stat.st_ino)
-                check = checks.get(task_id)
-                if check is None or check[0] != key:
-                    check = checks[task_id] = (key, row_state(entry.path))
-                    changed = True
-                states[task_id] = check[1]
-    gone = [task_id for task_id, state in states.items() if state == "missing" and task_id in checks]
-    for task_id in gone:
-        del checks[task_id]
-    if changed or gone:
-        write_row_checks(out_dir, checks)
-    return states
-
-
-RowCheck = tuple[tuple[int, int, int], str]  # (size, modification time in ns, inode) of a row file, its state
-
-
-def read_row_checks(out_dir: str | os.PathLike) -> dict[str, RowCheck]:
-    """The kept checks of own row files by task id; none where the file is missing or unreadable (every row file is
-    then read)."""
-    try:
-        table = read_parquet(Path(out_dir) / layout.ROW_CHECKS)
-        columns = [table[name].to_pylist() for name in CHECK_COLUMNS]
-    except (FileNotFoundError, KeyError, pa.ArrowInvalid, OSError):
-        return {}
-    task_ids, sizes, times, inodes, states = columns
-    return dict(zip(task_ids, zip(zip(sizes, times, inodes, strict=True), states, strict=True), strict=True))
-
-
-def write_row_checks(out_dir: str | os.PathLike, checks: Mapping[str, RowCheck]) -> None:
-    """Keep ``checks`` (``read_row_checks``'s form) for the next listing; a folder that takes no writes keeps none."""
-    keys = [key for key, _ in checks.values()]
-    table = pa.table({"task_id": pa.array(list(checks), pa.string()),
-                      **{name: pa.array([key[index] for key in keys], pa.int64())
-                         for index, name in enumerate(CHECK_COLUMNS[1:4])},
-                      "state": pa.array([state for _, state in checks.values()], pa.string())})
-    with contextlib.suppress(OSError):
-        write_parquet(table, Path(out_dir) / layout.ROW_CHECKS)
+    """The own row files' states of ``task_ids`` from a listing of the row folders (``listing.read_listed``):
+    ``missing`` without a file, else its state (``row_state``) as read while it is the same file."""
+    checked = read_listed(os.path.join(out_dir, layout.ROWS), ".parquet", Path(out_dir) / layout.ROW_CHECKS,
+                          CHECK_SCHEMA, lambda path: {"state": row_state(path)})
+    task_ids = task_ids if isinstance(task_ids, list) else list(task_ids)
+    found = pc.index_in(pa.array(task_ids, pa.string()), value_set=checked["task_id"])
+    states = pc.fill_null(checked["state"].take(found), "missing")
+    return dict(zip(task_ids, states.to_pylist(), strict=True))
 
 
 def all_done(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> bool:

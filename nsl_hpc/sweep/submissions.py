@@ -4,7 +4,7 @@ task ids each element runs. ``status``, ``resubmit`` and ``clean`` read them."""
 
 import json
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Container, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -42,14 +42,17 @@ def submitted_clusters(records: Sequence[Mapping[str, Any]]) -> set[str]:
     return {record["cluster"] for record in records if record.get("cluster")}
 
 
-def predicted_shares(records: Sequence[Mapping[str, Any]]) -> dict[str, float]:
+def predicted_shares(records: Sequence[Mapping[str, Any]], wanted: Container[str] | None = None
+                     ) -> dict[str, float]:
     """Each submitted task's predicted seconds as recorded when it was submitted last (``records``:
-    read_submissions's; those that predate the predictions give none)."""
+    read_submissions's; those that predate the predictions give none); ``wanted``: only those tasks'."""
     shares: dict[str, float] = {}
     for record in records:
         for task_ids, seconds in zip(record["elements"], record.get("task_seconds") or [None] * len(record["elements"]),
                                      strict=True):
             for index, task_id in enumerate(task_ids):
+                if wanted is not None and task_id not in wanted:
+                    continue
                 if seconds is None:
                     shares.pop(task_id, None)
                 else:

@@ -5,6 +5,7 @@ import time
 from collections import Counter
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -34,14 +35,18 @@ class SweepState:
     manifest: pa.Table  # task_id, system, arch, seed, width, depth, steps, params
     element_states: dict[str, str]
     unaccounted: str | None = None
-    predicted_s: dict[str, float] = field(default_factory=dict)  # submitted tasks' predicted seconds
+    predicted_s: dict[str, float] = field(default_factory=dict)  # predicted seconds of the submitted not_done ones
+    not_done: frozenset[str] = frozenset()  # the tasks in a state other than done
 
+    @cached_property
     def counts(self) -> Counter[str]:
+        """How many tasks are in each state."""
         return Counter(self.states.values())
 
     def tasks_in(self, wanted: Collection[str]) -> list[dict[str, Any]]:
         """The manifest rows of the tasks in one of the ``wanted`` states, in the manifest's order."""
-        ids = pa.array([task_id for task_id, state in self.states.items() if state in wanted], pa.string())
+        ids = pa.array([task_id for task_id in self.not_done if self.states[task_id] in wanted] if "done" not in wanted
+                       else [task_id for task_id, state in self.states.items() if state in wanted], pa.string())
         return self.manifest.filter(pc.is_in(self.manifest["task_id"], value_set=ids)).to_pylist()
 
     def accounting_note(self) -> str | None:
@@ -65,22 +70,22 @@ def read_sweep_state(sweep_dir: Path, queue_required: bool = True) -> SweepState
     sweep_dir = Path(sweep_dir)
     manifest = read_manifest(sweep_dir, columns=["task_id", "system", "arch", "seed", "width", "depth", "steps",
                                                  "params"])
+    rows = row_states(sweep_dir, manifest["task_id"].to_pylist())
+    not_done = frozenset(task_id for task_id, row in rows.items() if row != "done")
     failures = read_failures(sweep_dir)
-    latest: dict[str, tuple[str, float]] = {}  # task -> (array element, submission time)
+    latest: dict[str, tuple[str, float]] = {}  # not_done task -> (array element, submission time)
     submissions = read_submissions(sweep_dir)
     require_cluster(submitted_clusters(submissions))  # another cluster's queue knows none of its jobs
     for record in submissions:
         for element, task_ids in zip(record["element_ids"], record["elements"], strict=True):
-            for task_id in task_ids:
+            for task_id in not_done.intersection(task_ids):
                 latest[task_id] = (element, record["submitted"])
     elements = job_states((record["array_id"] for record in submissions), queue_required)
-    now, states = time.time(), {}
+    now, states = time.time(), rows
     running, launching = running_task_ids(sweep_dir), launch_running(sweep_dir)
     budgeted = budget_states(sweep_dir)
-    for task_id, row in row_states(sweep_dir, manifest["task_id"].to_pylist()).items():
-        if row == "done":  # most of a sweep's tasks, at once
-            states[task_id] = row
-            continue
+    for task_id in not_done:
+        row = rows[task_id]
         element, submitted = latest.get(task_id, (None, 0.0))
         if row == "missing" and task_id in running:
             states[task_id] = "running"
@@ -90,7 +95,7 @@ def read_sweep_state(sweep_dir: Path, queue_required: bool = True) -> SweepState
         if states[task_id] == "missing":
             states[task_id] = without_row_state(budgeted, task_id, launching)
     return SweepState(states, failures, manifest, elements.states, elements.unaccounted,
-                      predicted_shares(submissions))
+                      predicted_shares(submissions, not_done), not_done)
 
 
 def task_state(row: str, failure: Mapping[str, Any] | None, element: str | None, submitted: float,

@@ -152,7 +152,7 @@ def test_a_rehearsal_on_three_nodes_with_a_node_lost_and_elements_cancelled_acco
                 assert resubmitted.returncode == 0, resubmitted.stderr
     finally:
         subprocess.run(["scancel", "-n", name], check=False)
-    final = read_sweep_state(sweep_dir).counts()
+    final = read_sweep_state(sweep_dir).counts
     assert final["done"] + final["frozen"] + final["failed"] == 216 and final["done"] > 150, final
     logs = "".join(path.read_text(errors="replace") for path in (sweep_dir / "submitit").rglob("*_log.*"))
     trained = re.findall(r"(group \w+)(?: \+\d+ tasks)?: ok", logs)
