@@ -5,7 +5,8 @@ bar with an ETA, and the failed tasks with the last lines of their logs.
     python -m nsl_hpc.status sweep_dir=runs/input_state wait=true     # until nothing runs or waits
 
 `missing` tasks have no row, no failure record and no active job (cancelled, lost, never submitted);
-`corrupt` ones a file where their row belongs that is no valid row (truncated, overwritten):
+`corrupt` ones a file where their row belongs that is no valid row (truncated, overwritten; each row file is
+read once while it is the same file, so one damaged in place is seen by merge, which reads every row):
 `python -m nsl_hpc.resubmit sweep_dir=<dir>` runs them again, with the failed ones. In a budgeted sweep,
 `skipped` tasks were decided not to run and `waiting` ones wait for their round (launch decides it); with
 `budget.track_laws`, how wide the laws' 90% intervals were on the rows of the rounds so far, and which resource

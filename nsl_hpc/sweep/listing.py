@@ -17,7 +17,6 @@ from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
-import pyarrow.compute as pc
 
 from nsl_hpc.core.atomic import read_parquet, write_parquet
 
@@ -27,12 +26,14 @@ KEY = tuple(KEY_SCHEMA.names)
 
 def listed(folder: str | os.PathLike, suffix: str) -> pa.Table:
     """task_id and ino (the inode the listing gives) of every ``<folder>/<xx>/<task id><suffix>``."""
+    import pyarrow.compute as pc  # here: a job, which imports this module, starts without it (0.1 s)
+
     names, inodes = [], []
     with contextlib.suppress(FileNotFoundError, NotADirectoryError):
         for bucket in os.listdir(folder):
             with contextlib.suppress(FileNotFoundError, NotADirectoryError), \
                     os.scandir(os.path.join(folder, bucket)) as listing:
-                entries = list(listing)
+                entries = [entry for entry in listing if entry.name.startswith(bucket)]  # not rows/compacted/
             names += [entry.name for entry in entries]
             inodes += [entry.inode() for entry in entries]
     table = pa.table({"name": pa.array(names, pa.string()), "ino": pa.array(inodes, pa.uint64())})
@@ -46,6 +47,8 @@ def read_listed(folder: str | os.PathLike, suffix: str, kept_at: Path, schema: p
     """Every listed file of ``folder`` (``listed``) with the ``schema`` columns ``read(path)`` gives for it (None:
     unreadable, left out): kept ones (``kept_at``) where the file has the inode they were read at, else read
     now; kept again where anything changed (and the sweep takes writes)."""
+    import pyarrow.compute as pc
+
     files = listed(folder, suffix)
     whole = pa.schema([*KEY_SCHEMA, *schema])
     try:

@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
-import pyarrow.compute as pc
 
 from nsl_hpc.core.atomic import read_parquet, write_parquet
 from nsl_hpc.sweep import layout
@@ -147,6 +146,8 @@ def row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str,
 def listed_row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str, str]:
     """The own row files' states of ``task_ids`` from a listing of the row folders (``listing.read_listed``):
     ``missing`` without a file, else its state (``row_state``) as read while it is the same file."""
+    import pyarrow.compute as pc  # here: a job asks about its few tasks, and starts without it (0.1 s)
+
     checked = read_listed(os.path.join(out_dir, layout.ROWS), ".parquet", Path(out_dir) / layout.ROW_CHECKS,
                           CHECK_SCHEMA, lambda path: {"state": row_state(path)})
     task_ids = task_ids if isinstance(task_ids, list) else list(task_ids)
