@@ -70,7 +70,7 @@ def rehearse(study: str, root: Path, look_s: float) -> dict[str, str]:
             f"{statistics.median(calls):.1f} s / {max(calls):.1f} s ({sum(c > 5 for c in calls)} of {len(calls)})",
         "last status": last.splitlines()[0],
         "merge: first, compacting the rows / again": f"{merge_s:.1f} s / {merge_again_s:.1f} s",
-        "merge says": next(line for line in merged.splitlines() if "dropped" in line or " of " in line),
+        "merge says": next(line for line in merged.splitlines() if " dropped" in line),
         "the sweep's files at the end": f"{files(sweep_dir):,}",
         "fit: every law, with its bootstrap and law cards": f"{fit_s:.0f} s ({len(fits)} laws)",
         "end to end": f"{total_s / 60:.1f} min",
