@@ -50,9 +50,10 @@ def read_failures(sweep_dir: Path) -> dict[str, dict[str, Any]]:
 
 
 def read_record(path: str) -> dict[str, Any] | None:
-    """The failure record at ``path``; None where it is unreadable."""
+    """The failure record at ``path``; None where it is unreadable or no record (not a JSON object)."""
     try:
         with open(path, encoding="utf-8") as file:
-            return json.load(file)
+            record = json.load(file)
     except (OSError, ValueError):
         return None
+    return record if isinstance(record, dict) else None
