@@ -57,7 +57,7 @@ def read_listed(folder: str | os.PathLike, suffix: str, kept_at: Path, schema: p
         kept = whole.empty_table()
     joined = files.join(kept.append_column("kept", pa.repeat(True, kept.num_rows)), list(KEY),
                         join_type="left outer")
-    standing = joined.filter(pc.is_valid(joined["kept"])).drop_columns(["kept"]).select(whole.names)
+    standing = joined.filter(pc.is_valid(joined["kept"])).select(whole.names)
     unread = joined.filter(pc.is_null(joined["kept"]))
     fresh = []
     for task_id, ino in zip(unread["task_id"].to_pylist(), unread["ino"].to_pylist(), strict=True):

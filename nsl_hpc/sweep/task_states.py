@@ -34,9 +34,9 @@ class SweepState:
     failures: dict[str, dict[str, Any]]
     manifest: pa.Table  # task_id, system, arch, seed, width, depth, steps, params
     element_states: dict[str, str]
+    not_done: frozenset[str]  # the tasks in a state other than done
     unaccounted: str | None = None
     predicted_s: dict[str, float] = field(default_factory=dict)  # predicted seconds of the submitted not_done ones
-    not_done: frozenset[str] = frozenset()  # the tasks in a state other than done
 
     @cached_property
     def counts(self) -> Counter[str]:
@@ -70,8 +70,8 @@ def read_sweep_state(sweep_dir: Path, queue_required: bool = True) -> SweepState
     sweep_dir = Path(sweep_dir)
     manifest = read_manifest(sweep_dir, columns=["task_id", "system", "arch", "seed", "width", "depth", "steps",
                                                  "params"])
-    rows = row_states(sweep_dir, manifest["task_id"].to_pylist())
-    not_done = frozenset(task_id for task_id, row in rows.items() if row != "done")
+    states = row_states(sweep_dir, manifest["task_id"].to_pylist())  # then each not_done task's own state
+    not_done = frozenset(task_id for task_id, row in states.items() if row != "done")
     failures = read_failures(sweep_dir)
     latest: dict[str, tuple[str, float]] = {}  # not_done task -> (array element, submission time)
     submissions = read_submissions(sweep_dir)
@@ -81,11 +81,11 @@ def read_sweep_state(sweep_dir: Path, queue_required: bool = True) -> SweepState
             for task_id in not_done.intersection(task_ids):
                 latest[task_id] = (element, record["submitted"])
     elements = job_states((record["array_id"] for record in submissions), queue_required)
-    now, states = time.time(), rows
+    now = time.time()
     running, launching = running_task_ids(sweep_dir), launch_running(sweep_dir)
     budgeted = budget_states(sweep_dir)
     for task_id in not_done:
-        row = rows[task_id]
+        row = states[task_id]
         element, submitted = latest.get(task_id, (None, 0.0))
         if row == "missing" and task_id in running:
             states[task_id] = "running"
@@ -94,8 +94,8 @@ def read_sweep_state(sweep_dir: Path, queue_required: bool = True) -> SweepState
                                      elements.states.get(element or ""), now, elements.queue_answered)
         if states[task_id] == "missing":
             states[task_id] = without_row_state(budgeted, task_id, launching)
-    return SweepState(states, failures, manifest, elements.states, elements.unaccounted,
-                      predicted_shares(submissions, not_done), not_done)
+    return SweepState(states, failures, manifest, elements.states, not_done, elements.unaccounted,
+                      predicted_shares(submissions, not_done))
 
 
 def task_state(row: str, failure: Mapping[str, Any] | None, element: str | None, submitted: float,
