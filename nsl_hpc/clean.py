@@ -134,9 +134,9 @@ def doomed_paths(sweep_dir: Path) -> tuple[list[Path], int, int]:
     settled = done | {task_id for task_id, status in state.states.items() if status == "skipped"}
     if len(settled) == len(state.states):  # every task has a row, or a budget decided not to run it
         launch = read_launch_config(sweep_dir)
-        doomed += cache_entries(Path(launch.cache_dir))
-        if launch.get("compile_cache_dir") and Path(launch.compile_cache_dir).resolve().is_relative_to(sweep_dir):
-            doomed.append(Path(launch.compile_cache_dir).resolve())
+        doomed += cache_entries(Path(launch["cache_dir"]))
+        if launch.get("compile_cache_dir") and Path(launch["compile_cache_dir"]).resolve().is_relative_to(sweep_dir):
+            doomed.append(Path(launch["compile_cache_dir"]).resolve())
     keep = protected(sweep_dir, done)
     return [path for path in doomed if path.exists() and not keep(path)], len(done), len(state.states) - len(done)
 

@@ -12,7 +12,7 @@ updated, not duplicated. A tracking server (http, https) must answer within ``ml
 is written. The steps also run alone: ``python -m nsl_hpc.merge``, ``python -m nsl_hpc.fit``.
 """
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from nsl_hpc import cli
 from nsl_hpc.analysis.figures import draw_figures, figure_stem
@@ -52,7 +52,7 @@ def main(cfg: DictConfig) -> int:
     entries = what_it_takes(results, rows, wanted.resource, wanted.metric,
                             lambda best: [factor * best for factor in wanted.factors], nsl)
     section = what_it_takes_html(entries, wanted, nsl.resources[wanted.resource].symbol)
-    scores = scores_note(launch.study.name, OmegaConf.select(launch_config, "metric.normalization"))
+    scores = scores_note(launch.study.name, (launch_config.get("metric") or {}).get("normalization"))
     report = sweep_dir / layout.REPORT
     write_text(report_html(sweep_dir, launch, summary, rows, figures, section, nsl, fitted.cards["core_hours"],
                            fitted.learning, scores), report)

@@ -90,7 +90,7 @@ def main(config: DictConfig, overrides: Sequence[str]) -> int:
     cfg = typed(ResubmitSettings, OmegaConf.masked_copy(config, OWN_KEYS), "")
     sweep_dir = require_sweep(cfg.sweep_dir)
     with private_umask(), sweep_lock(sweep_dir, "resubmit"):
-        launch = with_named_settings(read_launch_config(sweep_dir), config, overrides)
+        launch = with_named_settings(OmegaConf.create(read_launch_config(sweep_dir)), config, overrides)
         check_control_files(sweep_dir, launch.compile_cache_dir, cfg.allow_shared_sweep_dir)
         settings = check_run_settings(launch)
         state = read_sweep_state(sweep_dir)
@@ -133,8 +133,8 @@ def sweeps_launcher(argv: Sequence[str]) -> list[str]:
             any(argument.startswith("launcher=") for argument in overrides):
         return []
     try:
-        return [f"launcher={read_launch_config(Path(sweep_dirs[-1])).launcher.name}"]
-    except (ConfigError, OSError, AttributeError):  # main refuses a bad sweep_dir in its own words
+        return [f"launcher={read_launch_config(Path(sweep_dirs[-1]))['launcher']['name']}"]
+    except (ConfigError, OSError, KeyError, TypeError):  # main refuses a bad sweep_dir in its own words
         return []
 
 

@@ -45,8 +45,8 @@ def test_a_format_1_sweep_is_upgraded_and_runs_as_it_ran_and_a_later_format_is_r
         without(sweep_dir / name, keys)
     without(sweep_dir / "configs" / "spring__unstructured.yaml", ["system._target_", "arch._target_"])  # before targets
     launch = read_launch_config(sweep_dir)
-    assert launch.format == FORMAT and launch.checkpoint.every_minutes == 0 and launch.compile == "auto"
-    assert launch.cost.compile_s == {} and launch.metric.normalization is None and launch.threads == 1
+    assert launch["format"] == FORMAT and launch["checkpoint"]["every_minutes"] == 0 and launch["compile"] == "auto"
+    assert launch["cost"]["compile_s"] == {} and launch["metric"]["normalization"] is None and launch["threads"] == 1
     assert "done 2" in nsl("status", f"sweep_dir={sweep_dir}").stdout
 
     lost = row_files(sweep_dir)[0]

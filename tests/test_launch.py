@@ -89,8 +89,8 @@ def test_a_sweep_stored_before_a_setting_existed_reads_it_at_its_neutral_value(t
         text = text.replace(line, "")  # as stored before these settings existed
     stored.write_text(text)
     system, arch = stored.stem.split("__")
-    train = read_base_config(sweep_dir, system, arch).train
-    assert (train.repeat, train.weight_decay, train.repeat_by_trajectories) == (1, 0.0, None)
+    train = read_base_config(sweep_dir, system, arch)["train"]
+    assert (train["repeat"], train["weight_decay"], train["repeat_by_trajectories"]) == (1, 0.0, None)
 
 
 def test_launch_on_a_directory_of_another_grid_is_refused(tmp_path):

@@ -11,11 +11,10 @@ names (system, arch, train and the study's own) and, in a rehearsal, ``rehearse`
 had then. tests/test_identity.py holds every setting of the shipped configs to one side or the other.
 """
 
+import copy
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
-
-from omegaconf import DictConfig
 
 from nsl_hpc.config.arch import IO_ARCHITECTURES
 from nsl_hpc.config.targets import PACKAGE_PREFIX
@@ -124,10 +123,11 @@ def identity_values(study: str, shared_keys: Sequence[str], values: Mapping[str,
     return shared
 
 
-def with_stored_defaults(study: str, cfg: DictConfig) -> DictConfig:
+def with_stored_defaults(study: str, cfg: dict[str, Any]) -> dict[str, Any]:
     """``cfg``, a pair's stored config, with the excluded settings it lacks (it was stored before they existed) at
     the value every task had then."""
     for entry in EXCLUDED:
-        if entry.stored != NOT_STORED and entry.applies(study, cfg.arch.name) and entry.key not in cfg[entry.group]:
-            cfg[entry.group][entry.key] = entry.stored
+        if entry.stored != NOT_STORED and entry.applies(study, cfg["arch"]["name"]) \
+                and entry.key not in cfg[entry.group]:
+            cfg[entry.group][entry.key] = copy.deepcopy(entry.stored)
     return cfg

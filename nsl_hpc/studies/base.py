@@ -9,8 +9,6 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
 
-from omegaconf import DictConfig
-
 from nsl_hpc.config.arch import Arch
 from nsl_hpc.config.identity import identity_values, with_stored_defaults
 from nsl_hpc.config.mapping import plain
@@ -133,7 +131,7 @@ class Study(Generic[P]):
             shared["rehearsal"] = values["rehearse"]
         return stable_hash(shared)
 
-    def with_stored_defaults(self, cfg: DictConfig) -> DictConfig:
+    def with_stored_defaults(self, cfg: dict[str, Any]) -> dict[str, Any]:
         """``cfg``, a pair's stored config, with the excluded settings it lacks (stored before they existed) at the
         value every task had then (``config.identity.with_stored_defaults``), and a system or arch stored before
         targets with the package's ``_target_`` of its name (``package_target``)."""

@@ -8,18 +8,17 @@ task configs are upgraded by ``Study.with_stored_defaults`` (they also keep the 
 later format, by a newer nsl_hpc, is refused in one line.
 """
 
+import copy
 import functools
 import importlib.metadata
 from typing import Any
 
 import pyarrow as pa
-from omegaconf import DictConfig, OmegaConf, open_dict
 
 from nsl_hpc.core.errors import ConfigError
 from nsl_hpc.sweep.groups import STALE_S
 
 FORMAT = 2
-ABSENT = object()  # OmegaConf.select's default for a key a config lacks (null is a value)
 
 # (dotted key, the value a format-1 sweep ran with where its launch.yaml and run.yaml lack the key)
 FORMAT_1_SETTINGS: tuple[tuple[str, Any], ...] = (
@@ -46,10 +45,10 @@ def package_version() -> str | None:
         return None
 
 
-def format_of(launch: DictConfig, where: str) -> int:
+def format_of(launch: dict[str, Any], where: str) -> int:
     """The format ``launch`` (a stored launch config, from ``where``) was written in, refused when it is not one
     this nsl_hpc reads."""
-    written = OmegaConf.select(launch, "format", default=1)
+    written = launch.get("format", 1)
     if not isinstance(written, int) or written < 1:
         raise ConfigError(f"{where} says format={written!r}; the sweep directory is damaged")
     if written > FORMAT:
@@ -58,15 +57,17 @@ def format_of(launch: DictConfig, where: str) -> int:
     return written
 
 
-def upgrade_launch(launch: DictConfig, where: str) -> DictConfig:
-    """``launch`` (a stored launch config with its run settings, from ``where``) in the current format: a format-1
-    one with each of ``FORMAT_1_SETTINGS`` it lacks set to the value it ran with."""
+def upgrade_launch(launch: dict[str, Any], where: str) -> dict[str, Any]:
+    """``launch`` (a stored launch config with its run settings, from ``where``, plain data) in the current format:
+    a format-1 one with each of ``FORMAT_1_SETTINGS`` it lacks set to the value it ran with."""
     if format_of(launch, where) == 1:
-        with open_dict(launch):
-            for key, value in FORMAT_1_SETTINGS:
-                if OmegaConf.select(launch, key, default=ABSENT) is ABSENT:
-                    OmegaConf.update(launch, key, value, force_add=True)
-            launch.format = FORMAT
+        for key, value in FORMAT_1_SETTINGS:
+            *parents, last = key.split(".")
+            group = launch
+            for parent in parents:
+                group = group.setdefault(parent, {})
+            group.setdefault(last, copy.deepcopy(value))
+        launch["format"] = FORMAT
     return launch
 
 
