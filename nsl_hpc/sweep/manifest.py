@@ -25,7 +25,7 @@ from omegaconf._utils import get_yaml_loader
 from nsl_hpc.config import plain
 from nsl_hpc.core.atomic import create_parquet, read_parquet, write_text
 from nsl_hpc.core.errors import ConfigError, damaged_file
-from nsl_hpc.studies import study_named
+from nsl_hpc.studies import study_named, study_of
 from nsl_hpc.studies.base import Pair
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.directory import SWEEP_DIR_REFERENCE, portable_paths
@@ -109,7 +109,7 @@ def read_base_config(sweep_dir: Path, system: str, arch: str) -> dict[str, Any]:
     """The task config shared by the tasks of (system, arch), with the settings added since it was stored at the
     value every task had before them (``Study.with_stored_defaults``, from ``config.identity``)."""
     cfg = read_yaml(base_config_path(sweep_dir, system, arch), sweep_dir)
-    return study_named(cfg["study"]["name"]).with_stored_defaults(cfg)
+    return study_of(cfg).with_stored_defaults(cfg)
 
 
 def read_pair(sweep_dir: Path, system: str, arch: str) -> Pair:
