@@ -151,6 +151,20 @@ def test_a_sparse_staircase_envelope_leaves_no_slope_at_its_bound():
     assert fit.b == 0 and abs(fit.delta0 + 0.4) < 0.1
 
 
+def test_weighing_the_law_above_the_staircase_brings_it_down_to_the_law_under_it():
+    """Outcomes exactly on a power law at sparse resources (a doubling apart): Definition 1's staircase touches the
+    law only at its lower corners, so plain least squares (above_weight 1) lies above the law; weighing a residual
+    above the envelope 5x (as Section 4.3's loss does) brings the fit down towards it, and the fit at weight 1 is
+    the one that minimises M."""
+    r = np.geomspace(1e4, 1e9, 17)
+    e = 2.0 * r**-0.2
+    plain, weighted = (fit_nsl(r, e, breaks=0, settings=default_settings(above_weight=weight)) for weight in (1, 5))
+    over = {name: float(fit.predict(r[-1]) / e[-1]) for name, fit in (("plain", plain), ("weighted", weighted))}
+    assert over["plain"] > 1.05 and 1.0 < over["weighted"] < 1 + 0.7 * (over["plain"] - 1), over  # 7.4%, 4.4%
+    assert abs(weighted.delta0 + 0.2) < abs(plain.delta0 + 0.2) + 1e-3
+    assert plain.margin < weighted.margin
+
+
 def test_the_slope_form_is_the_law_with_its_breaks_in_order_and_its_jacobian_is_exact():
     theta = np.array([-4.0, 1.0, -0.3, 9.0, 0.5, 0.4, 4.0, 0.3, -2.0, 6.0, 0.2, 1.5])  # breaks out of order
     u = slope_form(theta)

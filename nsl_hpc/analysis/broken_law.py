@@ -122,6 +122,21 @@ def margin_of(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray) -> float:
     return float(np.mean((log_law(theta, x) - log_e) ** 2))
 
 
+def weighted_residuals(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, above_weight: float
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """(the log residuals ln L - ln e~ of the law theta on the envelope, each scaled by sqrt(above_weight) where
+    the law lies above the envelope, the scales): what the margin objective squares and averages."""
+    residuals = log_law(theta, x) - log_e
+    scales = np.where(residuals > 0, np.sqrt(above_weight), 1.0)
+    return scales * residuals, scales
+
+
+def margin_objective(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, above_weight: float) -> float:
+    """The margin objective: M (Definition 1's margin) with each squared log residual where the law lies above
+    the envelope weighted ``above_weight`` (1: M itself)."""
+    return float(np.mean(weighted_residuals(theta, x, log_e, above_weight)[0] ** 2))
+
+
 @dataclass(frozen=True)
 class Bounds:
     """Box bounds of the slope form u (slope_form) for b breaks on the log grid ``x`` with log errors
@@ -245,12 +260,19 @@ def random_starts(x: np.ndarray, log_e: np.ndarray, b: int, count: int, bounds: 
     return starts
 
 
-def refine_margin(u: np.ndarray, x: np.ndarray, log_e: np.ndarray, bounds: Bounds, evaluations: int
-                  ) -> np.ndarray:
-    """Minimise the margin from the slope form ``u`` (bounded trust-region least squares on the log residuals,
-    at most ``evaluations`` evaluations; stops when M changes by less than 1e-6 of itself)."""
-    result = least_squares(lambda v: log_law(theta_of(v), x) - log_e, bounds.clip(u),
-                           jac=lambda v: slope_form_jacobian(v, x), bounds=(bounds.lower, bounds.upper),
+def refine_margin(u: np.ndarray, x: np.ndarray, log_e: np.ndarray, bounds: Bounds, evaluations: int,
+                  above_weight: float) -> np.ndarray:
+    """Minimise the margin objective (``margin_objective``) from the slope form ``u`` (bounded trust-region least
+    squares on the weighted log residuals, at most ``evaluations`` evaluations; stops when it changes by less than
+    1e-6 of itself)."""
+    def residuals(v: np.ndarray) -> np.ndarray:
+        return weighted_residuals(theta_of(v), x, log_e, above_weight)[0]
+
+    def jacobian(v: np.ndarray) -> np.ndarray:
+        scales = weighted_residuals(theta_of(v), x, log_e, above_weight)[1]
+        return scales[:, None] * slope_form_jacobian(v, x)
+
+    result = least_squares(residuals, bounds.clip(u), jac=jacobian, bounds=(bounds.lower, bounds.upper),
                            x_scale="jac", max_nfev=evaluations, ftol=1e-6)
     return result.x
 
@@ -301,7 +323,7 @@ def refine(u: np.ndarray, x: np.ndarray, log_e: np.ndarray, b: int, settings: "F
     budget)."""
     if settings.objective == "study":
         return refine_study(u, x, log_e, settings)
-    return refine_margin(u, x, log_e, Bounds.for_grid(x, log_e, b, settings), evaluations)
+    return refine_margin(u, x, log_e, Bounds.for_grid(x, log_e, b, settings), evaluations, settings.above_weight)
 
 
 def with_flat_break(theta: np.ndarray, x: np.ndarray, positions: int, phi_min: float) -> list[np.ndarray]:
@@ -327,14 +349,15 @@ def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings"
     def objective(u: np.ndarray) -> float:
         if settings.objective == "study":
             return study_loss(u, x, np.exp(log_e), settings.study_beta)[0]
-        return margin_of(theta_of(u), x, log_e)
+        return margin_objective(theta_of(u), x, log_e, settings.above_weight)
 
     def supported(u: np.ndarray) -> bool:
         return x_on is not None and bool(segment_points(u, x_on).min() >= settings.min_segment_points)
 
     starts = [bounds.clip(slope_form(theta)) for theta in
               piecewise_linear_starts(x, log_e, b, settings)]
-    chosen = sorted(starts, key=lambda u: margin_of(theta_of(u), x, log_e))[:settings.starts]
+    chosen = sorted(starts, key=lambda u: margin_objective(theta_of(u), x, log_e, settings.above_weight)
+                    )[:settings.starts]
     chosen += random_starts(x, log_e, b, settings.random_starts, bounds, seed=b)
     for law in fewer:
         chosen += [bounds.clip(slope_form(theta)) for theta in with_flat_break(law, x, 3, settings.phi_min)]
@@ -347,7 +370,7 @@ def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings"
         for u in [u for u in ranked if supported(u)][:settings.finalists]:
             u = slope_form(theta_of(u))
             standing.append(refine_margin(u, x, log_e, bounds.keeping_support(u, x_on, settings.min_segment_points),
-                                          200) if settings.objective == "margin" else u)
+                                          200, settings.above_weight) if settings.objective == "margin" else u)
         standing.sort(key=objective)
     return theta_of(refined[0]), theta_of(standing[0]) if standing else None
 
@@ -359,6 +382,8 @@ class FitSettings:
 
     objective: str = setting("margin: least squares on the log residuals; study: Section 4.3 as written",
                              choices=OBJECTIVES)
+    above_weight: float = setting("objective=margin: the weight of a squared log residual where the law lies above "
+                                  "the envelope (1: plain least squares, minimising M)", 1)
     envelope: str = setting("what objective=margin fits: Definition 1's step envelope or the interpolated one",
                             choices=ENVELOPES)
     positions: int = setting("candidate corner positions of the piecewise-linear starts", 1)
@@ -478,8 +503,9 @@ def law_of(theta: np.ndarray, r: np.ndarray, e: np.ndarray, grid_r: np.ndarray, 
     step_e = grid_e if settings.fitted_envelope == "step" else lower_envelope(r, e, len(grid_r), "step")[1]
     x = np.log(grid_r)
     alpha = float(np.exp(theta[0]))
-    if margin_of(np.concatenate([[-np.inf], theta[1:]]), x, np.log(grid_e)) <= \
-            margin_of(theta, x, np.log(grid_e)) * (1 + 1e-9):
+    weight = settings.above_weight
+    if margin_objective(np.concatenate([[-np.inf], theta[1:]]), x, np.log(grid_e), weight) <= \
+            margin_objective(theta, x, np.log(grid_e), weight) * (1 + 1e-9):
         alpha = 0.0  # a negligible alpha is reported as none
     points = segment_points(theta, np.log(pareto_points(r, e)[0]))
     return NSLFit(alpha=alpha, beta=float(np.exp(theta[1])), delta0=float(theta[2]),
