@@ -265,11 +265,18 @@ def refine_margin(u: np.ndarray, x: np.ndarray, log_e: np.ndarray, bounds: Bound
     """Minimise the margin objective (``margin_objective``) from the slope form ``u`` (bounded trust-region least
     squares on the weighted log residuals, at most ``evaluations`` evaluations; stops when it changes by less than
     1e-6 of itself)."""
-    def residuals(v: np.ndarray) -> np.ndarray:
-        return weighted_residuals(theta_of(v), x, log_e, above_weight)[0]
+    evaluated: dict[bytes, np.ndarray] = {}  # the scales at the last point the residuals were evaluated at
 
-    def jacobian(v: np.ndarray) -> np.ndarray:
-        scales = weighted_residuals(theta_of(v), x, log_e, above_weight)[1]
+    def residuals(v: np.ndarray) -> np.ndarray:
+        weighted, scales = weighted_residuals(theta_of(v), x, log_e, above_weight)
+        evaluated.clear()
+        evaluated[v.tobytes()] = scales
+        return weighted
+
+    def jacobian(v: np.ndarray) -> np.ndarray:  # least squares asks for it where it last evaluated the residuals
+        scales = evaluated.get(v.tobytes())
+        if scales is None:
+            scales = weighted_residuals(theta_of(v), x, log_e, above_weight)[1]
         return scales[:, None] * slope_form_jacobian(v, x)
 
     result = least_squares(residuals, bounds.clip(u), jac=jacobian, bounds=(bounds.lower, bounds.upper),
