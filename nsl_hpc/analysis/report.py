@@ -204,7 +204,7 @@ def science_settings(sweep_dir: Path, launch: LaunchSettings) -> dict[tuple[str,
     for part in sub_grids(launch.sweep.grid):
         for system in part["system"]:
             for arch in part["arch"]:
-                used = plain(read_base_config(sweep_dir, system, arch))
+                used = read_base_config(sweep_dir, system, arch)
                 default = plain(compose_config(
                     [f"study={study.name}", f"system={system}", f"arch={arch}"]))
                 flat_used = flatten(outcome_values({key: used[key] for key in study.shared_keys}))

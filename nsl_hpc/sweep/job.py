@@ -43,7 +43,6 @@ from typing import Any
 
 import submitit
 
-from nsl_hpc.config import plain
 from nsl_hpc.core.checkpoint import Checkpointer, TrainingStopped, read_info, remove_checkpoint
 from nsl_hpc.core.diagnostics import job_records, log_job
 from nsl_hpc.studies import import_training_code, study_of
@@ -86,7 +85,7 @@ class TaskConfigs:
         """The shared config of the manifest row ``task``'s (system, arch), its study and typed settings."""
         key = (task["system"], task["arch"])
         if key not in self.shared:
-            values = plain(read_base_config(self.sweep_dir, *key))
+            values = read_base_config(self.sweep_dir, *key)
             study = study_of(values)
             self.shared[key] = (values, study, study.pair(values))
         return self.shared[key]

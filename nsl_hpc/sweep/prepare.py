@@ -172,9 +172,9 @@ def prepare_sweep(built: BuiltSweep, sweep_dir: Path) -> PreparedSweep:
     if manifest_path(sweep_dir).exists():
         existing = read_manifest(sweep_dir, columns=["task_id"])["task_id"]
         if existing.to_pylist() != manifest["task_id"].to_pylist():
-            stored = {pair: plain(read_yaml(base_config_path(sweep_dir, *pair), sweep_dir)) for pair in built.configs
+            stored = {pair: read_yaml(base_config_path(sweep_dir, *pair), sweep_dir) for pair in built.configs
                       if base_config_path(sweep_dir, *pair).exists()}
-            stored_launch = plain(read_yaml(sweep_dir / layout.LAUNCH_CONFIG, sweep_dir))
+            stored_launch = read_yaml(sweep_dir / layout.LAUNCH_CONFIG, sweep_dir)
             changed = changed_settings(stored_launch, settings.values, built.study,
                                        {pair: (stored[pair], built.configs[pair].values) for pair in stored})
             raise ConfigError(f"sweep_dir={str(sweep_dir)!r} holds a different grid ({len(existing):,} tasks, "
