@@ -1,8 +1,9 @@
-"""Outcome clouds of known broken laws and a direct multi-start fit of Definition 1's margin: the reference
-that the fit is held to (tests/test_nsl.py, benchmarks/fit_quality.py).
+"""Outcome clouds of known broken laws and a direct multi-start fit of the margin objective (Definition 1's
+margin, a residual where the law lies above the envelope weighed ``nsl.above_weight``): the reference that the
+fit is held to (tests/test_nsl.py, benchmarks/fit_quality.py).
 
 The references of the clouds tests/test_nsl.py holds the fit to take 5-60 s each; they are stored in
-tests/golden/direct_margins.json with their cloud's fingerprint, and written again by
+tests/golden/direct_objectives.json with their cloud's fingerprint, and written again by
 
     .venv/bin/python -m tests.fit_clouds
 """
@@ -25,6 +26,7 @@ from nsl_hpc.analysis.broken_law import (
     slope_form,
     slope_form_jacobian,
     theta_of,
+    weighted_residuals,
 )
 from nsl_hpc.analysis.published import published_laws
 from nsl_hpc.core.atomic import replacing
@@ -80,11 +82,11 @@ def b_acceptable(chosen: int, true: int) -> bool:
     return chosen <= true if true <= 1 else abs(chosen - true) <= 1
 
 
-def direct_margin(r: np.ndarray, e: np.ndarray, b: int, starts: int = 60, K: int = 100,
-                  envelope: str = "step") -> float:
-    """The reference: the least Definition-1 margin of a law in the fit's box (slopes in [-max_slope, max_rise]:
-    a law that does not rise) that bounded least squares of ln L on the envelope reaches from ``starts`` random
-    starts (no structured starts, a long budget)."""
+def direct_objective(r: np.ndarray, e: np.ndarray, b: int, starts: int = 60, K: int = 100,
+                     envelope: str = "step") -> float:
+    """The reference: the least margin objective (``objective_of``, at conf/nsl's above_weight) of a law in the
+    fit's box (slopes in [-max_slope, max_rise]: a law that does not rise) that bounded weighted least squares of
+    ln L on the envelope reaches from ``starts`` random starts (no structured starts, a long budget)."""
     settings = default_settings()
     grid, envelope_e = lower_envelope(r, e, K, envelope)
     x, y = np.log(grid), np.log(envelope_e)
@@ -93,17 +95,31 @@ def direct_margin(r: np.ndarray, e: np.ndarray, b: int, starts: int = 60, K: int
     bounds = Bounds.for_grid(x, y, b, settings)
     rng = np.random.default_rng(0)
     best = math.inf
+
+    def residuals(u: np.ndarray) -> np.ndarray:
+        return weighted_residuals(theta_of(u), x, y, settings.above_weight)[0]
+
+    def jacobian(u: np.ndarray) -> np.ndarray:
+        return slope_form_jacobian(u, x) * weighted_residuals(theta_of(u), x, y, settings.above_weight)[1][:, None]
+
     for _ in range(starts):
         theta = rng.uniform(bounds.lower, np.minimum(bounds.upper, bounds.lower + 40))
         theta[0] = y.min() + np.log(rng.uniform(0.3, 1.0)) if rng.random() < 0.5 else bounds.lower[0]
         theta[2], theta[5::3], theta[4::3] = rng.uniform(-2, 1), rng.uniform(-4, 4, b), rng.uniform(0.2, 1, b)
         theta[3::3] = np.sort(theta[3::3])
         theta[1] = y[0] - theta[2] * x[0]
-        result = least_squares(lambda u: log_law(theta_of(u), x) - y, bounds.clip(slope_form(theta)),
-                               bounds=(bounds.lower, bounds.upper), jac=lambda u: slope_form_jacobian(u, x),
-                               x_scale="jac", max_nfev=400)
+        result = least_squares(residuals, bounds.clip(slope_form(theta)), bounds=(bounds.lower, bounds.upper),
+                               jac=jacobian, x_scale="jac", max_nfev=400)
         best = min(best, float(np.mean(result.fun**2)))
     return best
+
+
+def objective_of(fit: NSLFit, r: np.ndarray, e: np.ndarray, K: int = 100) -> float:
+    """The margin objective of ``fit`` on Definition 1's envelope of the outcomes (r, e) (conf/nsl's
+    above_weight; at 1: the fit's M)."""
+    grid, envelope_e = lower_envelope(r, e, K)
+    residuals = np.log(fit.predict(grid)) - np.log(envelope_e)
+    return float(np.mean(np.where(residuals > 0, default_settings().above_weight, 1.0) * residuals**2))
 
 
 def outcomes(true: NSLFit, seed: int, n: int = 3000, low: float = 1e3, high: float = 1e12):
@@ -150,7 +166,7 @@ def sweep_like_cloud(name: str) -> tuple[NSLFit, np.ndarray, np.ndarray]:
     return (true, *cloud(true, low, high, 7056, seed=list(SWEEP_LIKE).index(name)))
 
 
-REFERENCES = Path(__file__).parent / "golden" / "direct_margins.json"
+REFERENCES = Path(__file__).parent / "golden" / "direct_objectives.json"
 # key -> (the law and its cloud, the direct fit's random starts)
 REFERENCE_CLOUDS: dict[str, tuple[Callable[[], tuple[NSLFit, np.ndarray, np.ndarray]], int]] = {
     **{f"hard: {name}": (partial(hard_cloud, name), 20) for name in HARD_SHAPES},
@@ -163,20 +179,23 @@ def fingerprint(r: np.ndarray, e: np.ndarray) -> list[float]:
     return [len(r), float(np.log(r).sum()), float(np.log(e).sum())]
 
 
-def stored_direct_margin(key: str, r: np.ndarray, e: np.ndarray) -> float:
-    """``direct_margin`` of the cloud REFERENCE_CLOUDS[key], as stored; an AssertionError if (r, e) is not the
-    cloud it was computed on."""
+def stored_direct_objective(key: str, r: np.ndarray, e: np.ndarray) -> float:
+    """``direct_objective`` of the cloud REFERENCE_CLOUDS[key], as stored; an AssertionError if (r, e) is not the
+    cloud it was computed on, or conf/nsl's above_weight not the one it was computed at."""
     stored = json.loads(REFERENCES.read_text()).get(key)
-    assert stored is not None and np.allclose(stored["cloud"], fingerprint(r, e), rtol=1e-9, atol=0), (
-        f"no stored direct margin of this cloud of {key!r}: write them again with python -m tests.fit_clouds")
-    return stored["margin"]
+    assert stored is not None and np.allclose(stored["cloud"], fingerprint(r, e), rtol=1e-9, atol=0) and (
+        stored["above_weight"] == default_settings().above_weight), (
+        f"no stored direct objective of this cloud of {key!r} at nsl.above_weight={default_settings().above_weight:g}"
+        ": write them again with python -m tests.fit_clouds")
+    return stored["objective"]
 
 
 def direct_reference(key: str) -> dict:
     """The direct fit of cloud ``key`` with the true b, as stored in REFERENCES."""
     make, starts = REFERENCE_CLOUDS[key]
     true, r, e = make()
-    return {"b": true.b, "starts": starts, "cloud": fingerprint(r, e), "margin": direct_margin(r, e, true.b, starts)}
+    return {"b": true.b, "starts": starts, "cloud": fingerprint(r, e), "above_weight": default_settings().above_weight,
+            "objective": direct_objective(r, e, true.b, starts)}
 
 
 def main() -> None:

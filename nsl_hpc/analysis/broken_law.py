@@ -16,8 +16,8 @@ sigma). An envelope never rises, so neither may a law of it: the search runs ove
 slope form, see theta_of), boxed in [-max_slope, max_rise]. It starts from piecewise-linear least-squares fits
 of the envelope with corners at every combination of candidate positions on the log grid and at the best
 segmentation of the grid, plus a few random starts and the best law with one break fewer plus a flat break
-(b = 0, 1, ... in turn), refines them with bounded least squares on the log residuals (which minimises M
-directly), and picks the number of breaks b by a penalised margin that leaves out the envelope points the law
+(b = 0, 1, ... in turn), refines them with bounded least squares on the log residuals, a residual where the law
+lies above the envelope weighed above_weight (Section 4.3's beta; at 1 it minimises M directly), and picks the number of breaks b by a penalised margin that leaves out the envelope points the law
 fits worst, among the laws whose every segment stands on enough outcomes of the envelope (choose_breaks).
 """
 
@@ -390,7 +390,7 @@ class FitSettings:
     objective: str = setting("margin: least squares on the log residuals; study: Section 4.3 as written",
                              choices=OBJECTIVES)
     above_weight: float = setting("objective=margin: the weight of a squared log residual where the law lies above "
-                                  "the envelope (1: plain least squares, minimising M)", 1)
+                                  "the envelope (Section 4.3's beta; 1: plain least squares, minimising M)", 1)
     envelope: str = setting("what objective=margin fits: Definition 1's step envelope or the interpolated one",
                             choices=ENVELOPES)
     positions: int = setting("candidate corner positions of the piecewise-linear starts", 1)

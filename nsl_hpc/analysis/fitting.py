@@ -276,7 +276,9 @@ def fit_note(nsl: Nsl) -> str:
     else:
         envelope = ("Definition 1's step envelope" if nsl.envelope == "step"
                     else "the envelope interpolated between its outcomes (M still on Definition 1's)")
-        how = f"least squares of the log residuals on {envelope} (nsl.envelope={nsl.envelope})"
+        weight = ("" if nsl.above_weight == 1 else
+                  f", a residual where the law lies above it weighed {nsl.above_weight:g}x (nsl.above_weight)")
+        how = f"least squares of the log residuals on {envelope} (nsl.envelope={nsl.envelope}){weight}"
     if nsl.breaks is not None:
         chosen = f"b fixed at {nsl.breaks} (nsl.breaks)"
     else:
