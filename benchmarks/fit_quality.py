@@ -32,7 +32,8 @@ def main() -> None:
     parser.add_argument("--envelopes", nargs="+", default=["step", "interpolated"])
     parser.add_argument("--seed", type=int, default=0, help="the clouds' first seed (each cloud its own)")
     args = parser.parse_args()
-    header = "| cloud | b | " + " | ".join(f"{e}: objective / direct, b chosen, backtest, s" for e in args.envelopes) + " |"
+    cells = (f"{envelope}: objective / direct, b chosen, backtest, s" for envelope in args.envelopes)
+    header = "| cloud | b | " + " | ".join(cells) + " |"
     print(header)
     print("|" + "---|" * (2 + len(args.envelopes)))
     ratios, backtests = ({e: [] for e in args.envelopes} for _ in range(2))
@@ -56,8 +57,8 @@ def main() -> None:
             cells.append(f"{objective_of(given, r, e) / reference:.2f}, {chosen.b}, {backtest:.3f}, {seconds:.1f}")
         print(f"| {name} | {true.b} | " + " | ".join(cells) + " |", flush=True)
     for envelope, values in ratios.items():
-        print(f"{envelope}: objective / direct median {np.median(values):.2f}, max {np.max(values):.2f}; backtest median "
-              f"{np.median(backtests[envelope]):.3f}")
+        print(f"{envelope}: objective / direct median {np.median(values):.2f}, max {np.max(values):.2f}; "
+              f"backtest median {np.median(backtests[envelope]):.3f}")
     print(f"b chosen ({args.envelopes[0]}): {chosen_ok} of {len(clouds)} clouds within 1 of the true b "
           "(0- and 1-break clouds: no extra break)")
 

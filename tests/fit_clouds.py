@@ -21,7 +21,6 @@ from tqdm import tqdm
 from nsl_hpc.analysis.broken_law import (
     Bounds,
     NSLFit,
-    log_law,
     lower_envelope,
     slope_form,
     slope_form_jacobian,

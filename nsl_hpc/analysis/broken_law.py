@@ -17,8 +17,9 @@ slope form, see theta_of), boxed in [-max_slope, max_rise]. It starts from piece
 of the envelope with corners at every combination of candidate positions on the log grid and at the best
 segmentation of the grid, plus a few random starts and the best law with one break fewer plus a flat break
 (b = 0, 1, ... in turn), refines them with bounded least squares on the log residuals, a residual where the law
-lies above the envelope weighed above_weight (Section 4.3's beta; at 1 it minimises M directly), and picks the number of breaks b by a penalised margin that leaves out the envelope points the law
-fits worst, among the laws whose every segment stands on enough outcomes of the envelope (choose_breaks).
+lies above the envelope weighed above_weight (Section 4.3's beta; at 1 it minimises M directly), and picks
+the number of breaks b by a penalised margin that leaves out the envelope points the law fits worst, among the
+laws whose every segment stands on enough outcomes of the envelope (choose_breaks).
 """
 
 import itertools
