@@ -2,6 +2,7 @@
 against a direct multi-start fit, the study's procedure, bootstrap intervals, the published laws, what a law
 needs for a target error, bad input."""
 
+import itertools
 import json
 import math
 import warnings
@@ -11,12 +12,14 @@ import pytest
 
 from nsl_hpc.analysis.bootstrap import bootstrap_thetas, intervals, law_values
 from nsl_hpc.analysis.broken_law import (
+    Bounds,
     NSLFit,
     NSLFitError,
     choose_breaks,
     log_law,
     log_law_jacobian,
     lower_envelope,
+    segment_points,
     slope_form,
     slope_form_jacobian,
     slopes,
@@ -219,6 +222,25 @@ def test_a_segment_on_too_few_outcomes_is_not_chosen_and_is_reported_undetermine
     assert held.segment_points[-1] == 2 and list(held.undetermined) == [1]
     assert held.undetermined_text() == (f"slope {held.slopes[-1]:.2f} beyond {held.breaks[0][0]:.2g}: "
                                         f"on {held.segment_points[-1]} envelope outcomes")
+
+
+def test_a_break_boxed_to_keep_its_segments_outcomes_keeps_them_once_uncentred():
+    """The search boxes a break so that its segments keep min_segment_points outcomes of the envelope, in log
+    resources centred on the range's middle; the law is reported uncentred. A break anywhere in its box, at
+    either end included, leaves every segment its outcomes after the shift back (a break one rounding step
+    from an outcome once lost it: a chosen law reported a segment on 4)."""
+    rng = np.random.default_rng(0)
+    least = default_settings().min_segment_points
+    for _ in range(200):
+        middle = rng.uniform(5, 35)
+        x_on = np.sort(rng.uniform(-10, 10, 30))
+        u = np.array([0.0, 0.0, -0.5, x_on[9] / 2 + x_on[10] / 2, 0.2, -0.3, x_on[19] / 2 + x_on[20] / 2, 0.2, 0.3])
+        bounds = Bounds(np.full(9, -50.0), np.full(9, 50.0)).keeping_support(u, x_on, least)
+        for ends in itertools.product((bounds.lower, bounds.upper), repeat=2):
+            uncentred = u.copy()
+            uncentred[3], uncentred[6] = ends[0][3] + middle, ends[1][6] + middle
+            counts = segment_points(uncentred, x_on + middle)
+            assert counts.min() >= least, (middle, counts)
 
 
 def test_saturating_alpha_is_recovered():

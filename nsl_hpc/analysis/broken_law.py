@@ -39,6 +39,8 @@ from nsl_hpc.core.law import NSLFit, log_law, log_power, slopes, softplus
 
 OBJECTIVES = ("margin", "study")
 ENVELOPES = ("step", "interpolated")
+SUPPORT_MARGIN = 1e-9  # a boxed break stays this far (ln r) from the outcomes it must keep on either side: the law's
+#                        segments count them again after uncentring (segment_points), whose rounding is ~1e-14
 SLOPE_AT_BOUND = 0.01  # a slope this close to -max_slope was stopped by the bound
 
 
@@ -173,8 +175,8 @@ class Bounds:
         for k, first in enumerate(firsts):
             take_left = spare[k] if k == 0 else spare[k] // 2
             take_right = spare[k + 1] if k == len(firsts) - 1 else spare[k + 1] // 2
-            lower[3 + 3 * k] = max(lower[3 + 3 * k], x_on[first - take_left - 1])  # an outcome at the break is left
-            upper[3 + 3 * k] = min(upper[3 + 3 * k], np.nextafter(x_on[first + take_right], -np.inf))
+            lower[3 + 3 * k] = max(lower[3 + 3 * k], x_on[first - take_left - 1] + SUPPORT_MARGIN)
+            upper[3 + 3 * k] = min(upper[3 + 3 * k], x_on[first + take_right] - SUPPORT_MARGIN)
         return Bounds(lower, np.maximum(upper, np.nextafter(lower, np.inf)))
 
 
