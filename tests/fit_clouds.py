@@ -1,6 +1,6 @@
-"""Outcome clouds of known broken laws and a direct multi-start fit of the margin objective (Definition 1's
-margin, a residual where the law lies above the envelope weighed ``nsl.above_weight``): the reference that the
-fit is held to (tests/test_nsl.py, benchmarks/fit_quality.py).
+"""Outcome clouds of known broken laws and a direct multi-start fit of the margin objective (the loss of the log
+residuals on Definition 1's envelope: ``nsl.above_weight``, ``nsl.huber_delta``): the reference that the fit is
+held to (tests/test_nsl.py, benchmarks/fit_quality.py).
 
 The references of the clouds tests/test_nsl.py holds the fit to take 5-60 s each; they are stored in
 tests/golden/direct_objectives.json with their cloud's fingerprint, and written again by
@@ -11,6 +11,7 @@ tests/golden/direct_objectives.json with their cloud's fingerprint, and written 
 import json
 import math
 from collections.abc import Callable
+from dataclasses import asdict
 from functools import partial
 from pathlib import Path
 
@@ -22,6 +23,7 @@ from nsl_hpc.analysis.broken_law import (
     Bounds,
     NSLFit,
     lower_envelope,
+    margin_objective,
     slope_form,
     slope_form_jacobian,
     theta_of,
@@ -83,10 +85,11 @@ def b_acceptable(chosen: int, true: int) -> bool:
 
 def direct_objective(r: np.ndarray, e: np.ndarray, b: int, starts: int = 60, K: int = 100,
                      envelope: str = "step") -> float:
-    """The reference: the least margin objective (``objective_of``, at conf/nsl's above_weight) of a law in the
-    fit's box (slopes in [-max_slope, max_rise]: a law that does not rise) that bounded weighted least squares of
-    ln L on the envelope reaches from ``starts`` random starts (no structured starts, a long budget)."""
+    """The reference: the least margin objective (``objective_of``, conf/nsl's loss) of a law in the fit's box
+    (slopes in [-max_slope, max_rise]: a law that does not rise) that bounded robust least squares of ln L on the
+    envelope reaches from ``starts`` random starts (no structured starts, a long budget)."""
     settings = default_settings()
+    loss = settings.margin_loss
     grid, envelope_e = lower_envelope(r, e, K, envelope)
     x, y = np.log(grid), np.log(envelope_e)
     middle = (x[0] + x[-1]) / 2
@@ -96,10 +99,10 @@ def direct_objective(r: np.ndarray, e: np.ndarray, b: int, starts: int = 60, K: 
     best = math.inf
 
     def residuals(u: np.ndarray) -> np.ndarray:
-        return weighted_residuals(theta_of(u), x, y, settings.above_weight)[0]
+        return weighted_residuals(theta_of(u), x, y, loss.above_weight)[0]
 
     def jacobian(u: np.ndarray) -> np.ndarray:
-        return slope_form_jacobian(u, x) * weighted_residuals(theta_of(u), x, y, settings.above_weight)[1][:, None]
+        return slope_form_jacobian(u, x) * weighted_residuals(theta_of(u), x, y, loss.above_weight)[1][:, None]
 
     for _ in range(starts):
         theta = rng.uniform(bounds.lower, np.minimum(bounds.upper, bounds.lower + 40))
@@ -108,17 +111,18 @@ def direct_objective(r: np.ndarray, e: np.ndarray, b: int, starts: int = 60, K: 
         theta[3::3] = np.sort(theta[3::3])
         theta[1] = y[0] - theta[2] * x[0]
         result = least_squares(residuals, bounds.clip(slope_form(theta)), bounds=(bounds.lower, bounds.upper),
-                               jac=jacobian, x_scale="jac", max_nfev=400)
-        best = min(best, float(np.mean(result.fun**2)))
+                               jac=jacobian, x_scale="jac", max_nfev=400, **loss.least_squares_loss())
+        best = min(best, margin_objective(theta_of(result.x), x, y, loss))
     return best
 
 
 def objective_of(fit: NSLFit, r: np.ndarray, e: np.ndarray, K: int = 100) -> float:
-    """The margin objective of ``fit`` on Definition 1's envelope of the outcomes (r, e) (conf/nsl's
-    above_weight; at 1: the fit's M)."""
+    """The margin objective of ``fit`` on Definition 1's envelope of the outcomes (r, e) (conf/nsl's loss; the
+    plain one: the fit's M)."""
     grid, envelope_e = lower_envelope(r, e, K)
+    loss = default_settings().margin_loss
     residuals = np.log(fit.predict(grid)) - np.log(envelope_e)
-    return float(np.mean(np.where(residuals > 0, default_settings().above_weight, 1.0) * residuals**2))
+    return float(np.mean(loss.of(np.where(residuals > 0, np.sqrt(loss.above_weight), 1.0) * residuals)))
 
 
 def outcomes(true: NSLFit, seed: int, n: int = 3000, low: float = 1e3, high: float = 1e12):
@@ -180,12 +184,12 @@ def fingerprint(r: np.ndarray, e: np.ndarray) -> list[float]:
 
 def stored_direct_objective(key: str, r: np.ndarray, e: np.ndarray) -> float:
     """``direct_objective`` of the cloud REFERENCE_CLOUDS[key], as stored; an AssertionError if (r, e) is not the
-    cloud it was computed on, or conf/nsl's above_weight not the one it was computed at."""
+    cloud it was computed on, or conf/nsl's loss not the one it was computed with."""
     stored = json.loads(REFERENCES.read_text()).get(key)
+    loss = asdict(default_settings().margin_loss)
     assert stored is not None and np.allclose(stored["cloud"], fingerprint(r, e), rtol=1e-9, atol=0) and (
-        stored["above_weight"] == default_settings().above_weight), (
-        f"no stored direct objective of this cloud of {key!r} at nsl.above_weight={default_settings().above_weight:g}"
-        ": write them again with python -m tests.fit_clouds")
+        stored["loss"] == loss), (f"no stored direct objective of this cloud of {key!r} with the loss {loss}: write "
+                                  "them again with python -m tests.fit_clouds")
     return stored["objective"]
 
 
@@ -193,7 +197,7 @@ def direct_reference(key: str) -> dict:
     """The direct fit of cloud ``key`` with the true b, as stored in REFERENCES."""
     make, starts = REFERENCE_CLOUDS[key]
     true, r, e = make()
-    return {"b": true.b, "starts": starts, "cloud": fingerprint(r, e), "above_weight": default_settings().above_weight,
+    return {"b": true.b, "starts": starts, "cloud": fingerprint(r, e), "loss": asdict(default_settings().margin_loss),
             "objective": direct_objective(r, e, true.b, starts)}
 
 

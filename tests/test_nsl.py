@@ -129,7 +129,7 @@ def test_the_stored_direct_objectives_are_what_the_direct_fit_gives(key):
     stored, now = json.loads(REFERENCES.read_text())[key], direct_reference(key)
     assert (now["b"], now["starts"]) == (stored["b"], stored["starts"])
     assert now["cloud"] == pytest.approx(stored["cloud"], rel=1e-9) and now["objective"] == pytest.approx(
-        stored["objective"], rel=1e-6) and now["above_weight"] == stored["above_weight"]
+        stored["objective"], rel=1e-6) and now["loss"] == stored["loss"]
 
 
 def test_a_lone_outcome_at_the_envelopes_start_does_not_buy_a_break():
@@ -168,6 +168,23 @@ def test_weighing_the_law_above_the_staircase_brings_it_down_to_the_law_under_it
     assert over["plain"] > 1.05 and 1.0 < over["weighted"] < 1 + 0.7 * (over["plain"] - 1), over  # 7.4%, 4.4%
     assert abs(weighted.delta0 + 0.2) < abs(plain.delta0 + 0.2) + 1e-3
     assert plain.margin < weighted.margin
+
+
+def test_a_lone_bad_outcome_at_the_envelopes_start_no_longer_tilts_the_law():
+    """A broken law (slope -0.4, then -0.2 beyond 1e10) with half its outcomes on it, and its smallest-resource
+    outcome 16x above it (a bad run: the envelope's first step). Squared log residuals let that one step tilt the
+    law; Huber's loss (nsl.huber_delta=0.1) bounds its pull, and the law gives back the last slope and L at the
+    largest resource."""
+    true = law(0.0, 3.0, -0.4, (1e10, 0.2, 0.2))
+    rng = np.random.default_rng(3)
+    r = np.exp(rng.uniform(np.log(1e8), np.log(5e13), 3000))
+    e = true.predict(r) * np.exp(np.where(rng.random(r.size) < 0.5, 0.0, rng.exponential(1.0, r.size)))
+    e[np.argmin(r)] = 16 * true.predict(r.min())
+    robust, plain = fit_nsl(r, e, settings=default_settings(huber_delta=0.1)), fit_nsl(r, e)
+    miss = {name: (abs(fit.slopes[-1] + 0.2), float(fit.predict(r.max()) / true.predict(r.max()) - 1))
+            for name, fit in (("robust", robust), ("plain", plain))}
+    assert miss["robust"][0] < 0.02 and abs(miss["robust"][1]) < 0.02, miss
+    assert miss["plain"][0] > 2 * miss["robust"][0], miss
 
 
 def test_the_slope_form_is_the_law_with_its_breaks_in_order_and_its_jacobian_is_exact():

@@ -16,8 +16,9 @@ sigma). An envelope never rises, so neither may a law of it: the search runs ove
 slope form, see theta_of), boxed in [-max_slope, max_rise]. It starts from piecewise-linear least-squares fits
 of the envelope with corners at every combination of candidate positions on the log grid and at the best
 segmentation of the grid, plus a few random starts and the best law with one break fewer plus a flat break
-(b = 0, 1, ... in turn), refines them with bounded least squares on the log residuals, a residual where the law
-lies above the envelope weighed above_weight (Section 4.3's beta; at 1 it minimises M directly), and picks
+(b = 0, 1, ... in turn), refines them with bounded robust least squares on the log residuals (MarginLoss: a
+residual where the law lies above the envelope weighed above_weight, Section 4.3's beta, and Huber's loss beyond
+huber_delta; with neither it minimises M directly), and picks
 the number of breaks b by a penalised margin that leaves out the envelope points the law fits worst, among the
 laws whose every segment stands on enough outcomes of the envelope (choose_breaks).
 """
@@ -134,10 +135,32 @@ def weighted_residuals(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, abov
     return scales * residuals, scales
 
 
-def margin_objective(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, above_weight: float) -> float:
-    """The margin objective: M (Definition 1's margin) with each squared log residual where the law lies above
-    the envelope weighted ``above_weight`` (1: M itself)."""
-    return float(np.mean(weighted_residuals(theta, x, log_e, above_weight)[0] ** 2))
+@dataclass(frozen=True)
+class MarginLoss:
+    """The margin objective's loss of the log residuals: one where the law lies above the envelope weighs
+    ``above_weight``, and ``huber_delta`` (None: none) bounds the pull of a point off the law (Huber's loss:
+    quadratic up to that weighted log residual, linear beyond; scipy's least_squares ``loss="huber"``)."""
+
+    above_weight: float = 1.0
+    huber_delta: float | None = None
+
+    def of(self, weighted: np.ndarray) -> np.ndarray:
+        """(K,) each point's loss from its weighted log residual."""
+        squared = weighted**2
+        if self.huber_delta is None:
+            return squared
+        scaled = squared / self.huber_delta**2
+        return self.huber_delta**2 * np.where(scaled <= 1, scaled, 2 * np.sqrt(scaled) - 1)
+
+    def least_squares_loss(self) -> dict[str, Any]:
+        """least_squares' arguments for this loss."""
+        return {"loss": "linear"} if self.huber_delta is None else {"loss": "huber", "f_scale": self.huber_delta}
+
+
+def margin_objective(theta: np.ndarray, x: np.ndarray, log_e: np.ndarray, loss: MarginLoss) -> float:
+    """The margin objective: the mean ``loss`` of the log residuals on the envelope (the plain loss: M,
+    Definition 1's margin)."""
+    return float(np.mean(loss.of(weighted_residuals(theta, x, log_e, loss.above_weight)[0])))
 
 
 @dataclass(frozen=True)
@@ -264,10 +287,11 @@ def random_starts(x: np.ndarray, log_e: np.ndarray, b: int, count: int, bounds: 
 
 
 def refine_margin(u: np.ndarray, x: np.ndarray, log_e: np.ndarray, bounds: Bounds, evaluations: int,
-                  above_weight: float) -> np.ndarray:
+                  loss: MarginLoss) -> np.ndarray:
     """Minimise the margin objective (``margin_objective``) from the slope form ``u`` (bounded trust-region least
-    squares on the weighted log residuals, at most ``evaluations`` evaluations; stops when it changes by less than
-    1e-6 of itself)."""
+    squares on the weighted log residuals with ``loss``, at most ``evaluations`` evaluations; stops when it changes
+    by less than 1e-6 of itself)."""
+    above_weight = loss.above_weight
     evaluated: dict[bytes, np.ndarray] = {}  # the scales at the last point the residuals were evaluated at
 
     def residuals(v: np.ndarray) -> np.ndarray:
@@ -283,7 +307,7 @@ def refine_margin(u: np.ndarray, x: np.ndarray, log_e: np.ndarray, bounds: Bound
         return scales[:, None] * slope_form_jacobian(v, x)
 
     result = least_squares(residuals, bounds.clip(u), jac=jacobian, bounds=(bounds.lower, bounds.upper),
-                           x_scale="jac", max_nfev=evaluations, ftol=1e-6)
+                           x_scale="jac", max_nfev=evaluations, ftol=1e-6, **loss.least_squares_loss())
     return result.x
 
 
@@ -333,7 +357,7 @@ def refine(u: np.ndarray, x: np.ndarray, log_e: np.ndarray, b: int, settings: "F
     budget)."""
     if settings.objective == "study":
         return refine_study(u, x, log_e, settings)
-    return refine_margin(u, x, log_e, Bounds.for_grid(x, log_e, b, settings), evaluations, settings.above_weight)
+    return refine_margin(u, x, log_e, Bounds.for_grid(x, log_e, b, settings), evaluations, settings.margin_loss)
 
 
 def with_flat_break(theta: np.ndarray, x: np.ndarray, positions: int, phi_min: float) -> list[np.ndarray]:
@@ -359,14 +383,14 @@ def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings"
     def objective(u: np.ndarray) -> float:
         if settings.objective == "study":
             return study_loss(u, x, np.exp(log_e), settings.study_beta)[0]
-        return margin_objective(theta_of(u), x, log_e, settings.above_weight)
+        return margin_objective(theta_of(u), x, log_e, settings.margin_loss)
 
     def supported(u: np.ndarray) -> bool:
         return x_on is not None and bool(segment_points(u, x_on).min() >= settings.min_segment_points)
 
     starts = [bounds.clip(slope_form(theta)) for theta in
               piecewise_linear_starts(x, log_e, b, settings)]
-    chosen = sorted(starts, key=lambda u: margin_objective(theta_of(u), x, log_e, settings.above_weight)
+    chosen = sorted(starts, key=lambda u: margin_objective(theta_of(u), x, log_e, settings.margin_loss)
                     )[:settings.starts]
     chosen += random_starts(x, log_e, b, settings.random_starts, bounds, seed=b)
     for law in fewer:
@@ -380,7 +404,7 @@ def fit_breaks(x: np.ndarray, log_e: np.ndarray, b: int, settings: "FitSettings"
         for u in [u for u in ranked if supported(u)][:settings.finalists]:
             u = slope_form(theta_of(u))
             standing.append(refine_margin(u, x, log_e, bounds.keeping_support(u, x_on, settings.min_segment_points),
-                                          200, settings.above_weight) if settings.objective == "margin" else u)
+                                          200, settings.margin_loss) if settings.objective == "margin" else u)
         standing.sort(key=objective)
     return theta_of(refined[0]), theta_of(standing[0]) if standing else None
 
@@ -394,6 +418,8 @@ class FitSettings:
                              choices=OBJECTIVES)
     above_weight: float = setting("objective=margin: the weight of a squared log residual where the law lies above "
                                   "the envelope (Section 4.3's beta; 1: plain least squares, minimising M)", 1)
+    huber_delta: float | None = setting("objective=margin: Huber's threshold of the weighted log residuals (a point "
+                                        "further off pulls linearly); null: plain squares", 0, low_open=True)
     envelope: str = setting("what objective=margin fits: Definition 1's step envelope or the interpolated one",
                             choices=ENVELOPES)
     positions: int = setting("candidate corner positions of the piecewise-linear starts", 1)
@@ -422,6 +448,11 @@ class FitSettings:
         """The search settings of an ``nsl`` group (its other keys left out), ``changes`` applied, checked."""
         search = {name: changes.get(name, values[name]) for name in field_names(FitSettings)}
         return typed(FitSettings, search, "nsl")
+
+    @property
+    def margin_loss(self) -> MarginLoss:
+        """The margin objective's loss."""
+        return MarginLoss(self.above_weight, self.huber_delta)
 
     @property
     def fitted_envelope(self) -> str:
@@ -513,9 +544,9 @@ def law_of(theta: np.ndarray, r: np.ndarray, e: np.ndarray, grid_r: np.ndarray, 
     step_e = grid_e if settings.fitted_envelope == "step" else lower_envelope(r, e, len(grid_r), "step")[1]
     x = np.log(grid_r)
     alpha = float(np.exp(theta[0]))
-    weight = settings.above_weight
-    if margin_objective(np.concatenate([[-np.inf], theta[1:]]), x, np.log(grid_e), weight) <= \
-            margin_objective(theta, x, np.log(grid_e), weight) * (1 + 1e-9):
+    loss = settings.margin_loss
+    if margin_objective(np.concatenate([[-np.inf], theta[1:]]), x, np.log(grid_e), loss) <= \
+            margin_objective(theta, x, np.log(grid_e), loss) * (1 + 1e-9):
         alpha = 0.0  # a negligible alpha is reported as none
     points = segment_points(theta, np.log(pareto_points(r, e)[0]))
     return NSLFit(alpha=alpha, beta=float(np.exp(theta[1])), delta0=float(theta[2]),
