@@ -182,7 +182,8 @@ def test_report_figures_and_mlflow_runs_are_updated_not_duplicated(sweep_copy):
     assert len(comparison) == 5 and comparison[2].startswith("| spring / input_affine / data / nmae | 2 / ")
     assert comparison[4].startswith("Scores: nMAE and nMSE divide every dx/dt column by one spread")  # which
     assert comparison[4].endswith("Fits: least squares of the log residuals on Definition 1's step envelope "
-                                  "(nsl.envelope=step), every segment's slope in [-10, 0.19] (a law never rises "
+                                  "(nsl.envelope=step), a residual where the law lies above it weighed 5x "
+                                  "(nsl.above_weight), every segment's slope in [-10, 0.19] (a law never rises "
                                   "more than the published ones do; nsl.max_slope, nsl.max_rise); b chosen in 0..1 "
                                   "among the laws whose every segment stands on at least 5 outcomes of the "
                                   "envelope: each break must cut the margin by 30%, not counting the 5% of envelope "

@@ -16,11 +16,11 @@ sigma). An envelope never rises, so neither may a law of it: the search runs ove
 slope form, see theta_of), boxed in [-max_slope, max_rise]. It starts from piecewise-linear least-squares fits
 of the envelope with corners at every combination of candidate positions on the log grid and at the best
 segmentation of the grid, plus a few random starts and the best law with one break fewer plus a flat break
-(b = 0, 1, ... in turn), refines them with bounded robust least squares on the log residuals (MarginLoss: a
-residual where the law lies above the envelope weighed above_weight, Section 4.3's beta, and Huber's loss beyond
-huber_delta; with neither it minimises M directly), and picks
-the number of breaks b by a penalised margin that leaves out the envelope points the law fits worst, among the
-laws whose every segment stands on enough outcomes of the envelope (choose_breaks).
+(b = 0, 1, ... in turn), refines them with bounded least squares on the log residuals (MarginLoss: a residual
+where the law lies above the envelope weighed above_weight, Section 4.3's beta, and optionally Huber's loss beyond
+huber_delta; with neither it minimises M directly), and picks the number of breaks b by a penalised margin that
+leaves out the envelope points the law fits worst, among the laws whose every segment stands on enough outcomes of
+the envelope (choose_breaks).
 """
 
 import itertools
@@ -141,8 +141,8 @@ class MarginLoss:
     ``above_weight``, and ``huber_delta`` (None: none) bounds the pull of a point off the law (Huber's loss:
     quadratic up to that weighted log residual, linear beyond; scipy's least_squares ``loss="huber"``)."""
 
-    above_weight: float = 1.0
-    huber_delta: float | None = None
+    above_weight: float
+    huber_delta: float | None
 
     def of(self, weighted: np.ndarray) -> np.ndarray:
         """(K,) each point's loss from its weighted log residual."""

@@ -278,7 +278,9 @@ def fit_note(nsl: Nsl) -> str:
                     else "the envelope interpolated between its outcomes (M still on Definition 1's)")
         weight = ("" if nsl.above_weight == 1 else
                   f", a residual where the law lies above it weighed {nsl.above_weight:g}x (nsl.above_weight)")
-        how = f"least squares of the log residuals on {envelope} (nsl.envelope={nsl.envelope}){weight}"
+        huber = ("" if nsl.huber_delta is None else
+                 f", Huber's loss beyond a log residual of {nsl.huber_delta:g} (nsl.huber_delta)")
+        how = f"least squares of the log residuals on {envelope} (nsl.envelope={nsl.envelope}){weight}{huber}"
     if nsl.breaks is not None:
         chosen = f"b fixed at {nsl.breaks} (nsl.breaks)"
     else:
