@@ -170,6 +170,7 @@ def test_weighing_the_law_above_the_staircase_brings_it_down_to_the_law_under_it
     assert plain.margin < weighted.margin
 
 
+@pytest.mark.slow
 def test_a_lone_bad_outcome_at_the_envelopes_start_no_longer_tilts_the_law():
     """A broken law (slope -0.4, then -0.2 beyond 1e10) with half its outcomes on it, and its smallest-resource
     outcome 16x above it (a bad run: the envelope's first step). Squared log residuals let that one step tilt the
