@@ -120,9 +120,9 @@ def objective_of(fit: NSLFit, r: np.ndarray, e: np.ndarray, K: int = 100) -> flo
     """The margin objective of ``fit`` on Definition 1's envelope of the outcomes (r, e) (conf/nsl's loss; the
     plain one: the fit's M)."""
     grid, envelope_e = lower_envelope(r, e, K)
-    loss = default_settings().margin_loss
-    residuals = np.log(fit.predict(grid)) - np.log(envelope_e)
-    return float(np.mean(loss.of(np.where(residuals > 0, np.sqrt(loss.above_weight), 1.0) * residuals)))
+    with np.errstate(divide="ignore"):  # ln alpha = -inf for a law without alpha
+        theta = fit.parameters()
+    return margin_objective(theta, np.log(grid), np.log(envelope_e), default_settings().margin_loss)
 
 
 def outcomes(true: NSLFit, seed: int, n: int = 3000, low: float = 1e3, high: float = 1e12):
