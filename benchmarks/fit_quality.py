@@ -51,10 +51,11 @@ def main() -> None:
             seconds = time.perf_counter() - start
             cut = float(np.exp((np.log(r.min()) + np.log(r.max())) / 2))
             backtest = backtest_nsl(r, e, cut, settings=settings).margin
-            ratios[envelope].append(objective_of(given, r, e) / reference)
+            ratio = objective_of(given, r, e) / reference
+            ratios[envelope].append(ratio)
             backtests[envelope].append(backtest)
             chosen_ok += envelope == args.envelopes[0] and b_acceptable(chosen.b, true.b)
-            cells.append(f"{objective_of(given, r, e) / reference:.2f}, {chosen.b}, {backtest:.3f}, {seconds:.1f}")
+            cells.append(f"{ratio:.2f}, {chosen.b}, {backtest:.3f}, {seconds:.1f}")
         print(f"| {name} | {true.b} | " + " | ".join(cells) + " |", flush=True)
     for envelope, values in ratios.items():
         print(f"{envelope}: objective / direct median {np.median(values):.2f}, max {np.max(values):.2f}; "
