@@ -245,8 +245,8 @@ def test_a_segment_on_too_few_outcomes_is_not_chosen_and_is_reported_undetermine
 def test_a_break_boxed_to_keep_its_segments_outcomes_keeps_them_once_uncentred():
     """The search boxes a break so that its segments keep min_segment_points outcomes of the envelope, in log
     resources centred on the range's middle; the law is reported uncentred. A break anywhere in its box, at
-    either end included, leaves every segment its outcomes after the shift back (a break one rounding step
-    from an outcome once lost it: a chosen law reported a segment on 4)."""
+    either end included, leaves every segment its outcomes after the shift back, whose rounding may move an
+    outcome one step."""
     rng = np.random.default_rng(0)
     least = default_settings().min_segment_points
     for _ in range(200):
