@@ -8,9 +8,11 @@ from pathlib import Path
 import numpy as np
 
 from nsl_hpc.sweep.failures import record_failure
+from nsl_hpc.sweep.launch_settings import launch_settings
 from nsl_hpc.sweep.layout import row_path
-from nsl_hpc.sweep.manifest import read_manifest
-from nsl_hpc.sweep.rows import write_row_atomically
+from nsl_hpc.sweep.manifest import read_launch_config, read_manifest
+from nsl_hpc.sweep.plan import lockstep_groups
+from nsl_hpc.sweep.rows import write_rows_atomically
 
 
 def synthetic_row(task: dict, rng: np.random.Generator) -> dict:
@@ -21,19 +23,22 @@ def synthetic_row(task: dict, rng: np.random.Generator) -> dict:
             "torch_version": "", "python_version": "", "host": "synthetic"}
 
 
-def write_rows(sweep_dir: str, tasks: Sequence[dict]) -> None:
-    rng = np.random.default_rng(int(tasks[0]["task_id"][:8], 16))
-    for task in tasks:
-        write_row_atomically(synthetic_row(task, rng), row_path(sweep_dir, task["task_id"]))
+def write_rows(sweep_dir: str, groups: Sequence[Sequence[dict]]) -> None:
+    """Each group's rows as its job writes them: one file that each task's path names."""
+    rng = np.random.default_rng(int(groups[0][0]["task_id"][:8], 16))
+    for group in groups:
+        write_rows_atomically([synthetic_row(task, rng) for task in group],
+                              [row_path(sweep_dir, task["task_id"]) for task in group])
 
 
 def fill_sweep(sweep_dir: Path, failed_fraction: float = 0.03, processes: int = 2) -> tuple[int, int]:
-    """Write a row for all but ``failed_fraction`` of the manifest's tasks and a failure record for the
-    rest (alternately failed and frozen); returns (rows, failures)."""
+    """Write a row for all but ``failed_fraction`` of the manifest's tasks, in the lockstep groups the launch
+    planned, and a failure record for the rest (alternately failed and frozen); returns (rows, failures)."""
     tasks = read_manifest(sweep_dir).to_pylist()
     failing = set(range(0, len(tasks), round(1 / failed_fraction))) if failed_fraction else set()
     done = [task for index, task in enumerate(tasks) if index not in failing]
-    chunks = [done[start:start + 2000] for start in range(0, len(done), 2000)]
+    groups = lockstep_groups(done, launch_settings(read_launch_config(sweep_dir)).grouping)
+    chunks = [groups[start:start + 64] for start in range(0, len(groups), 64)]
     with multiprocessing.Pool(processes) as pool:
         pool.starmap(write_rows, [(str(sweep_dir), chunk) for chunk in chunks])
     for n, index in enumerate(sorted(failing)):
@@ -42,10 +47,12 @@ def fill_sweep(sweep_dir: Path, failed_fraction: float = 0.03, processes: int = 
 
 
 def corrupt_rows(sweep_dir: Path, count: int) -> list[Path]:
-    """Truncate ``count`` row files to half their size (half-written shards)."""
+    """Replace ``count`` row files by their first half (half-written shards; a file of its own, not a change of
+    the file its group's other paths name)."""
     paths = sorted((Path(sweep_dir) / "rows").glob("*/*.parquet"))[:count]
     for path in paths:
         data = path.read_bytes()
+        path.unlink()
         path.write_bytes(data[: len(data) // 2])
     return paths
 

@@ -27,7 +27,7 @@ from nsl_hpc.sweep.launch_settings import launch_settings
 from nsl_hpc.sweep.layout import row_path
 from nsl_hpc.sweep.manifest import read_launch_config
 from nsl_hpc.sweep.merge import Vanished, read_shards
-from nsl_hpc.sweep.rows import read_row, read_task_rows, row_states, write_row_atomically
+from nsl_hpc.sweep.rows import named_rows, read_row, read_task_rows, row_states, write_row_atomically
 from nsl_hpc.sweep.submissions import record_submission
 from tests.sweeps import TINY_GRID, manifest_ids, nsl, row_files
 
@@ -70,7 +70,7 @@ def test_merge_reports_corrupt_duplicate_and_missing_shards_and_is_idempotent(sw
     deleted.unlink()
     frozen.unlink()
     record_failure(sweep_copy, ids[2], "frozen", "no heartbeat")
-    shutil.copy(copied, copied.with_name(f"{ids[3]}.copy.parquet"))  # a duplicate row of task 3
+    write_row_atomically(read_row(copied), copied.with_name(f"{ids[3]}.copy.parquet"))  # a duplicate row of task 3
     result = nsl("merge", f"sweep_dir={sweep_copy}")
     assert result.returncode == 0, result.stderr
     assert "3 of 24 tasks (12.5%) dropped: 1 frozen, 0 failed, 2 missing" in result.stdout
@@ -266,7 +266,8 @@ def test_merge_compacts_the_rows_and_status_launch_resubmit_and_budgets_still_fi
     assert "24 row files compacted into rows/compacted/" in merged.stdout, merged.stdout
     (part,) = row_files(sweep_copy)
     assert part.parent.name == "compacted" and not any(row_path(sweep_copy, task_id).exists() for task_id in ids)
-    whole = pa.concat_tables([pq.read_table(row_path(finished_sweep, task_id)) for task_id in ids])
+    whole = pa.concat_tables([named_rows(pq.read_table(path), [str(path)])[0]
+                              for path in (row_path(finished_sweep, task_id) for task_id in ids)])
     assert pq.read_table(part).sort_by("task_id").equals(whole.sort_by("task_id"))  # every column of every row
     results = pq.read_table(sweep_copy / "results.parquet")
     assert results.equals(pq.read_table(plain / "results.parquet"))

@@ -18,7 +18,7 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from nsl_hpc.analysis.mlflow_runs import sweep_run, tracking_uri
-from nsl_hpc.sweep import failures, rows
+from nsl_hpc.sweep import failures, merge, rows
 from nsl_hpc.sweep.directory import unsafe_refusal
 from nsl_hpc.sweep.failures import read_failures, read_record, record_failure
 from nsl_hpc.sweep.groups import held_locks
@@ -392,6 +392,30 @@ def test_a_row_copied_over_another_tasks_path_is_corrupt_not_done(tmp_path):
     row_path(tmp_path, other).parent.mkdir(parents=True)
     shutil.copy(row_path(tmp_path, mine), row_path(tmp_path, other))
     assert row_state(row_path(tmp_path, other)) == "corrupt"
+
+
+# A lockstep group's rows are one file that each task's path names: each task's row is its own, merge reads the
+# file once, and a file system without hard links gets a copy per task instead.
+@pytest.mark.parametrize("links", [True, False])
+def test_a_groups_rows_are_one_file_each_task_reads_its_own_and_merge_reads_it_once(links, tmp_path, monkeypatch):
+    if not links:
+        monkeypatch.setattr(os, "link", lambda *_: (_ for _ in ()).throw(PermissionError(1, "no hard links")))
+    ids = [f"{n:x}" * 16 for n in range(1, 5)]
+    paths = [row_path(tmp_path, task_id) for task_id in ids]
+    rows.write_rows_atomically([{"task_id": task_id, "nmae": n / 10} for n, task_id in enumerate(ids)], paths)
+    assert len({path.stat().st_ino for path in paths}) == (1 if links else 4)
+    assert [row_state(path) for path in paths] == ["done"] * 4
+    assert [read_row(path)["nmae"] for path in paths] == [0.0, 0.1, 0.2, 0.3]
+    assert read_task_rows(tmp_path, ids[1:3]) == {ids[1]: {"task_id": ids[1], "nmae": 0.1},
+                                                  ids[2]: {"task_id": ids[2], "nmae": 0.2}}
+    read = []
+    monkeypatch.setattr(merge, "read_parquet", lambda path, **kw: read.append(path) or rows.read_parquet(path, **kw))
+    table, unreadable = merge.read_shards([str(path) for path in paths[1:]],
+                                          [path.stat().st_ino for path in paths[1:]])
+    assert len(read) == (1 if links else 3) and unreadable == []
+    assert sorted(zip(table["task_id"].to_pylist(), table["shard"].to_pylist(), strict=True)) == [
+        (task_id, str(path)) for task_id, path in zip(ids[1:], paths[1:], strict=True)]
+    assert table.schema.metadata is None  # no group's ids carried into results.parquet
 
 
 # Status, launch and resubmit list the row folders and read only the row files that are not the files they read

@@ -8,6 +8,7 @@ directory, which ``os.replace`` renames into place (atomic on POSIX file systems
 import contextlib
 import os
 import re
+import shutil
 import tempfile
 import time
 from collections.abc import Iterator
@@ -45,6 +46,17 @@ def current_umask() -> int:
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
+
+
+def link_or_copy(source: Path, path: Path) -> None:
+    """Make ``path`` a hard link of ``source``, renamed into place (a copy where the file system has no hard
+    links): ``path`` appears whole or not at all."""
+    with replacing(path) as temporary:
+        temporary.unlink()
+        try:
+            os.link(source, temporary)
+        except OSError:  # EPERM, ENOTSUP, EXDEV: no hard links here
+            shutil.copyfile(source, temporary)
 
 
 def write_parquet(table: pa.Table, path: Path) -> None:

@@ -23,7 +23,7 @@ from nsl_hpc.sweep.decisions import read_decisions, skip_reasons
 from nsl_hpc.sweep.directory import sweep_lock
 from nsl_hpc.sweep.failures import FAILURE_STATES
 from nsl_hpc.sweep.manifest import read_manifest
-from nsl_hpc.sweep.rows import set_aside
+from nsl_hpc.sweep.rows import named_rows, set_aside
 from nsl_hpc.sweep.task_states import read_sweep_state
 
 SHARD_KEY = ("shard", "size", "mtime_ns")  # a cached row stands while its shard keeps this key
@@ -95,38 +95,45 @@ class Vanished(Exception):
     """A row file listed by merge was gone when read: moved by a compaction that ran meanwhile."""
 
 
-def read_shards(paths: list[str]) -> tuple[pa.Table, list[str]]:
+def read_shards(paths: list[str], inodes: Sequence[int] | None = None) -> tuple[pa.Table, list[str]]:
     """The rows of the shards at ``paths`` (every column: what compaction keeps must be whole), with ``shard``,
-    the path each row came from; returns them and the unreadable shards (not Parquet). Each file is read on its
-    own, a chunk of them per thread and core (a pyarrow dataset scan of small files is slower, and takes the
-    first file's columns for all), and each chunk's rows are joined into one table as it is read (a one-row table
-    holds ~35 KB: 616k of them at once filled this machine's 24 GB). Raises Vanished for a file gone meanwhile; an
-    I/O error on a compacted file is raised, never taken for a damaged file (its rows would all be set aside)."""
+    the path that names each row (``named_rows``); returns them and the unreadable shards (not Parquet).
+    ``inodes`` (the listing's, one per path): the paths of one file (a group's rows, hard links) are read once.
+    Each file is read on its own, a chunk of them per thread and core (a pyarrow dataset scan of small files is
+    slower, and takes the first file's columns for all), and each chunk's rows are joined into one table as it is
+    read (a one-row table holds ~35 KB: 616k of them at once filled this machine's 24 GB). Raises Vanished for a
+    file gone meanwhile; an I/O error on a compacted file is raised, never taken for a damaged file (its rows
+    would all be set aside)."""
+    files: dict[int | str, list[str]] = {}
+    keys: Sequence[int | str] = paths if inodes is None else inodes
+    for path, key in zip(paths, keys, strict=True):
+        files.setdefault(key, []).append(path)
 
-    def read_chunk(chunk: Sequence[str]) -> tuple[pa.Table | None, list[str]]:
-        tables, read, unreadable = [], [], []
-        for path in chunk:
+    def read_chunk(chunk: Sequence[list[str]]) -> tuple[pa.Table | None, list[str]]:
+        tables, shards, unreadable = [], [], []
+        for names in chunk:
             try:
-                tables.append(read_parquet(Path(path), small=True))
-                read.append(path)
+                table, named = named_rows(read_parquet(Path(names[0]), small=True), names)
+                tables.append(table)
+                shards += named
             except FileNotFoundError:
-                raise Vanished(path) from None
+                raise Vanished(names[0]) from None
             except pa.ArrowInvalid:
-                unreadable.append(path)
+                unreadable += names
             except OSError:
-                if f"{os.sep}{layout.COMPACTED}{os.sep}" in path:
+                if f"{os.sep}{layout.COMPACTED}{os.sep}" in names[0]:
                     raise
-                unreadable.append(path)
+                unreadable += names
         if not tables:
             return None, unreadable
-        shards = np.repeat(np.array(read, dtype=object), [table.num_rows for table in tables])
         rows = pa.concat_tables(tables, promote_options="permissive").combine_chunks()
         return rows.append_column("shard", pa.array(shards, pa.string())), unreadable
 
+    units = list(files.values())
     with ThreadPoolExecutor(os.cpu_count()) as pool:
-        chunks = list(progress(pool.map(read_chunk, [paths[start:start + READ_CHUNK]
-                                                     for start in range(0, len(paths), READ_CHUNK)]),
-                               f"reading {len(paths):,} row files", "chunk", -(-len(paths) // READ_CHUNK)))
+        chunks = list(progress(pool.map(read_chunk, [units[start:start + READ_CHUNK]
+                                                     for start in range(0, len(units), READ_CHUNK)]),
+                               f"reading {len(units):,} row files", "chunk", -(-len(units) // READ_CHUNK)))
     good = [table for table, _ in chunks if table is not None]
     unreadable = [path for _, bad in chunks for path in bad]
     if not good:
@@ -136,15 +143,17 @@ def read_shards(paths: list[str]) -> tuple[pa.Table, list[str]]:
 
 
 def list_shards(sweep_dir: Path) -> pa.Table:
-    """Every row file of the sweep with its SHARD_KEY (shard: path relative to the sweep dir), sorted."""
+    """Every row file of the sweep with its SHARD_KEY (shard: path relative to the sweep dir) and inode (ino),
+    sorted."""
     entries = [entry for bucket in os.scandir(Path(sweep_dir) / layout.ROWS) if bucket.is_dir()
                for entry in os.scandir(bucket.path) if entry.name.endswith(".parquet")] \
         if (Path(sweep_dir) / layout.ROWS).is_dir() else []
     stats = [entry.stat() for entry in entries]
     shards = [os.path.relpath(entry.path, sweep_dir) for entry in entries]
     table = pa.table({"shard": shards, "size": [s.st_size for s in stats],
-                      "mtime_ns": [s.st_mtime_ns for s in stats]}, schema=pa.schema(
-                          [("shard", pa.string()), ("size", pa.int64()), ("mtime_ns", pa.int64())]))
+                      "mtime_ns": [s.st_mtime_ns for s in stats], "ino": [s.st_ino for s in stats]},
+                     schema=pa.schema([("shard", pa.string()), ("size", pa.int64()), ("mtime_ns", pa.int64()),
+                                       ("ino", pa.uint64())]))
     return table.sort_by("shard")
 
 
@@ -180,11 +189,11 @@ def read_rows_once(sweep_dir: Path) -> tuple[pa.Table, list[str]]:
     unread = shards if cached is None else shards.join(cached.select(list(SHARD_KEY)), list(SHARD_KEY),
                                                        join_type="left anti")
     unread_paths = [os.path.join(sweep_dir, shard) for shard in unread["shard"].to_pylist()]
-    new, corrupt = read_shards(unread_paths)
+    new, corrupt = read_shards(unread_paths, unread["ino"].to_pylist())
     relative = {path: shard for path, shard in zip(unread_paths, unread["shard"].to_pylist(), strict=True)}
     new = new.set_column(new.schema.get_field_index("shard"), "shard",
                          pa.array([relative[path] for path in new["shard"].to_pylist()], pa.string()))
-    new = new.join(shards, "shard", join_type="inner")  # add size and mtime_ns
+    new = new.join(shards.select(list(SHARD_KEY)), "shard", join_type="inner")  # add size and mtime_ns
     rows = new if cached is None else pa.concat_tables([cached, new], promote_options="permissive")
     rows = rows.combine_chunks().sort_by("shard")  # one chunk per shard would make every later step slow
     return rows, [relative[path] for path in corrupt]

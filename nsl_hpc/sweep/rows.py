@@ -1,4 +1,9 @@
-"""Task outcome rows: one single-row Parquet file per task, written atomically by its job.
+"""Task outcome rows: a Parquet file per task, written atomically by its job.
+
+A lockstep group's rows are one Parquet file, which each of its tasks' paths names (hard links, or copies where
+the file system has none): a task's file holds its group's rows, its own the one whose ``task_id`` is its name
+(``named_rows``), and a merge reads such a file once for the whole group (a file read costs pyarrow 0.4-0.6 ms
+whatever it holds). The file's footer names each of its tasks (``TASK_IDS``).
 
 A file that does not look like a whole Parquet file (a truncated or overwritten row) is not a row: the task
 counts as ``corrupt`` (``row_state``), runs again, and the bad file is moved aside (``set_aside``), never deleted.
@@ -18,13 +23,13 @@ import importlib.abc
 import os
 import sys
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
 
-from nsl_hpc.core.atomic import read_parquet, write_parquet
+from nsl_hpc.core.atomic import link_or_copy, read_parquet, write_parquet
 from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.listing import read_listed
 
@@ -32,12 +37,40 @@ PARQUET_MAGIC = b"PAR1"  # the first and last four bytes of every Parquet file
 TAIL_BYTES = 64 * 1024  # what row_state reads of a file's end: a row's footer and end magic (a row is a few KB)
 LISTED_FROM = 1000  # row_states lists the row folders for this many tasks or more, else opens each task's file
 CHECK_SCHEMA = pa.schema([("state", pa.string())])  # what a row file's check keeps
+TASK_IDS = b"nsl_hpc.task_ids"  # a row file's metadata: the task ids of its rows, space-separated (in its footer)
 PART_IDS: dict[Path, tuple[tuple[int, int, int], frozenset[str]]] = {}  # compacted file: (its stat key, its ids)
 
 
+def write_rows_atomically(rows: Sequence[Mapping[str, Any]], paths: Sequence[Path]) -> None:
+    """Write ``rows`` (``paths[i]``: the file of ``rows[i]``) as one Parquet file that every path names: written
+    to a temporary file and renamed to the first path, then linked to each other one (``link_or_copy``), so each
+    task's file appears whole or not at all."""
+    table = pa.Table.from_pylist([dict(row) for row in rows])
+    table = table.replace_schema_metadata({TASK_IDS: " ".join(table["task_id"].to_pylist())})
+    write_parquet(table, paths[0])
+    for path in paths[1:]:
+        link_or_copy(paths[0], path)
+
+
 def write_row_atomically(row: Mapping[str, Any], path: Path) -> None:
-    """Write ``row`` as a one-row Parquet file: a temporary file in the same directory, then a rename."""
-    write_parquet(pa.Table.from_pylist([dict(row)]), path)
+    """Write ``row`` as a one-row Parquet file (``write_rows_atomically``)."""
+    write_rows_atomically([row], [path])
+
+
+def named_rows(table: pa.Table, paths: Sequence[str]) -> tuple[pa.Table, list[str]]:
+    """The rows of a row file (``table``, read from the file that ``paths`` all name) that its names own, each
+    with the path that names it; every row, each with the first path, where none names a row of it (a compacted
+    file, or a row copied under another name), so that merge counts such a row a duplicate or unknown. Without
+    the file's metadata."""
+    table = table.replace_schema_metadata(None)
+    if len(paths) == 1 and table.num_rows == 1:
+        return table, list(paths)
+    names = {os.path.basename(path).removesuffix(".parquet"): path for path in paths}
+    ids = table["task_id"].to_pylist()
+    owned = [index for index, task_id in enumerate(ids) if task_id in names]
+    if not owned:
+        return table, [paths[0]] * table.num_rows
+    return table.take(owned), [names[ids[index]] for index in owned]
 
 
 class _NoPandas(importlib.abc.MetaPathFinder):
@@ -65,13 +98,13 @@ def prepare_row_writes(pandas: bool = True) -> None:
 
 
 def read_row(path: Path) -> dict[str, Any]:
-    """The row stored at ``path``."""
-    return read_parquet(path, small=True).to_pylist()[0]
+    """The row stored at ``path`` (its task's, ``named_rows``)."""
+    return named_rows(read_parquet(path, small=True), [str(path)])[0].to_pylist()[0]
 
 
 def row_state(path: str | Path) -> str:
-    """``done`` (a whole Parquet file, its magic bytes at both ends, whose footer names the task of its path: the
-    statistics of its task_id column), ``missing`` or ``corrupt`` (truncated, overwritten, or another task's row
+    """``done`` (a whole Parquet file, its magic bytes at both ends, whose footer names the task of its path: its
+    ``TASK_IDS``), ``missing`` or ``corrupt`` (truncated, overwritten, or another task's row
     copied there). One read of the file's end (a row is a few KB: the whole of it), so a sweep's 63k rows are
     checked in seconds (a damaged file with intact ends is caught by merge, which reads every row)."""
     try:

@@ -26,7 +26,7 @@ from nsl_hpc.sweep.code import code_of
 from nsl_hpc.sweep.formats import package_version
 from nsl_hpc.sweep.layout import pause_marker, row_path
 from nsl_hpc.sweep.rehearsal import Rehearse, rehearsed_group
-from nsl_hpc.sweep.rows import write_row_atomically
+from nsl_hpc.sweep.rows import write_rows_atomically
 from nsl_hpc.sweep.run_settings import Fault
 
 
@@ -172,7 +172,8 @@ def run_task(cfg: Mapping[str, Any], on_progress: Callable[[], None] = lambda: N
 def run_tasks(tasks: Sequence[ResolvedTask], on_progress: Callable[[], None] = lambda: None,
               checkpoint: Checkpointer | None = None) -> list[TaskResult]:
     """Train and score tasks of one study and shape together (in lockstep where the study can) and write
-    one row per task, each the row the task would have alone; tasks whose row exists are skipped.
+    one row per task, each the row the task would have alone (one file of them all, ``write_rows_atomically``);
+    tasks whose row exists are skipped.
     ``checkpoint`` (of all of ``tasks``, used when none is skipped): training continues from it and writes it as
     it goes."""
     started = time.perf_counter()
@@ -191,6 +192,7 @@ def run_tasks(tasks: Sequence[ResolvedTask], on_progress: Callable[[], None] = l
         outcomes, torch_version = trained_group([tasks[i] for i in todo], on_progress,
                                                 checkpoint if len(todo) == len(tasks) else None)
     code = code_of(tasks[todo[0]].task.pair)  # the tasks of a group are of one (system, arch)
+    rows = []
     for i, outcome in zip(todo, outcomes, strict=True):
         finite = outcome.pop("finite") and all(math.isfinite(outcome[key]) for key in ("nmae", "nmse"))
         task = tasks[i].task
@@ -209,8 +211,9 @@ def run_tasks(tasks: Sequence[ResolvedTask], on_progress: Callable[[], None] = l
             "python_version": platform.python_version(),
             "host": socket.gethostname(),
         }
-        write_row_atomically(row, tasks[i].path)
+        rows.append(row)
         results[i] = TaskResult(tasks[i].path, row, skipped=False)
+    write_rows_atomically(rows, [tasks[i].path for i in todo])
     return results
 
 
