@@ -416,6 +416,10 @@ def test_a_groups_rows_are_one_file_each_task_reads_its_own_and_merge_reads_it_o
     assert sorted(zip(table["task_id"].to_pylist(), table["shard"].to_pylist(), strict=True)) == [
         (task_id, str(path)) for task_id, path in zip(ids[1:], paths[1:], strict=True)]
     assert table.schema.metadata is None  # no group's ids carried into results.parquet
+    footer, read = rows.row_footer, []
+    monkeypatch.setattr(rows, "row_footer", lambda path: read.append(path) or footer(path))
+    assert listed_row_states(tmp_path, ids) == dict.fromkeys(ids, "done")
+    assert len(read) == (1 if links else 4)  # status's look reads the group's file once
 
 
 # Status, launch and resubmit list the row folders and read only the row files that are not the files they read
@@ -426,7 +430,8 @@ def test_the_listed_row_states_read_only_new_files_and_see_each_file_put_in_plac
     for task_id in ids[:5]:
         write_row_atomically({"task_id": task_id, "nmae": 0.1}, row_path(tmp_path, task_id))
     read = []
-    monkeypatch.setattr(rows, "row_state", lambda path: read.append(Path(path).stem) or row_state(path))
+    footer = rows.row_footer
+    monkeypatch.setattr(rows, "row_footer", lambda path: read.append(Path(path).stem) or footer(path))
     assert listed_row_states(tmp_path, ids) == {**dict.fromkeys(ids[:5], "done"), ids[5]: "missing"}
     assert sorted(read) == ids[:5] and (tmp_path / ".row_checks.parquet").exists()
     read.clear()

@@ -45,7 +45,7 @@ def read_failures(sweep_dir: Path) -> dict[str, dict[str, Any]]:
     """Every failure record of a sweep by task id (unreadable records are skipped), each file read once while it
     is the same file (``listing.read_listed``)."""
     table = read_listed(os.path.join(sweep_dir, layout.FAILURES), ".json", Path(sweep_dir) / layout.FAILURE_CHECKS,
-                        RECORD_SCHEMA, read_record)
+                        RECORD_SCHEMA, lambda path, _inode: read_record(path))
     return {record["task_id"]: record for record in table.drop_columns(["ino"]).to_pylist()}
 
 

@@ -4,7 +4,8 @@
       manifest.parquet                    the tasks, one row each (sweep/manifest.py)
       launch.yaml, run.yaml               the launch config; the run settings a resubmit may change
       configs/<system>__<arch>.yaml       the config every task of a (system, arch) pair shares
-      rows/<id[:2]>/<id>.parquet          one row per finished task (under out_dir, the sweep dir by default)
+      rows/<id[:2]>/<id>.parquet          a finished task's row: its lockstep group's file of rows, which each of
+                                          the group's paths names (under out_dir, the sweep dir by default)
       rows/compacted/<part>.parquet       rows merge has moved out of their own files, many per file
       corrupt/                            rows that were not whole Parquet files of their task, set aside
       failures/<id[:2]>/<id>.json         why a task has no row (failed, frozen, timeout)

@@ -43,10 +43,11 @@ def listed(folder: str | os.PathLike, suffix: str) -> pa.Table:
 
 
 def read_listed(folder: str | os.PathLike, suffix: str, kept_at: Path, schema: pa.Schema,
-                read: Callable[[str], Mapping[str, Any] | None]) -> pa.Table:
-    """Every listed file of ``folder`` (``listed``) with the ``schema`` columns ``read(path)`` gives for it (None:
-    unreadable, left out): kept ones (``kept_at``) where the file has the inode they were read at, else read
-    now; kept again where anything changed (and the sweep takes writes)."""
+                read: Callable[[str, int], Mapping[str, Any] | None]) -> pa.Table:
+    """Every listed file of ``folder`` (``listed``) with the ``schema`` columns ``read(path, inode)`` gives for it
+    (None: unreadable, left out; inode: the listing's): kept ones (``kept_at``) where the file has the inode they
+    were read at, else read now, in inode order (a group's row paths name one file); kept again where anything
+    changed (and the sweep takes writes)."""
     import pyarrow.compute as pc
 
     files = listed(folder, suffix)
@@ -58,10 +59,10 @@ def read_listed(folder: str | os.PathLike, suffix: str, kept_at: Path, schema: p
     joined = files.join(kept.append_column("kept", pa.repeat(True, kept.num_rows)), list(KEY),
                         join_type="left outer")
     standing = joined.filter(pc.is_valid(joined["kept"])).select(whole.names)
-    unread = joined.filter(pc.is_null(joined["kept"]))
+    unread = joined.filter(pc.is_null(joined["kept"])).sort_by("ino")
     fresh = []
     for task_id, ino in zip(unread["task_id"].to_pylist(), unread["ino"].to_pylist(), strict=True):
-        if (values := read(os.path.join(folder, task_id[:2], task_id + suffix))) is not None:
+        if (values := read(os.path.join(folder, task_id[:2], task_id + suffix), ino)) is not None:
             fresh.append({"task_id": task_id, "ino": ino, **{name: values.get(name) for name in schema.names}})
     if not fresh and standing.num_rows == kept.num_rows:
         return standing

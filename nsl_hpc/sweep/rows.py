@@ -34,7 +34,7 @@ from nsl_hpc.sweep import layout
 from nsl_hpc.sweep.listing import read_listed
 
 PARQUET_MAGIC = b"PAR1"  # the first and last four bytes of every Parquet file
-TAIL_BYTES = 64 * 1024  # what row_state reads of a file's end: a row's footer and end magic (a row is a few KB)
+TAIL_BYTES = 64 * 1024  # what row_state reads of a file's end: its footer and end magic (a group's rows: ~14 KB)
 LISTED_FROM = 1000  # row_states lists the row folders for this many tasks or more, else opens each task's file
 CHECK_SCHEMA = pa.schema([("state", pa.string())])  # what a row file's check keeps
 TASK_IDS = b"nsl_hpc.task_ids"  # a row file's metadata: the task ids of its rows, space-separated (in its footer)
@@ -104,30 +104,43 @@ def read_row(path: Path) -> dict[str, Any]:
 
 def row_state(path: str | Path) -> str:
     """``done`` (a whole Parquet file, its magic bytes at both ends, whose footer names the task of its path: its
-    ``TASK_IDS``), ``missing`` or ``corrupt`` (truncated, overwritten, or another task's row
-    copied there). One read of the file's end (a row is a few KB: the whole of it), so a sweep's 63k rows are
-    checked in seconds (a damaged file with intact ends is caught by merge, which reads every row)."""
+    ``TASK_IDS``), ``missing`` or ``corrupt`` (truncated, overwritten, or another task's row copied there). One
+    read of the file's end (a group's rows are tens of KB: the whole of it), so a sweep's 63k rows are checked in
+    seconds (a damaged file with intact ends is caught by merge, which reads every row)."""
+    return named_state(path, row_footer(path)[1])
+
+
+def named_state(path: str | Path, footer: bytes | str) -> str:
+    """``row_state`` from the ``row_footer`` of the file at ``path``."""
+    if isinstance(footer, str):
+        return footer
+    return "done" if os.path.basename(path).removesuffix(".parquet").encode() in footer else "corrupt"
+
+
+def row_footer(path: str | Path) -> tuple[int, bytes | str]:
+    """The inode of the file at ``path`` and its Parquet footer, or ``missing`` or ``corrupt`` (not a whole Parquet
+    file; inode 0 where there is none)."""
     try:
         fd = os.open(path, os.O_RDONLY)
     except FileNotFoundError:
-        return "missing"
+        return 0, "missing"
     try:
         tail = os.pread(fd, TAIL_BYTES, 0)  # a row's whole file, without asking its size first
         size = chunk = len(tail)
+        inode = os.fstat(fd).st_ino
         if chunk == TAIL_BYTES:  # a larger file: its end
             size = os.fstat(fd).st_size
             tail = os.pread(fd, chunk, size - chunk)
         if size < 12:
-            return "corrupt"
+            return inode, "corrupt"
         head = tail[:4] if chunk == size else os.pread(fd, 4, 0)
         footer_size = int.from_bytes(tail[-8:-4], "little")
         if head != PARQUET_MAGIC or tail[-4:] != PARQUET_MAGIC or footer_size > size - 12:
-            return "corrupt"
-        footer = (tail[-8 - footer_size:-8] if footer_size + 8 <= chunk
-                  else os.pread(fd, footer_size, size - 8 - footer_size))
+            return inode, "corrupt"
+        return inode, (tail[-8 - footer_size:-8] if footer_size + 8 <= chunk
+                       else os.pread(fd, footer_size, size - 8 - footer_size))
     finally:
         os.close(fd)
-    return "done" if os.path.basename(path).removesuffix(".parquet").encode() in footer else "corrupt"
 
 
 def compacted_parts(out_dir: str | os.PathLike) -> list[Path]:
@@ -181,8 +194,16 @@ def listed_row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> di
     ``missing`` without a file, else its state (``row_state``) as read while it is the same file."""
     import pyarrow.compute as pc  # here: a job asks about its few tasks, and starts without it (0.1 s)
 
+    last: tuple[int, bytes | str] = (0, b"")  # the file read last: its group's other paths come next (by inode)
+
+    def check(path: str, listed_inode: int) -> dict[str, str]:
+        nonlocal last
+        if last[0] != listed_inode:  # else the same file, named by another task of its group
+            last = row_footer(path)
+        return {"state": named_state(path, last[1])}
+
     checked = read_listed(os.path.join(out_dir, layout.ROWS), ".parquet", Path(out_dir) / layout.ROW_CHECKS,
-                          CHECK_SCHEMA, lambda path: {"state": row_state(path)})
+                          CHECK_SCHEMA, check)
     task_ids = task_ids if isinstance(task_ids, list) else list(task_ids)
     found = pc.index_in(pa.array(task_ids, pa.string()), value_set=checked["task_id"])
     states = pc.fill_null(checked["state"].take(found), "missing")
