@@ -19,6 +19,8 @@ import time
 from collections import Counter
 from dataclasses import dataclass
 
+import pyarrow as pa
+import pyarrow.compute as pc
 from omegaconf import DictConfig
 
 from nsl_hpc import cli
@@ -56,8 +58,9 @@ def remaining_seconds(sweep_dir, state: SweepState, launch: LaunchSettings) -> f
     left = {task_id: 1 - group.step / max(group.total_steps, 1)
             for group in saved.values() for task_id in group.task_ids}
     never_submitted = todo - shares.keys()
-    unplanned = [task for task in read_manifest(sweep_dir).to_pylist()
-                 if task["task_id"] in never_submitted] if never_submitted else []
+    manifest = read_manifest(sweep_dir) if never_submitted else None
+    unplanned = manifest.filter(pc.is_in(manifest["task_id"], value_set=pa.array(sorted(never_submitted)))
+                                ).to_pylist() if manifest is not None else []
     groups = launch.groups(unplanned, list(saved)) if unplanned else []
     return (sum(shares[task_id] * left.get(task_id, 1.0) for task_id in todo if task_id in shares)
             + sum(group.seconds * left.get(group.task_ids[0], 1.0) for group in groups))

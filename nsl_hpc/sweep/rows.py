@@ -170,23 +170,27 @@ def row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str,
     a merge moves meanwhile (merge syncs the compacted file before it removes the own files): the compacted files,
     the own files of the tasks they do not hold, then the compacted files again for the tasks still without a
     row."""
-    compacted = compacted_ids(out_dir)
     task_ids = list(task_ids)
-    own = [task_id for task_id in task_ids if not any(task_id in ids for ids in compacted)] if compacted else task_ids
+    held = compacted_among(set(task_ids), compacted_ids(out_dir))
+    own = [task_id for task_id in task_ids if task_id not in held] if held else task_ids
     if len(own) >= LISTED_FROM:
         listed = listed_row_states(out_dir, own)
     else:
         listed = {task_id: row_state(layout.row_file(out_dir, task_id)) for task_id in own}
-    if compacted:
+    if held:
         states = dict.fromkeys(task_ids, "done")
         states.update(listed)
     else:
         states = listed
     if all(state == "done" for state in states.values()):
         return states
-    since = compacted_ids(out_dir)
-    return {task_id: "done" if state != "done" and any(task_id in ids for ids in since) else state
-            for task_id, state in states.items()} if since else states
+    since = compacted_among({task_id for task_id, state in states.items() if state != "done"}, compacted_ids(out_dir))
+    return {task_id: "done" if task_id in since else state for task_id, state in states.items()} if since else states
+
+
+def compacted_among(task_ids: set[str], compacted: Sequence[frozenset[str]]) -> set[str]:
+    """Those of ``task_ids`` that one of the ``compacted`` files (``compacted_ids``) holds."""
+    return set().union(*(task_ids & ids for ids in compacted))
 
 
 def listed_row_states(out_dir: str | os.PathLike, task_ids: Iterable[str]) -> dict[str, str]:
