@@ -22,6 +22,7 @@ from nsl_hpc.studies import pair_of
 from nsl_hpc.studies.input_state.data import build_test_set, build_training_set
 from nsl_hpc.studies.input_state.lockstep import Member, predict_derivatives, train_lockstep
 from nsl_hpc.studies.input_state.scaling import Scaling
+from nsl_hpc.sweep.rows import read_row
 
 EXAMPLE = Path(nsl_hpc.__file__).parents[1] / "examples" / "own_study"
 SMALL_STUDY = ["sweep.grid.seed=[0]", "sweep.grid.epochs=[16,64]", "sweep.grid.data_tier=[8]",
@@ -119,11 +120,11 @@ def assert_code_changes_are_refused_then_recorded(study: Path, site: Path) -> No
     naming the pair and both hashes, and run nothing; with allow_code_change=true the task runs, and the rows say
     which code made each (issue: the edited code's rows were mixed in silently)."""
     rows = sorted((study / "runs/own_study/rows").rglob("*.parquet"))
-    codes = {pq.read_table(path).to_pylist()[0]["arch"]: pq.read_table(path).to_pylist()[0]["code"] for path in rows}
+    codes = {read_row(path)["arch"]: read_row(path)["code"] for path in rows}
     assert codes["unstructured"].startswith("nsl_hpc ") and "; system two_tank: tanks.py sha256:" in \
         codes["unstructured"] and "; arch" not in codes["unstructured"]  # the package's arch: its version says it
     assert "; arch cascade_net: tanks.py sha256:" in codes["cascade_net"]
-    lost = next(path for path in rows if pq.read_table(path).to_pylist()[0]["arch"] == "cascade_net")
+    lost = next(path for path in rows if read_row(path)["arch"] == "cascade_net")
     lost.unlink()  # a task to run again
     with open(study / "tanks.py", "a") as module:
         module.write("# an edit after the sweep was launched\n")
@@ -135,7 +136,7 @@ def assert_code_changes_are_refused_then_recorded(study: Path, site: Path) -> No
     assert not lost.exists()
     allowed = run(study, site, "resubmit", "sweep_dir=runs/own_study", "allow_code_change=true")
     assert allowed.returncode == 0 and "resubmitting 1 tasks" in allowed.stdout, allowed.stdout + allowed.stderr
-    again = pq.read_table(lost).to_pylist()[0]["code"]
+    again = read_row(lost)["code"]
     assert again != codes["cascade_net"] and again.split("; ")[0] == codes["cascade_net"].split("; ")[0]
 
 

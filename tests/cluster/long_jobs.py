@@ -12,10 +12,10 @@ import subprocess
 import time
 from pathlib import Path
 
-import pyarrow.parquet as pq
 import pytest
 
 from nsl_hpc.sweep.groups import saved_groups
+from nsl_hpc.sweep.rows import read_row
 from tests.cluster.requeues import Releaser, jobs
 from tests.sweeps import TINY_GRID, nsl, row_files
 
@@ -36,7 +36,7 @@ OUTCOME = ("nmae", "nmse", "final_loss", "steps", "params", "flops", "train_poin
 
 
 def outcome_rows(sweep_dir: Path) -> dict[str, tuple]:
-    rows = [pq.read_table(path).to_pylist()[0] for path in row_files(sweep_dir)]
+    rows = [read_row(path) for path in row_files(sweep_dir)]
     return {row["task_id"]: tuple(row[key] for key in OUTCOME) for row in rows}
 
 

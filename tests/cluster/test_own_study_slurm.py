@@ -11,6 +11,7 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
+from nsl_hpc.sweep.rows import read_row
 from tests.test_own_study import EXAMPLE
 
 pytestmark = pytest.mark.slurm
@@ -60,5 +61,5 @@ def test_an_edited_module_is_not_mixed_into_a_sweep_on_slurm_unless_allowed(slur
     waited = run(study, "status", "sweep_dir=runs/edited", "wait=true", "interval_s=1", "max_interval_s=2")
     assert waited.returncode == 0 and "done 1 |" in waited.stdout, waited.stdout
     (row,) = (study / "runs/edited/rows").rglob("*.parquet")
-    assert pq.read_table(row).to_pylist()[0]["code"] == json.loads((study / "runs/edited/code.json").read_text())[
+    assert read_row(row)["code"] == json.loads((study / "runs/edited/code.json").read_text())[
         "two_tank/cascade_net"]
