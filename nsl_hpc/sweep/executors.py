@@ -58,7 +58,7 @@ def submit_to_slurm(sweep_dir: Path, packs: Sequence[Pack], launcher: SlurmLaunc
     """Submit ``packs`` as job arrays, one time limit per array, indices from 0, within the cluster's ``limits``."""
     room = limits.max_job_count.value - queued_jobs(user_only=False)
     if limits.submit_jobs is not None:
-        room = min(room, limits.submit_jobs.value - queued_jobs(user_only=True))
+        room = min(room, limits.submit_jobs.value - queued_jobs(user_only=True, qos=limits.submit_jobs.qos))
     if launcher.feed_minutes is not None and room < len(packs):
         room -= 1  # the feeder's (submit_feeder)
     ordered = sorted(packs, key=lambda pack: pack.time_limit_min)

@@ -30,6 +30,7 @@ class Limit:
 
     value: int
     source: str
+    qos: str = ""  # a QOS's per-user limit: only the user's jobs of that QOS count against it ('': all the user's)
 
     def __str__(self) -> str:
         return f"{self.value:,} ({self.source})"
@@ -181,8 +182,8 @@ def read_cluster_limits(launcher: SlurmLauncher) -> ClusterLimits:
             running.append(own(cpus_of(association.get("GrpTRES", "")), f"{where} GrpTRES cpu"))
             for name, row in qos_rows:
                 wall.append(minutes_limit(row["MaxWall"], f"QOS {name} MaxWall"))
-                submit += [own(count(row[key]), f"QOS {name} {key}") for key in ("MaxSubmitJobsPerUser",
-                                                                                 "GrpSubmitJobs")]
+                submit += [own(count(row["MaxSubmitJobsPerUser"]), f"QOS {name} MaxSubmitJobsPerUser", name),
+                           own(count(row["GrpSubmitJobs"]), f"QOS {name} GrpSubmitJobs")]
                 running += [own(count(row[key]), f"QOS {name} {key}") for key in ("MaxJobsPerUser", "GrpJobs")]
                 running += [own(cpus_of(row[key]), f"QOS {name} {key} cpu") for key in ("GrpTRES", "MaxTRESPerUser")]
     assert array is not None and jobs is not None
@@ -205,8 +206,8 @@ def cluster_limits(settings: LaunchSettings, dry_run: bool = False) -> ClusterLi
         return None
 
 
-def own(value: int | None, source: str) -> Limit | None:
-    return None if value is None else Limit(value, source)
+def own(value: int | None, source: str, qos: str = "") -> Limit | None:
+    return None if value is None else Limit(value, source, qos)
 
 
 def minutes_limit(text: str, source: str) -> Limit | None:

@@ -57,12 +57,12 @@ def require_cluster(submitted: set[str]) -> None:
                           "configuration)")
 
 
-def queued_jobs(user_only: bool) -> int:
+def queued_jobs(user_only: bool, qos: str = "") -> int:
     """Jobs (array elements expanded) that count against a limit: this user's pending and running ones
-    (MaxSubmitJobs), or every job record the controller holds (MaxJobCount: finished jobs count until
-    MinJobAge purges them)."""
+    (MaxSubmitJobs; ``qos``: of that QOS only, for its MaxSubmitJobsPerUser), or every job record the controller
+    holds (MaxJobCount: finished jobs count until MinJobAge purges them)."""
     args = ["squeue", "-h", "-r", "-o", "%i"] + (["-u", getpass.getuser()] if user_only else ["-t", "all"])
-    return len(slurm_command(*args).split())
+    return len(slurm_command(*args, *(["-q", qos] if qos else [])).split())
 
 
 def held_arrays(array_ids: Iterable[str]) -> list[str]:

@@ -48,14 +48,16 @@ def test_a_qos_submit_limit_and_max_wall_are_read_and_the_plan_fits_them(limited
     assert "jobs: 4 (slurm; time limits: 4 x 10 min)" in planned.stdout
     assert "submissions: 4 jobs, at most 3 queued at once" in planned.stdout
     since = time.strftime("%Y-%m-%dT%H:%M:%S")
-    try:
+    try:  # a job of this user outside the QOS does not count against the QOS's per-user limit
+        subprocess.run(["sbatch", "--hold", "--job-name=nsl-qos-outside", "--wrap=true"], check=True,
+                       capture_output=True)
         launched = nsl("launch", *args)
         assert launched.returncode == 0, launched.stderr
         assert "submitted 2 jobs in 1 arrays" in launched.stdout, launched.stdout
         assert "2 jobs (2 tasks) were not submitted: job " in launched.stdout  # the feeder took the third place
         wait_until_gone("nsl-qos-limited,nsl-qos-limited-feed")  # the feeder's array is in before it ends
     finally:
-        subprocess.run(["scancel", "-n", "nsl-qos-limited,nsl-qos-limited-feed"], check=False)
+        subprocess.run(["scancel", "-n", "nsl-qos-limited,nsl-qos-limited-feed,nsl-qos-outside"], check=False)
     status = nsl("status", f"sweep_dir={sweep_dir}")
     assert "4 tasks: done 4 |" in status.stdout, status.stdout  # no launch by hand
     limits = accounted(["--name", "nsl-qos-limited,nsl-qos-limited-feed", "-S", since, "-q", limited_qos, "-o",
