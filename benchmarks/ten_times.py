@@ -54,6 +54,7 @@ def measure(scale: int, root: Path) -> dict[str, str]:
         _, merge_again_s, _ = timed_command("nsl_hpc.merge", f"sweep_dir={sweep_dir}")
     finally:  # held jobs: cancel them whatever happened
         subprocess.run(["scancel", *(record["array_id"] for record in read_submissions(sweep_dir))], check=False)
+        subprocess.run(["scancel", "-n", "nsl-input_state-feed"], check=False)  # where the job limits held some back
     return {
         "tasks; jobs": f"{tasks}; {jobs.removeprefix('jobs: ')}",
         "launch's plan (dry run) / plan and submit (held)": f"{plan_s:.1f} s / {launch_s:.1f} s ({arrays} arrays)",

@@ -57,7 +57,8 @@ def test_a_qos_submit_limit_and_max_wall_are_read_and_the_plan_fits_them(limited
         assert "2 jobs (2 tasks) were not submitted: job " in launched.stdout  # the feeder took the third place
         wait_until_gone("nsl-qos-limited,nsl-qos-limited-feed")  # the feeder's array is in before it ends
     finally:
-        subprocess.run(["scancel", "-n", "nsl-qos-limited,nsl-qos-limited-feed,nsl-qos-outside"], check=False)
+        for name in ("nsl-qos-limited", "nsl-qos-limited-feed", "nsl-qos-outside"):  # scancel takes one name
+            subprocess.run(["scancel", "-n", name], check=False)
     status = nsl("status", f"sweep_dir={sweep_dir}")
     assert "4 tasks: done 4 |" in status.stdout, status.stdout  # no launch by hand
     limits = accounted(["--name", "nsl-qos-limited,nsl-qos-limited-feed", "-S", since, "-q", limited_qos, "-o",
