@@ -60,13 +60,17 @@ def read_listed(folder: str | os.PathLike, suffix: str, kept_at: Path, schema: p
                         join_type="left outer")
     standing = joined.filter(pc.is_valid(joined["kept"])).select(whole.names)
     unread = joined.filter(pc.is_null(joined["kept"])).sort_by("ino")
-    fresh = []
+    fresh: dict[str, list[Any]] = {name: [] for name in whole.names}  # by column: 616k rows of dicts take seconds
+    prefix = os.path.join(folder, "")
     for task_id, ino in zip(unread["task_id"].to_pylist(), unread["ino"].to_pylist(), strict=True):
-        if (values := read(os.path.join(folder, task_id[:2], task_id + suffix), ino)) is not None:
-            fresh.append({"task_id": task_id, "ino": ino, **{name: values.get(name) for name in schema.names}})
-    if not fresh and standing.num_rows == kept.num_rows:
+        if (values := read(f"{prefix}{task_id[:2]}{os.sep}{task_id}{suffix}", ino)) is not None:
+            fresh["task_id"].append(task_id)
+            fresh["ino"].append(ino)
+            for name in schema.names:
+                fresh[name].append(values.get(name))
+    if not fresh["task_id"] and standing.num_rows == kept.num_rows:
         return standing
-    table = pa.concat_tables([standing, pa.Table.from_pylist(fresh, standing.schema)]).combine_chunks()
+    table = pa.concat_tables([standing, pa.table(fresh, schema=whole)]).combine_chunks()
     with contextlib.suppress(OSError):  # a folder that takes no writes keeps nothing
         write_parquet(table, kept_at)
     return table

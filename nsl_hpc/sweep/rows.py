@@ -114,7 +114,7 @@ def named_state(path: str | Path, footer: bytes | str) -> str:
     """``row_state`` from the ``row_footer`` of the file at ``path``."""
     if isinstance(footer, str):
         return footer
-    return "done" if os.path.basename(path).removesuffix(".parquet").encode() in footer else "corrupt"
+    return "done" if str(path).rpartition(os.sep)[2].removesuffix(".parquet").encode() in footer else "corrupt"
 
 
 def row_footer(path: str | Path) -> tuple[int, bytes | str]:
