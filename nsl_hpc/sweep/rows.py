@@ -127,9 +127,10 @@ def row_footer(path: str | Path) -> tuple[int, bytes | str]:
     try:
         tail = os.pread(fd, TAIL_BYTES, 0)  # a row's whole file, without asking its size first
         size = chunk = len(tail)
-        inode = os.fstat(fd).st_ino
+        stat = os.fstat(fd)
+        inode = stat.st_ino
         if chunk == TAIL_BYTES:  # a larger file: its end
-            size = os.fstat(fd).st_size
+            size = stat.st_size
             tail = os.pread(fd, chunk, size - chunk)
         if size < 12:
             return inode, "corrupt"
