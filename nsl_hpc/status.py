@@ -58,9 +58,11 @@ def remaining_seconds(sweep_dir, state: SweepState, launch: LaunchSettings) -> f
     left = {task_id: 1 - group.step / max(group.total_steps, 1)
             for group in saved.values() for task_id in group.task_ids}
     never_submitted = todo - shares.keys()
-    manifest = read_manifest(sweep_dir) if never_submitted else None
-    unplanned = manifest.filter(pc.is_in(manifest["task_id"], value_set=pa.array(sorted(never_submitted)))
-                                ).to_pylist() if manifest is not None else []
+    unplanned = []
+    if never_submitted:
+        manifest = read_manifest(sweep_dir)
+        unplanned = manifest.filter(pc.is_in(manifest["task_id"], value_set=pa.array(sorted(never_submitted)))
+                                    ).to_pylist()
     groups = launch.groups(unplanned, list(saved)) if unplanned else []
     return (sum(shares[task_id] * left.get(task_id, 1.0) for task_id in todo if task_id in shares)
             + sum(group.seconds * left.get(group.task_ids[0], 1.0) for group in groups))
