@@ -301,9 +301,10 @@ def test_bootstrap_intervals_on_a_tiny_cloud_are_reproducible_and_hold_the_fit()
     r, e = outcomes(true, 2, n=200)
     settings = default_settings()
     fit = fit_nsl(r, e, breaks=1)
-    thetas = bootstrap_thetas(fit, r, e, 40, seed=7, K=100, settings=settings)
+    thetas = bootstrap_thetas(fit, r, e, 40, seed=7, K=100, settings=settings, draw="half")
     assert thetas.shape == (40, 6)
-    np.testing.assert_array_equal(thetas, bootstrap_thetas(fit, r, e, 40, seed=7, K=100, settings=settings))
+    np.testing.assert_array_equal(thetas, bootstrap_thetas(fit, r, e, 40, seed=7, K=100, settings=settings,
+                                                           draw="half"))
     bounds = intervals(fit, thetas, float(r.max()), 0.9, "basic")
     quantiles = intervals(fit, thetas, float(r.max()), 0.9, "percentile")
     for name in ("last_slope", "L_at_max", "L_at_10x"):
@@ -318,6 +319,27 @@ def test_bootstrap_intervals_on_a_tiny_cloud_are_reproducible_and_hold_the_fit()
     assert bounds["last_slope_lo"] < -0.35 + 0.3 and bounds["last_slope_hi"] > -0.35 - 0.3
     assert bounds["sigma_1_lo"] < 1e6 * 10 and bounds["sigma_1_hi"] > 1e6 / 10
     assert bounds["L_at_10x_hi"] - bounds["L_at_10x_lo"] > bounds["L_at_max_hi"] - bounds["L_at_max_lo"]
+
+
+@pytest.mark.parametrize("seed", [3, 4, 5])
+def test_half_samples_take_away_the_envelopes_excess_over_the_law_it_bounds(seed):
+    # a rehearsal's outcomes: half of the tasks on the law, the others above it by exp(Exp(1))
+    true = GENERATING_LAWS[1]
+    rng = np.random.default_rng(seed)
+    r = np.exp(rng.uniform(np.log(1e3), np.log(1e12), 300))
+    e = true.predict(r) * np.exp(np.where(rng.random(300) < 0.5, 0.0, rng.exponential(1.0, 300)))
+    fit = fit_nsl(r, e, breaks=1)
+    at_max = float(true.predict(r.max()))
+    assert fit.predict(r.max()) > 1.03 * at_max  # the law through the envelope's staircase lies above its corners
+    bounds = {}
+    for draw in ("half", "replacement"):
+        thetas = bootstrap_thetas(fit, r, e, 40, seed=7, K=100, settings=default_settings(), draw=draw)
+        bounds[draw] = intervals(fit, thetas, float(r.max()), 0.9, "basic")
+    half = bounds["half"]
+    assert half["L_at_max_lo"] <= at_max <= half["L_at_max_hi"]
+    assert half["last_slope_lo"] <= -0.35 <= half["last_slope_hi"]
+    # a with-replacement resample holds ~63% of the distinct outcomes: it takes away part of the excess
+    assert bounds["replacement"]["L_at_max_lo"] > bounds["half"]["L_at_max_lo"]
 
 
 def test_a_law_needs_its_own_inverse_and_says_when_it_cannot_reach_a_target():

@@ -1,12 +1,19 @@
 """How sure a fitted law is: refit it on resampled outcomes and read intervals off the refits.
 
-A replicate draws the outcomes (tasks) with replacement, rebuilds the lower envelope from the draw and refines
-the fitted law on it (same b, started from the fit: the intervals are conditional on b). Quantiles of the
-replicates give the intervals of the last slope, the break positions, alpha and L at the largest observed
-resource and ten times beyond it: ``basic`` intervals by default (``nsl.bootstrap_interval``), the quantiles
-reflected about the fit's value, since the replicates are biased: a resample holds about two thirds of the
-distinct tasks, so its envelope, and the law on it, lies higher than the fit's; ``percentile`` ones are the
-quantiles themselves.
+A replicate draws the outcomes (tasks), rebuilds the lower envelope from the draw and refines the fitted law on it
+(same b, started from the fit: the intervals are conditional on b). Quantiles of the replicates give the
+intervals of the last slope, the break positions, alpha and L at the largest observed resource and ten times
+beyond it: ``basic`` intervals by default (``nsl.bootstrap_interval``), the quantiles reflected about the fit's
+value, since the replicates are biased: a resample's envelope is sparser than the fit's, so it, and the law on
+it, lies higher; ``percentile`` ones are the quantiles themselves.
+
+A replicate holds half of the outcomes, drawn without replacement, by default (``nsl.bootstrap_draw: half``;
+``replacement``: as many drawn with replacement, about 63% of them distinct). The envelope lies above the law it
+bounds by steps that shrink as 1 / n with n outcomes, and the fit with them; half as many outcomes double that
+excess, so the half-samples' excess over the fit equals the fit's over the law and the basic interval takes all
+of it away (a with-replacement resample takes away 1 / 0.63 - 1 = 58% of it); for a quantity that varies as
+1 / sqrt(n), the half-samples' spread about the fit is the fit's about the truth (variance 1 / m - 1 / n = 1 / n
+at m = n / 2). docs/fits.md measures both draws on planted laws.
 """
 
 from collections.abc import Mapping
@@ -18,13 +25,15 @@ from nsl_hpc.analysis.broken_law import FitSettings, NSLFit, log_law, refit
 
 
 def bootstrap_thetas(fit: NSLFit, resources: np.ndarray, errors: np.ndarray, replicates: int, seed: int, K: int,
-                     settings: FitSettings) -> np.ndarray:
-    """(replicates, 3 + 3 b): theta = [ln alpha, ln beta, delta0, (ln sigma_i, phi_i, delta_i)...] of each refit."""
+                     settings: FitSettings, draw: str) -> np.ndarray:
+    """(replicates, 3 + 3 b): theta = [ln alpha, ln beta, delta0, (ln sigma_i, phi_i, delta_i)...] of each refit
+    on a draw of the n outcomes (``draw``: ``half``, ceil(n / 2) of them without replacement; ``replacement``, n
+    with replacement)."""
     rng = np.random.default_rng(seed)
     n = len(resources)
     thetas = []
     for _ in range(replicates):
-        drawn = rng.integers(0, n, n)
+        drawn = rng.choice(n, (n + 1) // 2, replace=False) if draw == "half" else rng.integers(0, n, n)
         thetas.append(refit(fit, resources[drawn], errors[drawn], K, settings))
     return np.array(thetas).reshape(replicates, 3 + 3 * fit.b)
 

@@ -141,7 +141,8 @@ def fit_one(key: dict[str, str], r: np.ndarray, e: np.ndarray, excluded: int, ns
                envelope_r=fit.envelope_r.tolist(), envelope_e=fit.envelope_e.tolist())
     for i, (sigma, phi, delta) in enumerate(padded, start=1):
         row.update({f"sigma_{i}": sigma, f"phi_{i}": phi, f"delta_{i}": delta})
-    thetas = bootstrap_thetas(fit, r, e, nsl.bootstrap, stable_seed("bootstrap", *key.values()), nsl.K, nsl)
+    thetas = bootstrap_thetas(fit, r, e, nsl.bootstrap, stable_seed("bootstrap", *key.values()), nsl.K, nsl,
+                              nsl.bootstrap_draw)
     row.update(bootstrap=nsl.bootstrap, bootstrap_thetas=thetas.tolist())
     if nsl.bootstrap:
         bounds = intervals(fit, thetas, float(r.max()), nsl.bootstrap_level, nsl.bootstrap_interval)

@@ -12,6 +12,7 @@ from nsl_hpc.config.schema import setting, typed
 from nsl_hpc.core.errors import ConfigError, require_choice, require_number
 
 INTERVALS = ("basic", "percentile")
+DRAWS = ("half", "replacement")
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,8 @@ class Nsl(FitSettings):
     breaks: int | None = setting("a fixed number of breaks b; null: chosen in 0..max_breaks", 0)
     max_breaks: int = setting("the most breaks a law may have", 0)
     bootstrap: int = setting("resamples of the outcomes refitted for intervals (0: none)", 0)
+    bootstrap_draw: str = setting("what a resample holds: half, half the outcomes without replacement; "
+                                  "replacement, as many drawn with replacement", choices=DRAWS)
     bootstrap_level: float = setting("interval coverage", 0, 1, low_open=True, high_open=True)
     bootstrap_interval: str = setting("basic: reflected about the fit's value; percentile: the quantiles",
                                       choices=INTERVALS)

@@ -89,16 +89,21 @@ def share_drawn(purpose: str, key: str) -> float:
     return stable_seed("rehearsal", purpose, key) / 2**63
 
 
+def drawn_scores(rehearse: Rehearse, flops: float, rng: np.random.Generator) -> dict[str, float]:
+    """Each metric's score of a task of ``flops`` compute: its planted law there times exp(s) (nMSE: exp(2 s)),
+    s = |N(0, near_sd)|, plus Exp(far_mean) for a task outside the ``near_share``."""
+    spread = abs(rng.normal(0.0, rehearse.near_sd))
+    if rng.random() >= rehearse.near_share:
+        spread += rng.exponential(rehearse.far_mean)
+    return {metric: float(planted_law(rehearse, metric).predict(flops)) * math.exp(spread * (1 + (metric == "nmse")))
+            for metric in METRICS}
+
+
 def rehearsed_outcome(rehearse: Rehearse, task_id: str, sizes: Mapping[str, Any]) -> dict[str, Any]:
     """The outcome of one task of a rehearsal: its scores drawn at its compute (``sizes['flops']``), the study's
     training length (``sizes['steps']``), nothing trained."""
     rng = np.random.default_rng(stable_seed("rehearsal", "outcome", task_id))
-    spread = abs(rng.normal(0.0, rehearse.near_sd))
-    if rng.random() >= rehearse.near_share:
-        spread += rng.exponential(rehearse.far_mean)
-    flops = float(sizes["flops"])
-    scores = {metric: float(planted_law(rehearse, metric).predict(flops)) * math.exp(spread * (1 + (metric == "nmse")))
-              for metric in METRICS}
+    scores = drawn_scores(rehearse, float(sizes["flops"]), rng)
     return {**scores, "steps": int(sizes["steps"]), "final_loss": scores["nmse"], "train_seconds": 0.0,
             "finite": True, "compiled": False, "rehearsal": True}
 
