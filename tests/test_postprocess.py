@@ -301,6 +301,7 @@ def test_merge_compacts_the_rows_and_status_launch_resubmit_and_budgets_still_fi
     ("fit", "nsl.max_breaks=10", "nsl.max_breaks=10 must be an integer from 0 to 9 (nsl.positions)"),
     ("fit", "nsl.K=x", "nsl.K='x' must be an integer from 2 up"),
     ("fit", "nsl.bootstrap=-5", "nsl.bootstrap=-5 must be a non-negative integer"),
+    ("fit", "nsl.bootstrap_draw=twice", "nsl.bootstrap_draw='twice' is unknown; choose one of: half, replacement"),
     ("predict", "nsl.predict.decades=0", "nsl.predict.decades=0 must be a finite number in (0, inf)"),
     ("predict", "target=inf", "target=inf must be a finite number in (0, inf)"),
     ("predict", "nsl.bootstrap_level=2", "nsl.bootstrap_level=2 must be a finite number in (0, 1)"),
