@@ -8,12 +8,12 @@ value, since the replicates are biased: a resample's envelope is sparser than th
 it, lies higher; ``percentile`` ones are the quantiles themselves.
 
 A replicate holds half of the outcomes, drawn without replacement, by default (``nsl.bootstrap_draw: half``;
-``replacement``: as many drawn with replacement, about 63% of them distinct). The envelope lies above the law it
-bounds by steps that shrink as 1 / n with n outcomes, and the fit with them; half as many outcomes double that
-excess, so the half-samples' excess over the fit equals the fit's over the law and the basic interval takes all
-of it away (a with-replacement resample takes away 1 / 0.63 - 1 = 58% of it); for a quantity that varies as
-1 / sqrt(n), the half-samples' spread about the fit is the fit's about the truth (variance 1 / m - 1 / n = 1 / n
-at m = n / 2). docs/fits.md measures both draws on planted laws.
+``replacement``: as many drawn with replacement, about 63% of them distinct). Where the best of n outcomes lie
+on the law the envelope bounds, the envelope lies above it by steps that shrink as 1 / n, and the fit with them;
+half as many outcomes double that excess, so the half-samples' excess over the fit equals the fit's over the law
+and the basic interval takes all of it away (a with-replacement resample takes away 1 / 0.63 - 1 = 58% of it);
+for a quantity that varies as 1 / sqrt(n), the half-samples' spread about the fit is the fit's about the truth
+(variance 1 / m - 1 / n = 1 / n at m = n / 2). docs/fits.md measures both draws on planted laws.
 """
 
 from collections.abc import Mapping
