@@ -122,7 +122,8 @@ def test_fit_writes_one_row_per_nsl_and_reports_excluded_outcomes(sweep_copy):
     assert card["law"]["b"] == published["b"] and card["margin"]["M"] == published["margin"]
     assert len(card["envelope"]["r"]) == len(card["envelope"]["e"]) == 100  # nsl.K
     assert card["b_why"].startswith(f"b={published['b']} of 0..2: ") and card["published"]["b"] == 2
-    assert card["intervals"]["resamples"] == 20 and card["intervals"]["last_slope"]["lo"] <= card["law"]["slopes"][-1]
+    assert card["intervals"]["resamples"] == 20 and card["intervals"]["draw"] == "half"
+    assert card["intervals"]["last_slope"]["lo"] <= card["law"]["slopes"][-1]
     assert card["backtest"]["M_above"] == published["backtest_margin"]
     hours = card["core_hours"]
     assert hours["tasks"] == 24 and hours["predicted"] > 0 and hours["measured"] > 0

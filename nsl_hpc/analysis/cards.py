@@ -80,7 +80,8 @@ def law_card(row: Mapping[str, Any], context: Mapping[str, Any], nsl: Nsl) -> di
         "margin": {"M": row["margin"], "on_fitted_envelope": row["fit_margin"],
                    "by_b": {int(b): m for b, m in json.loads(row["margins_by_b"]).items()}},
         "b_why": why_b(row, nsl),
-        "intervals": ({"resamples": row["bootstrap"], "level": nsl.bootstrap_level, "kind": nsl.bootstrap_interval,
+        "intervals": ({"resamples": row["bootstrap"], "draw": nsl.bootstrap_draw, "level": nsl.bootstrap_level,
+                       "kind": nsl.bootstrap_interval,
                        **{name: {"value": row.get(name), "lo": row.get(f"{name}_lo"), "hi": row.get(f"{name}_hi")}
                           for name in names}} if row.get("bootstrap") else None),
         "backtest": {"fitted_below": row["backtest_cut"], "M_above": row["backtest_margin"],
