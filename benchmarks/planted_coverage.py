@@ -16,6 +16,7 @@ last slope, whose L at the largest compute and whose both lie inside their inter
 import argparse
 import shlex
 import time
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
@@ -54,23 +55,25 @@ def redrawn_laws(sweep_dir: Path, replicates: int, near_sd: float | None) -> lis
     return laws
 
 
-def inside(rows: list[dict]) -> str:
+def inside(rows: Sequence[dict]) -> str:
     """How many fitted laws hold the planted one inside both intervals, of how many."""
-    both = sum(row.get("planted_recovered", False) for row in rows)
+    both = sum(row["planted_recovered"] for row in rows)
     return f"{both} of {len(rows)} ({both / len(rows):.0%})"
 
 
 def summary(rows: list[dict], sweeps: list[str]) -> str:
-    """A table row's cells: slope, L and both inside (all, then per sweep), median offset and L interval width."""
-    fitted = [row for row in rows if row["error"] is None]
+    """A table row's cells: slope, L and both inside (all, then per sweep), median offset and L interval width,
+    each over the laws that could be fitted."""
+    fitted, sweeps = zip(*[(row, sweep) for row, sweep in zip(rows, sweeps, strict=True) if row["error"] is None],
+                         strict=True)
     slope = [row["last_slope_lo"] <= row["planted_last_slope"] <= row["last_slope_hi"] for row in fitted]
     value = [row["L_at_max_lo"] <= row["planted_L_at_max"] <= row["L_at_max_hi"] for row in fitted]
     off = np.median([abs(row["L_at_max"] / row["planted_L_at_max"] - 1) for row in fitted])
     width = np.median([row["L_at_max_hi"] / row["L_at_max_lo"] - 1 for row in fitted])
     n = len(fitted)
-    per_sweep = " | ".join(inside([row for row, sweep in zip(rows, sweeps, strict=True) if sweep == name])
+    per_sweep = " | ".join(inside([row for row, sweep in zip(fitted, sweeps, strict=True) if sweep == name])
                            for name in dict.fromkeys(sweeps))
-    return (f"{sum(slope)} of {n} ({sum(slope) / n:.0%}) | {sum(value)} ({sum(value) / n:.0%}) | {inside(rows)} | "
+    return (f"{sum(slope)} of {n} ({sum(slope) / n:.0%}) | {sum(value)} ({sum(value) / n:.0%}) | {inside(fitted)} | "
             f"{per_sweep} | {off:.2%} | {width:.2%}")
 
 
